@@ -1,0 +1,50 @@
+#include "engine/fresnel.h"
+
+#include <algorithm>
+#include <cmath>
+
+namespace beampack {
+
+Reflectances reflectance_components(double cos_i, double n_hat, double mu_hat) {
+  cos_i = std::clamp(cos_i, 0.0, 1.0);
+  const double sin2 = 1.0 - cos_i * cos_i;
+  const double n2 = n_hat * n_hat;
+  if (sin2 >= n2) return {1.0, 1.0};  // total reflection (2.23)-(2.24)
+  const double root = std::sqrt(n2 - sin2);  // n_hat cos(theta_a)
+  const double a = n2 / mu_hat * cos_i;
+  const double r_par = (a - root) / (a + root);
+  const double b = root / mu_hat;
+  const double r_perp = (cos_i - b) / (cos_i + b);
+  return {r_par * r_par, r_perp * r_perp};
+}
+
+double reflectance(double cos_i, double n_hat, double mu_hat) {
+  const Reflectances r = reflectance_components(cos_i, n_hat, mu_hat);
+  return 0.5 * (r.parallel + r.perpendicular);
+}
+
+double reflectance_polarised(double cos_i, double n_hat, double mu_hat, double gamma) {
+  const Reflectances r = reflectance_components(cos_i, n_hat, mu_hat);
+  const double c = std::cos(gamma), s = std::sin(gamma);
+  return r.parallel * c * c + r.perpendicular * s * s;
+}
+
+Reflectances reflectance_components(double cos_i, std::complex<double> n_hat, double mu_hat) {
+  using C = std::complex<double>;
+  cos_i = std::clamp(cos_i, 0.0, 1.0);
+  const double sin2 = 1.0 - cos_i * cos_i;
+  const C n2 = n_hat * n_hat;
+  const C root = std::sqrt(n2 - sin2);  // principal branch: Im >= 0, the decaying wave
+  const C a = n2 / mu_hat * cos_i;
+  const C b = root / mu_hat;
+  const double r_par = std::norm((a - root) / (a + root));
+  const double r_perp = std::norm((cos_i - b) / (cos_i + b));
+  return {std::min(r_par, 1.0), std::min(r_perp, 1.0)};
+}
+
+double reflectance(double cos_i, std::complex<double> n_hat, double mu_hat) {
+  const Reflectances r = reflectance_components(cos_i, n_hat, mu_hat);
+  return 0.5 * (r.parallel + r.perpendicular);
+}
+
+}  // namespace beampack

@@ -1,0 +1,20 @@
+#pragma once
+// Errors a user can fix: bad input (exit code 2). Messages name the key, the value and the limit.
+#include <stdexcept>
+#include <string>
+
+namespace beampack {
+
+class InputError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+// A run that started from valid input and could not finish (exit code 1): a solver that does not
+// converge, a NaN detected mid-run, ...
+class RunError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+}  // namespace beampack

@@ -1,0 +1,40 @@
+#pragma once
+// Packings: where the spheres are. Every generator is sequential and seeded with beampack::Rng,
+// so the same seed gives the same packing on every machine and thread count.
+#include <cstdint>
+#include <string>
+
+#include "geometry/particles.h"
+
+namespace beampack {
+
+struct PackingSpec {
+  std::string source = "random-overlap";  // random-overlap | rsa | lattice | file
+  std::size_t count = 1000;               // N_p
+  double sample_size = 1e-3;              // D, edge of the cube [0, D]^3
+  double radius_ratio = 0.325;            // L of the paper: R = L (D^3 / N_p)^(1/3)
+  double solid_fraction = 0.3;            // rsa target: N (4/3) pi R^3 / D^3
+  std::uint64_t seed = 1;
+  std::string file;                       // x y z r columns (source = file)
+  double file_radius = 0.0;               // radius for x y z files; 0: the file must give r
+  double initial_temperature = 300.0;
+};
+
+Particles make_packing(const PackingSpec& spec);
+
+// Paper, section 5: centres uniform in [0, D]^3, equal radii R = L (D^3 / N)^(1/3), overlaps allowed.
+Particles random_overlap_packing(std::size_t count, double size, double radius_ratio,
+                                 std::uint64_t seed);
+// Random sequential addition of non-overlapping equal spheres inside [0, D]^3 to the target solid
+// fraction; InputError when the fraction is not reached in bounded work (RSA jams near 0.38).
+Particles rsa_packing(std::size_t count, double size, double solid_fraction, std::uint64_t seed);
+// Simple cubic lattice of count = n^3 spheres, spacing a = D / n, centres at (k + 1/2) a,
+// radius L a (with the paper's R / V^(1/3) = L, V = a^3).
+Particles lattice_packing(std::size_t count, double size, double radius_ratio);
+
+// Columns x y z r (or x y z with default_radius > 0); '#' comments, blank lines and one header
+// line allowed. InputError with "path:line:" for missing columns, non-numbers, NaN/inf, r <= 0.
+Particles read_packing_file(const std::string& path, double default_radius = 0.0);
+void write_packing_file(const std::string& path, const Particles& particles);
+
+}  // namespace beampack
