@@ -7,10 +7,12 @@ namespace beampack {
 
 Reflectances reflectance_components(double cos_i, double n_hat, double mu_hat) {
   cos_i = std::clamp(cos_i, 0.0, 1.0);
-  const double sin2 = 1.0 - cos_i * cos_i;
   const double n2 = n_hat * n_hat;
-  if (sin2 >= n2) return {1.0, 1.0};  // total reflection (2.23)-(2.24)
-  const double root = std::sqrt(n2 - sin2);  // n_hat cos(theta_a)
+  // n^2 - sin^2 written as (n^2 - 1) + cos^2: exact for n = 1 and free of the 1 - cos^2
+  // cancellation near grazing incidence.
+  const double n2_minus_sin2 = (n2 - 1.0) + cos_i * cos_i;
+  if (n2_minus_sin2 <= 0.0) return {1.0, 1.0};  // total reflection (2.23)-(2.24)
+  const double root = std::sqrt(n2_minus_sin2);  // n_hat cos(theta_a)
   const double a = n2 / mu_hat * cos_i;
   const double r_par = (a - root) / (a + root);
   const double b = root / mu_hat;
@@ -32,9 +34,8 @@ double reflectance_polarised(double cos_i, double n_hat, double mu_hat, double g
 Reflectances reflectance_components(double cos_i, std::complex<double> n_hat, double mu_hat) {
   using C = std::complex<double>;
   cos_i = std::clamp(cos_i, 0.0, 1.0);
-  const double sin2 = 1.0 - cos_i * cos_i;
   const C n2 = n_hat * n_hat;
-  const C root = std::sqrt(n2 - sin2);  // principal branch: Im >= 0, the decaying wave
+  const C root = std::sqrt((n2 - 1.0) + cos_i * cos_i);  // principal branch: Im >= 0, the decaying wave
   const C a = n2 / mu_hat * cos_i;
   const C b = root / mu_hat;
   const double r_par = std::norm((a - root) / (a + root));

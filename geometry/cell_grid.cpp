@@ -47,9 +47,16 @@ CellGrid::CellGrid(const Particles& particles, double cell_size) {
   }
   for (std::size_t k = 0; k < cells; ++k) start_[k + 1] += start_[k];
   ids_.resize(start_[cells]);
+  centres_.resize(start_[cells]);
+  radii_.resize(start_[cells]);
   std::vector<std::uint32_t> fill(start_.begin(), start_.end() - 1);
-  for (std::size_t i = 0; i < particles.size(); ++i)
-    if (particles.alive[i]) ids_[fill[cell_id[i]]++] = static_cast<std::uint32_t>(i);
+  for (std::size_t i = 0; i < particles.size(); ++i) {
+    if (!particles.alive[i]) continue;
+    const std::uint32_t slot = fill[cell_id[i]]++;
+    ids_[slot] = static_cast<std::uint32_t>(i);
+    centres_[slot] = particles.centre[i];
+    radii_[slot] = particles.radius[i];
+  }
 }
 
 CellGrid::CellGrid(const Box& centre_box, double cell_size, std::size_t expected_points) {

@@ -1,6 +1,7 @@
 #include "geometry/contact.h"
 
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_sort.h>
 
 #include <algorithm>
 #include <cmath>
@@ -18,49 +19,59 @@ ContactGeometry contact_geometry(double d, double ri, double rj) {
     return {std::numbers::pi * r_small * r_small,
             std::max(d, kMinContactDistanceFraction * r_small)};
   }
-  const double sum = ri + rj, diff = ri - rj;
-  const double a2 = (sum - d) * (sum + d) * (d - diff) * (d + diff) / (4.0 * d * d);
+  // Each factor is formed so that it is symmetric in (ri, rj) and cannot underflow for tiny d.
+  const double sum = ri + rj, diff = r_large - r_small;
+  const double a2 = 0.25 * (sum - d) * (sum + d) * ((d - diff) / d) * ((d + diff) / d);
   return {std::numbers::pi * std::max(a2, 0.0), std::max(d, kMinContactDistanceFraction * r_small)};
 }
 
 namespace {
 
-// Pairs (i, j > i) of particle i, in the order the 27 cells are visited, then sorted by j.
-void contacts_of(const Particles& p, const CellGrid& grid, std::uint32_t i,
-                 std::vector<Contact>& out) {
-  const std::size_t first = out.size();
-  grid.for_each_neighbour(p.centre[i], [&](std::uint32_t j) {
-    if (j <= i) return;
-    const double d = (p.centre[j] - p.centre[i]).norm();
-    if (!(d < p.radius[i] + p.radius[j])) return;
-    const ContactGeometry g = contact_geometry(d, p.radius[i], p.radius[j]);
-    out.push_back({i, j, g.area, g.distance});
-  });
-  std::sort(out.begin() + first, out.end(),
-            [](const Contact& a, const Contact& b) { return a.j < b.j; });
+// Overlapping pairs between the particles of `cell` and those of its neighbour cells, each pair
+// once (from the slot with the smaller particle id).
+void contacts_of_cell(const CellGrid& grid, std::size_t cell, std::vector<Contact>& out) {
+  for (std::uint32_t a = grid.begin(cell); a < grid.end(cell); ++a) {
+    const std::uint32_t i = grid.id(a);
+    const Vec3& ci = grid.centre(a);
+    const double ri = grid.radius(a);
+    grid.for_each_neighbour_cell(cell, [&](std::size_t other) {
+      for (std::uint32_t b = grid.begin(other); b < grid.end(other); ++b) {
+        const std::uint32_t j = grid.id(b);
+        if (j <= i) continue;
+        const double rj = grid.radius(b);
+        const double d2 = (grid.centre(b) - ci).squaredNorm();
+        if (!(d2 < (ri + rj) * (ri + rj))) continue;
+        const ContactGeometry g = contact_geometry(std::sqrt(d2), ri, rj);
+        out.push_back({i, j, g.area, g.distance});
+      }
+    });
+  }
 }
 
 }  // namespace
 
 std::vector<Contact> find_contacts(const Particles& particles) {
-  const std::size_t n = particles.size();
   if (particles.alive_count() < 2) return {};
   const CellGrid grid(particles, 2.0 * particles.max_radius());
 
-  // Fixed-size blocks, concatenated in block order: the result does not depend on threads.
-  constexpr std::size_t kBlock = 4096;
-  const std::size_t blocks = (n + kBlock - 1) / kBlock;
+  // Fixed-size blocks of cells, then one sort on the unique keys (i, j): the result does not
+  // depend on the thread count or on the scheduling.
+  constexpr std::size_t kBlock = 1024;
+  const std::size_t blocks = (grid.cell_count() + kBlock - 1) / kBlock;
   std::vector<std::vector<Contact>> per_block(blocks);
   tbb::parallel_for(std::size_t{0}, blocks, [&](std::size_t b) {
-    auto& out = per_block[b];
-    for (std::size_t i = b * kBlock; i < std::min(n, (b + 1) * kBlock); ++i)
-      if (particles.alive[i]) contacts_of(particles, grid, static_cast<std::uint32_t>(i), out);
+    const std::size_t last = std::min(grid.cell_count(), (b + 1) * kBlock);
+    for (std::size_t cell = b * kBlock; cell < last; ++cell)
+      contacts_of_cell(grid, cell, per_block[b]);
   });
   std::size_t total = 0;
   for (const auto& v : per_block) total += v.size();
   std::vector<Contact> contacts;
   contacts.reserve(total);
   for (const auto& v : per_block) contacts.insert(contacts.end(), v.begin(), v.end());
+  tbb::parallel_sort(contacts.begin(), contacts.end(), [](const Contact& a, const Contact& b) {
+    return a.i != b.i ? a.i < b.i : a.j < b.j;
+  });
   return contacts;
 }
 

@@ -19,7 +19,9 @@ struct ContactGeometry {
 // Contact area and conduction distance of spheres with radii ri, rj whose centres are d apart.
 // Regular overlap: A = pi (Ri^2 - Li^2) with Li of (3.9), evaluated in the product form
 //   a^2 = ((Ri+Rj)^2 - d^2) (d^2 - (Ri-Rj)^2) / (4 d^2)
-// which is the same quantity without the cancellation of Ri^2 - Li^2.
+// which is the same quantity without the cancellation of Ri^2 - Li^2. The lens shrinks to a point
+// as the smaller sphere approaches internal tangency, then the nested rule below takes over: the
+// area jumps to pi min(R)^2 there (MODEL.md's rule; documented in the README).
 // One sphere inside the other (d <= |Ri - Rj|, coincident centres included): the smaller
 // sphere's full cross-section pi min(R)^2, distance floored at kMinContactDistanceFraction min(R).
 // Symmetric in i and j; never NaN for finite non-negative inputs.

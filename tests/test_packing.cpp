@@ -1,0 +1,181 @@
+// Packings: counts, radii, bounds, seeds, non-overlap, and the x y z r file format with its errors.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <numbers>
+
+#include "geometry/contact.h"
+#include "geometry/error.h"
+#include "geometry/packing.h"
+
+using namespace beampack;
+namespace fs = std::filesystem;
+
+namespace {
+
+bool same_packing(const Particles& a, const Particles& b) {
+  return a.centre == b.centre && a.radius == b.radius;
+}
+
+std::string temp_file(const std::string& name, const std::string& text) {
+  const fs::path path = fs::temp_directory_path() / ("beampack_test_" + name);
+  std::ofstream(path) << text;
+  return path.string();
+}
+
+// The InputError message of reading `text`, or "" when it parses.
+std::string read_error(const std::string& name, const std::string& text, double radius = 0) {
+  try {
+    read_packing_file(temp_file(name, text), radius);
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+}  // namespace
+
+TEST(Packing, RandomOverlapFollowsThePaper) {
+  const double D = 1e-3, L = 0.325;
+  const Particles p = random_overlap_packing(1000, D, L, 1);
+  ASSERT_EQ(p.size(), 1000u);
+  const double R = L * std::cbrt(D * D * D / 1000);  // R = L (D^3/N)^(1/3)
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    ASSERT_DOUBLE_EQ(p.radius[i], R);
+    ASSERT_TRUE((p.centre[i].array() >= 0).all() && (p.centre[i].array() <= D).all());
+    ASSERT_EQ(p.phase[i], Phase::solid);
+    ASSERT_TRUE(p.alive[i]);
+  }
+  // Uniform centres: the mean is near D/2 (standard error D/sqrt(12 N) ~ 9e-6).
+  Vec3 mean = Vec3::Zero();
+  for (const Vec3& c : p.centre) mean += c / 1000.0;
+  EXPECT_NEAR(mean.x(), D / 2, 5 * D / std::sqrt(12.0 * 1000));
+}
+
+TEST(Packing, SameSeedSamePackingOtherSeedOther) {
+  EXPECT_TRUE(same_packing(random_overlap_packing(500, 1, 0.3, 7), random_overlap_packing(500, 1, 0.3, 7)));
+  EXPECT_FALSE(same_packing(random_overlap_packing(500, 1, 0.3, 7), random_overlap_packing(500, 1, 0.3, 8)));
+  EXPECT_TRUE(same_packing(rsa_packing(300, 1, 0.2, 3), rsa_packing(300, 1, 0.2, 3)));
+}
+
+TEST(Packing, SeedGivesTheSameNumbersOnEveryMachine) {
+  // Pinned values of xoshiro256** seeded by splitmix64: a change of generator or of the order of
+  // draws, or a platform-dependent distribution, shows up here.
+  const Particles p = random_overlap_packing(2, 1.0, 0.3, 1);
+  EXPECT_EQ(p.centre[0].x(), 0x1.67e55eda1f8e2p-1);
+  EXPECT_EQ(p.centre[1].z(), 0x1.260918937fedp-3);
+}
+
+TEST(Packing, RsaHasNoOverlapsAndReachesTheFraction) {
+  const double D = 1.0, phi = 0.3;
+  const Particles p = rsa_packing(2000, D, phi, 11);
+  ASSERT_EQ(p.size(), 2000u);
+  EXPECT_TRUE(find_contacts(p).empty());
+  double volume = 0;
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    volume += p.volume(i);
+    const double r = p.radius[i];
+    ASSERT_TRUE((p.centre[i].array() >= r).all() && (p.centre[i].array() <= D - r).all());
+  }
+  EXPECT_NEAR(volume / (D * D * D), phi, 1e-12);
+}
+
+TEST(Packing, RsaBeyondJammingIsAClearErrorInBoundedWork) {
+  try {
+    rsa_packing(3000, 1.0, 0.45, 1);
+    FAIL() << "rsa reached 0.45";
+  } catch (const InputError& e) {
+    const std::string m = e.what();
+    EXPECT_NE(m.find("packing.solid_fraction = 0.45"), std::string::npos) << m;
+    EXPECT_NE(m.find("jams"), std::string::npos) << m;
+  }
+  EXPECT_THROW(rsa_packing(10, 1.0, 0.7, 1), InputError);
+}
+
+TEST(Packing, LatticeIsSimpleCubic) {
+  const Particles p = lattice_packing(27, 3.0, 0.5);
+  ASSERT_EQ(p.size(), 27u);
+  EXPECT_EQ(p.centre[0], Vec3(0.5, 0.5, 0.5));
+  EXPECT_EQ(p.centre[26], Vec3(2.5, 2.5, 2.5));
+  EXPECT_DOUBLE_EQ(p.radius[0], 0.5);
+  EXPECT_TRUE(find_contacts(p).empty());  // radius a/2: neighbours just touch, no overlap
+  EXPECT_EQ(find_contacts(lattice_packing(27, 3.0, 0.6)).size(), 54u);  // 3 * 3 * 3 * 2 bonds
+  EXPECT_THROW(lattice_packing(26, 3.0, 0.5), InputError);
+}
+
+TEST(Packing, BadParametersNameTheKey) {
+  auto message = [](auto&& make) {
+    try {
+      make();
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  EXPECT_NE(message([] { random_overlap_packing(10, -1, 0.3, 1); }).find("sample.size"), std::string::npos);
+  EXPECT_NE(message([] { random_overlap_packing(10, 1, NAN, 1); }).find("packing.radius_ratio"), std::string::npos);
+  PackingSpec spec;
+  spec.source = "hexagonal";
+  EXPECT_NE(message([&] { make_packing(spec); }).find("packing.source"), std::string::npos);
+}
+
+TEST(PackingFile, RoundTripIsExact) {
+  const Particles p = random_overlap_packing(1000, 1e-3, 0.325, 5);
+  const std::string path = (fs::temp_directory_path() / "beampack_roundtrip.xyzr").string();
+  write_packing_file(path, p);
+  EXPECT_TRUE(same_packing(read_packing_file(path), p));
+}
+
+TEST(PackingFile, HeaderCommentsAndBlankLinesAreAllowed) {
+  const Particles p = read_packing_file(
+      temp_file("header", "x y z r\n# a comment\n\n1 2 3 0.5  # trailing\n4,5,6,0.25\n"));
+  ASSERT_EQ(p.size(), 2u);
+  EXPECT_EQ(p.centre[1], Vec3(4, 5, 6));
+  EXPECT_EQ(p.radius[1], 0.25);
+}
+
+TEST(PackingFile, EachErrorNamesItsLine) {
+  EXPECT_NE(read_error("cols", "1 2 3 1\n1 2 3\n").find(":2: expected 4 columns"), std::string::npos);
+  EXPECT_NE(read_error("nan_text", "# c\n1 2 abc 1\n").find(":2: column 3 'abc' is not a number"),
+            std::string::npos);
+  EXPECT_NE(read_error("neg", "1 2 3 1\n\n1 2 3 -1\n").find(":3: radius r = -1: must be > 0"),
+            std::string::npos);
+  EXPECT_NE(read_error("zero", "1 2 3 0\n").find(":1: radius r = 0"), std::string::npos);
+  EXPECT_NE(read_error("nan", "1 nan 3 1\n").find(":1: column 2 'nan' is not finite"), std::string::npos);
+  EXPECT_NE(read_error("inf", "1 2 3 1\ninf 2 3 1\n").find(":2: column 1 'inf' is not finite"),
+            std::string::npos);
+  EXPECT_NE(read_error("extra", "1 2 3 1 5\n").find(":1: expected 4 columns"), std::string::npos);
+  EXPECT_NE(read_error("header_late", "1 2 3 1\nx y z r\n").find(":2: column 1 'x' is not a number"),
+            std::string::npos);
+  try {
+    read_packing_file("/nonexistent/beampack.xyz");
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("packing.file"), std::string::npos);
+  }
+}
+
+TEST(PackingFile, ReadsTheDemBedWithItsRadius) {
+  const std::string path = std::string(BEAMPACK_DATA_DIR) + "/dem_bed_28367_r0.01.xyz";
+  if (!fs::exists(path)) GTEST_SKIP() << "shared data not present at " << path;
+  const Particles p = read_packing_file(path, 0.01);
+  ASSERT_EQ(p.size(), 28367u);
+  // Centres in x, y within [-0.5, 0.5], z in [0, 0.2]; the lowest spheres press slightly into the
+  // floor (centre z ~ 0.0093 < r), as soft-sphere DEM leaves them.
+  Box centres;
+  for (const Vec3& c : p.centre) centres.grow(c, 0.0);
+  EXPECT_GT(centres.lower.z(), 0.009);
+  EXPECT_LT(centres.lower.z(), 0.01);
+  EXPECT_LE(centres.upper.z(), 0.2);
+  EXPECT_GE(centres.lower.x(), -0.5);
+  EXPECT_LE(centres.upper.x(), 0.5);
+  // Soft-sphere DEM leaves slight overlaps: closest centres 0.0193 m apart, radius 0.01 m.
+  const auto contacts = find_contacts(p);
+  EXPECT_GT(contacts.size(), p.size());
+  // Without a default radius the three-column file is an error on line 1.
+  EXPECT_NE(read_error("dem3", "0.1 0.2 0.3\n").find(":1: expected 4 columns (x y z r), found 3"),
+            std::string::npos);
+}
