@@ -1,0 +1,240 @@
+#include "tools/params.h"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include "geometry/error.h"
+
+namespace beampack::tools {
+namespace {
+
+std::vector<std::string> split_key(const std::string& key) {
+  std::vector<std::string> parts;
+  std::stringstream s(key);
+  for (std::string part; std::getline(s, part, '.');) parts.push_back(part);
+  return parts;
+}
+
+void set_path(toml::table& root, const std::string& key, const toml::node& value) {
+  const auto parts = split_key(key);
+  toml::table* t = &root;
+  for (std::size_t k = 0; k + 1 < parts.size(); ++k) {
+    toml::node* child = t->get(parts[k]);
+    if (!child || !child->is_table()) t->insert_or_assign(parts[k], toml::table{});
+    t = t->get(parts[k])->as_table();
+  }
+  value.visit([&](auto&& concrete) { t->insert_or_assign(parts.back(), concrete); });
+}
+
+std::string repr(const toml::node& node) {
+  std::ostringstream s;
+  node.visit([&](auto&& concrete) { s << concrete; });
+  return s.str();
+}
+
+std::string fmt(double v) {
+  std::ostringstream s;
+  s << v;
+  return s.str();
+}
+
+std::size_t edit_distance(const std::string& a, const std::string& b) {
+  std::vector<std::size_t> row(b.size() + 1);
+  for (std::size_t j = 0; j <= b.size(); ++j) row[j] = j;
+  for (std::size_t i = 1; i <= a.size(); ++i) {
+    std::size_t diag = row[0];
+    row[0] = i;
+    for (std::size_t j = 1; j <= b.size(); ++j) {
+      const std::size_t up = row[j];
+      row[j] = std::min({row[j] + 1, row[j - 1] + 1, diag + (a[i - 1] != b[j - 1])});
+      diag = up;
+    }
+  }
+  return row[b.size()];
+}
+
+}  // namespace
+
+std::vector<std::string> leaf_keys(const toml::table& table, const std::string& prefix) {
+  std::vector<std::string> keys;
+  for (const auto& [k, node] : table) {
+    const std::string key = prefix.empty() ? std::string(k.str()) : prefix + "." + std::string(k.str());
+    if (const toml::table* sub = node.as_table()) {
+      const auto inner = leaf_keys(*sub, key);
+      keys.insert(keys.end(), inner.begin(), inner.end());
+    } else {
+      keys.push_back(key);
+    }
+  }
+  return keys;
+}
+
+namespace {
+
+void merge_layer(toml::table& merged, std::map<std::string, std::string>& origin,
+                 const toml::table& layer, const std::string& source, bool with_lines) {
+  for (const std::string& key : leaf_keys(layer)) {
+    const toml::node& node = *layer.at_path(key).node();
+    set_path(merged, key, node);
+    origin[key] = with_lines ? source + ":" + std::to_string(node.source().begin.line) : source;
+  }
+}
+
+}  // namespace
+
+void Params::merge_toml_text(const std::string& text, const std::string& source) {
+  try {
+    merge_layer(merged_, origin_, toml::parse(text, source), source, false);
+  } catch (const toml::parse_error& e) {
+    throw InputError(source + ":" + std::to_string(e.source().begin.line) + ": " +
+                     std::string(e.description()));
+  }
+}
+
+void Params::merge_toml_file(const std::string& path) {
+  toml::table layer;
+  try {
+    layer = toml::parse_file(path);
+  } catch (const toml::parse_error& e) {
+    const bool unreadable = e.source().begin.line == 0;
+    throw InputError(path + (unreadable ? "" : ":" + std::to_string(e.source().begin.line)) +
+                     ": " + std::string(e.description()));
+  }
+  merge_layer(merged_, origin_, layer, path, true);
+}
+
+void Params::merge_assignment(const std::string& key_equals_value) {
+  const auto eq = key_equals_value.find('=');
+  if (eq == std::string::npos || eq == 0)
+    throw InputError("--set " + key_equals_value + ": expected KEY=VALUE");
+  const std::string key = key_equals_value.substr(0, eq);
+  const std::string value = key_equals_value.substr(eq + 1);
+  toml::table parsed;
+  try {
+    parsed = toml::parse("v = " + value);
+  } catch (const toml::parse_error&) {
+    parsed = toml::table{{"v", value}};  // a bare word: a string
+  }
+  set_path(merged_, key, *parsed.get("v"));
+  origin_[key] = "--set " + key_equals_value;
+}
+
+const toml::node* Params::find(const std::string& key) const {
+  return merged_.at_path(key).node();
+}
+
+bool Params::has(const std::string& key) const { return find(key) != nullptr; }
+
+std::string Params::where(const std::string& key) const {
+  const auto it = origin_.find(key);
+  return it == origin_.end() ? "" : it->second + ": ";
+}
+
+void Params::record(const std::string& key, toml::node&& value) {
+  used_.insert(key);
+  set_path(resolved_, key, value);
+}
+
+void Params::fail(const std::string& key, const std::string& value, const std::string& limit) const {
+  throw InputError(where(key) + "`" + key + "` = " + value + ": " + limit);
+}
+
+double Params::number(const std::string& key, double fallback, double lo, double hi, bool lo_open) {
+  double v = fallback;
+  if (const toml::node* node = find(key)) {
+    if (node->is_integer())
+      v = double(node->as_integer()->get());
+    else if (node->is_floating_point())
+      v = node->as_floating_point()->get();
+    else
+      fail(key, repr(*node), "must be a number");
+    if (!std::isfinite(v)) fail(key, repr(*node), "must be finite");
+  }
+  const bool below = lo_open ? !(v > lo) : !(v >= lo);
+  if (below || !(v <= hi)) {
+    std::string range = std::string(lo_open ? "must be > " : "must be >= ") + fmt(lo);
+    if (hi < std::numeric_limits<double>::max()) range += " and <= " + fmt(hi);
+    fail(key, fmt(v), range);
+  }
+  record(key, toml::value<double>(v));
+  return v;
+}
+
+std::int64_t Params::integer(const std::string& key, std::int64_t fallback, std::int64_t lo,
+                             std::int64_t hi) {
+  std::int64_t v = fallback;
+  if (const toml::node* node = find(key)) {
+    if (!node->is_integer()) fail(key, repr(*node), "must be an integer");
+    v = node->as_integer()->get();
+  }
+  if (v < lo || v > hi)
+    fail(key, std::to_string(v), "must be >= " + std::to_string(lo) + " and <= " + std::to_string(hi));
+  record(key, toml::value<std::int64_t>(v));
+  return v;
+}
+
+std::string Params::text(const std::string& key, const std::string& fallback) {
+  std::string v = fallback;
+  if (const toml::node* node = find(key)) {
+    if (!node->is_string()) fail(key, repr(*node), "must be a string");
+    v = node->as_string()->get();
+  }
+  record(key, toml::value<std::string>(v));
+  return v;
+}
+
+std::string Params::choice(const std::string& key, const std::string& fallback,
+                           std::initializer_list<const char*> allowed) {
+  const std::string v = text(key, fallback);
+  for (const char* a : allowed)
+    if (v == a) return v;
+  std::string list;
+  for (const char* a : allowed) list += (list.empty() ? "" : ", ") + std::string(a);
+  fail(key, "\"" + v + "\"", "must be one of " + list);
+}
+
+bool Params::flag(const std::string& key, bool fallback) {
+  bool v = fallback;
+  if (const toml::node* node = find(key)) {
+    if (!node->is_boolean()) fail(key, repr(*node), "must be true or false");
+    v = node->as_boolean()->get();
+  }
+  record(key, toml::value<bool>(v));
+  return v;
+}
+
+std::string Params::number_or_word(const std::string& key, double& value, double lo, double hi,
+                                   std::initializer_list<const char*> words,
+                                   const std::string& fallback_word) {
+  const toml::node* node = find(key);
+  if (!node || node->is_string()) {
+    const std::string w = node ? std::string(node->as_string()->get()) : fallback_word;
+    for (const char* a : words)
+      if (w == a) {
+        record(key, toml::value<std::string>(w));
+        return w;
+      }
+    std::string list;
+    for (const char* a : words) list += std::string(" or \"") + a + "\"";
+    fail(key, "\"" + w + "\"", "must be a number in seconds" + list);
+  }
+  value = number(key, 0.0, lo, hi, true);
+  return "";
+}
+
+void Params::check_all_used() const {
+  for (const std::string& key : leaf_keys(merged_)) {
+    if (used_.count(key)) continue;
+    std::string best;
+    std::size_t best_d = 4;
+    for (const std::string& known : used_) {
+      const std::size_t d = edit_distance(key, known);
+      if (d < best_d) best_d = d, best = known;
+    }
+    throw InputError(where(key) + "unknown key `" + key + "`" +
+                     (best.empty() ? "" : " (did you mean `" + best + "`?)"));
+  }
+}
+
+}  // namespace beampack::tools

@@ -1,0 +1,60 @@
+#pragma once
+// Run-file parameters read through one typed accessor that records which keys were used
+// (pbrt's ReportUnused, Mitsuba's unqueried): an unknown or misspelled key is an error naming its
+// file and line. Every message names the key, the value and the limit.
+#include <cstdint>
+#include <initializer_list>
+#include <map>
+#include <limits>
+#include <set>
+#include <string>
+#include <vector>
+
+#include <toml++/toml.h>
+
+namespace beampack::tools {
+
+class Params {
+ public:
+  Params() = default;
+  // Layers apply in order: later ones override earlier ones key by key.
+  void merge_toml_text(const std::string& text, const std::string& source);  // preset
+  void merge_toml_file(const std::string& path);
+  void merge_assignment(const std::string& key_equals_value);                 // --set
+
+  double number(const std::string& key, double fallback, double lo, double hi,
+                bool lo_open = false);
+  std::int64_t integer(const std::string& key, std::int64_t fallback, std::int64_t lo,
+                       std::int64_t hi);
+  std::string text(const std::string& key, const std::string& fallback);
+  std::string choice(const std::string& key, const std::string& fallback,
+                     std::initializer_list<const char*> allowed);
+  bool flag(const std::string& key, bool fallback);
+  bool has(const std::string& key) const;
+  // A number, or one of the given words (`thermal.dt = "pulse"`, `pulses.period = "auto"`).
+  // Returns the word, or "" and sets value.
+  std::string number_or_word(const std::string& key, double& value, double lo, double hi,
+                             std::initializer_list<const char*> words, const std::string& fallback_word);
+
+  // InputError for the first key present in the layers but never read.
+  void check_all_used() const;
+  // Every key read, with the value used (defaults included): `beampack config` and summary.json.
+  const toml::table& resolved() const { return resolved_; }
+
+ private:
+  const toml::node* find(const std::string& key) const;
+  std::string where(const std::string& key) const;  // "run.toml:12: " or "--set: " or ""
+  void record(const std::string& key, toml::node&& value);
+  [[noreturn]] void fail(const std::string& key, const std::string& value,
+                         const std::string& limit) const;
+
+  toml::table merged_;
+  std::map<std::string, std::string> origin_;  // key -> "file:line" of the layer that set it
+  std::set<std::string> used_;
+  toml::table resolved_;
+};
+
+// Dotted keys of every leaf in a table ("material.conductivity").
+std::vector<std::string> leaf_keys(const toml::table& table, const std::string& prefix = "");
+
+}  // namespace beampack::tools

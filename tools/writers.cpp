@@ -1,0 +1,135 @@
+#include "tools/writers.h"
+
+#include <unistd.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+
+#include "geometry/error.h"
+
+namespace beampack::tools {
+
+std::string exact(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.17g", v);
+  return buf;
+}
+
+void write_atomically(const std::string& path, const std::function<void(std::ostream&)>& fill) {
+  const std::string tmp = path + ".tmp." + std::to_string(::getpid());
+  {
+    std::ofstream out(tmp, std::ios::binary);
+    if (!out) throw InputError("output file \"" + path + "\": cannot write in its directory");
+    fill(out);
+    out.flush();
+    if (!out) {
+      std::filesystem::remove(tmp);
+      throw RunError("output file \"" + path + "\": write failed (disk full?)");
+    }
+  }
+  std::error_code ec;
+  std::filesystem::rename(tmp, path, ec);
+  if (ec) {
+    std::filesystem::remove(tmp);
+    throw RunError("output file \"" + path + "\": rename failed: " + ec.message());
+  }
+}
+
+void write_particles_csv(const std::string& path, const Particles& p,
+                         const std::vector<double>& absorbed_J) {
+  write_atomically(path, [&](std::ostream& out) {
+    out << "id,x,y,z,r,temperature_K,phase,absorbed_J\n";
+    for (std::size_t i = 0; i < p.size(); ++i) {
+      const Vec3& c = p.centre[i];
+      out << i << ',' << exact(c.x()) << ',' << exact(c.y()) << ',' << exact(c.z()) << ','
+          << exact(p.radius[i]) << ',' << exact(p.temperature[i]) << ',' << phase_name(p.phase[i])
+          << ',' << exact(i < absorbed_J.size() ? absorbed_J[i] : 0.0) << '\n';
+    }
+  });
+}
+
+namespace {
+
+template <class Value>
+void data_array(std::ostream& out, const char* type, const char* name, int components,
+                std::size_t n, Value&& value) {
+  out << "        <DataArray type=\"" << type << "\" Name=\"" << name
+      << "\" NumberOfComponents=\"" << components << "\" format=\"ascii\">\n";
+  for (std::size_t i = 0; i < n; ++i) out << "          " << value(i) << '\n';
+  out << "        </DataArray>\n";
+}
+
+void vtp_header(std::ostream& out, std::size_t points, std::size_t verts, std::size_t lines) {
+  out << "<?xml version=\"1.0\"?>\n"
+         "<VTKFile type=\"PolyData\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
+         "  <PolyData>\n"
+      << "    <Piece NumberOfPoints=\"" << points << "\" NumberOfVerts=\"" << verts
+      << "\" NumberOfLines=\"" << lines << "\" NumberOfStrips=\"0\" NumberOfPolys=\"0\">\n";
+}
+
+void vtp_footer(std::ostream& out) { out << "    </Piece>\n  </PolyData>\n</VTKFile>\n"; }
+
+// Cells: connectivity 0..n-1 in groups of `per_cell` points.
+void cells(std::ostream& out, const char* kind, std::size_t count, int per_cell) {
+  out << "      <" << kind << ">\n";
+  data_array(out, "Int64", "connectivity", 1, count * per_cell, [](std::size_t i) { return i; });
+  data_array(out, "Int64", "offsets", 1, count,
+             [per_cell](std::size_t i) { return (i + 1) * per_cell; });
+  out << "      </" << kind << ">\n";
+}
+
+}  // namespace
+
+void write_particles_vtp(const std::string& path, const Particles& p,
+                         const std::vector<double>& absorbed_J) {
+  write_atomically(path, [&](std::ostream& out) {
+    const std::size_t n = p.size();
+    vtp_header(out, n, n, 0);
+    out << "      <Points>\n";
+    data_array(out, "Float64", "Points", 3, n, [&](std::size_t i) {
+      return exact(p.centre[i].x()) + " " + exact(p.centre[i].y()) + " " + exact(p.centre[i].z());
+    });
+    out << "      </Points>\n";
+    cells(out, "Verts", n, 1);
+    out << "      <PointData Scalars=\"temperature\">\n";
+    data_array(out, "Float64", "radius", 1, n, [&](std::size_t i) { return exact(p.radius[i]); });
+    data_array(out, "Float64", "temperature", 1, n,
+               [&](std::size_t i) { return exact(p.temperature[i]); });
+    data_array(out, "Int32", "phase", 1, n, [&](std::size_t i) { return int(p.phase[i]); });
+    data_array(out, "Float64", "absorbed_energy", 1, n,
+               [&](std::size_t i) { return exact(i < absorbed_J.size() ? absorbed_J[i] : 0.0); });
+    data_array(out, "Int32", "alive", 1, n, [&](std::size_t i) { return int(p.alive[i]); });
+    out << "      </PointData>\n";
+    vtp_footer(out);
+  });
+}
+
+void write_rays_vtp(const std::string& path, const std::vector<RaySegment>& segments) {
+  write_atomically(path, [&](std::ostream& out) {
+    const std::size_t n = segments.size();
+    vtp_header(out, 2 * n, 0, n);
+    out << "      <Points>\n";
+    data_array(out, "Float64", "Points", 3, 2 * n, [&](std::size_t k) {
+      const Vec3& v = k % 2 ? segments[k / 2].to : segments[k / 2].from;
+      return exact(v.x()) + " " + exact(v.y()) + " " + exact(v.z());
+    });
+    out << "      </Points>\n";
+    cells(out, "Lines", n, 2);
+    out << "      <CellData Scalars=\"energy\">\n";
+    data_array(out, "Float64", "energy", 1, n, [&](std::size_t i) { return exact(segments[i].energy); });
+    out << "      </CellData>\n";
+    vtp_footer(out);
+  });
+}
+
+void write_pvd(const std::string& path, const std::vector<std::pair<std::string, double>>& frames) {
+  write_atomically(path, [&](std::ostream& out) {
+    out << "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n  <Collection>\n";
+    for (const auto& [file, time] : frames)
+      out << "    <DataSet timestep=\"" << exact(time) << "\" part=\"0\" file=\"" << file << "\"/>\n";
+    out << "  </Collection>\n</VTKFile>\n";
+  });
+}
+
+}  // namespace beampack::tools
