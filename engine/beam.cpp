@@ -1,0 +1,147 @@
+#include "engine/beam.h"
+
+#include <Eigen/Geometry>
+#include <cmath>
+#include <numbers>
+#include <sstream>
+
+#include "geometry/error.h"
+#include "geometry/random.h"
+
+namespace beampack {
+namespace {
+
+template <class T>
+[[noreturn]] void bad(const char* key, const T& value, const char* limit) {
+  std::ostringstream out;
+  out << "`" << key << "` = " << value << ": " << limit;
+  throw InputError(out.str());
+}
+
+void validate(const BeamSpec& s, double sample_size) {
+  if (!(s.power > 0.0) || !std::isfinite(s.power)) bad("beam.power", s.power, "must be > 0 and finite");
+  if (!(s.diameter_fraction > 0.0) || !std::isfinite(s.diameter_fraction))
+    bad("beam.diameter_fraction", s.diameter_fraction, "must be > 0 and finite");
+  if (s.rays < 1 || s.rays > (std::size_t{1} << 31)) bad("beam.rays", s.rays, "must be in [1, 2^31]");
+  if (s.sampling != "random" && s.sampling != "stratified")
+    bad("beam.sampling", s.sampling, "must be `random` or `stratified`");
+  if (s.profile != "exponential" && s.profile != "flat" && s.profile != "gaussian")
+    bad("beam.profile", s.profile, "must be `exponential`, `flat` or `gaussian`");
+  if (!(s.decay >= 0.0) || !std::isfinite(s.decay)) bad("beam.decay", s.decay, "must be >= 0 and finite");
+  if (!(s.gaussian_width > 0.0) || !std::isfinite(s.gaussian_width))
+    bad("beam.gaussian_width", s.gaussian_width, "must be > 0 and finite");
+  const double norm = s.direction.norm();
+  if (!std::isfinite(norm) || std::abs(norm - 1.0) > 1e-9)
+    bad("beam.direction", "|d| = " + std::to_string(norm), "must be a unit vector");
+  if (!(sample_size > 0.0) || !std::isfinite(sample_size))
+    bad("sample.size", sample_size, "must be > 0 and finite");
+}
+
+// Two unit vectors spanning the disk plane, perpendicular to d.
+void disk_axes(const Vec3& d, Vec3& u, Vec3& v) {
+  const Vec3 helper = std::abs(d.x()) < 0.9 ? Vec3(1, 0, 0) : Vec3(0, 1, 0);
+  u = d.cross(helper).normalized();
+  v = d.cross(u);
+}
+
+// Uniform in the unit disk: r = sqrt(xi), equal area per dr^2 (seeded, one stream per beam).
+std::vector<Eigen::Vector2d> random_disk(std::size_t n, std::uint64_t seed) {
+  Rng rng = Rng::stream(seed, 0);
+  std::vector<Eigen::Vector2d> p(n);
+  for (auto& q : p) {
+    const double r = std::sqrt(rng.uniform());
+    const double phi = 2.0 * std::numbers::pi * rng.uniform();
+    q = {r * std::cos(phi), r * std::sin(phi)};
+  }
+  return p;
+}
+
+// Deterministic equal-area cells: rings holding 1, 6, 12, 18, ... cells (nearly square cells),
+// the last ring taking the remainder. Ring j spans the area fraction [N_j, N_j + k_j] / N, each
+// cell a sector of it; the ray sits at the cell's mid-area radius and mid angle.
+std::vector<Eigen::Vector2d> stratified_disk(std::size_t n) {
+  std::vector<std::size_t> ring_cells;
+  std::size_t placed = 0;
+  for (std::size_t j = 0; placed < n; ++j) {
+    std::size_t k = j == 0 ? 1 : 6 * j;
+    if (placed + k > n || n - (placed + k) < 3 * j) k = n - placed;  // no sliver ring at the edge
+    ring_cells.push_back(k);
+    placed += k;
+  }
+  std::vector<Eigen::Vector2d> p;
+  p.reserve(n);
+  std::size_t before = 0;
+  for (std::size_t j = 0; j < ring_cells.size(); ++j) {
+    const std::size_t k = ring_cells[j];
+    const double r = j == 0 && k == 1 ? 0.0 : std::sqrt((before + 0.5 * k) / static_cast<double>(n));
+    for (std::size_t c = 0; c < k; ++c) {
+      const double phi = 2.0 * std::numbers::pi * (c + 0.5) / static_cast<double>(k);
+      p.push_back({r * std::cos(phi), r * std::sin(phi)});
+    }
+    before += k;
+  }
+  return p;
+}
+
+// Scale I_k = I_0 f_k with I_0 = P / (A_r sum f): sum I_k A_r = P (MODEL.md section 2). The
+// largest ray then absorbs the round-off residual so the sum, taken in ray order, is P to the ulp.
+void normalise(std::vector<double>& intensity, double ray_area, double power) {
+  double shape_sum = 0.0;
+  for (double f : intensity) shape_sum += f;
+  if (!(shape_sum > 0.0)) throw InputError("beam profile is zero on every ray (check `beam.decay`)");
+  const double i0 = power / (ray_area * shape_sum);
+  std::size_t largest = 0;
+  for (std::size_t k = 0; k < intensity.size(); ++k) {
+    intensity[k] *= i0;
+    if (intensity[k] > intensity[largest]) largest = k;
+  }
+  for (int pass = 0; pass < 4; ++pass) {
+    double sum = 0.0;
+    for (double i : intensity) sum += i * ray_area;
+    if (sum == power) break;
+    intensity[largest] += (power - sum) / ray_area;
+  }
+}
+
+}  // namespace
+
+double beam_profile(const BeamSpec& spec, double d, double beam_radius) {
+  if (spec.profile == "flat") return 1.0;
+  if (spec.profile == "gaussian") {
+    const double w = spec.gaussian_width * beam_radius;
+    return std::exp(-2.0 * d * d / (w * w));
+  }
+  return std::exp(-spec.decay * d / beam_radius);  // (5.1), d normalised by r_b
+}
+
+Beam make_beam(const BeamSpec& spec, double sample_size) {
+  validate(spec, sample_size);
+  Beam beam;
+  beam.direction = spec.direction;
+  beam.centre = Vec3::Constant(0.5 * sample_size) - 0.5 * sample_size * spec.direction;
+  beam.radius = 0.5 * spec.diameter_fraction * sample_size;
+  beam.power = spec.power;
+  beam.ray_area = std::numbers::pi * beam.radius * beam.radius / static_cast<double>(spec.rays);
+  const auto unit = spec.sampling == "random" ? random_disk(spec.rays, spec.seed)
+                                              : stratified_disk(spec.rays);
+  Vec3 u, v;
+  disk_axes(spec.direction, u, v);
+  beam.origin.reserve(spec.rays);
+  beam.intensity.reserve(spec.rays);
+  for (const auto& q : unit) {
+    beam.origin.push_back(beam.centre + beam.radius * (q.x() * u + q.y() * v));
+    beam.intensity.push_back(beam_profile(spec, beam.radius * q.norm(), beam.radius));
+  }
+  normalise(beam.intensity, beam.ray_area, beam.power);
+  return beam;
+}
+
+std::vector<double> Beam::ray_energies(double pulse_duration) const {
+  if (!(pulse_duration > 0.0) || !std::isfinite(pulse_duration))
+    bad("pulses.duration", pulse_duration, "must be > 0 and finite");
+  std::vector<double> e(intensity.size());
+  for (std::size_t k = 0; k < e.size(); ++k) e[k] = intensity[k] * ray_area * pulse_duration;
+  return e;
+}
+
+}  // namespace beampack

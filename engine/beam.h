@@ -1,0 +1,46 @@
+#pragma once
+// The laser beam as a bundle of parallel rays (MODEL.md section 2, paper section 5).
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "geometry/vec3.h"
+
+namespace beampack {
+
+struct BeamSpec {
+  double power = 6000.0;             // beam.power, W: sum_k I_k A_r = P
+  double diameter_fraction = 0.3;    // beam.diameter_fraction: d_b / D
+  std::size_t rays = 1000;           // beam.rays: N_r
+  std::string sampling = "random";   // beam.sampling: random | stratified
+  std::string profile = "exponential";  // beam.profile: exponential | flat | gaussian
+  double decay = 2.0;                // beam.decay: a of (5.1), I = I_0 exp(-a d / r_b)
+  // beam.gaussian_width: w / r_b of I = I_0 exp(-2 d^2 / w^2). Default 1: the disk edge is the
+  // 1/e^2 radius, the usual laser "beam radius", so the disk holds 86% of the untruncated beam.
+  double gaussian_width = 1.0;
+  std::uint64_t seed = 1;            // beam.seed (random sampling)
+  Vec3 direction{1.0, 0.0, 0.0};     // beam.direction, unit (paper: +x)
+};
+
+struct Beam {
+  Vec3 direction;               // unit
+  Vec3 centre;                  // centre of the entry disk: sample centre - (D/2) direction
+  double radius = 0.0;          // r_b
+  double ray_area = 0.0;        // A_r = A_b / N_r
+  double power = 0.0;           // P
+  std::vector<Vec3> origin;     // on the entry disk (the tracer moves them upstream of all spheres)
+  std::vector<double> intensity;  // I_k, W/m^2, normalised so that sum I_k A_r = P
+
+  std::size_t size() const { return origin.size(); }
+  // E_k = I_k A_r tau: the energy ray k carries in a pulse of duration tau (MODEL.md section 2).
+  std::vector<double> ray_energies(double pulse_duration) const;
+};
+
+// Validates the spec (InputError naming the key) and samples the disk. The disk lies in the plane
+// through the sample centre's upstream face point, perpendicular to the direction.
+Beam make_beam(const BeamSpec& spec, double sample_size);
+
+// The profile's shape f(d) = I(d) / I_0 at distance d from the axis, beam radius r_b.
+double beam_profile(const BeamSpec& spec, double d, double beam_radius);
+
+}  // namespace beampack

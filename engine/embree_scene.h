@@ -1,0 +1,69 @@
+#pragma once
+// The ray-tracing scene: the particles as Embree user-geometry spheres, behind a small interface.
+// This header does not include Embree (pimpl); engine/embree_scene.cpp is the only file that does.
+//
+// Precision: Embree rays are float, the physics is double. Every query carries ray ids into
+// double side arrays (RayQuery); the intersect callback runs the real test (ray_sphere_entry) in
+// double and keeps the best double t per ray. Float bounds are rounded outward and the float
+// culling distance is padded, so Embree never culls a sphere the double test would accept.
+#include <cstdint>
+#include <limits>
+#include <memory>
+#include <span>
+
+#include "geometry/particles.h"
+
+namespace beampack {
+
+constexpr std::uint32_t kNoParticle = std::numeric_limits<std::uint32_t>::max();
+
+// Double-precision ray data indexed by ray id (RTCRay::id). The callback reads origin, direction
+// and skip (the sphere the ray has just left: never hit, so no tnear fudge), and improves
+// t_hit/particle. The caller sets t_hit to the longest distance of interest (infinity) and
+// particle to kNoParticle before a query; after it, they hold the nearest outside hit.
+struct RayQuery {
+  const Vec3* origin = nullptr;
+  const Vec3* direction = nullptr;  // unit
+  const std::uint32_t* skip = nullptr;
+  double* t_hit = nullptr;
+  std::uint32_t* particle = nullptr;
+};
+
+// How the acceleration structure follows removals (benchmarks/bench_trace.cpp compares them;
+// docs/bench/optics.md has the numbers). In every mode a removed particle is masked at once in
+// the intersect callback, so it is never hit again whatever the structure still holds.
+enum class SceneUpdate {
+  mask_only,  // keep the structure; removed spheres are culled in the callback only
+  rebuild,    // one geometry, static high-quality build, rebuilt on every update
+  refit,      // one geometry, refit with empty bounds for removed spheres
+  bricks,     // spatial bricks, one user geometry each, dynamic scene: rebuild touched bricks
+};
+
+class EmbreeScene {
+ public:
+  explicit EmbreeScene(const Particles& particles, SceneUpdate update = SceneUpdate::refit,
+                       std::size_t particles_per_brick = 4096);
+  ~EmbreeScene();
+  EmbreeScene(const EmbreeScene&) = delete;
+  EmbreeScene& operator=(const EmbreeScene&) = delete;
+
+  // Masks the particles at once (never hit again), then updates the structure per SceneUpdate.
+  void remove(std::span<const std::uint32_t> ids);
+  bool removed(std::uint32_t id) const { return removed_[id] != 0; }
+  SceneUpdate update_mode() const { return update_; }
+
+  // Nearest outside hit of one ray (rtcIntersect1).
+  void intersect1(const RayQuery& query, std::uint32_t ray_id) const;
+  // Nearest outside hits of up to 16 rays in one coherent packet (rtcIntersect16).
+  void intersect16(const RayQuery& query, const std::uint32_t* ray_ids, int count) const;
+  // True when some particle is hit before query.t_hit[ray_id] (rtcOccluded1).
+  bool occluded1(const RayQuery& query, std::uint32_t ray_id) const;
+
+ private:
+  struct Impl;
+  SceneUpdate update_;
+  std::vector<std::uint8_t> removed_;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace beampack

@@ -1,0 +1,304 @@
+#include "engine/tracer.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/partitioner.h>
+
+#include <algorithm>
+#include <Eigen/Geometry>
+#include <cmath>
+#include <numeric>
+#include <string>
+#include <utility>
+
+#include "engine/fresnel.h"
+#include "geometry/error.h"
+
+namespace beampack {
+namespace {
+
+constexpr std::size_t kChunkRays = 256;  // fixed: the reduction order must not depend on threads
+constexpr int kPacket = 16;
+
+// Interleaves the bits of two 16-bit cell coordinates: consecutive Morton codes are neighbours.
+std::uint32_t morton2(std::uint32_t x, std::uint32_t y) {
+  auto spread = [](std::uint32_t v) {
+    v &= 0xFFFF;
+    v = (v | (v << 8)) & 0x00FF00FF;
+    v = (v | (v << 4)) & 0x0F0F0F0F;
+    v = (v | (v << 2)) & 0x33333333;
+    v = (v | (v << 1)) & 0x55555555;
+    return v;
+  };
+  return spread(x) | (spread(y) << 1);
+}
+
+void validate(const OpticsSpec& spec, const Particles& particles) {
+  if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
+    throw InputError("`optics.cutoff` = " + std::to_string(spec.cutoff) + ": must be in [0, 1)");
+  if (spec.max_bounces < 1)
+    throw InputError("`optics.max_bounces` = " + std::to_string(spec.max_bounces) +
+                     ": must be >= 1");
+  for (std::size_t i = 0; i < particles.size(); ++i)
+    if (particles.material[i] >= spec.materials.size())
+      throw InputError("particle " + std::to_string(i) + " has material " +
+                       std::to_string(particles.material[i]) + " but the optics spec defines " +
+                       std::to_string(spec.materials.size()) + " material(s)");
+  for (const auto& m : spec.materials)
+    if (!(m.n_solid.real() > 0.0) || !(m.n_liquid.real() > 0.0) || !(m.mu_hat > 0.0))
+      throw InputError("`optics.n_solid`, `optics.n_liquid` and mu_hat must be > 0");
+}
+
+// Unpolarised Fresnel reflectance (2.25) with the particle's current index (solid or liquid).
+double particle_reflectance(const MaterialOptics& m, Phase phase, double cos_i) {
+  const std::complex<double> n = phase == Phase::solid ? m.n_solid : m.n_liquid;
+  return n.imag() == 0.0 ? reflectance(cos_i, n.real(), m.mu_hat) : reflectance(cos_i, n, m.mu_hat);
+}
+
+}  // namespace
+
+double box_exit_distance(const Box& box, const Vec3& o, const Vec3& d) {
+  double t_exit = std::numeric_limits<double>::infinity();
+  for (int a = 0; a < 3; ++a) {
+    if (d[a] > 0.0) t_exit = std::min(t_exit, (box.upper[a] - o[a]) / d[a]);
+    else if (d[a] < 0.0) t_exit = std::min(t_exit, (box.lower[a] - o[a]) / d[a]);
+  }
+  return std::isfinite(t_exit) ? std::max(t_exit, 0.0) : 0.0;
+}
+
+// Per chunk: deposits in ray order and partial sums, merged in chunk order.
+struct Tracer::Chunk {
+  std::vector<std::pair<std::uint32_t, double>> deposits;
+  double absorbed = 0.0, escaped = 0.0, cutoff = 0.0;
+  std::uint64_t primary = 0, bounced = 0, hits = 0;
+  std::size_t ended = 0;
+};
+
+Tracer::Tracer(const Particles& particles, OpticsSpec spec)
+    : particles_(particles), spec_(std::move(spec)) {
+  validate(spec_, particles);
+  scene_ = std::make_unique<EmbreeScene>(particles, spec_.scene_update);
+  box_ = particles.bounds();
+}
+
+Tracer::~Tracer() = default;
+
+void Tracer::launch(const Beam& beam, double pulse_duration) {
+  launch(beam, beam.ray_energies(pulse_duration));
+}
+
+void Tracer::launch(const Beam& beam, std::span<const double> energies) {
+  if (energies.size() != beam.size())
+    throw InputError("launch: " + std::to_string(energies.size()) + " energies for " +
+                     std::to_string(beam.size()) + " rays");
+  if (state_.live_count * 2 < state_.live.size()) compact();
+  const Vec3& d = beam.direction;
+  // Start plane: upstream of every particle (spheres stick out of the cube by up to R), so the
+  // first surface a ray meets is a true outside hit (MODEL.md section 2).
+  double upstream = 0.0;
+  if (!box_.empty()) {
+    for (int corner = 0; corner < 8; ++corner) {
+      const Vec3 p((corner & 1) ? box_.upper.x() : box_.lower.x(),
+                   (corner & 2) ? box_.upper.y() : box_.lower.y(),
+                   (corner & 4) ? box_.upper.z() : box_.lower.z());
+      upstream = std::min(upstream, (p - beam.centre).dot(d));
+    }
+    upstream -= 1e-6 * (box_.upper - box_.lower).norm();
+  }
+  // Spatial tiles: sort by the Morton code of the position on the disk, so 16 consecutive rays
+  // form a small patch of the beam and a packet stays coherent.
+  const Vec3 helper = std::abs(d.x()) < 0.9 ? Vec3(1, 0, 0) : Vec3(0, 1, 0);
+  const Vec3 u = d.cross(helper).normalized(), v = d.cross(u);
+  std::vector<std::pair<std::uint32_t, std::uint32_t>> order(beam.size());
+  const double scale = beam.radius > 0.0 ? 0.5 / beam.radius : 0.0;
+  for (std::size_t k = 0; k < beam.size(); ++k) {
+    const Vec3 q = beam.origin[k] - beam.centre;
+    auto cell = [&](double x) {
+      return static_cast<std::uint32_t>(std::clamp((x * scale + 0.5) * 1024.0, 0.0, 1023.0));
+    };
+    order[k] = {morton2(cell(q.dot(u)), cell(q.dot(v))), static_cast<std::uint32_t>(k)};
+  }
+  std::sort(order.begin(), order.end());
+  RayState& s = state_;
+  for (const auto& [code, k] : order) {
+    s.origin.push_back(beam.origin[k] + upstream * d);
+    s.direction.push_back(d);
+    s.energy.push_back(energies[k]);
+    s.initial_energy.push_back(energies[k]);
+    s.travelled.push_back(0.0);
+    s.t_next.push_back(-1.0);
+    s.last_particle.push_back(kNoParticle);
+    s.next_particle.push_back(kNoParticle);
+    s.bounces.push_back(0);
+    s.live.push_back(1);
+    s.ledger.injected += energies[k];
+  }
+  s.live_count += beam.size();
+}
+
+void Tracer::compact() {
+  RayState& s = state_;
+  std::size_t w = 0;
+  for (std::size_t r = 0; r < s.live.size(); ++r) {
+    if (!s.live[r]) continue;
+    s.origin[w] = s.origin[r];
+    s.direction[w] = s.direction[r];
+    s.energy[w] = s.energy[r];
+    s.initial_energy[w] = s.initial_energy[r];
+    s.travelled[w] = s.travelled[r];
+    s.t_next[w] = s.t_next[r];
+    s.last_particle[w] = s.last_particle[r];
+    s.next_particle[w] = s.next_particle[r];
+    s.bounces[w] = s.bounces[r];
+    s.live[w] = 1;
+    ++w;
+  }
+  s.origin.resize(w);
+  s.direction.resize(w);
+  s.energy.resize(w);
+  s.initial_energy.resize(w);
+  s.travelled.resize(w);
+  s.t_next.resize(w);
+  s.last_particle.resize(w);
+  s.next_particle.resize(w);
+  s.bounces.resize(w);
+  s.live.resize(w);
+}
+
+namespace {
+RayQuery query_of(RayState& s) {
+  return {s.origin.data(), s.direction.data(), s.last_particle.data(), s.t_next.data(),
+          s.next_particle.data()};
+}
+}  // namespace
+
+// Nearest outside hit of one ray's segment, or the distance to where it leaves the box.
+void Tracer::trace_segment(std::uint32_t r) {
+  RayState& s = state_;
+  s.t_next[r] = std::numeric_limits<double>::infinity();
+  s.next_particle[r] = kNoParticle;
+  scene_->intersect1(query_of(s), r);
+  if (s.next_particle[r] == kNoParticle) s.t_next[r] = box_exit_distance(box_, s.origin[r], s.direction[r]);
+}
+
+// Primary rays not yet traced, in coherent packets of 16 consecutive (tiled) rays.
+void Tracer::trace_primaries(std::size_t begin, std::size_t end) {
+  RayState& s = state_;
+  std::uint32_t ids[kPacket];
+  int count = 0;
+  const RayQuery q = query_of(s);
+  auto flush = [&] {
+    if (count == 0) return;
+    scene_->intersect16(q, ids, count);
+    for (int i = 0; i < count; ++i)
+      if (s.next_particle[ids[i]] == kNoParticle)
+        s.t_next[ids[i]] = box_exit_distance(box_, s.origin[ids[i]], s.direction[ids[i]]);
+    count = 0;
+  };
+  for (std::size_t r = begin; r < end; ++r) {
+    if (!s.live[r] || s.t_next[r] >= 0.0 || s.bounces[r] != 0) continue;
+    s.t_next[r] = std::numeric_limits<double>::infinity();
+    s.next_particle[r] = kNoParticle;
+    ids[count++] = static_cast<std::uint32_t>(r);
+    if (count == kPacket) flush();
+  }
+  flush();
+}
+
+// Advances rays [begin, end) by the budget each. A hit deposits (1 - R) E in the particle (3.3)
+// and reflects the ray specularly, d' = d - 2 (d.n) n, carrying R E on.
+void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budget) {
+  RayState& s = state_;
+  if (spec_.packets) {
+    for (std::size_t r = begin; r < end; ++r)
+      c.primary += s.live[r] && s.t_next[r] < 0.0 && s.bounces[r] == 0;
+    trace_primaries(begin, end);
+  }
+  for (std::size_t r = begin; r < end; ++r) {
+    if (!s.live[r]) continue;
+    double left = budget;
+    for (;;) {
+      if (s.t_next[r] < 0.0) {
+        (s.bounces[r] == 0 ? c.primary : c.bounced) += 1;
+        trace_segment(static_cast<std::uint32_t>(r));
+      }
+      const double to_event = s.t_next[r] - s.travelled[r];
+      if (to_event > left) {  // the budget ends in free flight; the ray resumes here next call
+        s.travelled[r] += left;
+        break;
+      }
+      left -= to_event;
+      const std::uint32_t p = s.next_particle[r];
+      if (p == kNoParticle) {  // left the box: escaped (MODEL.md 3a)
+        c.escaped += s.energy[r];
+        s.live[r] = 0;
+        ++c.ended;
+        break;
+      }
+      const Vec3 point = s.origin[r] + s.t_next[r] * s.direction[r];
+      const Vec3 normal = (point - particles_.centre[p]).normalized();
+      const double cos_i = -s.direction[r].dot(normal);
+      const double R = particle_reflectance(spec_.materials[particles_.material[p]],
+                                            particles_.phase[p], cos_i);
+      const double carried = R * s.energy[r];
+      const double absorbed = s.energy[r] - carried;  // so absorbed + carried == E exactly
+      c.deposits.emplace_back(p, absorbed);
+      c.absorbed += absorbed;
+      ++c.hits;
+      s.direction[r] = reflect(s.direction[r], normal).normalized();
+      s.origin[r] = point;
+      s.energy[r] = carried;
+      s.last_particle[r] = p;
+      s.travelled[r] = 0.0;
+      s.t_next[r] = -1.0;
+      s.bounces[r] += 1;
+      if (carried < spec_.cutoff * s.initial_energy[r] || s.bounces[r] >= spec_.max_bounces) {
+        c.cutoff += carried;  // MODEL.md 3b, 3c
+        s.live[r] = 0;
+        ++c.ended;
+        break;
+      }
+    }
+  }
+}
+
+std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
+  if (!(path_budget >= 0.0))
+    throw InputError("advance: path budget " + std::to_string(path_budget) + " must be >= 0");
+  if (deposits.size() < particles_.size()) deposits.resize(particles_.size(), 0.0);
+  RayState& s = state_;
+  const std::size_t n = s.live.size();
+  std::vector<Chunk> chunks((n + kChunkRays - 1) / kChunkRays);
+  tbb::parallel_for(
+      tbb::blocked_range<std::size_t>(0, chunks.size(), 1),
+      [&](const tbb::blocked_range<std::size_t>& range) {
+        for (std::size_t k = range.begin(); k != range.end(); ++k)
+          run_chunk(chunks[k], k * kChunkRays, std::min(n, (k + 1) * kChunkRays), path_budget);
+      },
+      tbb::simple_partitioner());
+  // Deterministic reduction: chunk order, and ray order inside each chunk.
+  for (const Chunk& c : chunks) {
+    for (const auto& [p, e] : c.deposits) deposits[p] += e;
+    s.ledger.absorbed += c.absorbed;
+    s.ledger.escaped += c.escaped;
+    s.ledger.cutoff += c.cutoff;
+    s.primary_segments += c.primary;
+    s.bounced_segments += c.bounced;
+    s.hits += c.hits;
+    s.live_count -= c.ended;
+  }
+  return s.live_count;
+}
+
+void Tracer::remove_particles(std::span<const std::uint32_t> ids) {
+  scene_->remove(ids);
+  RayState& s = state_;
+  // A ray heading for a removed particle is retraced from its segment origin: particles only
+  // disappear, so its new next event lies beyond the old one and beyond what it has travelled.
+  for (std::size_t r = 0; r < s.live.size(); ++r)
+    if (s.live[r] && s.t_next[r] >= 0.0 && s.next_particle[r] != kNoParticle &&
+        scene_->removed(s.next_particle[r]))
+      s.t_next[r] = -1.0;
+}
+
+}  // namespace beampack

@@ -1,0 +1,108 @@
+#pragma once
+// Rays through the packing: Fresnel bounces, absorbed energy per particle, an energy ledger
+// (MODEL.md sections 3 and 5, paper (3.3)).
+//
+// Determinism: rays are processed in fixed-size chunks; each chunk records its (particle, energy)
+// deposits in ray order, and the chunks are summed in chunk order on one thread. Deposits are
+// therefore bit-identical for any thread count and for packet or single-ray primary queries.
+#include <complex>
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <vector>
+
+#include "engine/beam.h"
+#include "engine/embree_scene.h"
+#include "geometry/particles.h"
+
+namespace beampack {
+
+struct MaterialOptics {
+  std::complex<double> n_solid{1.4, 0.0};   // optics.n_solid: n_hat of a solid particle
+  std::complex<double> n_liquid{1.0, 0.0};  // optics.n_liquid: "approximately 1" in the paper
+  double mu_hat = 1.0;
+};
+
+struct OpticsSpec {
+  std::vector<MaterialOptics> materials = std::vector<MaterialOptics>(1);  // by Particles::material
+  double cutoff = 1e-10;    // optics.cutoff: epsilon, relative to the ray's initial energy
+  int max_bounces = 1000;   // optics.max_bounces
+  bool packets = true;      // primary rays in coherent 16-ray packets (false: single rays)
+  SceneUpdate scene_update = SceneUpdate::refit;
+};
+
+// Every joule is in exactly one bin once no ray is live: injected = absorbed + escaped + cutoff.
+struct OpticsLedger {
+  double injected = 0.0;
+  double absorbed = 0.0;
+  double escaped = 0.0;
+  double cutoff = 0.0;
+  double in_flight() const { return injected - absorbed - escaped - cutoff; }
+};
+
+// The state of every ray, copyable so a driver can redo a time step (MODEL.md section 5 step 4).
+struct RayState {
+  // Per ray (structure of arrays). A ray's current segment starts at origin; it has travelled
+  // `travelled` of it; its next event is at t_next: a hit on `next_particle`, or leaving the box
+  // (kNoParticle). t_next < 0: not yet traced.
+  std::vector<Vec3> origin, direction;
+  std::vector<double> energy, initial_energy, travelled, t_next;
+  std::vector<std::uint32_t> last_particle, next_particle;
+  std::vector<std::int32_t> bounces;
+  std::vector<std::uint8_t> live;
+  OpticsLedger ledger;
+  std::uint64_t primary_segments = 0;  // Embree queries from the entry plane
+  std::uint64_t bounced_segments = 0;  // queries after a bounce (or a retrace after a removal)
+  std::uint64_t hits = 0;
+  std::size_t live_count = 0;
+};
+
+class Tracer {
+ public:
+  Tracer(const Particles& particles, OpticsSpec spec);
+  ~Tracer();
+
+  // Adds the beam's rays (energy E_k = I_k A_r tau each) to the live rays, starting on a plane
+  // upstream of every particle. Rays are ordered in spatial tiles of 16 (packets are patches).
+  void launch(const Beam& beam, double pulse_duration);
+  void launch(const Beam& beam, std::span<const double> energies);
+
+  // Advances every live ray by at most path_budget of path (c * dt; infinity: to the end),
+  // adding absorbed energy to deposits[particle] (resized to the particle count if smaller).
+  // Returns the number of rays still live.
+  std::size_t advance(double path_budget, std::vector<double>& deposits);
+
+  bool has_live_rays() const { return state_.live_count > 0; }
+  const OpticsLedger& ledger() const { return state_.ledger; }
+  std::uint64_t primary_segments() const { return state_.primary_segments; }
+  std::uint64_t bounced_segments() const { return state_.bounced_segments; }
+  std::uint64_t hits() const { return state_.hits; }
+
+  // Removed particles are never hit again; rays heading for one are retraced.
+  void remove_particles(std::span<const std::uint32_t> ids);
+  // Drops the ended rays from the state (keeps the ledger and counters).
+  void compact();
+
+  RayState save() const { return state_; }
+  void restore(const RayState& state) { state_ = state; }
+
+  const EmbreeScene& scene() const { return *scene_; }
+  const Box& box() const { return box_; }
+
+ private:
+  struct Chunk;
+  void trace_primaries(std::size_t begin, std::size_t end);
+  void trace_segment(std::uint32_t ray);
+  void run_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
+
+  const Particles& particles_;
+  OpticsSpec spec_;
+  std::unique_ptr<EmbreeScene> scene_;
+  Box box_;  // all particles grown by their radii: leaving it means escaped
+  RayState state_;
+};
+
+// Distance from o along unit d to where the ray leaves the box (0 if it never is inside).
+double box_exit_distance(const Box& box, const Vec3& o, const Vec3& d);
+
+}  // namespace beampack

@@ -1,0 +1,117 @@
+// Beam (MODEL.md section 2): normalisation sum I_k A_r = P, profiles, sampling, input errors.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <numbers>
+
+#include "engine/beam.h"
+#include "geometry/error.h"
+
+namespace beampack {
+namespace {
+
+double power_of(const Beam& beam) {
+  double sum = 0.0;
+  for (double i : beam.intensity) sum += i * beam.ray_area;
+  return sum;
+}
+
+TEST(OpticsBeam, PowerIsNormalisedForEveryProfileAndSampling) {
+  for (const char* profile : {"exponential", "flat", "gaussian"})
+    for (const char* sampling : {"random", "stratified"})
+      for (std::size_t rays : {1u, 7u, 1000u, 12345u}) {
+        BeamSpec spec;
+        spec.profile = profile;
+        spec.sampling = sampling;
+        spec.rays = rays;
+        const Beam beam = make_beam(spec, 1e-3);
+        ASSERT_EQ(beam.size(), rays);
+        EXPECT_DOUBLE_EQ(power_of(beam), spec.power) << profile << " " << sampling << " " << rays;
+      }
+}
+
+TEST(OpticsBeam, RayEnergyIsIntensityTimesAreaTimesDuration) {
+  const Beam beam = make_beam(BeamSpec{}, 1e-3);
+  const double tau = 2.5e-9;
+  const auto e = beam.ray_energies(tau);
+  double total = 0.0;
+  for (std::size_t k = 0; k < e.size(); ++k) {
+    EXPECT_EQ(e[k], beam.intensity[k] * beam.ray_area * tau);
+    total += e[k];
+  }
+  EXPECT_NEAR(total, 6000.0 * tau, 1e-13 * 6000.0 * tau);
+}
+
+TEST(OpticsBeam, RaysLieOnTheEntryDiskAndFollowTheProfile) {
+  BeamSpec spec;  // paper: exponential, a = 2, d_b = 0.3 D, +x
+  const double D = 1e-3;
+  const Beam beam = make_beam(spec, D);
+  const double rb = 0.15 * D;
+  EXPECT_DOUBLE_EQ(beam.radius, rb);
+  EXPECT_NEAR(beam.ray_area, std::numbers::pi * rb * rb / 1000.0, 1e-25);
+  std::size_t centre = 0, edge = 0;
+  for (std::size_t k = 0; k < beam.size(); ++k) {
+    const Vec3& o = beam.origin[k];
+    EXPECT_EQ(o.x(), 0.0);  // entry face x = 0
+    const double d = std::hypot(o.y() - 0.5 * D, o.z() - 0.5 * D);
+    EXPECT_LE(d, rb * (1 + 1e-12));
+    // I_k / I_j = exp(-a (d_k - d_j) / r_b) (5.1)
+    if (d < std::hypot(beam.origin[centre].y() - 0.5 * D, beam.origin[centre].z() - 0.5 * D)) centre = k;
+    if (d > std::hypot(beam.origin[edge].y() - 0.5 * D, beam.origin[edge].z() - 0.5 * D)) edge = k;
+  }
+  auto dist = [&](std::size_t k) {
+    return std::hypot(beam.origin[k].y() - 0.5 * D, beam.origin[k].z() - 0.5 * D);
+  };
+  EXPECT_NEAR(beam.intensity[edge] / beam.intensity[centre],
+              std::exp(-2.0 * (dist(edge) - dist(centre)) / rb), 1e-9);
+}
+
+TEST(OpticsBeam, StratifiedSamplingIsDeterministicAndFillsTheDiskEvenly) {
+  BeamSpec spec;
+  spec.sampling = "stratified";
+  spec.profile = "flat";
+  spec.rays = 10000;
+  const Beam a = make_beam(spec, 1.0), b = make_beam(spec, 1.0);
+  EXPECT_EQ(a.origin, b.origin);
+  // Equal-area cells: the fraction of rays within radius rho is (rho / r_b)^2 to O(1/sqrt(N)).
+  for (double rho : {0.3, 0.5, 0.8}) {
+    std::size_t inside = 0;
+    for (const auto& o : a.origin)
+      inside += std::hypot(o.y() - 0.5, o.z() - 0.5) < rho * a.radius;
+    EXPECT_NEAR(inside / 1e4, rho * rho, 0.01) << rho;
+  }
+}
+
+TEST(OpticsBeam, AnyUnitDirectionGivesADiskPerpendicularToIt) {
+  BeamSpec spec;
+  spec.direction = Vec3(1, 2, -2) / 3.0;
+  const Beam beam = make_beam(spec, 1.0);
+  for (const auto& o : beam.origin) EXPECT_NEAR((o - beam.centre).dot(spec.direction), 0.0, 1e-14);
+  EXPECT_TRUE((beam.centre - (Vec3::Constant(0.5) - 0.5 * spec.direction)).norm() < 1e-15);
+}
+
+TEST(OpticsBeam, BadInputNamesTheKey) {
+  auto message = [](auto edit) {
+    BeamSpec spec;
+    edit(spec);
+    try {
+      make_beam(spec, 1e-3);
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(message([](BeamSpec& s) { s.power = -1; }).find("beam.power"), std::string::npos);
+  EXPECT_NE(message([](BeamSpec& s) { s.rays = 0; }).find("beam.rays"), std::string::npos);
+  EXPECT_NE(message([](BeamSpec& s) { s.sampling = "sobol"; }).find("beam.sampling"), std::string::npos);
+  EXPECT_NE(message([](BeamSpec& s) { s.profile = "tophat"; }).find("beam.profile"), std::string::npos);
+  EXPECT_NE(message([](BeamSpec& s) { s.decay = -2; }).find("beam.decay"), std::string::npos);
+  EXPECT_NE(message([](BeamSpec& s) { s.diameter_fraction = 0; }).find("beam.diameter_fraction"),
+            std::string::npos);
+  EXPECT_NE(message([](BeamSpec& s) { s.direction = Vec3(1, 1, 0); }).find("beam.direction"),
+            std::string::npos);
+  EXPECT_THROW(make_beam(BeamSpec{}, 1e-3).ray_energies(0.0), InputError);
+}
+
+}  // namespace
+}  // namespace beampack

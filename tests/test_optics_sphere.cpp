@@ -1,0 +1,178 @@
+// Closed-form optics: one sphere in a uniform beam, two spheres on an axis, and the scene's
+// nearest outside hit against a brute-force loop (seeded property test).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <numbers>
+
+#include "engine/beam.h"
+#include "engine/embree_scene.h"
+#include "engine/fresnel.h"
+#include "engine/tracer.h"
+#include "geometry/packing.h"
+#include "geometry/random.h"
+#include "geometry/ray_sphere.h"
+
+namespace beampack {
+namespace {
+
+constexpr double kPi = std::numbers::pi;
+
+// Integral over the sphere's cross-section of g(1 - R_F(theta)) with r = R sin(theta):
+// int_0^R g(.) 2 pi r dr = pi R^2 int_0^{pi/2} g(.) sin(2 theta) d theta (smooth: Simpson).
+template <class G>
+double cross_section_integral(double R, G g) {
+  const int n = 20000;
+  const double h = 0.5 * kPi / n;
+  double sum = 0.0;
+  for (int k = 0; k <= n; ++k) {
+    const double th = k * h;
+    const double w = (k == 0 || k == n) ? 1.0 : (k % 2 ? 4.0 : 2.0);
+    sum += w * g(std::cos(th)) * std::sin(2.0 * th);
+  }
+  return kPi * R * R * sum * h / 3.0;
+}
+
+struct SingleSphere {
+  double D = 1e-3, R = 0.12e-3, n_hat = 1.4;
+  Particles particles;
+  SingleSphere() { particles.add(Vec3::Constant(0.5 * D), R); }
+};
+
+double traced_absorbed(const SingleSphere& s, const BeamSpec& spec, double& ray_energy) {
+  OpticsSpec optics;
+  optics.materials[0].n_solid = s.n_hat;
+  Tracer tracer(s.particles, optics);
+  const Beam beam = make_beam(spec, s.D);
+  tracer.launch(beam, 1.0);  // tau = 1 s: energies in J equal powers in W
+  std::vector<double> deposits;
+  tracer.advance(std::numeric_limits<double>::infinity(), deposits);
+  EXPECT_FALSE(tracer.has_live_rays());
+  ray_energy = beam.intensity[0] * beam.ray_area;
+  return deposits[0];
+}
+
+TEST(OpticsSphere, UniformBeamStratifiedMatchesQuadrature) {
+  SingleSphere s;  // beam radius 0.15 mm > R = 0.12 mm
+  BeamSpec spec;
+  spec.profile = "flat";
+  spec.sampling = "stratified";
+  spec.rays = 100000;
+  double e;
+  const double absorbed = traced_absorbed(s, spec, e);
+  const double I = spec.power / (kPi * 0.15e-3 * 0.15e-3);
+  const double expected =
+      I * cross_section_integral(s.R, [&](double c) { return 1.0 - reflectance(c, s.n_hat); });
+  EXPECT_NEAR(absorbed, expected, 1e-3 * expected);
+}
+
+TEST(OpticsSphere, UniformBeamRandomWithinThreeStandardErrors) {
+  SingleSphere s;
+  s.n_hat = 3.0;
+  BeamSpec spec;
+  spec.profile = "flat";
+  spec.sampling = "random";
+  spec.rays = 20000;
+  spec.seed = 7;
+  double e;
+  const double absorbed = traced_absorbed(s, spec, e);
+  const double I = spec.power / (kPi * 0.15e-3 * 0.15e-3);
+  auto a = [&](double c) { return 1.0 - reflectance(c, s.n_hat); };
+  const double expected = I * cross_section_integral(s.R, a);
+  // Each ray deposits e (1 - R_F) with probability p = R^2 / r_b^2 (uniform in the disk), else 0:
+  // var = N (E[x^2] - E[x]^2) with E[x^k] = e^k int (1 - R_F)^k dA / A_b.
+  const double area = kPi * 0.15e-3 * 0.15e-3;
+  const double m1 = e * cross_section_integral(s.R, a) / area;
+  const double m2 = e * e * cross_section_integral(s.R, [&](double c) { return a(c) * a(c); }) / area;
+  const double sigma = std::sqrt(spec.rays * (m2 - m1 * m1));
+  EXPECT_NEAR(absorbed, expected, 3.0 * sigma);
+  EXPECT_GT(sigma, 0.0);
+}
+
+// A pencil at offset h = R_A sin 75 deg hits A at 75 deg incidence and reflects at 30 deg from
+// the axis, straight into B, a larger liquid sphere downstream with n_liquid = 1 (R_F = 0: it
+// absorbs whatever reaches it). Hand values: A absorbs (1 - R_F(75 deg)) E, B absorbs R_F E.
+TEST(OpticsSphere, TwoSpheresOnTheAxisShareTheReflectedEnergy) {
+  const double s = 1e-4;  // length unit
+  Particles p;
+  p.add(Vec3(0, 0, 0), 1.0 * s);
+  p.add(Vec3(7.5 * s, 0, 0), 6.0 * s);
+  p.phase[1] = Phase::liquid;
+  OpticsSpec optics;
+  optics.materials[0].n_solid = 1.4;
+  optics.materials[0].n_liquid = 1.0;
+  Tracer tracer(p, optics);
+  Beam beam;
+  beam.direction = Vec3(1, 0, 0);
+  beam.centre = Vec3(-2 * s, 0, 0);
+  beam.radius = s;
+  beam.ray_area = 1.0;
+  const double theta = 75.0 * kPi / 180.0;
+  const int n = 8;
+  for (int k = 0; k < n; ++k) {  // eight pencils around the axis: same geometry by symmetry
+    const double phi = 2 * kPi * k / n;
+    beam.origin.push_back(beam.centre + std::sin(theta) * s * Vec3(0, std::cos(phi), std::sin(phi)));
+    beam.intensity.push_back(1.0);
+  }
+  const std::vector<double> energy(n, 1.0);
+  tracer.launch(beam, energy);
+  std::vector<double> deposits;
+  tracer.advance(std::numeric_limits<double>::infinity(), deposits);
+  const double RF = reflectance(std::cos(theta), 1.4);
+  EXPECT_NEAR(deposits[0], n * (1.0 - RF), 1e-12);
+  EXPECT_NEAR(deposits[1], n * RF, 1e-12);
+  EXPECT_EQ(tracer.hits(), 2u * n);
+  EXPECT_EQ(tracer.ledger().escaped, 0.0);
+}
+
+// Nearest outside hit from the scene (single rays and packets) equals the brute-force minimum of
+// ray_sphere_entry over all spheres, skipping the sphere the ray leaves: same particle, same t.
+TEST(OpticsSphere, SceneHitsEqualBruteForce) {
+  const Particles p = random_overlap_packing(2000, 1e-3, 0.325, 11);
+  for (SceneUpdate mode : {SceneUpdate::refit, SceneUpdate::rebuild, SceneUpdate::bricks}) {
+    EmbreeScene scene(p, mode, 256);
+    const std::size_t n = 4000;
+    std::vector<Vec3> org(n), dir(n);
+    std::vector<std::uint32_t> skip(n), hit1(n), hit16(n);
+    std::vector<double> t1(n), t16(n);
+    Rng rng(5);
+    for (std::size_t r = 0; r < n; ++r) {
+      // Half the rays start on a sphere surface (a bounce), half anywhere in the box.
+      if (r % 2) {
+        const auto i = static_cast<std::uint32_t>(rng.next() % p.size());
+        Vec3 u(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1));
+        u.normalize();
+        org[r] = p.centre[i] + p.radius[i] * u;
+        skip[r] = i;
+      } else {
+        org[r] = Vec3(rng.uniform(), rng.uniform(), rng.uniform()) * 1e-3;
+        skip[r] = kNoParticle;
+      }
+      dir[r] = Vec3(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1)).normalized();
+      t1[r] = t16[r] = kNoHit;
+      hit1[r] = hit16[r] = kNoParticle;
+    }
+    const RayQuery q1{org.data(), dir.data(), skip.data(), t1.data(), hit1.data()};
+    const RayQuery q16{org.data(), dir.data(), skip.data(), t16.data(), hit16.data()};
+    for (std::uint32_t r = 0; r < n; ++r) scene.intersect1(q1, r);
+    std::vector<std::uint32_t> ids(n);
+    for (std::uint32_t r = 0; r < n; ++r) ids[r] = r;
+    for (std::size_t r = 0; r < n; r += 16) scene.intersect16(q16, ids.data() + r, 16);
+    for (std::size_t r = 0; r < n; ++r) {
+      double best = kNoHit;
+      std::uint32_t who = kNoParticle;
+      for (std::uint32_t i = 0; i < p.size(); ++i) {
+        if (i == skip[r]) continue;
+        const double t = ray_sphere_entry(org[r], dir[r], p.centre[i], p.radius[i]);
+        if (t < best) best = t, who = i;
+      }
+      ASSERT_EQ(hit1[r], who) << "ray " << r;
+      ASSERT_EQ(t1[r], best) << "ray " << r;
+      ASSERT_EQ(hit16[r], who) << "ray " << r;
+      ASSERT_EQ(t16[r], best) << "ray " << r;
+    }
+  }
+}
+
+}  // namespace
+}  // namespace beampack

@@ -1,0 +1,244 @@
+// Tracer properties on packings: the ledger closes, deposits are bit-identical across threads and
+// packet/single-ray paths, removal is immediate, and a pulse traced in budgeted chunks equals the
+// whole pulse.
+#include <gtest/gtest.h>
+#include <tbb/global_control.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdlib>
+#include <limits>
+#include <numeric>
+
+#include "engine/beam.h"
+#include "engine/tracer.h"
+#include "geometry/packing.h"
+
+namespace beampack {
+namespace {
+
+constexpr double kAll = std::numeric_limits<double>::infinity();
+constexpr double kD = 1e-3;
+
+struct Traced {
+  std::vector<double> deposits;
+  OpticsLedger ledger;
+  std::uint64_t primary = 0, bounced = 0, hits = 0;
+};
+
+OpticsSpec optics_for(double n_hat, bool packets = true,
+                      SceneUpdate update = SceneUpdate::refit) {
+  OpticsSpec spec;
+  spec.materials[0].n_solid = n_hat;
+  spec.packets = packets;
+  spec.scene_update = update;
+  return spec;
+}
+
+Traced trace(const Particles& p, const OpticsSpec& spec, const BeamSpec& beam_spec,
+          double budget = kAll) {
+  Tracer tracer(p, spec);
+  tracer.launch(make_beam(beam_spec, kD), 1e-9);
+  Traced run;
+  while (tracer.advance(budget, run.deposits) > 0) {
+  }
+  run.ledger = tracer.ledger();
+  run.primary = tracer.primary_segments();
+  run.bounced = tracer.bounced_segments();
+  run.hits = tracer.hits();
+  return run;
+}
+
+const Particles& packing_1e4() {
+  static const Particles p = random_overlap_packing(10000, kD, 0.325, 3);
+  return p;
+}
+
+TEST(OpticsTracer, LedgerClosesOnA1e4Packing) {
+  for (double n_hat : {1.4, 20.0}) {
+    const Traced run = trace(packing_1e4(), optics_for(n_hat), BeamSpec{});
+    const OpticsLedger& l = run.ledger;
+    EXPECT_NEAR(l.absorbed + l.escaped + l.cutoff, l.injected, 1e-12 * l.injected) << n_hat;
+    const double deposited = std::accumulate(run.deposits.begin(), run.deposits.end(), 0.0);
+    EXPECT_NEAR(deposited, l.absorbed, 1e-12 * l.injected);
+    EXPECT_EQ(run.primary, 1000u);
+    EXPECT_GT(run.bounced, 0u);
+    EXPECT_GT(l.absorbed, 0.1 * l.injected);
+    EXPECT_GT(l.escaped, 0.0);
+    if (n_hat == 20.0) {
+      EXPECT_GT(run.hits, 3 * run.primary);  // highly reflective: many bounces
+    }
+  }
+}
+
+TEST(OpticsTracer, CutoffAndBounceLimitEndRaysIntoTheCutoffBin) {
+  OpticsSpec spec = optics_for(20.0);
+  spec.max_bounces = 2;
+  const Traced run = trace(packing_1e4(), spec, BeamSpec{});
+  EXPECT_GT(run.ledger.cutoff, 0.0);
+  EXPECT_LE(run.hits, 2u * 1000u);
+  EXPECT_NEAR(run.ledger.absorbed + run.ledger.escaped + run.ledger.cutoff, run.ledger.injected,
+              1e-12 * run.ledger.injected);
+  spec = optics_for(20.0);
+  spec.cutoff = 0.5;  // R_F < 0.9 at 20: every ray ends after at most three hits
+  const Traced cut = trace(packing_1e4(), spec, BeamSpec{});
+  EXPECT_LE(cut.hits, 3u * 1000u);
+  EXPECT_GT(cut.ledger.cutoff, 0.0);
+}
+
+TEST(OpticsTracer, PacketsAndSingleRaysGiveIdenticalDeposits) {
+  for (double n_hat : {1.4, 20.0}) {
+    const Traced a = trace(packing_1e4(), optics_for(n_hat, true), BeamSpec{});
+    const Traced b = trace(packing_1e4(), optics_for(n_hat, false), BeamSpec{});
+    EXPECT_EQ(a.deposits, b.deposits);
+    EXPECT_EQ(a.ledger.absorbed, b.ledger.absorbed);
+    EXPECT_EQ(a.hits, b.hits);
+  }
+}
+
+TEST(OpticsTracer, OneAndTwoThreadsGiveBitIdenticalDeposits) {
+  BeamSpec beam;
+  beam.rays = 3000;
+  Traced one, two;
+  {
+    tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 1);
+    one = trace(packing_1e4(), optics_for(20.0), beam);
+  }
+  {
+    tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 2);
+    two = trace(packing_1e4(), optics_for(20.0), beam);
+  }
+  EXPECT_EQ(one.deposits, two.deposits);
+  EXPECT_EQ(one.ledger.absorbed, two.ledger.absorbed);
+  EXPECT_EQ(one.ledger.escaped, two.ledger.escaped);
+  EXPECT_EQ(one.ledger.cutoff, two.ledger.cutoff);
+}
+
+// The path is identical; only the order of the per-particle sums differs (call by call instead
+// of ray by ray), hence equality to round-off and identical event counts.
+TEST(OpticsTracer, BudgetedChunksEqualTheWholePulse) {
+  const Traced whole = trace(packing_1e4(), optics_for(1.4), BeamSpec{});
+  for (double budget : {1e-4, 3.3e-5}) {
+    const Traced chunks = trace(packing_1e4(), optics_for(1.4), BeamSpec{}, budget);
+    EXPECT_EQ(chunks.hits, whole.hits);
+    EXPECT_EQ(chunks.primary + chunks.bounced, whole.primary + whole.bounced);
+    ASSERT_EQ(chunks.deposits.size(), whole.deposits.size());
+    for (std::size_t i = 0; i < whole.deposits.size(); ++i)
+      ASSERT_NEAR(chunks.deposits[i], whole.deposits[i], 1e-13 * whole.ledger.injected) << i;
+    EXPECT_NEAR(chunks.ledger.escaped, whole.ledger.escaped, 1e-13 * whole.ledger.injected);
+  }
+}
+
+TEST(OpticsTracer, BudgetLimitsThePathOfEveryRay) {
+  Tracer tracer(packing_1e4(), optics_for(1.4));
+  tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+  std::vector<double> deposits;
+  // Rays start at most R_max + a hair upstream of x = 0: 1e-5 m of path meets nothing yet
+  // further than that, so nothing is deposited and every ray is still live.
+  tracer.advance(1e-12, deposits);
+  EXPECT_EQ(tracer.hits(), 0u);
+  EXPECT_TRUE(tracer.has_live_rays());
+  tracer.advance(kAll, deposits);
+  EXPECT_FALSE(tracer.has_live_rays());
+}
+
+TEST(OpticsTracer, SaveAndRestoreRedoAStep) {
+  Tracer tracer(packing_1e4(), optics_for(1.4));
+  tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+  std::vector<double> first, again;
+  tracer.advance(2e-4, first);
+  const RayState saved = tracer.save();
+  std::vector<double> step_a, step_b;
+  tracer.advance(2e-4, step_a);
+  tracer.restore(saved);
+  tracer.advance(2e-4, step_b);
+  EXPECT_EQ(step_a, step_b);
+}
+
+std::vector<std::uint32_t> most_hit(const std::vector<double>& deposits, std::size_t count) {
+  std::vector<std::uint32_t> ids(deposits.size());
+  std::iota(ids.begin(), ids.end(), 0u);
+  std::partial_sort(ids.begin(), ids.begin() + count, ids.end(),
+                    [&](auto a, auto b) { return deposits[a] > deposits[b]; });
+  ids.resize(count);
+  return ids;
+}
+
+// Mid-pulse removal: from the moment of removal, the removed particles receive nothing.
+TEST(OpticsTracer, RemovedParticleIsNeverHitAgain) {
+  const Particles& p = packing_1e4();
+  const Traced reference = trace(p, optics_for(20.0), BeamSpec{});
+  const auto victims = most_hit(reference.deposits, 50);
+  for (SceneUpdate mode : {SceneUpdate::mask_only, SceneUpdate::rebuild, SceneUpdate::refit,
+                           SceneUpdate::bricks}) {
+    Tracer tracer(p, optics_for(20.0, true, mode));
+    tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+    std::vector<double> before, after;
+    tracer.advance(4e-4, before);  // rays are inside the packing, some heading for the victims
+    tracer.remove_particles(victims);
+    tracer.advance(kAll, after);
+    for (auto v : victims) EXPECT_EQ(after.size() > v ? after[v] : 0.0, 0.0) << "particle " << v;
+    const OpticsLedger& l = tracer.ledger();
+    EXPECT_NEAR(l.absorbed + l.escaped + l.cutoff, l.injected, 1e-12 * l.injected);
+  }
+}
+
+// Removing before tracing equals tracing a packing built without those particles (the start
+// plane and the box may move by a sphere, so equality is to round-off, event for event).
+TEST(OpticsTracer, RemovingThenTracingEqualsAPackingWithout) {
+  const Particles& p = packing_1e4();
+  const Traced reference = trace(p, optics_for(1.4), BeamSpec{});
+  const auto victims = most_hit(reference.deposits, 30);
+  std::vector<std::uint8_t> gone(p.size(), 0);
+  for (auto v : victims) gone[v] = 1;
+  Particles without;
+  std::vector<std::uint32_t> new_id(p.size(), kNoParticle);
+  for (std::size_t i = 0; i < p.size(); ++i)
+    if (!gone[i]) new_id[i] = static_cast<std::uint32_t>(without.add(p.centre[i], p.radius[i]));
+  for (SceneUpdate mode : {SceneUpdate::mask_only, SceneUpdate::rebuild, SceneUpdate::refit,
+                           SceneUpdate::bricks}) {
+    Tracer tracer(p, optics_for(1.4, true, mode));
+    tracer.remove_particles(victims);
+    tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+    std::vector<double> removed_run;
+    tracer.advance(kAll, removed_run);
+    const Traced fresh = trace(without, optics_for(1.4), BeamSpec{});
+    EXPECT_EQ(tracer.hits(), fresh.hits);
+    for (std::size_t i = 0; i < p.size(); ++i) {
+      if (gone[i]) {
+        EXPECT_EQ(removed_run[i], 0.0);
+      } else {
+        ASSERT_NEAR(removed_run[i], fresh.deposits[new_id[i]], 1e-12 * fresh.ledger.injected) << i;
+      }
+    }
+  }
+}
+
+TEST(OpticsTracer, LiquidParticlesUseTheLiquidIndex) {
+  // n_liquid = 1, mu = 1: R_F = 0, a liquid particle absorbs all that reaches it.
+  Particles p = packing_1e4();
+  for (std::size_t i = 0; i < p.size(); ++i) p.phase[i] = Phase::liquid;
+  const Traced run = trace(p, optics_for(20.0), BeamSpec{});
+  EXPECT_EQ(run.bounced, 0u);  // every hit absorbs everything: no reflected ray is traced
+  EXPECT_LE(run.hits, 1000u);
+  EXPECT_GT(run.hits, 900u);
+  // reflectance(cos, 1.0) is zero to round-off (~1e-32), so rays end below the cutoff at once.
+  EXPECT_LT(run.ledger.cutoff, 1e-20 * run.ledger.injected);
+  EXPECT_NEAR(run.ledger.absorbed + run.ledger.escaped, run.ledger.injected,
+              1e-12 * run.ledger.injected);
+}
+
+TEST(OpticsTracerLong, LedgerClosesOn1e5PacketWithManyRays) {
+  if (!std::getenv("BEAMPACK_LONG")) GTEST_SKIP() << "set BEAMPACK_LONG=1";
+  const Particles p = random_overlap_packing(100000, kD, 0.325, 9);
+  BeamSpec beam;
+  beam.rays = 100000;
+  for (double n_hat : {1.4, 20.0}) {
+    const Traced run = trace(p, optics_for(n_hat), beam);
+    const OpticsLedger& l = run.ledger;
+    EXPECT_NEAR(l.absorbed + l.escaped + l.cutoff, l.injected, 1e-12 * l.injected);
+  }
+}
+
+}  // namespace
+}  // namespace beampack
