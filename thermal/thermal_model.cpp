@@ -69,7 +69,6 @@ void ThermalModel::set_contacts(const std::vector<Contact>& contacts) {
                        "): indices must be distinct and < " + std::to_string(p_.size()));
   contacts_ = contacts;
   g_ = contact_conductances(p_, materials_, contacts_);
-  has_conduction_ = std::any_of(g_.begin(), g_.end(), [](double g) { return g > 0; });
   if (!same_pattern) ++pattern_version_;
   dirty_ = true;
 }
@@ -86,6 +85,10 @@ void ThermalModel::assemble_if_needed() {
     wall_source_[i] = walls_.source[i];
     diagonal_[i] = walls_.conductance[i];
   }
+  // Only contacts between live particles conduct: after vaporisations there may be none left.
+  has_conduction_ = false;
+  for (std::size_t e = 0; e < contacts_.size() && !has_conduction_; ++e)
+    has_conduction_ = g_[e] > 0 && p_.alive[contacts_[e].i] && p_.alive[contacts_[e].j];
   if (has_conduction_) {
     laplacian_ = conduction_matrix(p_, contacts_, g_, walls_.conductance);
     diag_pos_.resize(n);
@@ -107,11 +110,21 @@ double ThermalModel::thermal_mass(std::size_t i) const {
          spec_.time_scaling;
 }
 
-// c_i = m_i C_i / M (section 4.1); a dead particle keeps c = 1 so that its row reads theta = theta.
+// c_i = m_i C_i / M (section 4.1). A dead particle's row reads c theta = c theta; its c is the
+// mean live one so that it neither dominates nor vanishes from the relative residual of CG.
 Eigen::VectorXd ThermalModel::base_capacity() const {
-  Eigen::VectorXd c = Eigen::VectorXd::Ones(static_cast<Eigen::Index>(p_.size()));
+  Eigen::VectorXd c(static_cast<Eigen::Index>(p_.size()));
+  double sum = 0;
+  std::size_t live = 0;
+  for (std::size_t i = 0; i < p_.size(); ++i) {
+    if (!p_.alive[i]) continue;
+    c[i] = thermal_mass(i);
+    sum += c[i];
+    ++live;
+  }
+  const double filler = live ? sum / live : 1.0;
   for (std::size_t i = 0; i < p_.size(); ++i)
-    if (p_.alive[i]) c[i] = thermal_mass(i);
+    if (!p_.alive[i]) c[i] = filler;
   return c;
 }
 
