@@ -1,0 +1,207 @@
+// Phase change by latent-heat bands (paper, section 4; MODEL.md section 5 step 3), vaporisation
+// and the energy ledger.
+#include <gtest/gtest.h>
+
+#include <random>
+
+#include "geometry/contact.h"
+#include "geometry/error.h"
+#include "geometry/packing.h"
+#include "tests/thermal_test_util.h"
+#include "thermal/thermal_model.h"
+
+namespace beampack {
+namespace {
+
+constexpr double kRadius = 1e-4;
+constexpr double kScaling = 1e6;
+
+// m / M of the test sphere: C_eff times this is the scaled thermal mass.
+double mass_over_m(const Material& m) {
+  return m.density * 4.0 / 3.0 * std::numbers::pi * std::pow(kRadius, 3) / kScaling;
+}
+
+struct Single {
+  Particles p;
+  Material m;
+  ThermalModel model;
+  explicit Single(double theta0, ThermalSpec spec = {})
+      : p([&] {
+          Particles q;
+          q.add(Vec3::Zero(), kRadius, 0, theta0);
+          return q;
+        }()),
+        model(p, {m}, spec) {}
+};
+
+TEST(ThermalPhase, ThroughMeltAndVaporInOneStepVaporisesWithBothBands) {
+  Single s(300.0);
+  const Material& m = s.m;
+  const double c_eff = mass_over_m(m) * (m.c_solid + m.latent_melt + m.latent_vapor);
+  const double dh = c_eff * 500.0;  // 300 -> 800 K with both bands: beyond theta_v = 700
+  const StepReport r = s.model.step(1e-9, {dh});
+  ASSERT_EQ(r.vaporized, std::vector<std::uint32_t>{0});
+  EXPECT_TRUE(r.phases_ran);
+  EXPECT_TRUE(r.phase_corrected);
+  EXPECT_FALSE(r.conduction_ran);
+  EXPECT_EQ(s.p.alive[0], 0);
+  EXPECT_EQ(s.p.phase[0], Phase::vapor);
+  EXPECT_NEAR(s.p.temperature[0], 800.0, 1e-9);
+  // The vapour carries everything it absorbed; nothing is stored any more.
+  EXPECT_NEAR(s.model.ledger().vaporized, dh, 1e-12 * dh);
+  EXPECT_NEAR(s.model.ledger().stored, 0.0, 1e-12 * dh);
+  EXPECT_NEAR(s.model.ledger().imbalance(), 0.0, 1e-12 * dh);
+}
+
+TEST(ThermalPhase, BandsHoldBackVaporisation) {
+  // Enough to vaporise with C_S alone (predictor: 1300 K), not with both bands (corrector):
+  // the particle ends liquid at theta0 + dH / (C_S + dP_SL + dP_LV) (m / M).
+  Single s(300.0);
+  const Material& m = s.m;
+  const double dh = mass_over_m(m) * m.c_solid * 1000.0;
+  const StepReport r = s.model.step(1e-9, {dh});
+  EXPECT_TRUE(r.vaporized.empty());
+  ASSERT_EQ(r.phase_changed, std::vector<std::uint32_t>{0});
+  EXPECT_EQ(s.p.phase[0], Phase::liquid);
+  const double c_eff = mass_over_m(m) * (m.c_solid + m.latent_melt + m.latent_vapor);
+  EXPECT_NEAR(s.p.temperature[0], 300.0 + dh / c_eff, 1e-9);
+  EXPECT_NEAR(s.model.ledger().stored, dh, 1e-12 * dh);
+}
+
+TEST(ThermalPhase, MeltingUsesSolidPlusMeltBand) {
+  Single s(550.0);
+  const Material& m = s.m;
+  const double dh = mass_over_m(m) * m.c_solid * 130.0;  // predictor 680 K: crosses theta_m only
+  const StepReport r = s.model.step(1e-9, {dh});
+  ASSERT_EQ(r.phase_changed, std::vector<std::uint32_t>{0});
+  EXPECT_EQ(s.p.phase[0], Phase::liquid);
+  EXPECT_NEAR(s.p.temperature[0], 550.0 + dh / (mass_over_m(m) * (m.c_solid + m.latent_melt)), 1e-9);
+}
+
+TEST(ThermalPhase, BandOfAPredictedCrossingStaysEvenIfTheCorrectorFallsShort) {
+  // Paper, section 4: the step that the predictor sees crossing theta_m is re-solved with
+  // C_S + dP/dtheta and the result stands, even below theta_m (the band spreads the latent heat).
+  Single s(550.0);
+  const Material& m = s.m;
+  const double dh = mass_over_m(m) * m.c_solid * 80.0;  // predictor 630 K, corrector 590 K
+  const StepReport r = s.model.step(1e-9, {dh});
+  EXPECT_TRUE(r.phase_corrected);
+  EXPECT_TRUE(r.phase_changed.empty());
+  EXPECT_EQ(s.p.phase[0], Phase::solid);
+  EXPECT_NEAR(s.p.temperature[0], 590.0, 1e-9);
+  EXPECT_NEAR(s.model.ledger().stored, dh, 1e-12 * dh);
+}
+
+TEST(ThermalPhase, LiquidHeatsWithLiquidCapacity) {
+  Single s(620.0);
+  EXPECT_EQ(s.p.phase[0], Phase::liquid);  // set from the temperature at construction
+  const double dh = mass_over_m(s.m) * s.m.c_liquid * 30.0;
+  const StepReport r = s.model.step(1e-9, {dh});
+  EXPECT_TRUE(r.phases_ran);
+  EXPECT_FALSE(r.phase_corrected);
+  EXPECT_TRUE(r.phase_changed.empty());
+  EXPECT_NEAR(s.p.temperature[0], 650.0, 1e-9);
+  EXPECT_NEAR(s.model.thermal_mass(0), mass_over_m(s.m) * s.m.c_liquid, 1e-24);
+}
+
+TEST(ThermalPhase, CoolingThroughMeltSolidifiesWithLiquidPlusSolidifyBand) {
+  // A liquid sphere against a cold wall, backward Euler: (c_eff + dt g) theta1 = c_eff theta0 +
+  // dt g theta_w with c_eff = m (C_L + dP_LS / dtheta) / M once the predictor crosses theta_m.
+  ThermalSpec spec;
+  const double g = 1e-3;  // W/K
+  spec.walls.push_back({0, 0.0, 0.0, 300.0, g});
+  Single s(610.0, spec);
+  const Material& m = s.m;
+  const double dt = 0.5 * mass_over_m(m) * m.c_liquid / g;  // predictor: 610 -> ~506 K
+  const StepReport r = s.model.step(dt, {});
+  EXPECT_EQ(r.solver, "diagonal");
+  ASSERT_EQ(r.phase_changed, std::vector<std::uint32_t>{0});
+  EXPECT_EQ(s.p.phase[0], Phase::solid);
+  const double c_eff = mass_over_m(m) * (m.c_liquid + m.latent_solidify);
+  const double expected = (c_eff * 610.0 + dt * g * 300.0) / (c_eff + dt * g);
+  EXPECT_NEAR(s.p.temperature[0], expected, 1e-9);
+  ASSERT_LT(expected, m.melt_temperature);
+  // Everything that left the sphere went into the wall.
+  EXPECT_NEAR(s.model.ledger().walls, -s.model.ledger().stored, 1e-12 * std::abs(s.model.ledger().walls));
+  EXPECT_NEAR(s.model.ledger().walls, c_eff * (610.0 - expected), 1e-12 * s.model.ledger().walls);
+}
+
+TEST(ThermalPhase, VaporisedParticleCarriesItsEnergyAndLeavesTheGraph) {
+  // Two touching spheres; the first is heated until it vaporises. Its energy leaves the stored
+  // column for the vaporised one, and the second no longer exchanges heat with it.
+  Particles p;
+  p.add(Vec3::Zero(), kRadius, 0, 300.0);
+  p.add(Vec3(1.5 * kRadius, 0, 0), kRadius, 0, 300.0);
+  Material m;
+  m.conductivity = 1.0;
+  ThermalModel model(p, {m}, {});
+  model.set_contacts(find_contacts(p));
+  const double c = model.thermal_mass(0);
+  const double dh = 60.0 * c, dt = 4e-10;  // dt G / c ~ 0.01: the neighbour lags behind
+  int steps = 0;
+  while (p.alive[0] && steps < 200) {
+    const StepReport r = model.step(dt, {dh, 0.0});
+    ++steps;
+    if (!p.alive[0]) {
+      EXPECT_EQ(r.vaporized, std::vector<std::uint32_t>{0});
+    }
+  }
+  ASSERT_EQ(p.alive[0], 0) << "did not vaporise in " << steps << " steps";
+  const ThermalLedger& l = model.ledger();
+  EXPECT_NEAR(l.absorbed, steps * dh, 1e-12 * l.absorbed);
+  EXPECT_GT(l.vaporized, 0.5 * l.absorbed);
+  EXPECT_NEAR(l.imbalance(), 0.0, 1e-9 * l.absorbed);
+  // What remains stored is exactly the second sphere's heat.
+  EXPECT_NEAR(l.stored, model.thermal_mass(1) * (p.temperature[1] - 300.0), 1e-9 * l.absorbed);
+  const double theta1 = p.temperature[1];
+  const StepReport after = model.step(dt, {0.0, 0.0});
+  EXPECT_EQ(p.temperature[1], theta1);  // no exchange with the vapour
+  EXPECT_FALSE(after.conduction_ran);   // no live contact conducts any more
+  EXPECT_THROW(model.step(dt, {1.0, 0.0}), RunError);  // energy into vapour is a driver bug
+}
+
+TEST(ThermalPhase, NoParticleNearMeltMeansNoPhaseWork) {
+  Single s(300.0);
+  const StepReport r = s.model.step(1e-9, {mass_over_m(s.m) * s.m.c_solid * 10.0});
+  EXPECT_FALSE(r.phases_ran);
+  EXPECT_EQ(r.solver, "none");
+  EXPECT_NEAR(s.p.temperature[0], 310.0, 1e-9);
+}
+
+// The ledger on a conducting packing with walls, random sources, Crank-Nicolson, melting and
+// vaporisation: absorbed = stored + vaporized + walls to the solver tolerance.
+TEST(ThermalLedger, ClosesOnPackingWithWallsAndVaporisation) {
+  Particles p = random_overlap_packing(500, 1e-3, 0.4, 3);
+  Material m;
+  m.conductivity = 20;
+  ThermalSpec spec;
+  spec.phi = 0.5;
+  spec.solver = "cg";
+  spec.tolerance = 1e-12;
+  spec.walls.push_back({0, 0.0, 1e-5, 300.0, -1.0});
+  spec.walls.push_back({0, 1e-3, 1e-5, 280.0, -1.0});
+  ThermalModel model(p, {m}, spec);
+  model.set_contacts(find_contacts(p));
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  const double c = model.thermal_mass(0);
+  const double dt = 1e-9;
+  std::size_t vaporized = 0, melted = 0;
+  for (int s = 0; s < 30; ++s) {
+    std::vector<double> dh(p.size(), 0.0);
+    for (std::size_t i = 0; i < p.size(); ++i)
+      if (p.alive[i] && p.centre[i].x() < 3e-4) dh[i] = 40.0 * c * u(rng);
+    const StepReport r = model.step(dt, dh);
+    vaporized += r.vaporized.size();
+    melted += r.phase_changed.size();
+    if (!r.vaporized.empty()) model.set_contacts(find_contacts(p));
+  }
+  const ThermalLedger& l = model.ledger();
+  EXPECT_GT(vaporized, 0u);
+  EXPECT_GT(melted, 0u);
+  EXPECT_GT(std::abs(l.walls), 1e-6 * l.absorbed);  // the walls do take heat
+  EXPECT_NEAR(l.imbalance(), 0.0, 1e-9 * l.absorbed);
+}
+
+}  // namespace
+}  // namespace beampack

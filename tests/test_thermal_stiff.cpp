@@ -1,0 +1,168 @@
+// Stiff steps: dt = 1e6 x the explicit limit. Backward Euler keeps the discrete maximum principle;
+// explicit steps beyond the limit are sub-stepped or refused; the fixed-point iteration fails loudly.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <random>
+
+#include "geometry/contact.h"
+#include "geometry/error.h"
+#include "geometry/packing.h"
+#include "thermal/thermal_model.h"
+
+namespace beampack {
+namespace {
+
+// The paper's packing at 400 particles, K = 100, temperatures uniform in [300, 500] K.
+Particles stiff_packing() {
+  Particles p = random_overlap_packing(400, 1e-3, 0.45, 7);
+  std::mt19937_64 rng(11);
+  std::uniform_real_distribution<double> u(300.0, 500.0);
+  for (double& t : p.temperature) t = u(rng);
+  return p;
+}
+
+Material conductive() {
+  Material m;
+  m.conductivity = 100;
+  m.melt_temperature = 1e4;  // no phase change in these tests
+  m.vapor_temperature = 2e4;
+  return m;
+}
+
+double explicit_limit(Particles& p) {
+  ThermalSpec spec;
+  spec.phi = 0;
+  ThermalModel model(p, {conductive()}, spec);
+  model.set_contacts(find_contacts(p));
+  return model.explicit_step_limit();
+}
+
+class StiffImplicit : public ::testing::TestWithParam<const char*> {};
+
+TEST_P(StiffImplicit, BackwardEulerBoundedAndMonotone) {
+  Particles p = stiff_packing();
+  const double dt = 1e6 * explicit_limit(p);
+  ThermalSpec spec;
+  spec.phi = 1;
+  spec.solver = GetParam();
+  spec.tolerance = 1e-12;
+  spec.max_iterations = 100000;  // CG needs ~sqrt(condition) ~ 1e3+ iterations here
+  ThermalModel model(p, {conductive()}, spec);
+  model.set_contacts(find_contacts(p));
+  double heat = 0;  // heat content sum c_i theta_i, the scale of the ledger's round-off
+  for (std::size_t i = 0; i < p.size(); ++i) heat += model.thermal_mass(i) * p.temperature[i];
+  double lo = *std::min_element(p.temperature.begin(), p.temperature.end());
+  double hi = *std::max_element(p.temperature.begin(), p.temperature.end());
+  const double lo0 = lo, hi0 = hi;
+  // The solver's own error on this system (condition ~1e6) is far below this; the max principle
+  // is exact for the exact solution of an M-matrix system.
+  const double slack = 1e-6;
+  for (int s = 0; s < 5; ++s) {
+    const StepReport r = model.step(dt, {});
+    EXPECT_GT(r.contraction_estimate, 1e5);
+    const double lo1 = *std::min_element(p.temperature.begin(), p.temperature.end());
+    const double hi1 = *std::max_element(p.temperature.begin(), p.temperature.end());
+    EXPECT_GE(lo1, lo - slack) << "step " << s;
+    EXPECT_LE(hi1, hi + slack) << "step " << s;
+    lo = lo1, hi = hi1;
+  }
+  EXPECT_GE(lo, lo0 - slack);
+  EXPECT_LE(hi, hi0 + slack);
+  EXPECT_LT(hi - lo, hi0 - lo0);  // heat did flow
+  EXPECT_NEAR(model.ledger().imbalance(), 0.0, 1e-9 * heat);
+}
+
+INSTANTIATE_TEST_SUITE_P(Solvers, StiffImplicit, ::testing::Values("cg", "direct", "auto"));
+
+TEST(ThermalStiff, AutoPicksTheFactorisationWhenStiff) {
+  Particles p = stiff_packing();
+  const double dt = 1e6 * explicit_limit(p);
+  ThermalModel model(p, {conductive()}, {});
+  model.set_contacts(find_contacts(p));
+  EXPECT_EQ(model.step(dt, {}).solver, "direct");
+}
+
+TEST(ThermalStiff, ExplicitBeyondLimitRefusedWithClearMessage) {
+  Particles p = stiff_packing();
+  const double dt = 1e6 * explicit_limit(p);
+  const std::vector<double> before = p.temperature;
+  ThermalSpec spec;
+  spec.phi = 0;
+  ThermalModel model(p, {conductive()}, spec);
+  model.set_contacts(find_contacts(p));
+  try {
+    model.step(dt, {});
+    FAIL() << "explicit step 1e6 x beyond its limit was accepted";
+  } catch (const InputError& e) {
+    const std::string msg = e.what();
+    EXPECT_NE(msg.find("thermal.phi = 0"), std::string::npos) << msg;
+    EXPECT_NE(msg.find("explicit stability limit"), std::string::npos) << msg;
+    EXPECT_NE(msg.find("thermal.max_substeps"), std::string::npos) << msg;
+  }
+  EXPECT_EQ(p.temperature, before);  // nothing was half-done
+}
+
+TEST(ThermalStiff, ExplicitModeratelyBeyondLimitIsSubSteppedAndStable) {
+  Particles p = stiff_packing();
+  const double limit = explicit_limit(p);
+  ThermalSpec spec;
+  spec.phi = 0;
+  ThermalModel model(p, {conductive()}, spec);
+  model.set_contacts(find_contacts(p));
+  const double lo0 = *std::min_element(p.temperature.begin(), p.temperature.end());
+  const double hi0 = *std::max_element(p.temperature.begin(), p.temperature.end());
+  for (int s = 0; s < 10; ++s) {
+    const StepReport r = model.step(50.5 * limit, {});
+    EXPECT_EQ(r.substeps, 51);
+    EXPECT_EQ(r.solver, "explicit");
+  }
+  EXPECT_GE(*std::min_element(p.temperature.begin(), p.temperature.end()), lo0 - 1e-9);
+  EXPECT_LE(*std::max_element(p.temperature.begin(), p.temperature.end()), hi0 + 1e-9);
+  EXPECT_NEAR(model.ledger().stored, 0.0, 1e-12);
+}
+
+TEST(ThermalStiff, FixedPointBeyondItsLimitReportsFailure) {
+  Particles p = stiff_packing();
+  const double dt = 1e6 * explicit_limit(p);
+  const std::vector<double> before = p.temperature;
+  ThermalSpec spec;
+  spec.solver = "fixed-point";
+  ThermalModel model(p, {conductive()}, spec);
+  model.set_contacts(find_contacts(p));
+  try {
+    model.step(dt, {});
+    FAIL() << "fixed-point iteration returned from a step 1e6 x beyond its contraction limit";
+  } catch (const RunError& e) {
+    const std::string msg = e.what();
+    EXPECT_NE(msg.find("fixed-point"), std::string::npos) << msg;
+    EXPECT_NE(msg.find("diverge"), std::string::npos) << msg;
+  }
+  EXPECT_EQ(p.temperature, before);  // no unconverged field was written back
+}
+
+TEST(ThermalStiff, FixedPointJustBeyondConvergenceStagnatesOrDivergesLoudly) {
+  // Near its limit the iteration crawls: within the cap it must either converge to the answer
+  // of the direct solver or throw, never stop early with a wrong field.
+  Particles p = stiff_packing();
+  Particles q = p;
+  const double dt = 2.0 * explicit_limit(p);
+  ThermalSpec fp;
+  fp.solver = "fixed-point";
+  fp.max_iterations = 200;
+  ThermalSpec direct;
+  direct.solver = "direct";
+  ThermalModel a(p, {conductive()}, fp), b(q, {conductive()}, direct);
+  a.set_contacts(find_contacts(p));
+  b.set_contacts(find_contacts(q));
+  b.step(dt, {});
+  try {
+    a.step(dt, {});
+    for (std::size_t i = 0; i < p.size(); ++i) EXPECT_NEAR(p.temperature[i], q.temperature[i], 1e-6);
+  } catch (const RunError& e) {
+    EXPECT_NE(std::string(e.what()).find("fixed-point"), std::string::npos);
+  }
+}
+
+}  // namespace
+}  // namespace beampack

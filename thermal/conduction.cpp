@@ -1,0 +1,81 @@
+#include "thermal/conduction.h"
+
+#include <cmath>
+#include <numbers>
+#include <sstream>
+
+#include "geometry/error.h"
+
+namespace beampack {
+
+void Wall::validate(const std::string& prefix) const {
+  auto fail = [&](const char* key, double value, const char* limit) {
+    std::ostringstream msg;
+    msg << prefix << '.' << key << " = " << value << ": " << limit;
+    throw InputError(msg.str());
+  };
+  if (axis < 0 || axis > 2) fail("axis", axis, "must be 0 (x), 1 (y) or 2 (z)");
+  if (!std::isfinite(position)) fail("position", position, "must be finite");
+  if (!(std::isfinite(reach) && reach >= 0)) fail("reach", reach, "must be >= 0");
+  if (!(std::isfinite(temperature) && temperature > 0)) fail("temperature", temperature, "must be > 0");
+  if (!std::isfinite(conductance)) fail("conductance", conductance, "must be finite (< 0: from K)");
+}
+
+bool WallCoupling::any() const {
+  for (double g : conductance)
+    if (g > 0) return true;
+  return false;
+}
+
+WallCoupling wall_coupling(const Particles& p, const std::vector<Material>& materials,
+                           const std::vector<Wall>& walls) {
+  WallCoupling out{std::vector<double>(p.size(), 0.0), std::vector<double>(p.size(), 0.0)};
+  for (const Wall& w : walls) {
+    for (std::size_t i = 0; i < p.size(); ++i) {
+      const double gap = std::abs(p.centre[i][w.axis] - w.position) - p.radius[i];
+      if (gap > w.reach) continue;
+      const double g = w.conductance >= 0
+                           ? w.conductance
+                           : std::numbers::pi * materials[p.material[i]].conductivity * p.radius[i];
+      out.conductance[i] += g;
+      out.source[i] += g * w.temperature;
+    }
+  }
+  return out;
+}
+
+std::vector<double> contact_conductances(const Particles& p, const std::vector<Material>& materials,
+                                         const std::vector<Contact>& contacts) {
+  std::vector<double> g(contacts.size());
+  for (std::size_t e = 0; e < contacts.size(); ++e) {
+    const Contact& c = contacts[e];
+    g[e] = conductance(materials[p.material[c.i]].conductivity,
+                       materials[p.material[c.j]].conductivity, c.area, c.distance);
+  }
+  return g;
+}
+
+Eigen::SparseMatrix<double> conduction_matrix(const Particles& p,
+                                              const std::vector<Contact>& contacts,
+                                              const std::vector<double>& g,
+                                              const std::vector<double>& wall_g) {
+  const auto n = static_cast<Eigen::Index>(p.size());
+  std::vector<Eigen::Triplet<double>> t;
+  t.reserve(p.size() + 4 * contacts.size());
+  for (Eigen::Index i = 0; i < n; ++i)
+    t.emplace_back(i, i, p.alive[i] && !wall_g.empty() ? wall_g[i] : 0.0);
+  for (std::size_t e = 0; e < contacts.size(); ++e) {
+    const Contact& c = contacts[e];
+    const double v = p.alive[c.i] && p.alive[c.j] ? g[e] : 0.0;
+    const int i = static_cast<int>(c.i), j = static_cast<int>(c.j);
+    t.emplace_back(i, i, v);
+    t.emplace_back(j, j, v);
+    t.emplace_back(i, j, -v);
+    t.emplace_back(j, i, -v);
+  }
+  Eigen::SparseMatrix<double> m(n, n);
+  m.setFromTriplets(t.begin(), t.end());
+  return m;
+}
+
+}  // namespace beampack

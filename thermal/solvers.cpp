@@ -1,0 +1,106 @@
+#include "thermal/solvers.h"
+
+#include <Eigen/IterativeLinearSolvers>
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include "geometry/error.h"
+
+namespace beampack {
+
+namespace {
+
+[[noreturn]] void fixed_point_failure(const char* what, int k, double update, double ratio,
+                                      double contraction_estimate) {
+  std::ostringstream msg;
+  msg << "thermal fixed-point iteration (3.11) " << what << " at iteration " << k
+      << " (relative update " << update << ", update ratio " << ratio
+      << ", contraction estimate dt phi max_i(2 sum_j G_ij + W_i)/c_i = " << contraction_estimate
+      << "; it converges only below 1): use thermal.solver = \"cg\", \"direct\" or \"auto\", or a "
+         "smaller thermal.dt";
+  throw RunError(msg.str());
+}
+
+}  // namespace
+
+SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
+                             const Eigen::VectorXd& rhs, Eigen::VectorXd& theta, double tolerance,
+                             int max_iterations, double contraction_estimate) {
+  // Divergence: the update grew this many times in a row. Stagnation: over a window the update
+  // shrank so little that the cap would be reached long before the tolerance.
+  constexpr int kGrowthLimit = 3;
+  constexpr int kWindow = 20;
+  double previous = 0;
+  int growing = 0;
+  std::vector<double> history;
+  for (int k = 1; k <= max_iterations; ++k) {
+    const Eigen::VectorXd update = (rhs - a * theta).cwiseQuotient(c);
+    theta += update;
+    const double scale = std::max(1.0, theta.cwiseAbs().maxCoeff());
+    const double u = update.cwiseAbs().maxCoeff() / scale;
+    const double ratio = k > 1 && previous > 0 ? u / previous : 0.0;
+    if (!std::isfinite(u)) fixed_point_failure("diverged to a non-finite field", k, u, ratio, contraction_estimate);
+    if (u <= tolerance) return {k, u};
+    growing = ratio > 1.0 ? growing + 1 : 0;
+    if (growing >= kGrowthLimit) fixed_point_failure("diverges", k, u, ratio, contraction_estimate);
+    history.push_back(u);
+    if (k > kWindow) {
+      const double rate = std::pow(u / history[k - 1 - kWindow], 1.0 / kWindow);
+      const double needed = std::log(tolerance / u) / std::log(std::min(rate, 1.0 - 1e-16));
+      if (rate >= 1.0 || needed > 10.0 * (max_iterations - k))
+        fixed_point_failure("stagnates", k, u, rate, contraction_estimate);
+    }
+    previous = u;
+  }
+  fixed_point_failure("did not converge within thermal.max_iterations", max_iterations, previous,
+                      0.0, contraction_estimate);
+}
+
+SolveStats cg_solve(const SparseMatrix& a, const Eigen::VectorXd& rhs, Eigen::VectorXd& theta,
+                    double tolerance, int max_iterations) {
+  Eigen::ConjugateGradient<SparseMatrix, Eigen::Lower | Eigen::Upper,
+                           Eigen::DiagonalPreconditioner<double>>
+      cg;
+  cg.setTolerance(tolerance);
+  cg.setMaxIterations(max_iterations);
+  cg.compute(a);
+  const Eigen::VectorXd guess = theta;
+  theta = cg.solveWithGuess(rhs, guess);
+  if (cg.info() != Eigen::Success || !theta.allFinite()) {
+    std::ostringstream msg;
+    msg << "thermal conjugate gradients did not reach thermal.tolerance = " << tolerance
+        << " within thermal.max_iterations = " << max_iterations << " (relative residual "
+        << cg.error() << "): raise thermal.max_iterations or use thermal.solver = \"direct\"";
+    throw RunError(msg.str());
+  }
+  return {static_cast<int>(cg.iterations()), cg.error()};
+}
+
+void DirectSolver::solve(const SparseMatrix& a, std::uint64_t pattern_version,
+                         const Eigen::VectorXd& rhs, Eigen::VectorXd& theta) {
+  symbolic_reused_ = analysed_ && pattern_version == pattern_version_;
+  if (!symbolic_reused_) {
+    ldlt_.analyzePattern(a);
+    analysed_ = true;
+    pattern_version_ = pattern_version;
+    factored_values_.clear();
+  }
+  const double* v = a.valuePtr();
+  const auto nnz = static_cast<std::size_t>(a.nonZeros());
+  factors_reused_ = symbolic_reused_ && factored_values_.size() == nnz &&
+                    std::equal(v, v + nnz, factored_values_.begin());
+  if (!factors_reused_) {
+    ldlt_.factorize(a);
+    factored_values_.assign(v, v + nnz);
+  }
+  if (ldlt_.info() != Eigen::Success) {
+    factored_values_.clear();
+    throw RunError("thermal direct solver: LDL^T factorisation failed (matrix not positive "
+                   "definite; non-positive heat capacity or time step?)");
+  }
+  theta = ldlt_.solve(rhs);
+  if (!theta.allFinite()) throw RunError("thermal direct solver: non-finite temperature");
+}
+
+}  // namespace beampack

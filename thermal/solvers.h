@@ -1,0 +1,52 @@
+#pragma once
+// Solvers for the implicit step (3.10): A theta = rhs with A = diag(c) + dt phi (L + W),
+// symmetric positive definite for phi > 0 (c > 0, L + W a weighted graph Laplacian plus a
+// non-negative diagonal).
+#include <Eigen/SparseCholesky>
+#include <Eigen/SparseCore>
+#include <cstdint>
+#include <vector>
+
+namespace beampack {
+
+using SparseMatrix = Eigen::SparseMatrix<double>;
+
+struct SolveStats {
+  int iterations = 0;
+  double error = 0;  // last relative update (fixed-point) or relative residual (cg)
+};
+
+// The paper's fixed-point iteration (3.11): theta^{K+1} = theta^K + (rhs - A theta^K) / c, i.e.
+// theta^{K+1} = theta^n + [dt phi Q(theta^K) + dt (1 - phi) Q(theta^n) + dH] / c. It contracts only
+// while the spectral radius of dt phi c^{-1} (L + W) is below 1, so it watches the size of its
+// updates and throws RunError on divergence, stagnation or the iteration cap: it never returns an
+// unconverged field. Converged when max|update| <= tolerance * max(1, max|theta|).
+SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
+                             const Eigen::VectorXd& rhs, Eigen::VectorXd& theta, double tolerance,
+                             int max_iterations, double contraction_estimate);
+
+// Conjugate gradients with the diagonal (Jacobi) preconditioner, started from theta.
+// Converged when |rhs - A theta| <= tolerance |rhs|; RunError otherwise.
+SolveStats cg_solve(const SparseMatrix& a, const Eigen::VectorXd& rhs, Eigen::VectorXd& theta,
+                    double tolerance, int max_iterations);
+
+// Sparse LDL^T that keeps the symbolic analysis while the pattern version is unchanged, and the
+// numeric factors while the matrix values are unchanged too (a fixed step without phase change).
+class DirectSolver {
+ public:
+  void solve(const SparseMatrix& a, std::uint64_t pattern_version, const Eigen::VectorXd& rhs,
+             Eigen::VectorXd& theta);
+  bool symbolic_reused() const { return symbolic_reused_; }
+  bool factors_reused() const { return factors_reused_; }
+  void forget() { analysed_ = false; }
+
+ private:
+  Eigen::SimplicialLDLT<SparseMatrix> ldlt_;
+  bool analysed_ = false;
+  std::uint64_t pattern_version_ = 0;
+  std::vector<double> factored_values_;
+  bool symbolic_reused_ = false;
+  bool factors_reused_ = false;
+};
+
+}  // namespace beampack

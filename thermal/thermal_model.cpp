@@ -1,0 +1,380 @@
+#include "thermal/thermal_model.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <sstream>
+
+#include "geometry/error.h"
+#include "thermal/phase.h"
+
+namespace beampack {
+
+namespace {
+
+template <class T>
+[[noreturn]] void input_error(const char* key, const T& value, const std::string& limit) {
+  std::ostringstream msg;
+  msg << key << " = " << value << ": " << limit;
+  throw InputError(msg.str());
+}
+
+}  // namespace
+
+void ThermalSpec::validate() const {
+  if (!(phi >= 0 && phi <= 1)) input_error("thermal.phi", phi, "must be in [0, 1]");
+  if (!(std::isfinite(time_scaling) && time_scaling > 0))
+    input_error("thermal.time_scaling", time_scaling, "must be > 0");
+  if (solver != "auto" && solver != "fixed-point" && solver != "cg" && solver != "direct")
+    input_error("thermal.solver", '"' + solver + '"', "must be fixed-point, cg, direct or auto");
+  if (!(tolerance > 0 && tolerance < 1)) input_error("thermal.tolerance", tolerance, "must be in (0, 1)");
+  if (max_iterations < 1) input_error("thermal.max_iterations", max_iterations, "must be >= 1");
+  if (max_substeps < 1) input_error("thermal.max_substeps", max_substeps, "must be >= 1");
+  if (max_phase_corrections < 1)
+    input_error("thermal.max_phase_corrections", max_phase_corrections, "must be >= 1");
+  for (std::size_t w = 0; w < walls.size(); ++w)
+    walls[w].validate("thermal.wall[" + std::to_string(w) + "]");
+}
+
+ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials, ThermalSpec spec)
+    : p_(particles), materials_(std::move(materials)), spec_(std::move(spec)) {
+  spec_.validate();
+  if (materials_.empty()) input_error("material", "(none)", "at least one material is needed");
+  for (std::size_t k = 0; k < materials_.size(); ++k)
+    materials_[k].validate(materials_.size() == 1 ? "material" : "material[" + std::to_string(k) + "]");
+  for (std::size_t i = 0; i < p_.size(); ++i) {
+    if (p_.material[i] >= materials_.size())
+      input_error(("particle " + std::to_string(i) + " material").c_str(), p_.material[i],
+                  "must be < " + std::to_string(materials_.size()) + " (the number of materials)");
+    if (!p_.alive[i]) continue;
+    const Material& m = materials_[p_.material[i]];
+    if (!(p_.temperature[i] < m.vapor_temperature))
+      input_error(("particle " + std::to_string(i) + " temperature").c_str(), p_.temperature[i],
+                  "must be < material.vapor_temperature (it would start as vapour)");
+    p_.phase[i] = phase_at(m, p_.temperature[i]);
+  }
+  walls_ = wall_coupling(p_, materials_, spec_.walls);
+  has_walls_ = walls_.any();
+  stored_.assign(p_.size(), 0.0);
+}
+
+void ThermalModel::set_contacts(const std::vector<Contact>& contacts) {
+  const bool same_pattern =
+      contacts.size() == contacts_.size() &&
+      std::equal(contacts.begin(), contacts.end(), contacts_.begin(),
+                 [](const Contact& a, const Contact& b) { return a.i == b.i && a.j == b.j; });
+  for (const Contact& c : contacts)
+    if (c.i >= p_.size() || c.j >= p_.size() || c.i == c.j)
+      throw InputError("contact (" + std::to_string(c.i) + ", " + std::to_string(c.j) +
+                       "): indices must be distinct and < " + std::to_string(p_.size()));
+  contacts_ = contacts;
+  g_ = contact_conductances(p_, materials_, contacts_);
+  if (!same_pattern) ++pattern_version_;
+  dirty_ = true;
+}
+
+// Rebuilds L + W when the contacts or the live set changed. K = 0 (no conducting contact)
+// builds no matrix at all: the step is then diagonal.
+void ThermalModel::assemble_if_needed() {
+  if (!dirty_) return;
+  const auto n = static_cast<Eigen::Index>(p_.size());
+  wall_source_ = Eigen::VectorXd::Zero(n);
+  diagonal_ = Eigen::VectorXd::Zero(n);
+  for (Eigen::Index i = 0; i < n; ++i) {
+    if (!p_.alive[i]) continue;
+    wall_source_[i] = walls_.source[i];
+    diagonal_[i] = walls_.conductance[i];
+  }
+  // Only contacts between live particles conduct: after vaporisations there may be none left.
+  has_conduction_ = false;
+  for (std::size_t e = 0; e < contacts_.size() && !has_conduction_; ++e)
+    has_conduction_ = g_[e] > 0 && p_.alive[contacts_[e].i] && p_.alive[contacts_[e].j];
+  if (has_conduction_) {
+    laplacian_ = conduction_matrix(p_, contacts_, g_, walls_.conductance);
+    diag_pos_.resize(n);
+    for (Eigen::Index j = 0; j < n; ++j) {
+      const int* begin = laplacian_.innerIndexPtr() + laplacian_.outerIndexPtr()[j];
+      const int* end = laplacian_.innerIndexPtr() + laplacian_.outerIndexPtr()[j + 1];
+      diag_pos_[j] = std::lower_bound(begin, end, static_cast<int>(j)) - laplacian_.innerIndexPtr();
+      diagonal_[j] = laplacian_.valuePtr()[diag_pos_[j]];
+    }
+  } else {
+    laplacian_ = SparseMatrix();
+  }
+  dirty_ = false;
+}
+
+double ThermalModel::thermal_mass(std::size_t i) const {
+  const Material& m = materials_[p_.material[i]];
+  return m.density * p_.volume(i) * effective_heat_capacity(m, p_.temperature[i], 0) /
+         spec_.time_scaling;
+}
+
+// c_i = m_i C_i / M (section 4.1). A dead particle's row reads c theta = c theta; its c is the
+// mean live one so that it neither dominates nor vanishes from the relative residual of CG.
+Eigen::VectorXd ThermalModel::base_capacity() const {
+  Eigen::VectorXd c(static_cast<Eigen::Index>(p_.size()));
+  double sum = 0;
+  std::size_t live = 0;
+  for (std::size_t i = 0; i < p_.size(); ++i) {
+    if (!p_.alive[i]) continue;
+    c[i] = thermal_mass(i);
+    sum += c[i];
+    ++live;
+  }
+  const double filler = live ? sum / live : 1.0;
+  for (std::size_t i = 0; i < p_.size(); ++i)
+    if (!p_.alive[i]) c[i] = filler;
+  return c;
+}
+
+Eigen::VectorXd ThermalModel::capacity_with_bands(const Eigen::VectorXd& theta0,
+                                                  const std::vector<std::uint8_t>& bands) const {
+  Eigen::VectorXd c = base_capacity();
+  for (std::size_t i = 0; i < p_.size(); ++i) {
+    if (!p_.alive[i] || !bands[i]) continue;
+    const Material& m = materials_[p_.material[i]];
+    c[i] = m.density * p_.volume(i) * effective_heat_capacity(m, theta0[i], bands[i]) /
+           spec_.time_scaling;
+  }
+  return c;
+}
+
+double ThermalModel::explicit_step_limit() const {
+  if (spec_.phi >= 0.5) return std::numeric_limits<double>::infinity();
+  const_cast<ThermalModel*>(this)->assemble_if_needed();
+  double limit = std::numeric_limits<double>::infinity();
+  const Eigen::VectorXd c = base_capacity();
+  for (Eigen::Index i = 0; i < c.size(); ++i)
+    if (p_.alive[i] && diagonal_[i] > 0)
+      limit = std::min(limit, c[i] / ((1.0 - spec_.phi) * diagonal_[i]));
+  return limit;
+}
+
+// Bound on the iteration matrix of (3.11), || dt phi c^{-1} (L + W) ||_inf (Gershgorin).
+double ThermalModel::contraction_estimate(double dt, const Eigen::VectorXd& c) const {
+  double worst = 0;
+  for (Eigen::Index i = 0; i < c.size(); ++i)
+    if (p_.alive[i]) worst = std::max(worst, (2.0 * diagonal_[i] - walls_.conductance[i]) / c[i]);
+  return dt * spec_.phi * worst;
+}
+
+// Fixed-point only where it contracts fast (each iteration gains a factor 10); CG while the
+// system is well conditioned (its iterations grow like the square root of the estimate);
+// the factorisation for stiff steps, where iterative methods crawl.
+std::string ThermalModel::choose_solver(double contraction) const {
+  if (contraction <= 0.1) return "fixed-point";
+  if (contraction <= 100.0) return "cg";
+  return "direct";
+}
+
+// Solves (3.10) for theta1 given the capacities c:
+//   (c + dt phi (L + W)) theta1 = c theta0 + dt (1 - phi) Q(theta0) + dt phi b + dH,
+// Q(theta) = b - (L + W) theta, b the wall sources. Without a conducting contact the system is
+// diagonal and no matrix is built.
+void ThermalModel::solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
+                         const Eigen::VectorXd& dh, Eigen::VectorXd& theta1, StepReport& report) {
+  const double implicit = dt * spec_.phi, explicit_part = dt * (1.0 - spec_.phi);
+  const Eigen::VectorXd flux_in =
+      has_conduction_ ? Eigen::VectorXd(laplacian_ * theta0) : diagonal_.cwiseProduct(theta0);
+  const Eigen::VectorXd rhs = c.cwiseProduct(theta0) + explicit_part * (wall_source_ - flux_in) +
+                              implicit * wall_source_ + dh;
+  ++report.solves;
+  if (!has_conduction_ || spec_.phi == 0) {
+    theta1 = rhs.cwiseQuotient(c + implicit * diagonal_);
+    report.solver = has_conduction_ ? "explicit" : has_walls_ ? "diagonal" : "none";
+    return;
+  }
+  SparseMatrix a = implicit * laplacian_;
+  for (Eigen::Index i = 0; i < c.size(); ++i) a.valuePtr()[diag_pos_[i]] += c[i];
+  const double rho = contraction_estimate(dt, c);
+  report.contraction_estimate = std::max(report.contraction_estimate, rho);
+  report.conduction_ran = true;
+  report.solver = spec_.solver == "auto" ? choose_solver(rho) : spec_.solver;
+  SolveStats stats;
+  if (report.solver == "fixed-point") {
+    stats = fixed_point_solve(a, c, rhs, theta1, spec_.tolerance, spec_.max_iterations, rho);
+  } else if (report.solver == "cg") {
+    try {
+      stats = cg_solve(a, rhs, theta1, spec_.tolerance, spec_.max_iterations);
+    } catch (const RunError&) {
+      if (spec_.solver != "auto") throw;
+      report.solver = "direct";  // auto promised a stable answer: fall back to the factorisation
+    }
+  }
+  if (report.solver == "direct") {
+    direct_.solve(a, pattern_version_, rhs, theta1);
+    report.symbolic_reused = direct_.symbolic_reused();
+    report.factors_reused = direct_.factors_reused();
+  }
+  report.iterations += stats.iterations;
+}
+
+// Phase work is needed only where some particle is at or above theta_m before or after the
+// predictor; otherwise no band can be crossed (theta_m < theta_v).
+bool ThermalModel::phase_work_needed(const Eigen::VectorXd& theta0,
+                                     const Eigen::VectorXd& theta1) const {
+  for (std::size_t i = 0; i < p_.size(); ++i) {
+    if (!p_.alive[i]) continue;
+    const double melt = materials_[p_.material[i]].melt_temperature;
+    if (theta0[i] >= melt || theta1[i] >= melt) return true;
+  }
+  return false;
+}
+
+// Paper, section 4 (predictor-corrector): a particle whose predicted step crosses theta_m or
+// theta_v is re-solved with C_eff = C + delta P / delta theta for every band crossed. Bands are
+// kept once crossed within the step so the passes cannot cycle; passes stop when no new band
+// appears (or at thermal.max_phase_corrections). Returns the number of corrector solves.
+int ThermalModel::correct_phases(double dt, const Eigen::VectorXd& theta0,
+                                 const Eigen::VectorXd& dh, Eigen::VectorXd& c,
+                                 Eigen::VectorXd& theta1, StepReport& report) {
+  std::vector<std::uint8_t> bands(p_.size(), 0);
+  int passes = 0;
+  for (;;) {
+    bool grew = false;
+    for (std::size_t i = 0; i < p_.size(); ++i) {
+      if (!p_.alive[i]) continue;
+      const std::uint8_t b = crossed_bands(materials_[p_.material[i]], theta0[i], theta1[i]);
+      if (b & ~bands[i]) {
+        bands[i] |= b;
+        grew = true;
+      }
+    }
+    if (!grew || passes == spec_.max_phase_corrections) break;
+    c = capacity_with_bands(theta0, bands);
+    solve(dt, c, theta0, dh, theta1, report);
+    report.phase_corrected = true;
+    ++passes;
+  }
+  return passes;
+}
+
+// The ledger: stored gains the M-scaled (m C_eff / M) dtheta actually used in the solve, so
+// absorbed = stored + vaporized + walls holds to the solver tolerance.
+void ThermalModel::account(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
+                           const Eigen::VectorXd& theta1, const Eigen::VectorXd& dh) {
+  double stored = 0, walls = 0;
+  for (std::size_t i = 0; i < p_.size(); ++i) {
+    if (!p_.alive[i]) continue;
+    const double de = c[i] * (theta1[i] - theta0[i]);
+    stored_[i] += de;
+    stored += de;
+    const double mean = spec_.phi * theta1[i] + (1.0 - spec_.phi) * theta0[i];
+    walls += dt * (walls_.conductance[i] * mean - walls_.source[i]);
+  }
+  ledger_.absorbed += dh.sum();
+  ledger_.stored += stored;
+  ledger_.walls += walls;
+}
+
+// A particle at or above theta_v is vaporised: it leaves the particles, the graph and the masses,
+// taking its stored energy with it; at or above theta_m it is liquid (C_L, liquid index).
+void ThermalModel::update_phases(const Eigen::VectorXd& theta1, StepReport& report) {
+  for (std::size_t i = 0; i < p_.size(); ++i) {
+    if (!p_.alive[i]) continue;
+    p_.temperature[i] = theta1[i];
+    const Phase phase = phase_at(materials_[p_.material[i]], theta1[i]);
+    if (phase != Phase::vapor) {
+      p_.phase[i] = phase;
+      continue;
+    }
+    p_.remove(i);
+    ledger_.vaporized += stored_[i];
+    ledger_.stored -= stored_[i];
+    stored_[i] = 0;
+    report.vaporized.push_back(static_cast<std::uint32_t>(i));
+    dirty_ = true;
+  }
+}
+
+StepReport ThermalModel::step_once(double dt, const Eigen::VectorXd& dh_in) {
+  StepReport report;
+  assemble_if_needed();
+  const auto n = static_cast<Eigen::Index>(p_.size());
+  // Energy aimed at a particle that vaporised in an earlier sub-step leaves with the vapour.
+  Eigen::VectorXd dh = dh_in;
+  for (Eigen::Index i = 0; i < n; ++i) {
+    if (p_.alive[i] || dh[i] == 0) continue;
+    ledger_.absorbed += dh[i];
+    ledger_.vaporized += dh[i];
+    dh[i] = 0;
+  }
+  const Eigen::VectorXd theta0 = Eigen::Map<const Eigen::VectorXd>(p_.temperature.data(), n);
+  Eigen::VectorXd c = base_capacity();
+  Eigen::VectorXd theta1 = theta0;
+  solve(dt, c, theta0, dh, theta1, report);  // predictor
+  report.phases_ran = phase_work_needed(theta0, theta1);
+  if (report.phases_ran) correct_phases(dt, theta0, dh, c, theta1, report);
+  account(dt, c, theta0, theta1, dh);
+  update_phases(theta1, report);
+  return report;
+}
+
+StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
+  if (!(std::isfinite(dt) && dt > 0)) input_error("thermal.dt", dt, "must be > 0");
+  const std::size_t n = p_.size();
+  if (!absorbed.empty() && absorbed.size() != n)
+    throw InputError("thermal step: " + std::to_string(absorbed.size()) +
+                     " absorbed energies for " + std::to_string(n) + " particles");
+  Eigen::VectorXd dh = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(n));
+  for (std::size_t i = 0; i < absorbed.size(); ++i) {
+    if (!(std::isfinite(absorbed[i]) && absorbed[i] >= 0))
+      throw RunError("thermal step: absorbed energy of particle " + std::to_string(i) + " = " +
+                     std::to_string(absorbed[i]) + ": must be finite and >= 0");
+    if (!p_.alive[i] && absorbed[i] > 0)
+      throw RunError("thermal step: energy deposited into vaporised particle " + std::to_string(i) +
+                     " (the ray scene was not updated after its removal)");
+    dh[static_cast<Eigen::Index>(i)] = absorbed[i];
+  }
+  // phi < 1/2 is stable and monotone only below its step limit: split the step, or refuse.
+  const double limit = explicit_step_limit();
+  const double parts = dt > limit ? std::ceil(dt / limit) : 1.0;
+  if (parts > spec_.max_substeps) {
+    std::ostringstream msg;
+    msg << "thermal.dt = " << dt << " s with thermal.phi = " << spec_.phi
+        << " exceeds the explicit stability limit " << limit << " s (min_i m_i C_i / (M (1 - phi) "
+        << "sum_j G_ij)) and would need " << parts << " sub-steps > thermal.max_substeps = "
+        << spec_.max_substeps << ": use thermal.phi >= 0.5 or a smaller thermal.dt";
+    throw InputError(msg.str());
+  }
+  const std::vector<Phase> phase_before = p_.phase;
+  const int substeps = static_cast<int>(parts);
+  StepReport report;
+  for (int k = 0; k < substeps; ++k) {
+    StepReport sub = step_once(dt / substeps, dh / substeps);
+    report.vaporized.insert(report.vaporized.end(), sub.vaporized.begin(), sub.vaporized.end());
+    report.solver = sub.solver;
+    report.iterations += sub.iterations;
+    report.solves += sub.solves;
+    report.contraction_estimate = std::max(report.contraction_estimate, sub.contraction_estimate);
+    report.conduction_ran |= sub.conduction_ran;
+    report.phases_ran |= sub.phases_ran;
+    report.phase_corrected |= sub.phase_corrected;
+    report.symbolic_reused = sub.symbolic_reused;
+    report.factors_reused = sub.factors_reused;
+  }
+  report.substeps = substeps;
+  for (std::size_t i = 0; i < n; ++i)
+    if (p_.alive[i] && p_.phase[i] != phase_before[i])
+      report.phase_changed.push_back(static_cast<std::uint32_t>(i));
+  return report;
+}
+
+ThermalModel::Snapshot ThermalModel::save() const {
+  return {p_.temperature, p_.phase, p_.alive, stored_, ledger_};
+}
+
+void ThermalModel::restore(const Snapshot& s) {
+  if (s.temperature.size() != p_.size())
+    throw RunError("thermal restore: snapshot of " + std::to_string(s.temperature.size()) +
+                   " particles, model has " + std::to_string(p_.size()));
+  p_.temperature = s.temperature;
+  p_.phase = s.phase;
+  p_.alive = s.alive;
+  stored_ = s.stored;
+  ledger_ = s.ledger;
+  dirty_ = true;  // the live set may differ
+}
+
+}  // namespace beampack

@@ -1,0 +1,129 @@
+#pragma once
+// The heat half of the staggered scheme (MODEL.md sections 4-5): conduction between touching
+// particles and with walls, the generalised trapezoidal step (3.10)/(3.11), phase change by
+// latent-heat bands (paper, section 4), vaporised particles removed, and an energy ledger.
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "geometry/contact.h"
+#include "geometry/particles.h"
+#include "thermal/conduction.h"
+#include "thermal/material.h"
+#include "thermal/solvers.h"
+
+namespace beampack {
+
+struct ThermalSpec {
+  double phi = 1;                  // thermal.phi: 1 backward Euler, 1/2 Crank-Nicolson, 0 explicit
+  double time_scaling = 1e6;       // thermal.time_scaling: M of section 4.1, divides m C
+  std::string solver = "auto";     // thermal.solver: fixed-point | cg | direct | auto
+  double tolerance = 1e-10;        // thermal.tolerance: relative, see solvers.h
+  int max_iterations = 1000;       // thermal.max_iterations: fixed-point and cg
+  // thermal.max_substeps: phi < 1/2 beyond its stability limit is split into at most this many
+  // sub-steps; more would be needed -> InputError.
+  int max_substeps = 1000;
+  // Predictor-corrector passes of the phase step: stop when no new band is crossed.
+  int max_phase_corrections = 4;
+  std::vector<Wall> walls;
+
+  void validate() const;
+};
+
+// Every joule absorbed is stored as heat, carried off by vaporised particles or lost to walls:
+// absorbed = stored + vaporized + walls, to the solver tolerance. Stored is the M-scaled
+// sum of (m C_eff / M) (theta^{n+1} - theta^n) over steps and live particles.
+struct ThermalLedger {
+  double absorbed = 0;   // J, sum of the dH given to step()
+  double stored = 0;     // J, in live particles, relative to their initial temperatures
+  double vaporized = 0;  // J, stored in particles when they vaporised
+  double walls = 0;      // J, net heat into the walls
+  double imbalance() const { return absorbed - stored - vaporized - walls; }
+};
+
+struct StepReport {
+  std::vector<std::uint32_t> vaporized;      // particles removed in this step
+  std::vector<std::uint32_t> phase_changed;  // live particles now solid <-> liquid (optics change)
+  std::string solver = "none";  // fixed-point | cg | direct | explicit | diagonal | none
+  int iterations = 0;           // summed over solves and sub-steps
+  int solves = 0;               // linear solves (predictor + corrector passes, all sub-steps)
+  int substeps = 1;
+  double contraction_estimate = 0;  // dt phi max_i (2 sum_j G_ij + W_i) / c_i, see solvers.h
+  bool conduction_ran = false;  // false: no contact conducts (K = 0): no matrix, no solve
+  bool phases_ran = false;      // false: no particle at or above theta_m before or after the step
+  bool phase_corrected = false; // a band was crossed and the step re-solved with C_eff
+  bool symbolic_reused = false; // direct: analysis kept from an earlier step
+  bool factors_reused = false;  // direct: numeric factors kept too
+};
+
+class ThermalModel {
+ public:
+  struct Snapshot {
+    std::vector<double> temperature;
+    std::vector<Phase> phase;
+    std::vector<std::uint8_t> alive;
+    std::vector<double> stored;
+    ThermalLedger ledger;
+  };
+
+  // Validates the spec and materials; sets each live particle's phase from its temperature
+  // (InputError for one at or above theta_v or with an unknown material id).
+  ThermalModel(Particles& particles, std::vector<Material> materials, ThermalSpec spec);
+
+  // The contact graph to conduct over (find_contacts); call again after vaporisations when
+  // convenient: removed particles already conduct nothing, but their zeroed entries cost time.
+  void set_contacts(const std::vector<Contact>& contacts);
+
+  // One step of (3.10) over dt seconds with absorbed[i] joules deposited into particle i
+  // (empty: none), phase change and vaporisation included.
+  StepReport step(double dt, const std::vector<double>& absorbed);
+
+  const ThermalLedger& ledger() const { return ledger_; }
+  // Largest dt for which phi < 1/2 needs no sub-steps: min_i c_i / ((1 - phi) D_i), D_i the
+  // diagonal of L + W; infinite for phi >= 1/2 or without conduction.
+  double explicit_step_limit() const;
+  // Thermal mass m_i C_i / M of particle i in its current phase (no bands).
+  double thermal_mass(std::size_t i) const;
+
+  // Saves and restores temperatures, phases, live flags and the ledger (to redo a step for the
+  // stagger). The contact list is not part of it: restore before calling set_contacts again.
+  Snapshot save() const;
+  void restore(const Snapshot& snapshot);
+
+ private:
+  StepReport step_once(double dt, const Eigen::VectorXd& dh);
+  void assemble_if_needed();
+  Eigen::VectorXd base_capacity() const;
+  Eigen::VectorXd capacity_with_bands(const Eigen::VectorXd& theta0,
+                                      const std::vector<std::uint8_t>& bands) const;
+  void solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
+             const Eigen::VectorXd& dh, Eigen::VectorXd& theta1, StepReport& report);
+  double contraction_estimate(double dt, const Eigen::VectorXd& c) const;
+  std::string choose_solver(double contraction) const;
+  bool phase_work_needed(const Eigen::VectorXd& theta0, const Eigen::VectorXd& theta1) const;
+  int correct_phases(double dt, const Eigen::VectorXd& theta0, const Eigen::VectorXd& dh,
+                     Eigen::VectorXd& c, Eigen::VectorXd& theta1, StepReport& report);
+  void account(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
+               const Eigen::VectorXd& theta1, const Eigen::VectorXd& dh);
+  void update_phases(const Eigen::VectorXd& theta1, StepReport& report);
+
+  Particles& p_;
+  std::vector<Material> materials_;
+  ThermalSpec spec_;
+  WallCoupling walls_;
+  bool has_walls_ = false;
+  std::vector<Contact> contacts_;
+  std::vector<double> g_;            // G_ij per contact
+  bool has_conduction_ = false;      // some contact with G > 0
+  SparseMatrix laplacian_;           // L + W with the live mask applied
+  std::vector<Eigen::Index> diag_pos_;  // index of (i, i) in laplacian_'s values
+  Eigen::VectorXd diagonal_;         // D_i = sum_j G_ij + W_i (live)
+  Eigen::VectorXd wall_source_;      // sum_w g_w theta_w (live), W
+  bool dirty_ = true;                // laplacian_ values out of date (contacts or live set)
+  std::uint64_t pattern_version_ = 1;
+  DirectSolver direct_;
+  std::vector<double> stored_;       // J per particle since the start
+  ThermalLedger ledger_;
+};
+
+}  // namespace beampack
