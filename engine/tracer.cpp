@@ -70,6 +70,7 @@ double box_exit_distance(const Box& box, const Vec3& o, const Vec3& d) {
 struct Tracer::Chunk {
   std::vector<std::pair<std::uint32_t, double>> deposits;
   double absorbed = 0.0, escaped = 0.0, cutoff = 0.0;
+  double longest_path = 0.0;  // most path any ray of the chunk travelled in this call
   std::uint64_t primary = 0, bounced = 0, hits = 0;
   std::size_t ended = 0;
 };
@@ -216,7 +217,7 @@ void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budg
   }
   for (std::size_t r = begin; r < end; ++r) {
     if (!s.live[r]) continue;
-    double left = budget;
+    double left = budget, used = 0.0;
     for (;;) {
       if (s.t_next[r] < 0.0) {
         (s.bounces[r] == 0 ? c.primary : c.bounced) += 1;
@@ -225,9 +226,11 @@ void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budg
       const double to_event = s.t_next[r] - s.travelled[r];
       if (to_event > left) {  // the budget ends in free flight; the ray resumes here next call
         s.travelled[r] += left;
+        used += left;
         break;
       }
       left -= to_event;
+      used += to_event;
       const std::uint32_t p = s.next_particle[r];
       if (p == kNoParticle) {  // left the box: escaped (MODEL.md 3a)
         c.escaped += s.energy[r];
@@ -259,6 +262,7 @@ void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budg
         break;
       }
     }
+    c.longest_path = std::max(c.longest_path, used);
   }
 }
 
@@ -277,7 +281,9 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
       },
       tbb::simple_partitioner());
   // Deterministic reduction: chunk order, and ray order inside each chunk.
+  last_advance_path_ = 0.0;
   for (const Chunk& c : chunks) {
+    last_advance_path_ = std::max(last_advance_path_, c.longest_path);
     for (const auto& [p, e] : c.deposits) deposits[p] += e;
     s.ledger.absorbed += c.absorbed;
     s.ledger.escaped += c.escaped;

@@ -73,6 +73,9 @@ class Tracer {
   std::size_t advance(double path_budget, std::vector<double>& deposits);
 
   bool has_live_rays() const { return state_.live_count > 0; }
+  // The most path any ray travelled in the last advance(): with an infinite budget, the flight
+  // of the pulse (the step length of thermal.dt = "pulse" is this over c).
+  double last_advance_path() const { return last_advance_path_; }
   const OpticsLedger& ledger() const { return state_.ledger; }
   std::uint64_t primary_segments() const { return state_.primary_segments; }
   std::uint64_t bounced_segments() const { return state_.bounced_segments; }
@@ -100,6 +103,7 @@ class Tracer {
   std::unique_ptr<EmbreeScene> scene_;
   Box box_;  // all particles grown by their radii: leaving it means escaped
   RayState state_;
+  double last_advance_path_ = 0.0;
 };
 
 // Distance from o along unit d to where the ray leaves the box (0 if it never is inside).

@@ -3,24 +3,78 @@
 
 #include <cstdio>
 #include <exception>
+#include <iostream>
 
 #include "geometry/error.h"
+#include "tools/run_command.h"
 #include "tools/validate.h"
+
+namespace {
+
+using namespace beampack::tools;
+
+void add_run_sources(CLI::App* cmd, RunOptions& o) {
+  cmd->add_option("run_file", o.sources.file, "run file (TOML)")->check(CLI::ExistingFile);
+  cmd->add_option("--preset", o.sources.preset, "start from a named preset (beampack presets)");
+  cmd->add_option("--set", o.sources.sets, "override one key: --set material.conductivity=100");
+}
+
+int list_presets() {
+  for (const Preset& p : presets()) std::printf("%-12s %s\n", p.name, p.summary);
+  return 0;
+}
+
+int print_config(const RunSources& sources) {
+  const RunConfig config = load_run_config(sources);
+  std::cout << "# beampack run file: every key with the value a run would use\n"
+            << config.resolved << "\n";
+  return 0;
+}
+
+}  // namespace
 
 int main(int argc, char** argv) {
   CLI::App app{"beampack: laser processing of packed powders (Zohdi 2013)", "beampack"};
   app.require_subcommand(1);
-  bool quiet = false;
-  CLI::App* validate = app.add_subcommand("validate", "run the analytic cases and print a table");
-  validate->add_flag("--quiet", quiet, "print failures only");
+  RunOptions run;
+  SweepOptions sweep;
+  bool quiet_validate = false;
+
+  CLI::App* run_cmd = app.add_subcommand("run", "run one scene and write its outputs");
+  add_run_sources(run_cmd, run);
+  run_cmd->add_option("--out", run.out_dir, "output directory")->capture_default_str();
+  run_cmd->add_option("--threads", run.threads, "worker threads (0: all cores)")->check(CLI::NonNegativeNumber);
+  run_cmd->add_flag("--quiet", run.quiet, "no progress line");
+
+  CLI::App* sweep_cmd = app.add_subcommand("sweep", "one run per value of a parameter");
+  add_run_sources(sweep_cmd, sweep.run);
+  sweep_cmd->add_option("--param", sweep.param, "key to vary")->required();
+  sweep_cmd->add_option("--values", sweep.values, "comma-separated values")->required()->delimiter(',');
+  sweep_cmd->add_option("--out", sweep.run.out_dir, "output directory")->capture_default_str();
+  sweep_cmd->add_option("--threads", sweep.run.threads, "worker threads (0: all cores)");
+
+  CLI::App* validate_cmd = app.add_subcommand("validate", "run the analytic cases and print a table");
+  validate_cmd->add_flag("--quiet", quiet_validate, "print failures only");
+
+  app.add_subcommand("presets", "list the named presets");
+  RunOptions config;
+  CLI::App* config_cmd = app.add_subcommand("config", "print a complete run file");
+  config_cmd->add_option("--preset", config.sources.preset, "preset to print");
+  config_cmd->add_option("run_file", config.sources.file, "run file to resolve")->check(CLI::ExistingFile);
+  config_cmd->add_option("--set", config.sources.sets, "override one key");
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
-    const int code = app.exit(e);
-    return code == 0 ? 0 : 2;
+    return app.exit(e) == 0 ? 0 : 2;
   }
+  install_interrupt_handler();
   try {
-    if (validate->parsed()) return beampack::tools::run_validate(quiet);
+    if (run_cmd->parsed()) return run_command(run);
+    if (sweep_cmd->parsed()) return sweep_command(sweep);
+    if (validate_cmd->parsed()) return run_validate(quiet_validate);
+    if (app.got_subcommand("presets")) return list_presets();
+    if (config_cmd->parsed()) return print_config(config.sources);
   } catch (const beampack::InputError& e) {
     std::fprintf(stderr, "beampack: error: %s\n", e.what());
     return 2;

@@ -1,0 +1,191 @@
+#include "engine/simulation.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <sstream>
+
+#include "geometry/contact.h"
+#include "geometry/error.h"
+
+namespace beampack {
+namespace {
+
+enum Stage { kTrace, kHeat, kPhases, kStagger, kRebuild };
+
+class StageClock {
+ public:
+  explicit StageClock(StageTime& stage) : stage_(stage), start_(std::chrono::steady_clock::now()) {}
+  ~StageClock() {
+    stage_.seconds +=
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+    ++stage_.calls;
+  }
+
+ private:
+  StageTime& stage_;
+  std::chrono::steady_clock::time_point start_;
+};
+
+bool needs_conduction(const SimulationSpec& spec) {
+  return !spec.thermal.walls.empty() ||
+         std::any_of(spec.materials.begin(), spec.materials.end(),
+                     [](const Material& m) { return m.conductivity > 0; });
+}
+
+}  // namespace
+
+Simulation::Simulation(SimulationSpec spec) : Simulation(spec, make_packing(spec.packing)) {}
+
+Simulation::Simulation(SimulationSpec spec, Particles particles)
+    : spec_(std::move(spec)), particles_(std::move(particles)) {
+  if (spec_.pulses.count < 0) throw InputError("`pulses.count` must be >= 0");
+  if (!(spec_.pulses.duration > 0) || !std::isfinite(spec_.pulses.duration))
+    throw InputError("`pulses.duration` = " + std::to_string(spec_.pulses.duration) + ": must be > 0");
+  beam_ = make_beam(spec_.beam, spec_.packing.sample_size);
+  tracer_ = std::make_unique<Tracer>(particles_, spec_.optics);
+  thermal_ = std::make_unique<ThermalModel>(particles_, spec_.materials, spec_.thermal);
+  // Leave out what the scene does not need: without conductivity or walls there is no graph.
+  if (needs_conduction(spec_)) {
+    StageClock clock(stages_[kRebuild]);
+    thermal_->set_contacts(find_contacts(particles_));
+  } else {
+    stages_[kRebuild].skipped_because = "no conductivity and no walls: no contact graph";
+  }
+  absorbed_.assign(particles_.size(), 0.0);
+  deposits_.assign(particles_.size(), 0.0);
+  for (std::size_t i = 0; i < particles_.size(); ++i) {
+    total_volume_ += particles_.volume(i);
+    max_temperature_ = std::max(max_temperature_, particles_.temperature[i]);
+  }
+  counts_.particles = particles_.size();
+}
+
+Simulation::~Simulation() = default;
+
+bool Simulation::done() const {
+  return launched_ >= spec_.pulses.count && !tracer_->has_live_rays();
+}
+
+void Simulation::launch_pulse_if_due() {
+  if (launched_ >= spec_.pulses.count) return;
+  const bool due = spec_.pulses.period > 0 ? time_ >= next_pulse_time_ * (1 - 1e-12)
+                                           : !tracer_->has_live_rays();
+  if (!due) return;
+  if (launched_ > 0 && on_pulse_end_) on_pulse_end_(launched_ - 1);
+  tracer_->compact();
+  tracer_->launch(beam_, spec_.pulses.duration);
+  counts_.rays += beam_.size();
+  ++launched_;
+  next_pulse_time_ = time_ + spec_.pulses.period;
+}
+
+// The step's length: the user's dt; in "pulse" mode (dt = 0) the flight of the rays traced to
+// their end in this step, or the wait until the next pulse when no ray was live.
+double Simulation::step_length(bool traced) const {
+  if (spec_.dt > 0) return spec_.dt;
+  if (traced) return tracer_->last_advance_path() / kSpeedOfLight;
+  return std::max(next_pulse_time_ - time_, 0.0);
+}
+
+bool Simulation::step() {
+  if (done()) return false;
+  launch_pulse_if_due();
+  const double budget = spec_.dt > 0 ? kSpeedOfLight * spec_.dt : std::numeric_limits<double>::infinity();
+  const RayState rays_before = tracer_->save();
+  const ThermalModel::Snapshot heat_before = thermal_->save();
+  std::vector<Phase> optical_phase;  // phases the rays see; empty: the current ones
+  StepReport report;
+  double dt = 0;
+  for (int pass = 0;; ++pass) {
+    // Trace: every live ray advances by at most c dt of path, depositing into dH.
+    std::fill(deposits_.begin(), deposits_.end(), 0.0);
+    const bool traced = tracer_->has_live_rays();
+    if (traced) {
+      StageClock clock(stages_[kTrace]);
+      if (!optical_phase.empty()) std::swap(particles_.phase, optical_phase);
+      tracer_->advance(budget, deposits_);
+      if (!optical_phase.empty()) std::swap(particles_.phase, optical_phase);
+    }
+    dt = step_length(traced);
+    // Heat and phases: the implicit step (3.10) with dH, then the latent-heat bands (section 4).
+    if (dt > 0) {
+      StageClock clock(stages_[kHeat]);
+      report = thermal_->step(dt, deposits_);
+      if (report.phases_ran) ++stages_[kPhases].calls;
+    }
+    // Stagger: a phase change that alters the optics of a particle the rays met in this step
+    // sends the step back to the trace, with the new indices (bounded number of times).
+    std::vector<Phase> trial = particles_.phase;
+    const bool optics_changed = std::any_of(
+        report.phase_changed.begin(), report.phase_changed.end(),
+        [&](std::uint32_t i) { return deposits_[i] > 0 && (optical_phase.empty() || optical_phase[i] != trial[i]); });
+    if (!optics_changed || pass >= spec_.max_staggers) break;
+    StageClock clock(stages_[kStagger]);
+    ++counts_.staggers;
+    for (std::size_t i = 0; i < trial.size(); ++i)
+      if (trial[i] == Phase::vapor) trial[i] = Phase::liquid;  // removed only from the next step
+    optical_phase = std::move(trial);
+    tracer_->restore(rays_before);
+    thermal_->restore(heat_before);
+    report = StepReport{};
+  }
+  for (std::size_t i = 0; i < deposits_.size(); ++i) absorbed_[i] += deposits_[i];
+  time_ += dt;
+  ++counts_.steps;
+  for (std::size_t i = 0; i < particles_.size(); ++i) {
+    const double t = particles_.temperature[i];
+    if (!std::isfinite(t)) {
+      std::ostringstream m;
+      m << "temperature of particle " << i << " is " << t << " after step " << counts_.steps
+        << " (t = " << time_ << " s); reproduce with the same run file and seeds";
+      throw RunError(m.str());
+    }
+    max_temperature_ = std::max(max_temperature_, t);
+  }
+  // Rebuild: vaporised particles leave the scene and the contact graph (paper, Remark 10).
+  if (!report.vaporized.empty()) remove_vaporized(report.vaporized);
+  if (done() && on_pulse_end_) on_pulse_end_(launched_ - 1);
+  return !done();
+}
+
+void Simulation::remove_vaporized(const std::vector<std::uint32_t>& ids) {
+  StageClock clock(stages_[kRebuild]);
+  ++counts_.rebuilds;
+  tracer_->remove_particles(ids);
+  if (needs_conduction(spec_)) thermal_->set_contacts(find_contacts(particles_));
+}
+
+void Simulation::run(const std::atomic<bool>* stop) {
+  while (!done() && !(stop && stop->load())) step();
+}
+
+double Simulation::volume_fraction(Phase phase) const {
+  if (total_volume_ <= 0) return 0;
+  double v = 0;
+  for (std::size_t i = 0; i < particles_.size(); ++i)
+    if (particles_.phase[i] == phase) v += particles_.volume(i);
+  return v / total_volume_;
+}
+
+Figures Simulation::figures() const {
+  Figures f;
+  f.time = time_;
+  f.pulse = launched_;
+  f.vaporized_fraction = volume_fraction(Phase::vapor);
+  f.melted_fraction = volume_fraction(Phase::liquid);
+  f.max_temperature = max_temperature_;
+  const OpticsLedger& o = tracer_->ledger();
+  const ThermalLedger& h = thermal_->ledger();
+  f.energy = {o.injected, o.absorbed, o.escaped, o.cutoff, h.stored, h.vaporized, h.walls};
+  return f;
+}
+
+Counts Simulation::counts() const {
+  Counts c = counts_;
+  c.segments = tracer_->primary_segments() + tracer_->bounced_segments();
+  return c;
+}
+
+}  // namespace beampack

@@ -1,0 +1,112 @@
+#pragma once
+// The simulator as a library: the staggered loop of MODEL.md section 5 over a packing, a beam,
+// the optics and the heat. Build a SimulationSpec (or a Particles set) in code, run pulses, read
+// temperatures: see examples/run_in_code.cpp.
+#include <array>
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "engine/beam.h"
+#include "engine/tracer.h"
+#include "geometry/packing.h"
+#include "thermal/thermal_model.h"
+
+namespace beampack {
+
+constexpr double kSpeedOfLight = 2.99792458e8;  // m/s
+
+struct PulseSpec {
+  int count = 20;         // pulses.count
+  double duration = 0;    // tau, s: E_k = I_k A_r tau
+  double period = 0;      // s between pulse starts; 0: "auto", when the previous pulse has ended
+};
+
+struct SimulationSpec {
+  PackingSpec packing;
+  BeamSpec beam;
+  OpticsSpec optics;
+  std::vector<Material> materials{Material{}};
+  ThermalSpec thermal;
+  PulseSpec pulses;
+  double dt = 0;           // thermal.dt, s; 0: one step per pulse flight ("pulse")
+  int max_staggers = 4;    // redo a step at most this often when a phase change alters optics
+};
+
+// Energy ledger of a run, J (MODEL.md section 6).
+struct EnergyLedger {
+  double injected = 0, absorbed = 0, escaped = 0, cutoff = 0;  // optics
+  double stored = 0, vaporized = 0, walls = 0;                 // heat
+  double optics_imbalance() const { return injected - absorbed - escaped - cutoff; }
+  double heat_imbalance() const { return absorbed - stored - vaporized - walls; }
+};
+
+struct StageTime {
+  double seconds = 0;
+  std::uint64_t calls = 0;
+  std::string skipped_because;  // why the stage never ran, when calls == 0
+};
+
+// The figures a run reports (INTERFACE.md summary.json, history.csv).
+struct Figures {
+  double time = 0;              // s, simulated
+  int pulse = 0;                // pulses launched so far
+  double vaporized_fraction = 0;  // v_v, volume of vaporised / volume of all particles
+  double melted_fraction = 0;     // volume liquid now / volume of all particles
+  double max_temperature = 0;     // K, peak over the run so far
+  EnergyLedger energy;
+};
+
+struct Counts {
+  std::uint64_t particles = 0, rays = 0, segments = 0, steps = 0, rebuilds = 0, staggers = 0;
+};
+
+class Simulation {
+ public:
+  static constexpr const char* kStageNames[] = {"trace", "heat", "phases", "stagger", "rebuild"};
+  static constexpr int kStages = 5;
+
+  explicit Simulation(SimulationSpec spec);                       // packing from spec.packing
+  Simulation(SimulationSpec spec, Particles particles);           // packing given
+  ~Simulation();
+
+  // One time step of MODEL.md section 5; false once every pulse has been launched and ended.
+  bool step();
+  // Steps until done or until `stop` becomes true.
+  void run(const std::atomic<bool>* stop = nullptr);
+  // Called with k when pulse k is over: before pulse k+1 launches, or after the last step.
+  void on_pulse_end(std::function<void(int pulse)> callback) { on_pulse_end_ = std::move(callback); }
+  bool done() const;
+
+  const Particles& particles() const { return particles_; }
+  const std::vector<double>& absorbed() const { return absorbed_; }  // J per particle, cumulative
+  Figures figures() const;
+  Counts counts() const;
+  const std::array<StageTime, kStages>& stages() const { return stages_; }
+  const SimulationSpec& spec() const { return spec_; }
+  const Tracer& tracer() const { return *tracer_; }
+
+ private:
+  void launch_pulse_if_due();
+  double step_length(bool traced) const;
+  void remove_vaporized(const std::vector<std::uint32_t>& ids);
+  double volume_fraction(Phase phase) const;
+
+  SimulationSpec spec_;
+  Particles particles_;
+  Beam beam_;
+  std::unique_ptr<Tracer> tracer_;
+  std::unique_ptr<ThermalModel> thermal_;
+  std::vector<double> absorbed_;   // cumulative J per particle
+  std::vector<double> deposits_;   // this step's dH
+  double time_ = 0, next_pulse_time_ = 0, max_temperature_ = 0, total_volume_ = 0;
+  int launched_ = 0;
+  std::array<StageTime, kStages> stages_{};
+  Counts counts_{};
+  std::function<void(int)> on_pulse_end_;
+};
+
+}  // namespace beampack

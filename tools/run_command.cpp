@@ -1,0 +1,285 @@
+#include "tools/run_command.h"
+
+#include <tbb/global_control.h>
+
+#include <chrono>
+#include <csignal>
+#include <cstdlib>
+#include <cstdio>
+#include <filesystem>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+#include "geometry/error.h"
+#include "tools/svg_plot.h"
+#include "tools/writers.h"
+
+namespace beampack::tools {
+namespace fs = std::filesystem;
+
+std::atomic<bool>& stop_requested() {
+  static std::atomic<bool> flag{false};
+  return flag;
+}
+
+void install_interrupt_handler() {
+  std::signal(SIGINT, [](int) { stop_requested().store(true); });
+  std::signal(SIGTERM, [](int) { stop_requested().store(true); });
+}
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+// One progress line on stderr, refreshed at most twice a second once a run passes two seconds.
+class Progress {
+ public:
+  Progress(bool quiet, std::string label) : quiet_(quiet), label_(std::move(label)) {}
+  void update(const Simulation& sim) {
+    if (quiet_) return;
+    const double elapsed = std::chrono::duration<double>(Clock::now() - start_).count();
+    if (elapsed < 2.0 || elapsed - last_ < 0.5) return;
+    last_ = elapsed;
+    const Figures f = sim.figures();
+    std::fprintf(stderr, "\r%spulse %d/%d  t = %.3e s  v_v = %.4f  T_max = %.0f K  %.1f s   ",
+                 label_.c_str(), f.pulse, sim.spec().pulses.count, f.time, f.vaporized_fraction,
+                 f.max_temperature, elapsed);
+    shown_ = true;
+  }
+  ~Progress() {
+    if (shown_) std::fprintf(stderr, "\n");
+  }
+
+ private:
+  bool quiet_;
+  std::string label_;
+  Clock::time_point start_ = Clock::now();
+  double last_ = 0;
+  bool shown_ = false;
+};
+
+std::string history_header() {
+  return "time_s,pulse,vaporized_fraction,melted_fraction,max_temperature_K,injected_J,"
+         "absorbed_J,escaped_J,cutoff_J,stored_J,vaporized_J,walls_J\n";
+}
+
+std::string history_row(const Figures& f) {
+  const EnergyLedger& e = f.energy;
+  std::ostringstream s;
+  s << exact(f.time) << ',' << f.pulse << ',' << exact(f.vaporized_fraction) << ','
+    << exact(f.melted_fraction) << ',' << exact(f.max_temperature) << ',' << exact(e.injected) << ','
+    << exact(e.absorbed) << ',' << exact(e.escaped) << ',' << exact(e.cutoff) << ','
+    << exact(e.stored) << ',' << exact(e.vaporized) << ',' << exact(e.walls) << '\n';
+  return s.str();
+}
+
+nlohmann::json toml_to_json(const toml::table& table) {
+  nlohmann::json j = nlohmann::json::object();
+  for (const auto& [k, node] : table) {
+    const std::string key(k.str());
+    if (const auto* t = node.as_table()) j[key] = toml_to_json(*t);
+    else if (const auto* v = node.as_floating_point()) j[key] = v->get();
+    else if (const auto* i = node.as_integer()) j[key] = i->get();
+    else if (const auto* b = node.as_boolean()) j[key] = b->get();
+    else if (const auto* s = node.as_string()) j[key] = s->get();
+  }
+  return j;
+}
+
+nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const RunConfig& config) {
+  const Figures& f = r.figures;
+  const EnergyLedger& e = f.energy;
+  nlohmann::json j;
+  j["vaporized_fraction"] = f.vaporized_fraction;
+  j["melted_fraction"] = f.melted_fraction;
+  j["max_temperature_K"] = f.max_temperature;
+  j["time_s"] = f.time;
+  j["pulses"] = f.pulse;
+  j["energy_J"] = {{"injected", e.injected}, {"absorbed", e.absorbed}, {"escaped", e.escaped},
+                   {"cutoff", e.cutoff},     {"stored", e.stored},     {"vaporized", e.vaporized},
+                   {"walls", e.walls}};
+  j["counts"] = {{"particles", r.counts.particles}, {"rays", r.counts.rays},
+                 {"segments", r.counts.segments},   {"steps", r.counts.steps},
+                 {"rebuilds", r.counts.rebuilds},   {"staggers", r.counts.staggers}};
+  nlohmann::json stages = nlohmann::json::object();
+  for (int k = 0; k < Simulation::kStages; ++k) {
+    const StageTime& s = sim.stages()[k];
+    stages[Simulation::kStageNames[k]] = {{"seconds", s.seconds}, {"calls", s.calls},
+                                          {"skipped", s.calls == 0},
+                                          {"skipped_because", s.skipped_because}};
+  }
+  j["stages"] = stages;
+  j["wall_seconds"] = r.wall_seconds;
+  j["interrupted"] = r.interrupted;
+  j["config"] = toml_to_json(config.resolved);
+  return j;
+}
+
+void print_table(const Simulation& sim, const RunResult& r) {
+  const Figures& f = r.figures;
+  const EnergyLedger& e = f.energy;
+  std::printf("%-28s %14.6g\n", "vaporized fraction", f.vaporized_fraction);
+  std::printf("%-28s %14.6g\n", "melted fraction", f.melted_fraction);
+  std::printf("%-28s %14.6g K\n", "peak temperature", f.max_temperature);
+  std::printf("energy ledger, J\n");
+  std::printf("  %-26s %14.6e\n", "injected", e.injected);
+  std::printf("  %-26s %14.6e\n", "absorbed", e.absorbed);
+  std::printf("  %-26s %14.6e\n", "escaped", e.escaped);
+  std::printf("  %-26s %14.6e\n", "cut off", e.cutoff);
+  std::printf("  %-26s %14.6e\n", "stored as heat", e.stored);
+  std::printf("  %-26s %14.6e\n", "carried off by vapour", e.vaporized);
+  std::printf("  %-26s %14.6e\n", "lost to walls", e.walls);
+  std::printf("  %-26s %14.3e (optics) %10.3e (heat)\n", "imbalance, relative",
+              e.optics_imbalance() / std::max(e.injected, 1e-300),
+              e.heat_imbalance() / std::max(e.absorbed, 1e-300));
+  std::printf("stages, s\n");
+  for (int k = 0; k < Simulation::kStages; ++k) {
+    const StageTime& s = sim.stages()[k];
+    if (s.calls == 0)
+      std::printf("  %-26s %14s  skipped%s%s\n", Simulation::kStageNames[k], "-",
+                  s.skipped_because.empty() ? "" : ": ", s.skipped_because.c_str());
+    else
+      std::printf("  %-26s %14.4f  (%llu calls)\n", Simulation::kStageNames[k], s.seconds,
+                  static_cast<unsigned long long>(s.calls));
+  }
+  std::printf("%-28s %14.3f s (%llu steps, %llu rays, %llu segments)\n", "wall time", r.wall_seconds,
+              static_cast<unsigned long long>(r.counts.steps),
+              static_cast<unsigned long long>(r.counts.rays),
+              static_cast<unsigned long long>(r.counts.segments));
+}
+
+void prepare_out_dir(const std::string& dir) {
+  std::error_code ec;
+  fs::create_directories(dir, ec);
+  if (ec || !fs::is_directory(dir))
+    throw InputError("--out " + dir + ": cannot create the output directory (" + ec.message() + ")");
+  const fs::path probe = fs::path(dir) / ".beampack-write-test";
+  std::FILE* f = std::fopen(probe.c_str(), "w");
+  if (!f) throw InputError("--out " + dir + ": the output directory is not writable");
+  std::fclose(f);
+  fs::remove(probe);
+}
+
+}  // namespace
+
+RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label) {
+  const auto start = Clock::now();
+  Simulation sim(config.sim);
+  Progress progress(quiet, label);
+  while (!sim.done() && !stop_requested().load()) {
+    sim.step();
+    progress.update(sim);
+  }
+  RunResult r;
+  r.figures = sim.figures();
+  r.counts = sim.counts();
+  r.temperature = sim.particles().temperature;
+  r.interrupted = !sim.done();
+  r.wall_seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  return r;
+}
+
+int run_command(const RunOptions& options) {
+  const RunConfig config = load_run_config(options.sources);
+  prepare_out_dir(options.out_dir);
+  std::unique_ptr<tbb::global_control> threads;
+  if (options.threads > 0)
+    threads = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
+                                                    std::size_t(options.threads));
+  const auto start = Clock::now();
+  Simulation sim(config.sim);
+  const fs::path out(options.out_dir);
+  std::string history = history_header();
+  std::vector<std::pair<std::string, double>> frames;
+  auto on_pulse_end = [&](int pulse) {
+    history += history_row(sim.figures());
+    if (!config.output.frames) return;
+    char name[64];
+    std::snprintf(name, sizeof name, "particles_%04d.vtp", pulse);
+    write_particles_vtp((out / name).string(), sim.particles(), sim.absorbed());
+    frames.emplace_back(name, sim.figures().time);
+    write_pvd((out / "particles.pvd").string(), frames);
+  };
+  sim.on_pulse_end(on_pulse_end);
+  {
+    Progress progress(options.quiet, "");
+    while (!sim.done() && !stop_requested().load()) {
+      sim.step();
+      progress.update(sim);
+    }
+  }
+  RunResult r;
+  r.figures = sim.figures();
+  r.counts = sim.counts();
+  r.interrupted = !sim.done();
+  r.wall_seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  write_atomically((out / "history.csv").string(), [&](std::ostream& o) { o << history; });
+  write_particles_csv((out / "particles.csv").string(), sim.particles(), sim.absorbed());
+  write_atomically((out / "summary.json").string(),
+                   [&](std::ostream& o) { o << summary_json(sim, r, config).dump(2) << '\n'; });
+  print_table(sim, r);
+  if (r.interrupted) {
+    std::fprintf(stderr, "beampack: interrupted at t = %.6g s after %d pulses; outputs in %s hold that state\n",
+                 r.figures.time, r.figures.pulse, options.out_dir.c_str());
+    return 1;
+  }
+  return 0;
+}
+
+}  // namespace beampack::tools
+
+namespace beampack::tools {
+
+int sweep_command(const SweepOptions& options) {
+  if (options.values.empty()) throw InputError("--values: give at least one value");
+  prepare_out_dir(options.run.out_dir);
+  std::unique_ptr<tbb::global_control> threads;
+  if (options.run.threads > 0)
+    threads = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
+                                                    std::size_t(options.run.threads));
+  // Resolve every configuration first: a bad value fails before any run starts.
+  std::vector<RunConfig> configs;
+  for (const std::string& value : options.values) {
+    RunSources sources = options.run.sources;
+    sources.sets.push_back(options.param + "=" + value);
+    configs.push_back(load_run_config(sources));
+  }
+  std::string csv = options.param +
+                    ",vaporized_fraction,melted_fraction,max_temperature_K,injected_J,absorbed_J,"
+                    "escaped_J,cutoff_J,stored_J,vaporized_J,walls_J,steps,wall_seconds\n";
+  Series vv{"vaporized fraction", {}, {}};
+  const auto start = Clock::now();
+  for (std::size_t k = 0; k < configs.size(); ++k) {
+    const RunResult r = run_scene(configs[k], true);
+    if (r.interrupted) break;
+    const Figures& f = r.figures;
+    const EnergyLedger& e = f.energy;
+    std::ostringstream row;
+    row << options.values[k] << ',' << exact(f.vaporized_fraction) << ',' << exact(f.melted_fraction)
+        << ',' << exact(f.max_temperature) << ',' << exact(e.injected) << ',' << exact(e.absorbed)
+        << ',' << exact(e.escaped) << ',' << exact(e.cutoff) << ',' << exact(e.stored) << ','
+        << exact(e.vaporized) << ',' << exact(e.walls) << ',' << r.counts.steps << ','
+        << exact(r.wall_seconds) << '\n';
+    csv += row.str();
+    char* end = nullptr;
+    const double x = std::strtod(options.values[k].c_str(), &end);
+    vv.x.push_back(end && *end == 0 ? x : double(k));
+    vv.y.push_back(f.vaporized_fraction);
+    std::printf("%-24s %s = %-10s v_v = %.4f  melted = %.4f  T_max = %.0f K  (%.2f s)\n",
+                "sweep", options.param.c_str(), options.values[k].c_str(), f.vaporized_fraction,
+                f.melted_fraction, f.max_temperature, r.wall_seconds);
+    std::fflush(stdout);
+  }
+  const fs::path out(options.run.out_dir);
+  write_atomically((out / "sweep.csv").string(), [&](std::ostream& o) { o << csv; });
+  Chart chart{"vaporized fraction against " + options.param, options.param, "vaporized fraction",
+              false, false, {vv}};
+  write_atomically((out / "sweep.svg").string(), [&](std::ostream& o) { o << render_svg(chart); });
+  const double total = std::chrono::duration<double>(Clock::now() - start).count();
+  std::printf("sweep: %zu runs in %.2f s; %s/sweep.csv, %s/sweep.svg\n", vv.x.size(), total,
+              options.run.out_dir.c_str(), options.run.out_dir.c_str());
+  return stop_requested().load() ? 1 : 0;
+}
+
+}  // namespace beampack::tools

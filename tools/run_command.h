@@ -1,0 +1,42 @@
+#pragma once
+// `beampack run` and `beampack sweep`: a scene from a run file, its outputs in a directory.
+#include <atomic>
+#include <string>
+
+#include "tools/run_config.h"
+
+namespace beampack::tools {
+
+struct RunOptions {
+  RunSources sources;
+  std::string out_dir = "beampack-out";
+  int threads = 0;     // 0: all cores
+  bool quiet = false;
+};
+
+// The flag Ctrl-C sets: runs stop after the current step and write what they have.
+std::atomic<bool>& stop_requested();
+void install_interrupt_handler();
+
+// Runs one scene and writes summary.json, particles.csv, history.csv (and frames). Returns the
+// exit code: 0 done, 1 interrupted or failed.
+int run_command(const RunOptions& options);
+
+struct SweepOptions {
+  RunOptions run;
+  std::string param;
+  std::vector<std::string> values;
+};
+int sweep_command(const SweepOptions& options);
+
+// The result of one finished run, for sweeps and convergence studies.
+struct RunResult {
+  Figures figures;
+  Counts counts;
+  double wall_seconds = 0;
+  std::vector<double> temperature;
+  bool interrupted = false;
+};
+RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label = "");
+
+}  // namespace beampack::tools

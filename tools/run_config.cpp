@@ -1,0 +1,144 @@
+#include "tools/run_config.h"
+
+#include <cmath>
+#include <limits>
+
+#include "geometry/error.h"
+
+namespace beampack::tools {
+namespace {
+
+constexpr double kBig = std::numeric_limits<double>::max();
+
+// Every key is read whatever the source, so `beampack config` lists them all and a preset's
+// keys never count as unused; the ones a source ignores are documented as such.
+void read_packing(Params& p, PackingSpec& s) {
+  s.sample_size = p.number("sample.size", 1e-3, 0, kBig, true);
+  s.source = p.choice("packing.source", "random-overlap", {"random-overlap", "rsa", "lattice", "file"});
+  s.count = std::size_t(p.integer("packing.count", 1000, 0, 100'000'000));
+  s.radius_ratio = p.number("packing.radius_ratio", 0.325, 0, 10, true);
+  s.solid_fraction = p.number("packing.solid_fraction", 0.3, 0, 0.5, true);
+  s.seed = std::uint64_t(p.integer("packing.seed", 1, 0, std::numeric_limits<std::int64_t>::max()));
+  s.file = p.text("packing.file", "");
+  s.file_radius = p.number("packing.radius", 0.0, 0, kBig);
+  if (s.source == "file" && s.file.empty())
+    throw InputError("`packing.file` = \"\": required with packing.source = \"file\"");
+}
+
+void read_beam(Params& p, BeamSpec& b) {
+  b.power = p.number("beam.power", 6000, 0, kBig, true);
+  b.diameter_fraction = p.number("beam.diameter_fraction", 0.3, 0, 10, true);
+  b.rays = std::size_t(p.integer("beam.rays", 1000, 1, 100'000'000));
+  b.sampling = p.choice("beam.sampling", "random", {"random", "stratified"});
+  b.profile = p.choice("beam.profile", "exponential", {"exponential", "flat", "gaussian"});
+  b.decay = p.number("beam.decay", 2.0, 0, 1e3);
+  b.gaussian_width = p.number("beam.gaussian_width", 1.0, 0, 1e3, true);
+  b.seed = std::uint64_t(p.integer("beam.seed", 1, 0, std::numeric_limits<std::int64_t>::max()));
+  const double dx = p.number("beam.direction_x", 1.0, -1, 1);
+  const double dy = p.number("beam.direction_y", 0.0, -1, 1);
+  const double dz = p.number("beam.direction_z", 0.0, -1, 1);
+  const Vec3 d(dx, dy, dz);
+  if (d.norm() < 1e-12) throw InputError("`beam.direction_x/y/z` = (0, 0, 0): must not be zero");
+  b.direction = d.normalized();
+}
+
+void read_optics(Params& p, OpticsSpec& o) {
+  MaterialOptics m;
+  m.n_solid = {p.number("optics.n_solid", 1.4, 0, kBig, true), p.number("optics.k_solid", 0.0, 0, kBig)};
+  m.n_liquid = {p.number("optics.n_liquid", 1.0, 0, kBig, true), p.number("optics.k_liquid", 0.0, 0, kBig)};
+  m.mu_hat = p.number("optics.mu_hat", 1.0, 0, kBig, true);
+  o.materials = {m};
+  o.cutoff = p.number("optics.cutoff", 1e-10, 0, 1);
+  o.max_bounces = int(p.integer("optics.max_bounces", 1000, 0, 1'000'000));
+  o.packets = p.flag("optics.packets", true);
+}
+
+void read_material(Params& p, Material& m) {
+  m.density = p.number("material.density", 1000, 0, kBig, true);
+  m.c_solid = p.number("material.c_solid", 1000, 0, kBig, true);
+  m.c_liquid = p.number("material.c_liquid", 2000, 0, kBig, true);
+  m.conductivity = p.number("material.conductivity", 0, 0, kBig);
+  m.melt_temperature = p.number("material.melt_temperature", 600, 0, kBig, true);
+  m.vapor_temperature = p.number("material.vapor_temperature", 700, 0, kBig, true);
+  m.latent_melt = p.number("material.latent_melt", 1000, 0, kBig);
+  m.latent_solidify = p.number("material.latent_solidify", 1000, 0, kBig);
+  m.latent_vapor = p.number("material.latent_vapor", 1000, 0, kBig);
+  m.validate("material");
+}
+
+// thermal.dt: seconds, "pulse" (one step per pulse flight: the event-driven limit) or "paper"
+// (xi R / c, the paper's ray time step).
+void read_thermal(Params& p, SimulationSpec& s, double paper_dt) {
+  ThermalSpec& t = s.thermal;
+  t.time_scaling = p.number("thermal.time_scaling", 1e6, 0, kBig, true);
+  t.phi = p.number("thermal.phi", 1.0, 0, 1);
+  t.solver = p.choice("thermal.solver", "auto", {"fixed-point", "cg", "direct", "auto"});
+  t.tolerance = p.number("thermal.tolerance", 1e-10, 0, 0.1, true);
+  t.max_iterations = int(p.integer("thermal.max_iterations", 1000, 1, 100'000'000));
+  s.max_staggers = int(p.integer("thermal.max_staggers", 4, 0, 1000));
+  double dt = 0;
+  const std::string word = p.number_or_word("thermal.dt", dt, 0, kBig, {"pulse", "paper"}, "pulse");
+  s.dt = word == "pulse" ? 0.0 : word == "paper" ? paper_dt : dt;
+  t.validate();
+}
+
+// tau: seconds, or "auto" = xi R / c (the paper's ray time step), or from pulses.energy.
+// Returns xi R / c.
+double read_pulses(Params& p, SimulationSpec& s, double radius) {
+  s.pulses.count = int(p.integer("pulses.count", 20, 0, 10'000'000));
+  double tau = 0;
+  const std::string word = p.number_or_word("pulses.duration", tau, 0, kBig, {"auto", "energy"}, "auto");
+  const double xi = p.number("pulses.xi", 0.05, 0, 10, true);
+  const double energy = p.number("pulses.energy", 1e-9, 0, kBig, true);
+  if (word == "auto") tau = xi * radius / kSpeedOfLight;
+  if (word == "energy") tau = energy / s.beam.power;
+  s.pulses.duration = tau;
+  double period = 0;
+  const std::string pw = p.number_or_word("pulses.period", period, 0, kBig, {"auto"}, "auto");
+  s.pulses.period = pw == "auto" ? 0.0 : period;
+  return xi * radius / kSpeedOfLight;
+}
+
+double typical_radius(const PackingSpec& s) {
+  if (s.source == "random-overlap" || s.source == "lattice")
+    return s.radius_ratio * std::cbrt(std::pow(s.sample_size, 3) / double(std::max<std::size_t>(s.count, 1)));
+  if (s.source == "rsa")
+    return s.sample_size * std::cbrt(3 * s.solid_fraction / (4 * M_PI * double(std::max<std::size_t>(s.count, 1))));
+  return s.file_radius > 0 ? s.file_radius : s.sample_size / 100;
+}
+
+}  // namespace
+
+RunConfig load_run_config(const RunSources& sources) {
+  Params p;
+  if (!sources.preset.empty()) {
+    const Preset* found = nullptr;
+    for (const Preset& preset : presets())
+      if (sources.preset == preset.name) found = &preset;
+    if (!found) {
+      std::string list;
+      for (const Preset& preset : presets()) list += std::string(list.empty() ? "" : ", ") + preset.name;
+      throw InputError("--preset " + sources.preset + ": unknown preset (known: " + list + ")");
+    }
+    p.merge_toml_text(found->toml, std::string("preset ") + found->name);
+  }
+  if (!sources.file.empty()) p.merge_toml_file(sources.file);
+  for (const std::string& s : sources.sets) p.merge_assignment(s);
+
+  RunConfig c;
+  read_packing(p, c.sim.packing);
+  c.sim.packing.initial_temperature = p.number("material.initial_temperature", 300, 0, kBig, true);
+  read_beam(p, c.sim.beam);
+  read_optics(p, c.sim.optics);
+  Material m;
+  read_material(p, m);
+  c.sim.materials = {m};
+  const double paper_dt = read_pulses(p, c.sim, typical_radius(c.sim.packing));
+  read_thermal(p, c.sim, paper_dt);
+  c.output.frames = p.flag("output.frames", false);
+  p.check_all_used();
+  c.resolved = p.resolved();
+  return c;
+}
+
+}  // namespace beampack::tools

@@ -1,0 +1,39 @@
+#pragma once
+// A run's configuration: defaults, then a preset, then a run file, then --set overrides, read
+// through Params into the library's SimulationSpec.
+#include <string>
+#include <vector>
+
+#include "engine/simulation.h"
+#include "tools/params.h"
+
+namespace beampack::tools {
+
+struct OutputSpec {
+  bool frames = false;  // output.frames: particles_NNNN.vtp after every pulse, with particles.pvd
+};
+
+struct RunConfig {
+  SimulationSpec sim;
+  OutputSpec output;
+  toml::table resolved;  // every key with the value used
+};
+
+struct RunSources {
+  std::string file;                 // RUN.toml ("" for none)
+  std::string preset;               // --preset NAME ("" for none)
+  std::vector<std::string> sets;    // --set KEY=VALUE, in order
+};
+
+// InputError (exit code 2) for any bad key, type or value, naming file and line.
+RunConfig load_run_config(const RunSources& sources);
+
+// Named presets: TOML text.
+struct Preset {
+  const char* name;
+  const char* summary;
+  const char* toml;
+};
+const std::vector<Preset>& presets();
+
+}  // namespace beampack::tools

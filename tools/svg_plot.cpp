@@ -1,0 +1,95 @@
+#include "tools/svg_plot.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <sstream>
+
+namespace beampack::tools {
+namespace {
+
+constexpr double kWidth = 640, kHeight = 420, kLeft = 80, kRight = 160, kTop = 40, kBottom = 60;
+const char* kColours[] = {"#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"};
+
+struct Axis {
+  double lo = 0, hi = 1;
+  bool log = false;
+  double map(double v) const {
+    const double a = log ? std::log10(v) : v;
+    return (a - lo) / (hi - lo);
+  }
+};
+
+Axis fit_axis(const std::vector<double>& values, bool log) {
+  double lo = std::numeric_limits<double>::infinity(), hi = -lo;
+  for (double v : values) {
+    if (!std::isfinite(v) || (log && v <= 0)) continue;
+    const double a = log ? std::log10(v) : v;
+    lo = std::min(lo, a);
+    hi = std::max(hi, a);
+  }
+  if (!std::isfinite(lo)) lo = 0, hi = 1;
+  if (log) lo = std::floor(lo), hi = std::ceil(hi);
+  if (hi - lo < 1e-12) hi = lo + 1;
+  if (!log) {
+    const double pad = 0.05 * (hi - lo);
+    lo = std::min(lo, 0.0) == 0.0 && lo >= 0 ? 0.0 : lo - pad;
+    hi += pad;
+  }
+  return {lo, hi, log};
+}
+
+std::string tick_label(double a, bool log) {
+  char buf[32];
+  if (log) std::snprintf(buf, sizeof buf, "1e%d", int(std::lround(a)));
+  else std::snprintf(buf, sizeof buf, "%.3g", a);
+  return buf;
+}
+
+}  // namespace
+
+std::string render_svg(const Chart& chart) {
+  std::vector<double> xs, ys;
+  for (const Series& s : chart.series) {
+    xs.insert(xs.end(), s.x.begin(), s.x.end());
+    ys.insert(ys.end(), s.y.begin(), s.y.end());
+  }
+  const Axis ax = fit_axis(xs, chart.log_x), ay = fit_axis(ys, chart.log_y);
+  const double w = kWidth - kLeft - kRight, h = kHeight - kTop - kBottom;
+  auto px = [&](double x) { return kLeft + w * ax.map(x); };
+  auto py = [&](double y) { return kTop + h * (1 - ay.map(y)); };
+  std::ostringstream o;
+  o << "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"" << kWidth << "\" height=\"" << kHeight
+    << "\" font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n";
+  o << "<text x=\"" << kWidth / 2 - 60 << "\" y=\"22\" font-size=\"14\">" << chart.title << "</text>\n";
+  o << "<rect x=\"" << kLeft << "\" y=\"" << kTop << "\" width=\"" << w << "\" height=\"" << h
+    << "\" fill=\"none\" stroke=\"black\"/>\n";
+  for (int k = 0; k <= 5; ++k) {
+    const double fx = ax.lo + (ax.hi - ax.lo) * k / 5, fy = ay.lo + (ay.hi - ay.lo) * k / 5;
+    const double x = kLeft + w * k / 5, y = kTop + h * (1 - k / 5.0);
+    o << "<line x1=\"" << x << "\" y1=\"" << kTop + h << "\" x2=\"" << x << "\" y2=\"" << kTop + h + 5 << "\" stroke=\"black\"/>"
+      << "<text x=\"" << x - 15 << "\" y=\"" << kTop + h + 20 << "\">" << tick_label(fx, ax.log) << "</text>\n";
+    o << "<line x1=\"" << kLeft - 5 << "\" y1=\"" << y << "\" x2=\"" << kLeft << "\" y2=\"" << y << "\" stroke=\"black\"/>"
+      << "<text x=\"" << 8 << "\" y=\"" << y + 4 << "\">" << tick_label(fy, ay.log) << "</text>\n";
+  }
+  o << "<text x=\"" << kLeft + w / 2 - 40 << "\" y=\"" << kHeight - 15 << "\">" << chart.x_label << "</text>\n";
+  o << "<text transform=\"translate(18," << kTop + h / 2 + 40 << ") rotate(-90)\">" << chart.y_label << "</text>\n";
+  for (std::size_t k = 0; k < chart.series.size(); ++k) {
+    const Series& s = chart.series[k];
+    const char* colour = kColours[k % 6];
+    std::ostringstream path;
+    for (std::size_t i = 0; i < s.x.size(); ++i) {
+      if (!std::isfinite(s.y[i]) || (chart.log_y && s.y[i] <= 0) || (chart.log_x && s.x[i] <= 0)) continue;
+      path << (path.tellp() == 0 ? "M" : " L") << px(s.x[i]) << ',' << py(s.y[i]);
+      o << "<circle cx=\"" << px(s.x[i]) << "\" cy=\"" << py(s.y[i]) << "\" r=\"3\" fill=\"" << colour << "\"/>\n";
+    }
+    o << "<path d=\"" << path.str() << "\" fill=\"none\" stroke=\"" << colour << "\" stroke-width=\"1.5\"/>\n";
+    o << "<text x=\"" << kWidth - kRight + 10 << "\" y=\"" << kTop + 15 + 18 * k << "\" fill=\"" << colour
+      << "\">" << s.label << "</text>\n";
+  }
+  o << "</svg>\n";
+  return o.str();
+}
+
+}  // namespace beampack::tools
