@@ -56,29 +56,18 @@ std::vector<Eigen::Vector2d> random_disk(std::size_t n, std::uint64_t seed) {
   return p;
 }
 
-// Deterministic equal-area cells: rings holding 1, 6, 12, 18, ... cells (nearly square cells),
-// the last ring taking the remainder. Ring j spans the area fraction [N_j, N_j + k_j] / N, each
-// cell a sector of it; the ray sits at the cell's mid-area radius and mid angle.
+// Deterministic equal-area sampling (Vogel's spiral): ray k sits at the mid-area radius of the
+// k-th of N equal-area annuli, r_k = sqrt((k + 1/2) / N), turned by the golden angle each step.
+// Every ray stands for area A_b / N; unlike rings of equal radius, no circle concentric with the
+// beam (a sphere on the axis, the beam edge) lines up with many rays at once, so the quadrature
+// error of such features falls like 1/N instead of 1/sqrt(N).
 std::vector<Eigen::Vector2d> stratified_disk(std::size_t n) {
-  std::vector<std::size_t> ring_cells;
-  std::size_t placed = 0;
-  for (std::size_t j = 0; placed < n; ++j) {
-    std::size_t k = j == 0 ? 1 : 6 * j;
-    if (placed + k > n || n - (placed + k) < 3 * j) k = n - placed;  // no sliver ring at the edge
-    ring_cells.push_back(k);
-    placed += k;
-  }
-  std::vector<Eigen::Vector2d> p;
-  p.reserve(n);
-  std::size_t before = 0;
-  for (std::size_t j = 0; j < ring_cells.size(); ++j) {
-    const std::size_t k = ring_cells[j];
-    const double r = j == 0 && k == 1 ? 0.0 : std::sqrt((before + 0.5 * k) / static_cast<double>(n));
-    for (std::size_t c = 0; c < k; ++c) {
-      const double phi = 2.0 * std::numbers::pi * (c + 0.5) / static_cast<double>(k);
-      p.push_back({r * std::cos(phi), r * std::sin(phi)});
-    }
-    before += k;
+  const double golden_angle = std::numbers::pi * (3.0 - std::sqrt(5.0));
+  std::vector<Eigen::Vector2d> p(n);
+  for (std::size_t k = 0; k < n; ++k) {
+    const double r = std::sqrt((static_cast<double>(k) + 0.5) / static_cast<double>(n));
+    const double phi = golden_angle * static_cast<double>(k);
+    p[k] = {r * std::cos(phi), r * std::sin(phi)};
   }
   return p;
 }

@@ -16,6 +16,7 @@ struct ValidationCase {
 
 std::vector<ValidationCase> optics_cases();
 std::vector<ValidationCase> geometry_cases();
+std::vector<ValidationCase> physics_cases();
 
 // Prints the table to stdout; returns the exit code (0 only if all pass).
 int run_validate(bool quiet);
