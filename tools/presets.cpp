@@ -64,6 +64,7 @@ rays = 200
 seed = 7
 [pulses]
 count = 5
+duration = 3e-13
 [material]
 conductivity = 20.0
 )"},
