@@ -369,12 +369,13 @@ void ThermalModel::restore(const Snapshot& s) {
   if (s.temperature.size() != p_.size())
     throw RunError("thermal restore: snapshot of " + std::to_string(s.temperature.size()) +
                    " particles, model has " + std::to_string(p_.size()));
+  // Reassemble only if the live set differs: a redo without vaporisation keeps the matrix.
+  if (p_.alive != s.alive) dirty_ = true;
   p_.temperature = s.temperature;
   p_.phase = s.phase;
   p_.alive = s.alive;
   stored_ = s.stored;
   ledger_ = s.ledger;
-  dirty_ = true;  // the live set may differ
 }
 
 }  // namespace beampack

@@ -1,0 +1,218 @@
+// Inputs, the conductance graph, what runs and what is skipped, solver agreement, the reuse of
+// the direct factorisation, and save/restore for the stagger.
+#include <gtest/gtest.h>
+
+#include <cstdlib>
+#include <random>
+
+#include "geometry/contact.h"
+#include "geometry/error.h"
+#include "geometry/packing.h"
+#include "thermal/thermal_model.h"
+
+namespace beampack {
+namespace {
+
+std::string input_message(const auto& f) {
+  try {
+    f();
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "(no InputError)";
+}
+
+TEST(ThermalInput, MaterialMessagesNameKeyValueAndLimit) {
+  Material m;
+  m.conductivity = -3;
+  EXPECT_EQ(input_message([&] { m.validate(); }), "material.conductivity = -3: must be >= 0");
+  Material v;
+  v.vapor_temperature = 500;
+  EXPECT_EQ(input_message([&] { v.validate("material[1]"); }),
+            "material[1].vapor_temperature = 500: must be > material[1].melt_temperature = 600");
+  Material d;
+  d.density = std::nan("");
+  EXPECT_NE(input_message([&] { d.validate(); }).find("material.density = nan"), std::string::npos);
+}
+
+TEST(ThermalInput, SpecAndStartStateChecked) {
+  Particles p;
+  p.add(Vec3::Zero(), 1e-4, 0, 300.0);
+  ThermalSpec spec;
+  spec.phi = 1.5;
+  EXPECT_EQ(input_message([&] { ThermalModel(p, {Material{}}, spec); }),
+            "thermal.phi = 1.5: must be in [0, 1]");
+  spec = {};
+  spec.solver = "gauss";
+  EXPECT_NE(input_message([&] { ThermalModel(p, {Material{}}, spec); }).find("thermal.solver"),
+            std::string::npos);
+  p.material[0] = 2;
+  EXPECT_NE(input_message([&] { ThermalModel(p, {Material{}}, {}); }).find("must be < 1"),
+            std::string::npos);
+  p.material[0] = 0;
+  p.temperature[0] = 800;
+  EXPECT_NE(input_message([&] { ThermalModel(p, {Material{}}, {}); }).find("vapour"),
+            std::string::npos);
+}
+
+TEST(ThermalGraph, PairAverageConductivityByMaterial) {
+  Particles p;
+  p.add(Vec3::Zero(), 1e-4, 0);
+  p.add(Vec3(1.5e-4, 0, 0), 1e-4, 1);
+  p.add(Vec3(3.0e-4, 0, 0), 1e-4, 1);
+  Material a, b;
+  a.conductivity = 10;
+  b.conductivity = 30;
+  const auto contacts = find_contacts(p);
+  ASSERT_EQ(contacts.size(), 2u);
+  const auto g = contact_conductances(p, {a, b}, contacts);
+  const ContactGeometry geo = contact_geometry(1.5e-4, 1e-4, 1e-4);
+  EXPECT_DOUBLE_EQ(g[0], 20.0 * geo.area / geo.distance);  // (10 + 30) / 2
+  EXPECT_DOUBLE_EQ(g[1], 30.0 * geo.area / geo.distance);
+  // L + W is a graph Laplacian: symmetric, zero row sums without walls.
+  const SparseMatrix l = conduction_matrix(p, contacts, g, {});
+  EXPECT_NEAR((Eigen::MatrixXd(l) - Eigen::MatrixXd(l).transpose()).norm(), 0.0, 0.0);
+  EXPECT_NEAR((Eigen::MatrixXd(l) * Eigen::Vector3d::Ones()).norm(), 0.0, 1e-18);
+}
+
+TEST(ThermalGraph, WallsTouchOnlyParticlesWithinReach) {
+  Particles p;
+  p.add(Vec3(1.0e-4, 0, 0), 1e-4, 0);   // touches x = 0
+  p.add(Vec3(1.05e-4, 0, 0), 1e-4, 0);  // 5 um off: within a reach of 1e-5
+  p.add(Vec3(5e-4, 0, 0), 1e-4, 0);     // far
+  Material m;
+  m.conductivity = 7;
+  const WallCoupling w = wall_coupling(p, {m}, {{0, 0.0, 1e-5, 250.0, -1.0}});
+  EXPECT_DOUBLE_EQ(w.conductance[0], std::numbers::pi * 7 * 1e-4);
+  EXPECT_DOUBLE_EQ(w.conductance[1], std::numbers::pi * 7 * 1e-4);
+  EXPECT_EQ(w.conductance[2], 0.0);
+  EXPECT_DOUBLE_EQ(w.source[0], 250.0 * w.conductance[0]);
+}
+
+TEST(ThermalSkip, ZeroConductivityBuildsNoMatrixAndSolvesNothing) {
+  Particles p = random_overlap_packing(300, 1e-3, 0.5, 2);
+  ThermalModel model(p, {Material{}}, {});  // K = 0
+  model.set_contacts(find_contacts(p));
+  std::vector<double> dh(p.size(), 1e-12);
+  const StepReport r = model.step(1e-9, dh);
+  EXPECT_FALSE(r.conduction_ran);
+  EXPECT_FALSE(r.phases_ran);
+  EXPECT_EQ(r.solver, "none");
+  EXPECT_EQ(r.iterations, 0);
+  for (std::size_t i = 0; i < p.size(); ++i)
+    EXPECT_NEAR(p.temperature[i], 300.0 + 1e-12 / model.thermal_mass(i), 1e-9);
+}
+
+// A conducting packing with random heating where the fixed-point iteration contracts.
+struct AgreeScene {
+  Particles p = random_overlap_packing(600, 1e-3, 0.45, 9);
+  std::vector<double> dh;
+  Material m;
+  AgreeScene() {
+    m.conductivity = 100;
+    std::mt19937_64 rng(3);
+    std::uniform_real_distribution<double> u(0.0, 2e-10);
+    for (std::size_t i = 0; i < p.size(); ++i) dh.push_back(u(rng));
+  }
+};
+
+double explicit_limit(AgreeScene& s) {
+  ThermalSpec spec;
+  spec.phi = 0;
+  ThermalModel model(s.p, {s.m}, spec);
+  model.set_contacts(find_contacts(s.p));
+  return model.explicit_step_limit();
+}
+
+TEST(ThermalSolvers, AllThreeAgree) {
+  std::vector<std::vector<double>> results;
+  for (const char* solver : {"fixed-point", "cg", "direct", "auto"}) {
+    AgreeScene s;
+    ThermalSpec spec;
+    spec.solver = solver;
+    spec.phi = 0.5;
+    spec.tolerance = 1e-13;
+    ThermalModel model(s.p, {s.m}, spec);
+    model.set_contacts(find_contacts(s.p));
+    // The explicit limit min c/D makes the contraction dt phi max 2D/c = 0.05 here.
+    const double dt = 0.05 * explicit_limit(s);
+    StepReport r;
+    for (int k = 0; k < 3; ++k) r = model.step(dt, s.dh);
+    EXPECT_NEAR(r.contraction_estimate, 0.05, 1e-12);
+    EXPECT_TRUE(r.conduction_ran);
+    EXPECT_EQ(r.solver, std::string(solver) == "auto" ? "fixed-point" : solver);
+    results.push_back(s.p.temperature);
+  }
+  double spread = 0;
+  for (std::size_t i = 0; i < results[0].size(); ++i)
+    for (const auto& r : results) spread = std::max(spread, std::abs(r[i] - results[2][i]));
+  EXPECT_LT(spread, 1e-8);
+}
+
+TEST(ThermalSolvers, DirectReusesSymbolicAnalysisWhileGraphUnchanged) {
+  AgreeScene s;
+  ThermalSpec spec;
+  spec.solver = "direct";
+  ThermalModel model(s.p, {s.m}, spec);
+  model.set_contacts(find_contacts(s.p));
+  StepReport r = model.step(1e-9, {});
+  EXPECT_FALSE(r.symbolic_reused);
+  r = model.step(1e-9, {});
+  EXPECT_TRUE(r.symbolic_reused);
+  EXPECT_TRUE(r.factors_reused);  // same dt, same phases: same matrix
+  r = model.step(2e-9, {});
+  EXPECT_TRUE(r.symbolic_reused);
+  EXPECT_FALSE(r.factors_reused);
+  model.set_contacts(find_contacts(s.p));  // same pattern
+  EXPECT_TRUE(model.step(2e-9, {}).symbolic_reused);
+  s.p.remove(0);
+  model.set_contacts(find_contacts(s.p));  // new pattern
+  EXPECT_FALSE(model.step(2e-9, {}).symbolic_reused);
+}
+
+TEST(ThermalState, RestoreRedoesAStepExactly) {
+  Particles p;
+  p.add(Vec3::Zero(), 1e-4, 0, 650.0);
+  p.add(Vec3(1.5e-4, 0, 0), 1e-4, 0, 300.0);
+  Material m;
+  m.conductivity = 1;
+  ThermalModel model(p, {m}, {});
+  model.set_contacts(find_contacts(p));
+  const auto snap = model.save();
+  const std::vector<double> dh{10 * model.thermal_mass(0) * 100.0, 0.0};
+  const StepReport first = model.step(1e-10, dh);
+  ASSERT_EQ(first.vaporized.size(), 1u);
+  const std::vector<double> t1 = p.temperature;
+  const ThermalLedger l1 = model.ledger();
+  model.restore(snap);
+  EXPECT_EQ(p.alive[0], 1);
+  EXPECT_EQ(p.phase[0], Phase::liquid);
+  EXPECT_EQ(model.ledger().absorbed, 0.0);
+  const StepReport again = model.step(1e-10, dh);
+  EXPECT_EQ(again.vaporized, first.vaporized);
+  EXPECT_EQ(p.temperature, t1);
+  EXPECT_EQ(model.ledger().vaporized, l1.vaporized);
+}
+
+TEST(ThermalLong, LongLedgerOnLargePacking) {
+  if (const char* e = std::getenv("BEAMPACK_LONG"); !e || std::string(e) != "1")
+    GTEST_SKIP() << "set BEAMPACK_LONG=1";
+  Particles p = random_overlap_packing(100000, 1e-3, 0.325, 1);
+  Material m;
+  m.conductivity = 100;
+  ThermalModel model(p, {m}, {});
+  model.set_contacts(find_contacts(p));
+  std::vector<double> dh(p.size(), 0.0);
+  for (std::size_t i = 0; i < p.size(); i += 7) dh[i] = 50.0 * model.thermal_mass(i);
+  std::size_t vaporized = 0;
+  for (int s = 0; s < 20; ++s) {
+    for (std::size_t i = 0; i < p.size(); ++i)
+      if (!p.alive[i]) dh[i] = 0;  // the ray scene no longer holds vapour
+    vaporized += model.step(1e-12, dh).vaporized.size();
+  }
+  EXPECT_GT(vaporized, 0u);
+  EXPECT_NEAR(model.ledger().imbalance(), 0.0, 1e-9 * model.ledger().absorbed);
+}
+
+}  // namespace
+}  // namespace beampack
