@@ -236,3 +236,24 @@ print('ok', len(frames), len(rows))
   EXPECT_EQ(py.code, 0) << py.output;
   EXPECT_NE(py.output.find("ok 5 "), std::string::npos) << py.output;
 }
+
+TEST(Cli, ConvergeWritesLaddersWithTheFinestAsReference) {
+  const fs::path out = fresh_dir("converge");
+  const Result r = run("converge --preset quick --quiet --set beam.rays=50 --out " + out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  const auto rows = read_csv(out / "convergence.csv");
+  ASSERT_EQ(rows.size(), 17u);  // 5 time steps, 7 ray counts, 5 tolerances
+  std::map<std::string, int> per_ladder;
+  for (const auto& row : rows) {
+    const bool first = per_ladder[row.at("ladder")]++ == 0;
+    const double e = std::stod(row.at("vaporized_fraction_error"));
+    const double l2 = std::stod(row.at("temperature_l2_error_K"));
+    ASSERT_TRUE(std::isfinite(e) && std::isfinite(l2));
+    if (first) {
+      EXPECT_EQ(l2, 0.0) << row.at("ladder");  // the reference against itself
+    }
+    EXPECT_GT(std::stod(row.at("wall_seconds")), 0.0);
+  }
+  EXPECT_EQ(per_ladder.size(), 3u);
+  EXPECT_TRUE(fs::exists(out / "convergence.svg"));
+}

@@ -6,6 +6,7 @@
 #include <iostream>
 
 #include "geometry/error.h"
+#include "tools/converge.h"
 #include "tools/run_command.h"
 #include "tools/validate.h"
 
@@ -53,6 +54,13 @@ int main(int argc, char** argv) {
   sweep_cmd->add_option("--out", sweep.run.out_dir, "output directory")->capture_default_str();
   sweep_cmd->add_option("--threads", sweep.run.threads, "worker threads (0: all cores)");
 
+  RunOptions converge;
+  CLI::App* converge_cmd = app.add_subcommand("converge", "error against run time over resolution ladders");
+  add_run_sources(converge_cmd, converge);
+  converge_cmd->add_option("--out", converge.out_dir, "output directory")->capture_default_str();
+  converge_cmd->add_option("--threads", converge.threads, "worker threads (0: all cores)");
+  converge_cmd->add_flag("--quiet", converge.quiet, "no progress line");
+
   CLI::App* validate_cmd = app.add_subcommand("validate", "run the analytic cases and print a table");
   validate_cmd->add_flag("--quiet", quiet_validate, "print failures only");
 
@@ -72,6 +80,7 @@ int main(int argc, char** argv) {
   try {
     if (run_cmd->parsed()) return run_command(run);
     if (sweep_cmd->parsed()) return sweep_command(sweep);
+    if (converge_cmd->parsed()) return converge_command(converge);
     if (validate_cmd->parsed()) return run_validate(quiet_validate);
     if (app.got_subcommand("presets")) return list_presets();
     if (config_cmd->parsed()) return print_config(config.sources);

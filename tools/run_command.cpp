@@ -149,6 +149,8 @@ void print_table(const Simulation& sim, const RunResult& r) {
               static_cast<unsigned long long>(r.counts.segments));
 }
 
+}  // namespace
+
 void prepare_out_dir(const std::string& dir) {
   std::error_code ec;
   fs::create_directories(dir, ec);
@@ -160,8 +162,6 @@ void prepare_out_dir(const std::string& dir) {
   std::fclose(f);
   fs::remove(probe);
 }
-
-}  // namespace
 
 RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label) {
   const auto start = Clock::now();

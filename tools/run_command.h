@@ -37,6 +37,9 @@ struct RunResult {
   std::vector<double> temperature;
   bool interrupted = false;
 };
+// InputError naming --out when the directory cannot be created or written.
+void prepare_out_dir(const std::string& dir);
+
 RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label = "");
 
 }  // namespace beampack::tools

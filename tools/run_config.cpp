@@ -135,6 +135,7 @@ RunConfig load_run_config(const RunSources& sources) {
   c.sim.materials = {m};
   const double paper_dt = read_pulses(p, c.sim, typical_radius(c.sim.packing));
   read_thermal(p, c.sim, paper_dt);
+  c.paper_dt = paper_dt;
   c.output.frames = p.flag("output.frames", false);
   p.check_all_used();
   c.resolved = p.resolved();

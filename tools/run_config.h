@@ -17,6 +17,7 @@ struct RunConfig {
   SimulationSpec sim;
   OutputSpec output;
   toml::table resolved;  // every key with the value used
+  double paper_dt = 0;   // xi R / c: the paper's ray time step for this scene
 };
 
 struct RunSources {
