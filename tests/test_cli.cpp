@@ -257,3 +257,10 @@ TEST(Cli, ConvergeWritesLaddersWithTheFinestAsReference) {
   EXPECT_EQ(per_ladder.size(), 3u);
   EXPECT_TRUE(fs::exists(out / "convergence.svg"));
 }
+
+TEST(CliLong, StabilityGridHasNoFailure) {
+  if (!std::getenv("BEAMPACK_LONG")) GTEST_SKIP() << "about a minute; set BEAMPACK_LONG=1";
+  const Result r = run("validate --stiff --quiet");
+  EXPECT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find(" 0 failed"), std::string::npos) << r.output;
+}

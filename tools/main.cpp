@@ -8,6 +8,7 @@
 #include "geometry/error.h"
 #include "tools/converge.h"
 #include "tools/run_command.h"
+#include "tools/stability.h"
 #include "tools/validate.h"
 
 namespace {
@@ -63,6 +64,8 @@ int main(int argc, char** argv) {
 
   CLI::App* validate_cmd = app.add_subcommand("validate", "run the analytic cases and print a table");
   validate_cmd->add_flag("--quiet", quiet_validate, "print failures only");
+  bool stiff = false;
+  validate_cmd->add_flag("--stiff", stiff, "run the stability grid (K, dt, index, N, solver) instead");
 
   app.add_subcommand("presets", "list the named presets");
   RunOptions config;
@@ -81,7 +84,7 @@ int main(int argc, char** argv) {
     if (run_cmd->parsed()) return run_command(run);
     if (sweep_cmd->parsed()) return sweep_command(sweep);
     if (converge_cmd->parsed()) return converge_command(converge);
-    if (validate_cmd->parsed()) return run_validate(quiet_validate);
+    if (validate_cmd->parsed()) return stiff ? run_stability_report(quiet_validate) : run_validate(quiet_validate);
     if (app.got_subcommand("presets")) return list_presets();
     if (config_cmd->parsed()) return print_config(config.sources);
   } catch (const beampack::InputError& e) {
