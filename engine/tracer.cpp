@@ -20,19 +20,6 @@ namespace {
 constexpr std::size_t kChunkRays = 256;  // fixed: the reduction order must not depend on threads
 constexpr int kPacket = 16;
 
-// Interleaves the bits of two 16-bit cell coordinates: consecutive Morton codes are neighbours.
-std::uint32_t morton2(std::uint32_t x, std::uint32_t y) {
-  auto spread = [](std::uint32_t v) {
-    v &= 0xFFFF;
-    v = (v | (v << 8)) & 0x00FF00FF;
-    v = (v | (v << 4)) & 0x0F0F0F0F;
-    v = (v | (v << 2)) & 0x33333333;
-    v = (v | (v << 1)) & 0x55555555;
-    return v;
-  };
-  return spread(x) | (spread(y) << 1);
-}
-
 void validate(const OpticsSpec& spec, const Particles& particles) {
   if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
     throw InputError("`optics.cutoff` = " + std::to_string(spec.cutoff) + ": must be in [0, 1)");
@@ -105,22 +92,8 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
     }
     upstream -= 1e-6 * (box_.upper - box_.lower).norm();
   }
-  // Spatial tiles: sort by the Morton code of the position on the disk, so 16 consecutive rays
-  // form a small patch of the beam and a packet stays coherent.
-  const Vec3 helper = std::abs(d.x()) < 0.9 ? Vec3(1, 0, 0) : Vec3(0, 1, 0);
-  const Vec3 u = d.cross(helper).normalized(), v = d.cross(u);
-  std::vector<std::pair<std::uint32_t, std::uint32_t>> order(beam.size());
-  const double scale = beam.radius > 0.0 ? 0.5 / beam.radius : 0.0;
-  for (std::size_t k = 0; k < beam.size(); ++k) {
-    const Vec3 q = beam.origin[k] - beam.centre;
-    auto cell = [&](double x) {
-      return static_cast<std::uint32_t>(std::clamp((x * scale + 0.5) * 1024.0, 0.0, 1023.0));
-    };
-    order[k] = {morton2(cell(q.dot(u)), cell(q.dot(v))), static_cast<std::uint32_t>(k)};
-  }
-  std::sort(order.begin(), order.end());
   RayState& s = state_;
-  for (const auto& [code, k] : order) {
+  for (std::size_t k = 0; k < beam.size(); ++k) {  // the beam's order is already tiled
     s.origin.push_back(beam.origin[k] + upstream * d);
     s.direction.push_back(d);
     s.energy.push_back(energies[k]);

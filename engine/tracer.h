@@ -63,7 +63,7 @@ class Tracer {
   ~Tracer();
 
   // Adds the beam's rays (energy E_k = I_k A_r tau each) to the live rays, starting on a plane
-  // upstream of every particle. Rays are ordered in spatial tiles of 16 (packets are patches).
+  // upstream of every particle, in the beam's (tiled) order: 16 consecutive rays are a packet.
   void launch(const Beam& beam, double pulse_duration);
   void launch(const Beam& beam, std::span<const double> energies);
 
