@@ -258,8 +258,8 @@ std::vector<std::uint32_t> morton_order(const Particles& particles) {
 }  // namespace
 
 EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
-                         std::size_t particles_per_brick)
-    : update_(update), impl_(std::make_unique<Impl>()) {
+                         std::size_t particles_per_brick, double rebuild_fraction)
+    : update_(update), rebuild_fraction_(rebuild_fraction), impl_(std::make_unique<Impl>()) {
   Impl& im = *impl_;
   const std::size_t n = particles.size();
   removed_.resize(n);
@@ -323,6 +323,13 @@ void EmbreeScene::remove(std::span<const std::uint32_t> ids) {
     im.removed[im.rank[p]] = 1;  // masked in the callback from now on
   }
   if (ids.empty() || update_ == SceneUpdate::mask_only) return;
+  if (update_ == SceneUpdate::deferred) {
+    // Masked spheres cost traversal time, not correctness: rebuild only once they are many.
+    masked_in_structure_ += ids.size();
+    if (masked_in_structure_ <= rebuild_fraction_ * static_cast<double>(removed_.size())) return;
+    masked_in_structure_ = 0;
+  }
+  ++rebuilds_;
   if (update_ == SceneUpdate::bricks) {
     std::vector<std::size_t> touched;
     touched.reserve(ids.size());

@@ -28,7 +28,7 @@ struct OpticsSpec {
   double cutoff = 1e-10;    // optics.cutoff: epsilon, relative to the ray's initial energy
   int max_bounces = 1000;   // optics.max_bounces
   bool packets = true;      // primary rays in coherent 16-ray packets (false: single rays)
-  SceneUpdate scene_update = SceneUpdate::refit;
+  SceneUpdate scene_update = SceneUpdate::deferred;  // docs/bench/optics.md: fastest measured
 };
 
 // Every joule is in exactly one bin once no ray is live: injected = absorbed + escaped + cutoff.
