@@ -60,10 +60,12 @@ void set_counters(benchmark::State& state, double primary, double bounced) {
 // ---- this tracer ----------------------------------------------------------------------------
 
 void run_tracer(benchmark::State& state, bool packets, double n_hat, int max_bounces,
-                SceneUpdate scene_update = OpticsSpec{}.scene_update) {
+                SceneUpdate scene_update = OpticsSpec{}.scene_update,
+                unsigned per_prim = OpticsSpec{}.spheres_per_primitive) {
   const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
   OpticsSpec spec;
   spec.scene_update = scene_update;
+  spec.spheres_per_primitive = per_prim;
   spec.materials[0].n_solid = n_hat;
   spec.packets = packets;
   spec.max_bounces = max_bounces;
@@ -278,9 +280,15 @@ void run_build(benchmark::State& state, SceneUpdate mode) {
   }
 }
 
+// BEAMPACK_BENCH_MIN_TIME=s: seconds per benchmark (default 0.3).
+double min_time() {
+  const char* s = std::getenv("BEAMPACK_BENCH_MIN_TIME");
+  return s ? std::atof(s) : 0.3;
+}
+
 void sizes(benchmark::internal::Benchmark* b) {
   for (long n : {1000L, 10000L, 100000L, 1000000L}) b->Arg(n);
-  b->Unit(benchmark::kMillisecond)->MinTime(0.3)->UseRealTime();
+  b->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
 }
 
 void register_all() {
@@ -297,23 +305,37 @@ void register_all() {
         ->Apply(sizes);
     benchmark::RegisterBenchmark(("trace/workload/brute_force" + tag).c_str(),
                                  [=](benchmark::State& s) { run_brute(s, n_hat); })
-        ->Arg(1000)->Unit(benchmark::kMillisecond)->MinTime(0.3)->UseRealTime();
+        ->Arg(1000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
   }
   // The scene's update mode decides its build (static SAH for mask_only/rebuild, two-level
   // low quality for refit/bricks), hence its tracing speed too.
-  for (const auto& [name, mode] : {std::pair{"mask_only", SceneUpdate::mask_only},
+  for (const auto& [name, mode] : {std::pair{"deferred", SceneUpdate::deferred},
                                    std::pair{"refit", SceneUpdate::refit},
                                    std::pair{"bricks", SceneUpdate::bricks}})
     benchmark::RegisterBenchmark(("trace/scene_mode/" + std::string(name) + "/n200").c_str(),
                                  [mode = mode](benchmark::State& s) { run_tracer(s, true, 20.0, 1000, mode); })
-        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(0.3)->UseRealTime();
+        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+  // Embree primitive = a cluster of K consecutive (Morton) spheres: fewer callbacks, looser boxes.
+  for (unsigned k : {1u, 2u, 4u, 8u}) {
+    benchmark::RegisterBenchmark(("trace/cluster/" + std::to_string(k) + "/n200").c_str(),
+                                 [k](benchmark::State& s) {
+                                   run_tracer(s, true, 20.0, 1000, SceneUpdate::deferred, k);
+                                 })
+        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+    benchmark::RegisterBenchmark(("trace/cluster/" + std::to_string(k) + "/primary").c_str(),
+                                 [k](benchmark::State& s) {
+                                   run_tracer(s, true, 20.0, 1, SceneUpdate::deferred, k);
+                                 })
+        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+  }
   benchmark::RegisterBenchmark("trace/primary/tracer_packets",
                                [](benchmark::State& s) { run_tracer(s, true, 1.4, 1); })->Apply(sizes);
   benchmark::RegisterBenchmark("trace/primary/tracer_single",
                                [](benchmark::State& s) { run_tracer(s, false, 1.4, 1); })->Apply(sizes);
   benchmark::RegisterBenchmark("trace/primary/builtin_sphere",
                                [](benchmark::State& s) { run_builtin(s, 1.4, 1); })->Apply(sizes);
-  const std::pair<const char*, SceneUpdate> modes[] = {{"mask_only", SceneUpdate::mask_only},
+  const std::pair<const char*, SceneUpdate> modes[] = {{"deferred", SceneUpdate::deferred},
+                                                       {"mask_only", SceneUpdate::mask_only},
                                                        {"rebuild", SceneUpdate::rebuild},
                                                        {"refit", SceneUpdate::refit},
                                                        {"bricks", SceneUpdate::bricks}};

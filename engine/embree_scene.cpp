@@ -26,15 +26,21 @@ constexpr double kFloatPad = 1e-6;
 // docs/bench/optics.md. The Particles arrays stay the source of truth; this is a cache of them.
 struct alignas(32) SphereRecord {
   Vec3 centre;
-  double radius;
+  double radius;  // negated once the particle is removed: the callback needs no other load
 };
+bool is_removed(const SphereRecord& s) { return !(s.radius > 0.0); }
 
 // One user geometry: a run of spheres in Morton order. primID indexes spheres/particle/removed,
 // which point at the geometry's first sphere.
+// A primitive is a cluster of `per_prim` consecutive spheres (the last one may be shorter).
 struct SphereSet {
   const SphereRecord* spheres;
   const std::uint32_t* particle;  // particle id of each sphere
-  const std::uint8_t* removed;    // by sphere (Morton rank)
+  std::uint32_t first;            // Morton rank of sphere 0
+  std::uint32_t count;            // spheres in this geometry
+  std::uint32_t per_prim;
+  std::uint32_t begin(unsigned prim) const { return prim * per_prim; }
+  std::uint32_t end(unsigned prim) const { return std::min(count, (prim + 1) * per_prim); }
 };
 
 // RTCIntersectContext extended with the double side arrays (Embree passes it to the callbacks
@@ -42,7 +48,8 @@ struct SphereSet {
 struct QueryContext {
   RTCIntersectContext base;
   RayQuery query;
-  double slack;  // absolute pad of the float culling distance
+  double slack;                 // absolute pad of the float culling distance
+  std::uint32_t skip_rank[16];  // per lane: Morton rank of the sphere just left (no id lookup)
 };
 
 float round_down(double x) {
@@ -54,40 +61,33 @@ float round_up(double x) {
   return f < x ? std::nextafter(f, std::numeric_limits<float>::infinity()) : f;
 }
 
-// Bounds, rounded outward; a removed sphere gets empty bounds (dropped by builds and refits).
+// Bounds of a cluster's live spheres, rounded outward; empty when all are removed (dropped by
+// builds and refits).
 void sphere_bounds(const RTCBoundsFunctionArguments* args) {
   const auto* set = static_cast<const SphereSet*>(args->geometryUserPtr);
-  const unsigned prim = args->primID;
+  Box box;
+  for (std::uint32_t k = set->begin(args->primID); k < set->end(args->primID); ++k) {
+    const SphereRecord& s = set->spheres[k];
+    if (is_removed(s)) continue;
+    box.grow(s.centre, s.radius + kFloatPad * (s.radius + s.centre.cwiseAbs().maxCoeff()));
+  }
   RTCBounds* b = args->bounds_o;
-  if (set->removed[prim]) {
+  if (box.empty()) {
     b->lower_x = b->lower_y = b->lower_z = std::numeric_limits<float>::infinity();
     b->upper_x = b->upper_y = b->upper_z = -std::numeric_limits<float>::infinity();
     return;
   }
-  const Vec3& c = set->spheres[prim].centre;
-  const double r = set->spheres[prim].radius;
-  const double pad = r + kFloatPad * (r + c.cwiseAbs().maxCoeff());
-  b->lower_x = round_down(c.x() - pad);
-  b->lower_y = round_down(c.y() - pad);
-  b->lower_z = round_down(c.z() - pad);
-  b->upper_x = round_up(c.x() + pad);
-  b->upper_y = round_up(c.y() + pad);
-  b->upper_z = round_up(c.z() + pad);
+  b->lower_x = round_down(box.lower.x());
+  b->lower_y = round_down(box.lower.y());
+  b->lower_z = round_down(box.lower.z());
+  b->upper_x = round_up(box.upper.x());
+  b->upper_y = round_up(box.upper.y());
+  b->upper_z = round_up(box.upper.z());
 }
 
-// Double test of sphere p against ray id; true when it beats the ray's best hit so far.
 // Ties in t go to the lower particle id so the answer does not depend on traversal order.
-bool improve_hit(const QueryContext& ctx, const SphereRecord& sphere, std::uint32_t p,
-                 unsigned id, double& t_out) {
-  const RayQuery& q = ctx.query;
-  if (q.skip[id] == p) return false;  // the sphere the ray has just left
-  const double t = ray_sphere_entry(q.origin[id], q.direction[id], sphere.centre, sphere.radius);
-  if (!(t < kNoHit)) return false;
-  if (t < q.t_hit[id] || (t == q.t_hit[id] && p < q.particle[id])) {
-    t_out = t;
-    return true;
-  }
-  return false;
+bool improves(const RayQuery& q, unsigned id, double t, std::uint32_t p) {
+  return t < q.t_hit[id] || (t == q.t_hit[id] && p < q.particle[id]);
 }
 
 // Packets: a float test over the whole packet first (fixed width, so it vectorises) keeps only
@@ -114,13 +114,13 @@ void packet_prefilter(const int* valid, RTCRayN* rays, const SphereRecord& spher
   }
 }
 
-void sphere_intersect(const RTCIntersectFunctionNArguments* args) {
-  const auto* set = static_cast<const SphereSet*>(args->geometryUserPtr);
-  const unsigned prim = args->primID;
-  if (set->removed[prim]) return;
-  const SphereRecord& sphere = set->spheres[prim];
-  const std::uint32_t p = set->particle[prim];
+void intersect_sphere(const RTCIntersectFunctionNArguments* args, const SphereSet& set,
+                      std::uint32_t k) {
+  const SphereRecord& sphere = set.spheres[k];
+  if (is_removed(sphere)) return;
+  const std::uint32_t rank = set.first + k;
   const auto& ctx = *reinterpret_cast<const QueryContext*>(args->context);
+  const RayQuery& q = ctx.query;
   const unsigned n = args->N;
   RTCRayN* rays = RTCRayHitN_RayN(args->rayhit, n);
   RTCHitN* hits = RTCRayHitN_HitN(args->rayhit, n);
@@ -136,12 +136,17 @@ void sphere_intersect(const RTCIntersectFunctionNArguments* args) {
     lanes = keep, accept = 1;
   }
   for (unsigned i = 0; i < n; ++i) {
-    if (lanes[i] != accept) continue;
+    if (lanes[i] != accept || ctx.skip_rank[i] == rank) continue;  // skip: the sphere just left
     const unsigned id = RTCRayN_id(rays, n, i);
-    double t;
-    if (!improve_hit(ctx, sphere, p, id, t)) continue;
-    ctx.query.t_hit[id] = t;
-    ctx.query.particle[id] = p;
+    const double t = ray_sphere_entry(q.origin[id], q.direction[id], sphere.centre, sphere.radius);
+    if (!(t < kNoHit)) continue;
+    const std::uint32_t p = set.particle[k];
+    if (!improves(q, id, t, p)) continue;
+    q.t_hit[id] = t;
+    q.particle[id] = p;
+    // The normal now, while the sphere is in cache; the tracer needs it in double.
+    const Vec3 normal = (q.origin[id] + t * q.direction[id] - sphere.centre) / sphere.radius;
+    if (q.normal) q.normal[id] = normal;
     // Float culling distance padded upward: Embree may still offer spheres the double test
     // finds nearer; it must never cull them.
     RTCRayN_tfar(rays, n, i) = round_up(t * (1.0 + kFloatPad) + ctx.slack);
@@ -150,31 +155,35 @@ void sphere_intersect(const RTCIntersectFunctionNArguments* args) {
     RTCHitN_instID(hits, n, i, 0) = args->context->instID[0];
     RTCHitN_u(hits, n, i) = 0.0f;
     RTCHitN_v(hits, n, i) = 0.0f;
-    const Vec3 normal = ctx.query.origin[id] + t * ctx.query.direction[id] - sphere.centre;
     RTCHitN_Ng_x(hits, n, i) = static_cast<float>(normal.x());
     RTCHitN_Ng_y(hits, n, i) = static_cast<float>(normal.y());
     RTCHitN_Ng_z(hits, n, i) = static_cast<float>(normal.z());
   }
 }
 
+void sphere_intersect(const RTCIntersectFunctionNArguments* args) {
+  const auto* set = static_cast<const SphereSet*>(args->geometryUserPtr);
+  for (std::uint32_t k = set->begin(args->primID); k < set->end(args->primID); ++k)
+    intersect_sphere(args, *set, k);
+}
+
 // Shadow query: any outside hit nearer than query.t_hit[id].
 void sphere_occluded(const RTCOccludedFunctionNArguments* args) {
   const auto* set = static_cast<const SphereSet*>(args->geometryUserPtr);
-  const unsigned prim = args->primID;
-  if (set->removed[prim]) return;
-  const SphereRecord& sphere = set->spheres[prim];
-  const std::uint32_t p = set->particle[prim];
   const auto& ctx = *reinterpret_cast<const QueryContext*>(args->context);
+  const RayQuery& q = ctx.query;
   const unsigned n = args->N;
-  for (unsigned i = 0; i < n; ++i) {
-    if (args->valid[i] != -1) continue;
-    const unsigned id = RTCRayN_id(args->ray, n, i);
-    const RayQuery& q = ctx.query;
-    if (q.skip[id] == p) continue;
-    const double t = ray_sphere_entry(q.origin[id], q.direction[id], sphere.centre, sphere.radius);
-    if (t < q.t_hit[id]) {
-      q.particle[id] = p;
-      RTCRayN_tfar(args->ray, n, i) = -std::numeric_limits<float>::infinity();
+  for (std::uint32_t k = set->begin(args->primID); k < set->end(args->primID); ++k) {
+    const SphereRecord& sphere = set->spheres[k];
+    if (is_removed(sphere)) continue;
+    for (unsigned i = 0; i < n; ++i) {
+      if (args->valid[i] != -1 || ctx.skip_rank[i] == set->first + k) continue;
+      const unsigned id = RTCRayN_id(args->ray, n, i);
+      const double t = ray_sphere_entry(q.origin[id], q.direction[id], sphere.centre, sphere.radius);
+      if (t < q.t_hit[id]) {
+        q.particle[id] = set->particle[k];
+        RTCRayN_tfar(args->ray, n, i) = -std::numeric_limits<float>::infinity();
+      }
     }
   }
 }
@@ -197,11 +206,12 @@ struct EmbreeScene::Impl {
   std::vector<SphereRecord> spheres;      // Morton order
   std::vector<std::uint32_t> particle;     // particle id of each sphere
   std::vector<std::uint32_t> rank;         // sphere (Morton rank) of each particle
-  std::vector<std::uint8_t> removed;       // by sphere
   std::size_t brick_size = 0;              // spheres per geometry (bricks mode: contiguous runs)
   std::vector<SphereSet> sets;             // one per geometry
   std::vector<RTCGeometry> geometries;
   double slack = 0.0;
+
+  std::uint32_t rank_of(std::uint32_t p) const { return p < rank.size() ? rank[p] : kNoParticle; }
 
   void check(const char* what) {
     std::lock_guard lock(error.first);
@@ -258,7 +268,8 @@ std::vector<std::uint32_t> morton_order(const Particles& particles) {
 }  // namespace
 
 EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
-                         std::size_t particles_per_brick, double rebuild_fraction)
+                         std::size_t particles_per_brick, double rebuild_fraction,
+                         unsigned spheres_per_primitive)
     : update_(update), rebuild_fraction_(rebuild_fraction), impl_(std::make_unique<Impl>()) {
   Impl& im = *impl_;
   const std::size_t n = particles.size();
@@ -266,12 +277,11 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
   im.particle = morton_order(particles);
   im.rank.resize(n);
   im.spheres.resize(n);
-  im.removed.resize(n);
   for (std::size_t k = 0; k < n; ++k) {
     const std::uint32_t p = im.particle[k];
     im.rank[p] = static_cast<std::uint32_t>(k);
-    im.spheres[k] = {particles.centre[p], particles.radius[p]};
-    removed_[p] = im.removed[k] = particles.alive[p] ? 0 : 1;
+    removed_[p] = particles.alive[p] ? 0 : 1;
+    im.spheres[k] = {particles.centre[p], removed_[p] ? -particles.radius[p] : particles.radius[p]};
   }
   im.device = rtcNewDevice(nullptr);
   if (!im.device)
@@ -284,8 +294,11 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
   const bool two_level = update == SceneUpdate::refit || update == SceneUpdate::bricks;
   rtcSetSceneBuildQuality(im.scene, two_level ? RTC_BUILD_QUALITY_LOW : RTC_BUILD_QUALITY_MEDIUM);
   if (update == SceneUpdate::bricks) rtcSetSceneFlags(im.scene, RTC_SCENE_FLAG_DYNAMIC);
-  im.brick_size = update == SceneUpdate::bricks ? std::max<std::size_t>(1, particles_per_brick)
-                                                : std::max<std::size_t>(1, n);
+  const std::size_t per_prim = std::clamp(spheres_per_primitive, 1u, 64u);
+  // Bricks hold whole clusters.
+  im.brick_size = update == SceneUpdate::bricks
+                      ? per_prim * std::max<std::size_t>(1, particles_per_brick / per_prim)
+                      : std::max<std::size_t>(1, n);
   const Box box = particles.bounds();
   im.slack = box.empty() ? 0.0 : kFloatPad * (box.upper - box.lower).norm();
   const std::size_t geometries = std::max<std::size_t>(1, (n + im.brick_size - 1) / im.brick_size);
@@ -294,9 +307,10 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
     const std::size_t first = b * im.brick_size;
     const std::size_t count = std::min(n, first + im.brick_size) - std::min(n, first);
     im.sets.push_back({im.spheres.data() + first, im.particle.data() + first,
-                       im.removed.data() + first});
+                       static_cast<std::uint32_t>(first), static_cast<std::uint32_t>(count),
+                       static_cast<std::uint32_t>(per_prim)});
     RTCGeometry g = rtcNewGeometry(im.device, RTC_GEOMETRY_TYPE_USER);
-    rtcSetGeometryUserPrimitiveCount(g, static_cast<unsigned>(count));
+    rtcSetGeometryUserPrimitiveCount(g, static_cast<unsigned>((count + per_prim - 1) / per_prim));
     rtcSetGeometryUserData(g, &im.sets.back());
     rtcSetGeometryBoundsFunction(g, sphere_bounds, nullptr);
     rtcSetGeometryIntersectFunction(g, sphere_intersect);
@@ -319,8 +333,8 @@ void EmbreeScene::remove(std::span<const std::uint32_t> ids) {
     if (p >= removed_.size())
       throw InputError("remove_particles: particle id " + std::to_string(p) + " >= count " +
                        std::to_string(removed_.size()));
+    if (!removed_[p]) im.spheres[im.rank[p]].radius *= -1.0;  // masked in the callback from now on
     removed_[p] = 1;
-    im.removed[im.rank[p]] = 1;  // masked in the callback from now on
   }
   if (ids.empty() || update_ == SceneUpdate::mask_only) return;
   if (update_ == SceneUpdate::deferred) {
@@ -348,6 +362,7 @@ namespace {
 
 QueryContext make_context(const RayQuery& query, double slack, bool coherent) {
   QueryContext ctx;
+  std::fill(std::begin(ctx.skip_rank), std::end(ctx.skip_rank), kNoParticle);
   rtcInitIntersectContext(&ctx.base);
   ctx.base.flags = coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT
                             : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
@@ -360,6 +375,7 @@ QueryContext make_context(const RayQuery& query, double slack, bool coherent) {
 
 void EmbreeScene::intersect1(const RayQuery& query, std::uint32_t id) const {
   QueryContext ctx = make_context(query, impl_->slack, false);
+  ctx.skip_rank[0] = impl_->rank_of(query.skip[id]);
   RTCRayHit rh;
   const Vec3& o = query.origin[id];
   const Vec3& d = query.direction[id];
@@ -388,6 +404,7 @@ void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, i
   for (int i = 0; i < 16; ++i) {
     valid[i] = i < count ? -1 : 0;
     const std::uint32_t id = i < count ? ids[i] : ids[0];
+    ctx.skip_rank[i] = impl_->rank_of(query.skip[id]);
     const Vec3& o = query.origin[id];
     const Vec3& d = query.direction[id];
     rh.ray.org_x[i] = static_cast<float>(o.x());
@@ -412,6 +429,7 @@ void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, i
 
 bool EmbreeScene::occluded1(const RayQuery& query, std::uint32_t id) const {
   QueryContext ctx = make_context(query, impl_->slack, false);
+  ctx.skip_rank[0] = impl_->rank_of(query.skip[id]);
   RTCRay ray;
   const Vec3& o = query.origin[id];
   const Vec3& d = query.direction[id];

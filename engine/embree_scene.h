@@ -27,6 +27,7 @@ struct RayQuery {
   const std::uint32_t* skip = nullptr;
   double* t_hit = nullptr;
   std::uint32_t* particle = nullptr;
+  Vec3* normal = nullptr;  // optional: unit outward normal at the hit, in double
 };
 
 // How the acceleration structure follows removals (benchmarks/bench_trace.cpp compares them;
@@ -44,7 +45,8 @@ enum class SceneUpdate {
 class EmbreeScene {
  public:
   explicit EmbreeScene(const Particles& particles, SceneUpdate update = SceneUpdate::deferred,
-                       std::size_t particles_per_brick = 4096, double rebuild_fraction = 0.1);
+                       std::size_t particles_per_brick = 4096, double rebuild_fraction = 0.1,
+                       unsigned spheres_per_primitive = 1);
   ~EmbreeScene();
   EmbreeScene(const EmbreeScene&) = delete;
   EmbreeScene& operator=(const EmbreeScene&) = delete;

@@ -64,7 +64,8 @@ struct Tracer::Chunk {
 Tracer::Tracer(const Particles& particles, OpticsSpec spec)
     : particles_(particles), spec_(std::move(spec)) {
   validate(spec_, particles);
-  scene_ = std::make_unique<EmbreeScene>(particles, spec_.scene_update);
+  scene_ = std::make_unique<EmbreeScene>(particles, spec_.scene_update, 4096, 0.1,
+                                         spec_.spheres_per_primitive);
   box_ = particles.bounds();
 }
 
@@ -96,6 +97,7 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   for (std::size_t k = 0; k < beam.size(); ++k) {  // the beam's order is already tiled
     s.origin.push_back(beam.origin[k] + upstream * d);
     s.direction.push_back(d);
+    s.normal.push_back(Vec3::Zero());
     s.energy.push_back(energies[k]);
     s.initial_energy.push_back(energies[k]);
     s.travelled.push_back(0.0);
@@ -116,6 +118,7 @@ void Tracer::compact() {
     if (!s.live[r]) continue;
     s.origin[w] = s.origin[r];
     s.direction[w] = s.direction[r];
+    s.normal[w] = s.normal[r];
     s.energy[w] = s.energy[r];
     s.initial_energy[w] = s.initial_energy[r];
     s.travelled[w] = s.travelled[r];
@@ -128,6 +131,7 @@ void Tracer::compact() {
   }
   s.origin.resize(w);
   s.direction.resize(w);
+  s.normal.resize(w);
   s.energy.resize(w);
   s.initial_energy.resize(w);
   s.travelled.resize(w);
@@ -141,7 +145,7 @@ void Tracer::compact() {
 namespace {
 RayQuery query_of(RayState& s) {
   return {s.origin.data(), s.direction.data(), s.last_particle.data(), s.t_next.data(),
-          s.next_particle.data()};
+          s.next_particle.data(), s.normal.data()};
 }
 }  // namespace
 
@@ -209,7 +213,7 @@ void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budg
         break;
       }
       const Vec3 point = s.origin[r] + s.t_next[r] * s.direction[r];
-      const Vec3 normal = (point - particles_.centre[p]).normalized();
+      const Vec3 normal = s.normal[r].normalized();  // (point - centre) / R from the scene
       const double cos_i = -s.direction[r].dot(normal);
       const double R = particle_reflectance(spec_.materials[particles_.material[p]],
                                             particles_.phase[p], cos_i);
