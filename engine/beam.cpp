@@ -1,6 +1,7 @@
 #include "engine/beam.h"
 
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <cmath>
 #include <numbers>
 #include <sstream>
@@ -92,6 +93,35 @@ void normalise(std::vector<double>& intensity, double ray_area, double power) {
   }
 }
 
+// Interleaves the bits of two 16-bit cell coordinates: consecutive Morton codes are neighbours.
+std::uint32_t morton2(std::uint32_t x, std::uint32_t y) {
+  auto spread = [](std::uint32_t v) {
+    v &= 0xFFFF;
+    v = (v | (v << 8)) & 0x00FF00FF;
+    v = (v | (v << 4)) & 0x0F0F0F0F;
+    v = (v | (v << 2)) & 0x33333333;
+    v = (v | (v << 1)) & 0x55555555;
+    return v;
+  };
+  return spread(x) | (spread(y) << 1);
+}
+
+// Spatial tiles: rays sorted along a Morton curve over the disk, so any 16 consecutive rays form
+// a small patch of the beam and a packet of them stays coherent (the tracer packs them in order).
+void tile(std::vector<Eigen::Vector2d>& unit_disk) {
+  std::vector<std::pair<std::uint32_t, std::size_t>> order(unit_disk.size());
+  for (std::size_t k = 0; k < unit_disk.size(); ++k) {
+    auto cell = [](double x) {
+      return static_cast<std::uint32_t>(std::clamp((0.5 * x + 0.5) * 1024.0, 0.0, 1023.0));
+    };
+    order[k] = {morton2(cell(unit_disk[k].x()), cell(unit_disk[k].y())), k};
+  }
+  std::sort(order.begin(), order.end());
+  std::vector<Eigen::Vector2d> sorted(unit_disk.size());
+  for (std::size_t k = 0; k < order.size(); ++k) sorted[k] = unit_disk[order[k].second];
+  unit_disk.swap(sorted);
+}
+
 }  // namespace
 
 double beam_profile(const BeamSpec& spec, double d, double beam_radius) {
@@ -111,8 +141,9 @@ Beam make_beam(const BeamSpec& spec, double sample_size) {
   beam.radius = 0.5 * spec.diameter_fraction * sample_size;
   beam.power = spec.power;
   beam.ray_area = std::numbers::pi * beam.radius * beam.radius / static_cast<double>(spec.rays);
-  const auto unit = spec.sampling == "random" ? random_disk(spec.rays, spec.seed)
-                                              : stratified_disk(spec.rays);
+  auto unit = spec.sampling == "random" ? random_disk(spec.rays, spec.seed)
+                                        : stratified_disk(spec.rays);
+  tile(unit);
   Vec3 u, v;
   disk_axes(spec.direction, u, v);
   beam.origin.reserve(spec.rays);

@@ -28,7 +28,9 @@ struct Beam {
   double radius = 0.0;          // r_b
   double ray_area = 0.0;        // A_r = A_b / N_r
   double power = 0.0;           // P
-  std::vector<Vec3> origin;     // on the entry disk (the tracer moves them upstream of all spheres)
+  // On the entry disk (the tracer moves them upstream of all spheres), in spatial tiles: 16
+  // consecutive rays form a small patch (coherent packets).
+  std::vector<Vec3> origin;
   std::vector<double> intensity;  // I_k, W/m^2, normalised so that sum I_k A_r = P
 
   std::size_t size() const { return origin.size(); }

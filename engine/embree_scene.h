@@ -27,12 +27,15 @@ struct RayQuery {
   const std::uint32_t* skip = nullptr;
   double* t_hit = nullptr;
   std::uint32_t* particle = nullptr;
+  Vec3* normal = nullptr;  // optional: unit outward normal at the hit, in double
 };
 
 // How the acceleration structure follows removals (benchmarks/bench_trace.cpp compares them;
 // docs/bench/optics.md has the numbers). In every mode a removed particle is masked at once in
 // the intersect callback, so it is never hit again whatever the structure still holds.
 enum class SceneUpdate {
+  deferred,   // mask now; rebuild (static SAH) once masked spheres exceed rebuild_fraction of the
+              // structure. The default: cheapest update and the fastest structure to trace.
   mask_only,  // keep the structure; removed spheres are culled in the callback only
   rebuild,    // one geometry, static high-quality build, rebuilt on every update
   refit,      // one geometry, refit with empty bounds for removed spheres
@@ -41,8 +44,9 @@ enum class SceneUpdate {
 
 class EmbreeScene {
  public:
-  explicit EmbreeScene(const Particles& particles, SceneUpdate update = SceneUpdate::refit,
-                       std::size_t particles_per_brick = 4096);
+  explicit EmbreeScene(const Particles& particles, SceneUpdate update = SceneUpdate::deferred,
+                       std::size_t particles_per_brick = 4096, double rebuild_fraction = 0.1,
+                       unsigned spheres_per_primitive = 1);
   ~EmbreeScene();
   EmbreeScene(const EmbreeScene&) = delete;
   EmbreeScene& operator=(const EmbreeScene&) = delete;
@@ -51,6 +55,7 @@ class EmbreeScene {
   void remove(std::span<const std::uint32_t> ids);
   bool removed(std::uint32_t id) const { return removed_[id] != 0; }
   SceneUpdate update_mode() const { return update_; }
+  std::size_t rebuilds() const { return rebuilds_; }  // structure updates after construction
 
   // Nearest outside hit of one ray (rtcIntersect1).
   void intersect1(const RayQuery& query, std::uint32_t ray_id) const;
@@ -62,6 +67,9 @@ class EmbreeScene {
  private:
   struct Impl;
   SceneUpdate update_;
+  double rebuild_fraction_;
+  std::size_t masked_in_structure_ = 0;  // removed since the last build (deferred)
+  std::size_t rebuilds_ = 0;
   std::vector<std::uint8_t> removed_;
   std::unique_ptr<Impl> impl_;
 };

@@ -20,19 +20,6 @@ namespace {
 constexpr std::size_t kChunkRays = 256;  // fixed: the reduction order must not depend on threads
 constexpr int kPacket = 16;
 
-// Interleaves the bits of two 16-bit cell coordinates: consecutive Morton codes are neighbours.
-std::uint32_t morton2(std::uint32_t x, std::uint32_t y) {
-  auto spread = [](std::uint32_t v) {
-    v &= 0xFFFF;
-    v = (v | (v << 8)) & 0x00FF00FF;
-    v = (v | (v << 4)) & 0x0F0F0F0F;
-    v = (v | (v << 2)) & 0x33333333;
-    v = (v | (v << 1)) & 0x55555555;
-    return v;
-  };
-  return spread(x) | (spread(y) << 1);
-}
-
 void validate(const OpticsSpec& spec, const Particles& particles) {
   if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
     throw InputError("`optics.cutoff` = " + std::to_string(spec.cutoff) + ": must be in [0, 1)");
@@ -78,7 +65,8 @@ struct Tracer::Chunk {
 Tracer::Tracer(const Particles& particles, OpticsSpec spec)
     : particles_(particles), spec_(std::move(spec)) {
   validate(spec_, particles);
-  scene_ = std::make_unique<EmbreeScene>(particles, spec_.scene_update);
+  scene_ = std::make_unique<EmbreeScene>(particles, spec_.scene_update, 4096, 0.1,
+                                         spec_.spheres_per_primitive);
   box_ = particles.bounds();
 }
 
@@ -106,24 +94,11 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
     }
     upstream -= 1e-6 * (box_.upper - box_.lower).norm();
   }
-  // Spatial tiles: sort by the Morton code of the position on the disk, so 16 consecutive rays
-  // form a small patch of the beam and a packet stays coherent.
-  const Vec3 helper = std::abs(d.x()) < 0.9 ? Vec3(1, 0, 0) : Vec3(0, 1, 0);
-  const Vec3 u = d.cross(helper).normalized(), v = d.cross(u);
-  std::vector<std::pair<std::uint32_t, std::uint32_t>> order(beam.size());
-  const double scale = beam.radius > 0.0 ? 0.5 / beam.radius : 0.0;
-  for (std::size_t k = 0; k < beam.size(); ++k) {
-    const Vec3 q = beam.origin[k] - beam.centre;
-    auto cell = [&](double x) {
-      return static_cast<std::uint32_t>(std::clamp((x * scale + 0.5) * 1024.0, 0.0, 1023.0));
-    };
-    order[k] = {morton2(cell(q.dot(u)), cell(q.dot(v))), static_cast<std::uint32_t>(k)};
-  }
-  std::sort(order.begin(), order.end());
   RayState& s = state_;
-  for (const auto& [code, k] : order) {
+  for (std::size_t k = 0; k < beam.size(); ++k) {  // the beam's order is already tiled
     s.origin.push_back(beam.origin[k] + upstream * d);
     s.direction.push_back(d);
+    s.normal.push_back(Vec3::Zero());
     s.energy.push_back(energies[k]);
     s.initial_energy.push_back(energies[k]);
     s.travelled.push_back(0.0);
@@ -144,6 +119,7 @@ void Tracer::compact() {
     if (!s.live[r]) continue;
     s.origin[w] = s.origin[r];
     s.direction[w] = s.direction[r];
+    s.normal[w] = s.normal[r];
     s.energy[w] = s.energy[r];
     s.initial_energy[w] = s.initial_energy[r];
     s.travelled[w] = s.travelled[r];
@@ -156,6 +132,7 @@ void Tracer::compact() {
   }
   s.origin.resize(w);
   s.direction.resize(w);
+  s.normal.resize(w);
   s.energy.resize(w);
   s.initial_energy.resize(w);
   s.travelled.resize(w);
@@ -169,7 +146,7 @@ void Tracer::compact() {
 namespace {
 RayQuery query_of(RayState& s) {
   return {s.origin.data(), s.direction.data(), s.last_particle.data(), s.t_next.data(),
-          s.next_particle.data()};
+          s.next_particle.data(), s.normal.data()};
 }
 }  // namespace
 
@@ -239,7 +216,7 @@ void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budg
         break;
       }
       const Vec3 point = s.origin[r] + s.t_next[r] * s.direction[r];
-      const Vec3 normal = (point - particles_.centre[p]).normalized();
+      const Vec3 normal = s.normal[r].normalized();  // (point - centre) / R from the scene
       const double cos_i = -s.direction[r].dot(normal);
       const double R = particle_reflectance(spec_.materials[particles_.material[p]],
                                             particles_.phase[p], cos_i);

@@ -28,7 +28,8 @@ struct OpticsSpec {
   double cutoff = 1e-10;    // optics.cutoff: epsilon, relative to the ray's initial energy
   int max_bounces = 1000;   // optics.max_bounces
   bool packets = true;      // primary rays in coherent 16-ray packets (false: single rays)
-  SceneUpdate scene_update = SceneUpdate::refit;
+  SceneUpdate scene_update = SceneUpdate::deferred;  // docs/bench/optics.md: fastest measured
+  unsigned spheres_per_primitive = 1;  // Embree primitive = cluster of this many spheres
 };
 
 // Every joule is in exactly one bin once no ray is live: injected = absorbed + escaped + cutoff.
@@ -45,7 +46,7 @@ struct RayState {
   // Per ray (structure of arrays). A ray's current segment starts at origin; it has travelled
   // `travelled` of it; its next event is at t_next: a hit on `next_particle`, or leaving the box
   // (kNoParticle). t_next < 0: not yet traced.
-  std::vector<Vec3> origin, direction;
+  std::vector<Vec3> origin, direction, normal;  // normal: at the next hit
   std::vector<double> energy, initial_energy, travelled, t_next;
   std::vector<std::uint32_t> last_particle, next_particle;
   std::vector<std::int32_t> bounces;
@@ -63,7 +64,7 @@ class Tracer {
   ~Tracer();
 
   // Adds the beam's rays (energy E_k = I_k A_r tau each) to the live rays, starting on a plane
-  // upstream of every particle. Rays are ordered in spatial tiles of 16 (packets are patches).
+  // upstream of every particle, in the beam's (tiled) order: 16 consecutive rays are a packet.
   void launch(const Beam& beam, double pulse_duration);
   void launch(const Beam& beam, std::span<const double> energies);
 

@@ -127,50 +127,68 @@ TEST(OpticsSphere, TwoSpheresOnTheAxisShareTheReflectedEnergy) {
 
 // Nearest outside hit from the scene (single rays and packets) equals the brute-force minimum of
 // ray_sphere_entry over all spheres, skipping the sphere the ray leaves: same particle, same t.
-TEST(OpticsSphere, SceneHitsEqualBruteForce) {
-  const Particles p = random_overlap_packing(2000, 1e-3, 0.325, 11);
-  for (SceneUpdate mode : {SceneUpdate::refit, SceneUpdate::rebuild, SceneUpdate::bricks}) {
-    EmbreeScene scene(p, mode, 256);
-    const std::size_t n = 4000;
-    std::vector<Vec3> org(n), dir(n);
-    std::vector<std::uint32_t> skip(n), hit1(n), hit16(n);
-    std::vector<double> t1(n), t16(n);
-    Rng rng(5);
+// Random rays: half start on a sphere surface (a bounce, skipping that sphere), half anywhere.
+struct RandomRays {
+  std::vector<Vec3> org, dir;
+  std::vector<std::uint32_t> skip;
+  RandomRays(const Particles& p, std::size_t n, std::uint64_t seed) : org(n), dir(n), skip(n) {
+    Rng rng(seed);
     for (std::size_t r = 0; r < n; ++r) {
-      // Half the rays start on a sphere surface (a bounce), half anywhere in the box.
       if (r % 2) {
         const auto i = static_cast<std::uint32_t>(rng.next() % p.size());
         Vec3 u(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1));
-        u.normalize();
-        org[r] = p.centre[i] + p.radius[i] * u;
+        org[r] = p.centre[i] + p.radius[i] * u.normalized();
         skip[r] = i;
       } else {
         org[r] = Vec3(rng.uniform(), rng.uniform(), rng.uniform()) * 1e-3;
         skip[r] = kNoParticle;
       }
       dir[r] = Vec3(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1)).normalized();
-      t1[r] = t16[r] = kNoHit;
-      hit1[r] = hit16[r] = kNoParticle;
     }
-    const RayQuery q1{org.data(), dir.data(), skip.data(), t1.data(), hit1.data()};
-    const RayQuery q16{org.data(), dir.data(), skip.data(), t16.data(), hit16.data()};
-    for (std::uint32_t r = 0; r < n; ++r) scene.intersect1(q1, r);
-    std::vector<std::uint32_t> ids(n);
-    for (std::uint32_t r = 0; r < n; ++r) ids[r] = r;
-    for (std::size_t r = 0; r < n; r += 16) scene.intersect16(q16, ids.data() + r, 16);
-    for (std::size_t r = 0; r < n; ++r) {
-      double best = kNoHit;
-      std::uint32_t who = kNoParticle;
-      for (std::uint32_t i = 0; i < p.size(); ++i) {
-        if (i == skip[r]) continue;
-        const double t = ray_sphere_entry(org[r], dir[r], p.centre[i], p.radius[i]);
-        if (t < best) best = t, who = i;
-      }
-      ASSERT_EQ(hit1[r], who) << "ray " << r;
-      ASSERT_EQ(t1[r], best) << "ray " << r;
-      ASSERT_EQ(hit16[r], who) << "ray " << r;
-      ASSERT_EQ(t16[r], best) << "ray " << r;
+  }
+};
+
+void expect_brute_force_hits(const EmbreeScene& scene, const Particles& p,
+                             const std::vector<std::uint8_t>& gone, const RandomRays& rays) {
+  const std::size_t n = rays.org.size();
+  std::vector<std::uint32_t> hit1(n, kNoParticle), hit16(n, kNoParticle), ids(n);
+  std::vector<double> t1(n, kNoHit), t16(n, kNoHit);
+  const RayQuery q1{rays.org.data(), rays.dir.data(), rays.skip.data(), t1.data(), hit1.data()};
+  const RayQuery q16{rays.org.data(), rays.dir.data(), rays.skip.data(), t16.data(), hit16.data()};
+  for (std::uint32_t r = 0; r < n; ++r) scene.intersect1(q1, r), ids[r] = r;
+  for (std::size_t r = 0; r < n; r += 16) scene.intersect16(q16, ids.data() + r, 16);
+  for (std::size_t r = 0; r < n; ++r) {
+    double best = kNoHit;
+    std::uint32_t who = kNoParticle;
+    for (std::uint32_t i = 0; i < p.size(); ++i) {
+      if (i == rays.skip[r] || gone[i]) continue;
+      const double t = ray_sphere_entry(rays.org[r], rays.dir[r], p.centre[i], p.radius[i]);
+      if (t < best) best = t, who = i;
     }
+    ASSERT_EQ(hit1[r], who) << "ray " << r;
+    ASSERT_EQ(t1[r], best) << "ray " << r;
+    ASSERT_EQ(hit16[r], who) << "ray " << r;
+    ASSERT_EQ(t16[r], best) << "ray " << r;
+  }
+}
+
+// Nearest outside hit from the scene (single rays and packets) equals the brute-force minimum of
+// ray_sphere_entry over all spheres, skipping the sphere the ray leaves: same particle, same t;
+// and again after removing 10% of the spheres, in every update mode.
+TEST(OpticsSphere, SceneHitsEqualBruteForceBeforeAndAfterRemoval) {
+  const Particles p = random_overlap_packing(2000, 1e-3, 0.325, 11);
+  const RandomRays rays(p, 4000, 5);
+  std::vector<std::uint8_t> gone(p.size(), 0);
+  std::vector<std::uint32_t> victims;
+  for (std::uint32_t i = 0; i < p.size(); i += 10) victims.push_back(i), gone[i] = 1;
+  for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::mask_only, SceneUpdate::rebuild,
+                           SceneUpdate::refit, SceneUpdate::bricks}) {
+    SCOPED_TRACE(static_cast<int>(mode));
+    EmbreeScene scene(p, mode, 256, 0.05);
+    expect_brute_force_hits(scene, p, std::vector<std::uint8_t>(p.size(), 0), rays);
+    scene.remove(victims);
+    EXPECT_EQ(scene.rebuilds(), mode == SceneUpdate::mask_only ? 0u : 1u);
+    expect_brute_force_hits(scene, p, gone, rays);
   }
 }
 

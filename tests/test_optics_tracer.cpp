@@ -27,7 +27,7 @@ struct Traced {
 };
 
 OpticsSpec optics_for(double n_hat, bool packets = true,
-                      SceneUpdate update = SceneUpdate::refit) {
+                      SceneUpdate update = OpticsSpec{}.scene_update) {
   OpticsSpec spec;
   spec.materials[0].n_solid = n_hat;
   spec.packets = packets;
@@ -169,8 +169,8 @@ TEST(OpticsTracer, RemovedParticleIsNeverHitAgain) {
   const Particles& p = packing_1e4();
   const Traced reference = trace(p, optics_for(20.0), BeamSpec{});
   const auto victims = most_hit(reference.deposits, 50);
-  for (SceneUpdate mode : {SceneUpdate::mask_only, SceneUpdate::rebuild, SceneUpdate::refit,
-                           SceneUpdate::bricks}) {
+  for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::mask_only, SceneUpdate::rebuild,
+                           SceneUpdate::refit, SceneUpdate::bricks}) {
     Tracer tracer(p, optics_for(20.0, true, mode));
     tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
     std::vector<double> before, after;
@@ -195,8 +195,8 @@ TEST(OpticsTracer, RemovingThenTracingEqualsAPackingWithout) {
   std::vector<std::uint32_t> new_id(p.size(), kNoParticle);
   for (std::size_t i = 0; i < p.size(); ++i)
     if (!gone[i]) new_id[i] = static_cast<std::uint32_t>(without.add(p.centre[i], p.radius[i]));
-  for (SceneUpdate mode : {SceneUpdate::mask_only, SceneUpdate::rebuild, SceneUpdate::refit,
-                           SceneUpdate::bricks}) {
+  for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::mask_only, SceneUpdate::rebuild,
+                           SceneUpdate::refit, SceneUpdate::bricks}) {
     Tracer tracer(p, optics_for(1.4, true, mode));
     tracer.remove_particles(victims);
     tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);

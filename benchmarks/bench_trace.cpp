@@ -1,0 +1,368 @@
+// Optics benchmarks, side by side in one run (STYLE.md point 9):
+//   trace/workload/<variant>/n<index x10>/<N>: the paper's beam (6000 W, d_b = 0.3 D, exponential
+//       a = 2, 10^4 rays) on a random-overlap packing (D = 1e-3, L = 0.325), all bounces to the
+//       cutoff; variants: this tracer with primary packets, the tracer with single rays only, a
+//       plain rtcIntersect1 loop over Embree's built-in spheres, brute force (small N).
+//   trace/primary/<variant>/<N>: the first segment of every ray only (max_bounces = 1).
+//   scene_update/<mode>/<pattern>/<N>: removing 1% of the spheres, random or under the beam.
+// Counters: primary and bounced segments per second (whole-workload time).
+#include <benchmark/benchmark.h>
+#include <embree3/rtcore.h>  // the baselines call Embree directly on purpose
+#include <tbb/blocked_range.h>
+#include <tbb/global_control.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdlib>
+#include <limits>
+#include <map>
+#include <memory>
+#include <numeric>
+
+#include "engine/beam.h"
+#include "engine/embree_scene.h"
+#include "engine/fresnel.h"
+#include "engine/tracer.h"
+#include "geometry/packing.h"
+#include "geometry/random.h"
+#include "geometry/ray_sphere.h"
+
+namespace beampack {
+namespace {
+
+constexpr double kD = 1e-3;
+constexpr std::size_t kRays = 10000;
+
+const Particles& packing(std::size_t n) {
+  static std::map<std::size_t, std::unique_ptr<Particles>> cache;
+  auto& slot = cache[n];
+  if (!slot) slot = std::make_unique<Particles>(random_overlap_packing(n, kD, 0.325, 2013));
+  return *slot;
+}
+
+const Beam& paper_beam() {
+  static const Beam beam = [] {
+    BeamSpec spec;  // 6000 W, 0.3 D, exponential a = 2, +x
+    spec.rays = kRays;
+    return make_beam(spec, kD);
+  }();
+  return beam;
+}
+
+void set_counters(benchmark::State& state, double primary, double bounced) {
+  state.counters["primary_seg/s"] = benchmark::Counter(primary, benchmark::Counter::kIsRate);
+  state.counters["bounced_seg/s"] = benchmark::Counter(bounced, benchmark::Counter::kIsRate);
+  state.counters["segments/s"] = benchmark::Counter(primary + bounced, benchmark::Counter::kIsRate);
+  state.counters["bounced/ray"] = bounced / std::max(primary, 1.0);
+}
+
+// ---- this tracer ----------------------------------------------------------------------------
+
+void run_tracer(benchmark::State& state, bool packets, double n_hat, int max_bounces,
+                SceneUpdate scene_update = OpticsSpec{}.scene_update,
+                unsigned per_prim = OpticsSpec{}.spheres_per_primitive) {
+  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  OpticsSpec spec;
+  spec.scene_update = scene_update;
+  spec.spheres_per_primitive = per_prim;
+  spec.materials[0].n_solid = n_hat;
+  spec.packets = packets;
+  spec.max_bounces = max_bounces;
+  Tracer tracer(p, spec);
+  std::vector<double> deposits(p.size(), 0.0);
+  double primary = 0, bounced = 0;
+  for (auto _ : state) {
+    const auto p0 = tracer.primary_segments(), b0 = tracer.bounced_segments();
+    tracer.launch(paper_beam(), 1e-9);
+    tracer.advance(std::numeric_limits<double>::infinity(), deposits);
+    primary += static_cast<double>(tracer.primary_segments() - p0);
+    bounced += static_cast<double>(tracer.bounced_segments() - b0);
+  }
+  set_counters(state, primary, bounced);
+}
+
+// ---- baseline: Embree's built-in spheres, rtcIntersect1, same outside-hit rule ----------------
+
+struct SkipContext {
+  RTCIntersectContext base;
+  unsigned skip;
+};
+
+// Outside hits only: drop the sphere just left and any exit hit (normal along the ray).
+void outside_hit_filter(const RTCFilterFunctionNArguments* args) {
+  const auto* ctx = reinterpret_cast<const SkipContext*>(args->context);
+  for (unsigned i = 0; i < args->N; ++i) {
+    if (args->valid[i] != -1) continue;
+    const float dot = RTCHitN_Ng_x(args->hit, args->N, i) * RTCRayN_dir_x(args->ray, args->N, i) +
+                      RTCHitN_Ng_y(args->hit, args->N, i) * RTCRayN_dir_y(args->ray, args->N, i) +
+                      RTCHitN_Ng_z(args->hit, args->N, i) * RTCRayN_dir_z(args->ray, args->N, i);
+    if (RTCHitN_primID(args->hit, args->N, i) == ctx->skip || dot > 0.0f) args->valid[i] = 0;
+  }
+}
+
+struct BuiltinScene {
+  RTCDevice device;
+  RTCScene scene;
+  explicit BuiltinScene(const Particles& p) {
+    device = rtcNewDevice(nullptr);
+    scene = rtcNewScene(device);
+    RTCGeometry g = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_SPHERE_POINT);
+    auto* v = static_cast<float*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0,
+                                                          RTC_FORMAT_FLOAT4, 4 * sizeof(float),
+                                                          p.size()));
+    for (std::size_t i = 0; i < p.size(); ++i) {
+      v[4 * i + 0] = static_cast<float>(p.centre[i].x());
+      v[4 * i + 1] = static_cast<float>(p.centre[i].y());
+      v[4 * i + 2] = static_cast<float>(p.centre[i].z());
+      v[4 * i + 3] = static_cast<float>(p.radius[i]);
+    }
+    rtcSetGeometryIntersectFilterFunction(g, outside_hit_filter);
+    rtcCommitGeometry(g);
+    rtcAttachGeometry(scene, g);
+    rtcReleaseGeometry(g);
+    rtcCommitScene(scene);
+  }
+  ~BuiltinScene() {
+    rtcReleaseScene(scene);
+    rtcReleaseDevice(device);
+  }
+};
+
+// Same physics as the tracer (Fresnel (2.25), (3.3), reflection, cutoff), float hits.
+struct Tally {
+  double absorbed = 0, escaped = 0, cutoff = 0, primary = 0, bounced = 0;
+};
+
+Tally trace_builtin_ray(const BuiltinScene& s, const Particles& p, Vec3 o, Vec3 d, double e,
+                        double n_hat, int max_bounces) {
+  Tally t;
+  const double e0 = e;
+  unsigned skip = RTC_INVALID_GEOMETRY_ID;
+  for (int bounce = 0;; ++bounce) {
+    SkipContext ctx;
+    rtcInitIntersectContext(&ctx.base);
+    ctx.skip = skip;
+    RTCRayHit rh{};
+    rh.ray.org_x = float(o.x()), rh.ray.org_y = float(o.y()), rh.ray.org_z = float(o.z());
+    rh.ray.dir_x = float(d.x()), rh.ray.dir_y = float(d.y()), rh.ray.dir_z = float(d.z());
+    rh.ray.tnear = 0.0f;
+    rh.ray.tfar = std::numeric_limits<float>::infinity();
+    rh.ray.mask = 0xFFFFFFFFu;
+    rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+    rtcIntersect1(s.scene, &ctx.base, &rh);
+    (bounce == 0 ? t.primary : t.bounced) += 1;
+    if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) {
+      t.escaped += e;
+      return t;
+    }
+    const unsigned i = rh.hit.primID;
+    const Vec3 point = o + double(rh.ray.tfar) * d;
+    const Vec3 n = (point - p.centre[i]).normalized();
+    const double carried = reflectance(-d.dot(n), n_hat) * e;
+    t.absorbed += e - carried;
+    e = carried;
+    d = reflect(d, n).normalized();
+    o = point;
+    skip = i;
+    if (e < 1e-10 * e0 || bounce + 1 >= max_bounces) {
+      t.cutoff += e;
+      return t;
+    }
+  }
+}
+
+void run_builtin(benchmark::State& state, double n_hat, int max_bounces) {
+  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  const BuiltinScene scene(p);
+  const Beam& beam = paper_beam();
+  const auto energy = beam.ray_energies(1e-9);
+  const double upstream = -2.0 * p.max_radius();
+  double primary = 0, bounced = 0;
+  for (auto _ : state) {
+    std::vector<Tally> chunks((beam.size() + 255) / 256);
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, chunks.size(), 1), [&](auto range) {
+      for (std::size_t c = range.begin(); c != range.end(); ++c)
+        for (std::size_t k = c * 256; k < std::min(beam.size(), (c + 1) * 256); ++k) {
+          const Tally t = trace_builtin_ray(scene, p, beam.origin[k] + upstream * beam.direction,
+                                            beam.direction, energy[k], n_hat, max_bounces);
+          chunks[c].primary += t.primary;
+          chunks[c].bounced += t.bounced;
+        }
+    });
+    for (const Tally& t : chunks) primary += t.primary, bounced += t.bounced;
+  }
+  set_counters(state, primary, bounced);
+}
+
+// ---- baseline: brute force over every sphere ------------------------------------------------
+
+void run_brute(benchmark::State& state, double n_hat) {
+  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  const Beam& beam = paper_beam();
+  const auto energy = beam.ray_energies(1e-9);
+  const double upstream = -2.0 * p.max_radius();
+  double primary = 0, bounced = 0;
+  for (auto _ : state) {
+    std::vector<Tally> chunks((beam.size() + 255) / 256);
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, chunks.size(), 1), [&](auto range) {
+      for (std::size_t c = range.begin(); c != range.end(); ++c)
+        for (std::size_t k = c * 256; k < std::min(beam.size(), (c + 1) * 256); ++k) {
+          Vec3 o = beam.origin[k] + upstream * beam.direction, d = beam.direction;
+          double e = energy[k];
+          std::uint32_t skip = kNoParticle;
+          for (int bounce = 0; bounce < 1000; ++bounce) {
+            (bounce == 0 ? chunks[c].primary : chunks[c].bounced) += 1;
+            double best = kNoHit;
+            std::uint32_t who = kNoParticle;
+            for (std::uint32_t i = 0; i < p.size(); ++i) {
+              if (i == skip) continue;
+              const double t = ray_sphere_entry(o, d, p.centre[i], p.radius[i]);
+              if (t < best) best = t, who = i;
+            }
+            if (who == kNoParticle) break;
+            const Vec3 point = o + best * d;
+            const Vec3 n = (point - p.centre[who]).normalized();
+            const double carried = reflectance(-d.dot(n), n_hat) * e;
+            if (carried < 1e-10 * energy[k]) break;
+            e = carried, d = reflect(d, n).normalized(), o = point, skip = who;
+          }
+        }
+    });
+    for (const Tally& t : chunks) primary += t.primary, bounced += t.bounced;
+  }
+  set_counters(state, primary, bounced);
+}
+
+// ---- scene updates --------------------------------------------------------------------------
+
+// 1% of the spheres: uniformly at random, or the 1% nearest the beam's entry (where vaporisation
+// actually happens: a compact region, which is what spatial bricks exploit).
+std::vector<std::uint32_t> victims(const Particles& p, bool under_beam) {
+  const std::size_t count = p.size() / 100;
+  std::vector<std::uint32_t> ids(p.size());
+  std::iota(ids.begin(), ids.end(), 0u);
+  if (under_beam) {
+    auto key = [&](std::uint32_t i) {
+      const Vec3& c = p.centre[i];
+      return c.x() + std::hypot(c.y() - 0.5 * kD, c.z() - 0.5 * kD);
+    };
+    std::partial_sort(ids.begin(), ids.begin() + count, ids.end(),
+                      [&](auto a, auto b) { return key(a) < key(b); });
+  } else {
+    Rng rng(99);
+    for (std::size_t k = 0; k < count; ++k) std::swap(ids[k], ids[k + rng.next() % (p.size() - k)]);
+  }
+  ids.resize(count);
+  return ids;
+}
+
+void run_update(benchmark::State& state, SceneUpdate mode, bool under_beam) {
+  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  const auto ids = victims(p, under_beam);
+  for (auto _ : state) {
+    state.PauseTiming();
+    auto scene = std::make_unique<EmbreeScene>(p, mode);
+    state.ResumeTiming();
+    scene->remove(ids);
+    state.PauseTiming();
+    scene.reset();
+    state.ResumeTiming();
+  }
+  state.counters["removed"] = static_cast<double>(ids.size());
+}
+
+void run_build(benchmark::State& state, SceneUpdate mode) {
+  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  for (auto _ : state) {
+    EmbreeScene scene(p, mode);
+    benchmark::DoNotOptimize(&scene);
+  }
+}
+
+// BEAMPACK_BENCH_MIN_TIME=s: seconds per benchmark (default 0.3).
+double min_time() {
+  const char* s = std::getenv("BEAMPACK_BENCH_MIN_TIME");
+  return s ? std::atof(s) : 0.3;
+}
+
+void sizes(benchmark::internal::Benchmark* b) {
+  for (long n : {1000L, 10000L, 100000L, 1000000L}) b->Arg(n);
+  b->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+}
+
+void register_all() {
+  for (double n_hat : {1.4, 20.0}) {
+    const std::string tag = "/n" + std::to_string(static_cast<int>(std::lround(n_hat * 10)));
+    benchmark::RegisterBenchmark(("trace/workload/tracer_packets" + tag).c_str(),
+                                 [=](benchmark::State& s) { run_tracer(s, true, n_hat, 1000); })
+        ->Apply(sizes);
+    benchmark::RegisterBenchmark(("trace/workload/tracer_single" + tag).c_str(),
+                                 [=](benchmark::State& s) { run_tracer(s, false, n_hat, 1000); })
+        ->Apply(sizes);
+    benchmark::RegisterBenchmark(("trace/workload/builtin_sphere" + tag).c_str(),
+                                 [=](benchmark::State& s) { run_builtin(s, n_hat, 1000); })
+        ->Apply(sizes);
+    benchmark::RegisterBenchmark(("trace/workload/brute_force" + tag).c_str(),
+                                 [=](benchmark::State& s) { run_brute(s, n_hat); })
+        ->Arg(1000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+  }
+  // The scene's update mode decides its build (static SAH for mask_only/rebuild, two-level
+  // low quality for refit/bricks), hence its tracing speed too.
+  for (const auto& [name, mode] : {std::pair{"deferred", SceneUpdate::deferred},
+                                   std::pair{"refit", SceneUpdate::refit},
+                                   std::pair{"bricks", SceneUpdate::bricks}})
+    benchmark::RegisterBenchmark(("trace/scene_mode/" + std::string(name) + "/n200").c_str(),
+                                 [mode = mode](benchmark::State& s) { run_tracer(s, true, 20.0, 1000, mode); })
+        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+  // Embree primitive = a cluster of K consecutive (Morton) spheres: fewer callbacks, looser boxes.
+  for (unsigned k : {1u, 2u, 4u, 8u}) {
+    benchmark::RegisterBenchmark(("trace/cluster/" + std::to_string(k) + "/n200").c_str(),
+                                 [k](benchmark::State& s) {
+                                   run_tracer(s, true, 20.0, 1000, SceneUpdate::deferred, k);
+                                 })
+        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+    benchmark::RegisterBenchmark(("trace/cluster/" + std::to_string(k) + "/primary").c_str(),
+                                 [k](benchmark::State& s) {
+                                   run_tracer(s, true, 20.0, 1, SceneUpdate::deferred, k);
+                                 })
+        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+  }
+  benchmark::RegisterBenchmark("trace/primary/tracer_packets",
+                               [](benchmark::State& s) { run_tracer(s, true, 1.4, 1); })->Apply(sizes);
+  benchmark::RegisterBenchmark("trace/primary/tracer_single",
+                               [](benchmark::State& s) { run_tracer(s, false, 1.4, 1); })->Apply(sizes);
+  benchmark::RegisterBenchmark("trace/primary/builtin_sphere",
+                               [](benchmark::State& s) { run_builtin(s, 1.4, 1); })->Apply(sizes);
+  const std::pair<const char*, SceneUpdate> modes[] = {{"deferred", SceneUpdate::deferred},
+                                                       {"mask_only", SceneUpdate::mask_only},
+                                                       {"rebuild", SceneUpdate::rebuild},
+                                                       {"refit", SceneUpdate::refit},
+                                                       {"bricks", SceneUpdate::bricks}};
+  for (const auto& [name, mode] : modes) {
+    for (bool beam : {false, true}) {
+      const std::string label = std::string("scene_update/") + name + (beam ? "/beam_1pct" : "/random_1pct");
+      benchmark::RegisterBenchmark(label.c_str(), [mode = mode, beam](benchmark::State& s) {
+        run_update(s, mode, beam);
+      })->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->Iterations(5)->UseRealTime();
+    }
+    benchmark::RegisterBenchmark((std::string("scene_update/build/") + name).c_str(),
+                                 [mode = mode](benchmark::State& s) { run_build(s, mode); })
+        ->Arg(1000000)->Unit(benchmark::kMillisecond)->Iterations(3)->UseRealTime();
+  }
+}
+
+// BEAMPACK_BENCH_THREADS=k limits TBB (Embree builds and the tracers) to k threads: with other
+// jobs on the machine, one thread gives steadier side-by-side ratios.
+std::unique_ptr<tbb::global_control> thread_limit() {
+  const char* k = std::getenv("BEAMPACK_BENCH_THREADS");
+  if (!k) return nullptr;
+  return std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
+                                               static_cast<std::size_t>(std::atoi(k)));
+}
+
+const auto limit = thread_limit();
+const bool registered = (register_all(), true);
+
+}  // namespace
+}  // namespace beampack
