@@ -182,6 +182,63 @@ Figures Simulation::figures() const {
   return f;
 }
 
+namespace {
+constexpr std::uint32_t kStateVersion = 2;
+}
+
+void Simulation::write_state(StateWriter& out) const {
+  out.value(kStateVersion);
+  const Particles& p = particles_;
+  out.vector(p.centre), out.vector(p.radius), out.vector(p.material);
+  out.vector(p.temperature), out.vector(p.phase), out.vector(p.alive);
+  out.vector(absorbed_);
+  out.value(time_), out.value(next_pulse_time_), out.value(max_temperature_), out.value(launched_);
+  out.value(counts_);
+  for (const StageTime& s : stages_) out.value(s.seconds), out.value(s.calls);
+  tracer_->save().write(out);
+  const ThermalModel::Snapshot heat = thermal_->save();
+  out.vector(heat.stored);
+  out.value(heat.ledger);
+}
+
+void Simulation::read_state(StateReader& in) {
+  if (in.value<std::uint32_t>() != kStateVersion)
+    throw InputError("checkpoint: written by another version of beampack's state format");
+  Particles p;
+  in.vector(p.centre), in.vector(p.radius), in.vector(p.material);
+  in.vector(p.temperature), in.vector(p.phase), in.vector(p.alive);
+  if (p.size() != particles_.size() || p.centre.size() != p.size())
+    throw InputError("checkpoint: its packing has " + std::to_string(p.size()) +
+                     " particles, the run file's has " + std::to_string(particles_.size()));
+  in.vector(absorbed_);
+  time_ = in.value<double>(), next_pulse_time_ = in.value<double>();
+  max_temperature_ = in.value<double>(), launched_ = in.value<int>();
+  counts_ = in.value<Counts>();
+  for (StageTime& s : stages_) s.seconds = in.value<double>(), s.calls = in.value<std::uint64_t>();
+  RayState rays;
+  rays.read(in);
+  ThermalModel::Snapshot heat;
+  in.vector(heat.stored);
+  heat.ledger = in.value<ThermalLedger>();
+  // The scene's user geometry points into these arrays: copy into them, never replace them.
+  if (p.centre != particles_.centre || p.radius != particles_.radius)
+    throw InputError("checkpoint: its packing differs from the run file's (other seed or file?)");
+  std::copy(p.material.begin(), p.material.end(), particles_.material.begin());
+  std::copy(p.temperature.begin(), p.temperature.end(), particles_.temperature.begin());
+  std::copy(p.phase.begin(), p.phase.end(), particles_.phase.begin());
+  std::copy(p.alive.begin(), p.alive.end(), particles_.alive.begin());
+  std::vector<std::uint32_t> dead;
+  for (std::uint32_t i = 0; i < particles_.size(); ++i)
+    if (!particles_.alive[i]) dead.push_back(i);
+  tracer_->remove_particles(dead);
+  tracer_->restore(rays);
+  heat.temperature = particles_.temperature;
+  heat.phase = particles_.phase;
+  heat.alive = particles_.alive;
+  thermal_->restore(heat);
+  if (needs_conduction(spec_)) thermal_->set_contacts(find_contacts(particles_));
+}
+
 Counts Simulation::counts() const {
   Counts c = counts_;
   c.segments = tracer_->primary_segments() + tracer_->bounced_segments();

@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "engine/beam.h"
+#include "engine/state_io.h"
 #include "engine/tracer.h"
 #include "geometry/packing.h"
 #include "thermal/thermal_model.h"
@@ -88,6 +89,11 @@ class Simulation {
   const std::array<StageTime, kStages>& stages() const { return stages_; }
   const SimulationSpec& spec() const { return spec_; }
   const Tracer& tracer() const { return *tracer_; }
+
+  // Checkpoint: the complete state between two steps (particles, rays, heat, clocks, counters).
+  // Restoring it into a Simulation built from the same spec continues bit-identically.
+  void write_state(StateWriter& out) const;
+  void read_state(StateReader& in);
 
  private:
   void launch_pulse_if_due();

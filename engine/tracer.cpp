@@ -243,6 +243,28 @@ void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budg
   }
 }
 
+void RayState::write(StateWriter& out) const {
+  out.vector(origin), out.vector(direction), out.vector(normal), out.vector(energy);
+  out.vector(initial_energy), out.vector(travelled), out.vector(t_next);
+  out.vector(last_particle), out.vector(next_particle), out.vector(bounces), out.vector(live);
+  out.value(ledger), out.value(primary_segments), out.value(bounced_segments), out.value(hits);
+  out.value(live_count);
+}
+
+void RayState::read(StateReader& in) {
+  in.vector(origin), in.vector(direction), in.vector(normal), in.vector(energy);
+  in.vector(initial_energy), in.vector(travelled), in.vector(t_next);
+  in.vector(last_particle), in.vector(next_particle), in.vector(bounces), in.vector(live);
+  ledger = in.value<OpticsLedger>(), primary_segments = in.value<std::uint64_t>();
+  bounced_segments = in.value<std::uint64_t>(), hits = in.value<std::uint64_t>();
+  live_count = in.value<std::size_t>();
+  const std::size_t n = origin.size();
+  for (std::size_t size : {direction.size(), normal.size(), energy.size(), initial_energy.size(),
+                           travelled.size(), t_next.size(), last_particle.size(),
+                           next_particle.size(), bounces.size(), live.size()})
+    if (size != n) throw InputError("checkpoint: ray arrays of unequal length");
+}
+
 std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
   if (!(path_budget >= 0.0))
     throw InputError("advance: path budget " + std::to_string(path_budget) + " must be >= 0");

@@ -13,6 +13,7 @@
 
 #include "engine/beam.h"
 #include "engine/embree_scene.h"
+#include "engine/state_io.h"
 #include "geometry/particles.h"
 
 namespace beampack {
@@ -56,6 +57,10 @@ struct RayState {
   std::uint64_t bounced_segments = 0;  // queries after a bounce (or a retrace after a removal)
   std::uint64_t hits = 0;
   std::size_t live_count = 0;
+
+  // Checkpoints (a field added above must be added to both).
+  void write(StateWriter& out) const;
+  void read(StateReader& in);
 };
 
 class Tracer {

@@ -47,6 +47,9 @@ int main(int argc, char** argv) {
   run_cmd->add_option("--out", run.out_dir, "output directory")->capture_default_str();
   run_cmd->add_option("--threads", run.threads, "worker threads (0: all cores)")->check(CLI::NonNegativeNumber);
   run_cmd->add_flag("--quiet", run.quiet, "no progress line");
+  run_cmd->add_option("--checkpoint-every", run.checkpoint_every,
+                      "write DIR/checkpoint.bin every N pulses (atomically)")->check(CLI::NonNegativeNumber);
+  run_cmd->add_option("--resume", run.resume, "continue the run whose checkpoint is in DIR");
 
   CLI::App* sweep_cmd = app.add_subcommand("sweep", "one run per value of a parameter");
   add_run_sources(sweep_cmd, sweep.run);
@@ -81,7 +84,10 @@ int main(int argc, char** argv) {
   }
   install_interrupt_handler();
   try {
-    if (run_cmd->parsed()) return run_command(run);
+    if (run_cmd->parsed()) {
+      run.out_set = run_cmd->count("--out") > 0;
+      return run_command(run);
+    }
     if (sweep_cmd->parsed()) return sweep_command(sweep);
     if (converge_cmd->parsed()) return converge_command(converge);
     if (validate_cmd->parsed()) return stiff ? run_stability_report(quiet_validate) : run_validate(quiet_validate);

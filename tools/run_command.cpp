@@ -7,6 +7,8 @@
 #include <cstdlib>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
+#include <optional>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <sstream>
@@ -180,32 +182,96 @@ RunResult run_scene(const RunConfig& config, bool quiet, const std::string& labe
   return r;
 }
 
+namespace {
+
+constexpr const char* kCheckpointMagic = "beampack-checkpoint";
+
+// What a run accumulates besides the simulation's own state: the history rows and the frames.
+struct RunRecord {
+  std::string config_text;
+  std::string history = history_header();
+  std::vector<std::pair<std::string, double>> frames;
+};
+
+std::string toml_text(const toml::table& table) {
+  std::ostringstream s;
+  s << table;
+  return s.str();
+}
+
+void write_checkpoint(const fs::path& path, const Simulation& sim, const RunRecord& record) {
+  StateWriter w;
+  w.text(kCheckpointMagic);
+  w.text(record.config_text);
+  w.text(record.history);
+  w.value<std::uint64_t>(record.frames.size());
+  for (const auto& [name, time] : record.frames) w.text(name), w.value(time);
+  sim.write_state(w);
+  const std::string bytes = w.finish();
+  write_atomically(path.string(), [&](std::ostream& o) { o.write(bytes.data(), std::streamsize(bytes.size())); });
+}
+
+StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw InputError("--resume: cannot read " + path.string());
+  std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  StateReader r(std::move(bytes), path.string());
+  if (r.text() != kCheckpointMagic) throw InputError(path.string() + ": not a beampack checkpoint");
+  record.config_text = r.text();
+  record.history = r.text();
+  const auto frames = r.value<std::uint64_t>();
+  for (std::uint64_t k = 0; k < frames; ++k) {
+    std::string name = r.text();
+    record.frames.emplace_back(std::move(name), r.value<double>());
+  }
+  return r;
+}
+
+}  // namespace
+
 int run_command(const RunOptions& options) {
-  const RunConfig config = load_run_config(options.sources);
-  prepare_out_dir(options.out_dir);
+  if (!options.resume.empty() && (!options.sources.file.empty() || !options.sources.preset.empty() ||
+                                  !options.sources.sets.empty()))
+    throw InputError("--resume " + options.resume +
+                     ": the checkpoint holds its run file; give no run file, --preset or --set");
+  RunRecord record;
+  std::optional<StateReader> saved;
+  RunSources sources = options.sources;
+  if (!options.resume.empty()) {
+    saved.emplace(open_checkpoint(fs::path(options.resume) / "checkpoint.bin", record));
+    sources.text = record.config_text;
+  }
+  const RunConfig config = load_run_config(sources);
+  if (options.resume.empty()) record.config_text = toml_text(config.resolved);
+  const std::string out_dir = options.resume.empty() || options.out_set ? options.out_dir : options.resume;
+  prepare_out_dir(out_dir);
   std::unique_ptr<tbb::global_control> threads;
   if (options.threads > 0)
     threads = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
                                                     std::size_t(options.threads));
   const auto start = Clock::now();
   Simulation sim(config.sim);
-  const fs::path out(options.out_dir);
-  std::string history = history_header();
-  std::vector<std::pair<std::string, double>> frames;
-  auto on_pulse_end = [&](int pulse) {
-    history += history_row(sim.figures());
-    if (!config.output.frames) return;
-    char name[64];
-    std::snprintf(name, sizeof name, "particles_%04d.vtp", pulse);
-    write_particles_vtp((out / name).string(), sim.particles(), sim.absorbed());
-    frames.emplace_back(name, sim.figures().time);
-    write_pvd((out / "particles.pvd").string(), frames);
-  };
-  sim.on_pulse_end(on_pulse_end);
+  if (saved) sim.read_state(*saved);
+  const fs::path out(out_dir);
+  bool checkpoint_due = false;
+  sim.on_pulse_end([&](int pulse) {
+    record.history += history_row(sim.figures());
+    if (config.output.frames) {
+      char name[64];
+      std::snprintf(name, sizeof name, "particles_%04d.vtp", pulse);
+      write_particles_vtp((out / name).string(), sim.particles(), sim.absorbed());
+      record.frames.emplace_back(name, sim.figures().time);
+      write_pvd((out / "particles.pvd").string(), record.frames);
+    }
+    checkpoint_due = options.checkpoint_every > 0 && (pulse + 1) % options.checkpoint_every == 0;
+  });
   {
     Progress progress(options.quiet, "");
     while (!sim.done() && !stop_requested().load()) {
       sim.step();
+      // Between steps, never inside one: a resume continues with exactly the next step.
+      if (checkpoint_due && !sim.done()) write_checkpoint(out / "checkpoint.bin", sim, record);
+      checkpoint_due = false;
       progress.update(sim);
     }
   }
@@ -214,14 +280,17 @@ int run_command(const RunOptions& options) {
   r.counts = sim.counts();
   r.interrupted = !sim.done();
   r.wall_seconds = std::chrono::duration<double>(Clock::now() - start).count();
-  write_atomically((out / "history.csv").string(), [&](std::ostream& o) { o << history; });
+  if (r.interrupted) write_checkpoint(out / "checkpoint.bin", sim, record);
+  write_atomically((out / "history.csv").string(), [&](std::ostream& o) { o << record.history; });
   write_particles_csv((out / "particles.csv").string(), sim.particles(), sim.absorbed());
   write_atomically((out / "summary.json").string(),
                    [&](std::ostream& o) { o << summary_json(sim, r, config).dump(2) << '\n'; });
   print_table(sim, r);
   if (r.interrupted) {
-    std::fprintf(stderr, "beampack: interrupted at t = %.6g s after %d pulses; outputs in %s hold that state\n",
-                 r.figures.time, r.figures.pulse, options.out_dir.c_str());
+    std::fprintf(stderr,
+                 "beampack: interrupted at t = %.6g s after %d pulses; outputs in %s hold that state; "
+                 "continue with: beampack run --resume %s\n",
+                 r.figures.time, r.figures.pulse, out_dir.c_str(), out_dir.c_str());
     return 1;
   }
   return 0;

@@ -12,6 +12,9 @@ struct RunOptions {
   std::string out_dir = "beampack-out";
   int threads = 0;     // 0: all cores
   bool quiet = false;
+  int checkpoint_every = 0;  // pulses between checkpoints (0: none; Ctrl-C always writes one)
+  std::string resume;        // directory holding checkpoint.bin
+  bool out_set = false;      // --out given (a resume otherwise writes into its own directory)
 };
 
 // The flag Ctrl-C sets: runs stop after the current step and write what they have.

@@ -122,6 +122,7 @@ RunConfig load_run_config(const RunSources& sources) {
     }
     p.merge_toml_text(found->toml, std::string("preset ") + found->name);
   }
+  if (!sources.text.empty()) p.merge_toml_text(sources.text, "checkpoint");
   if (!sources.file.empty()) p.merge_toml_file(sources.file);
   for (const std::string& s : sources.sets) p.merge_assignment(s);
 

@@ -24,6 +24,7 @@ struct RunSources {
   std::string file;                 // RUN.toml ("" for none)
   std::string preset;               // --preset NAME ("" for none)
   std::vector<std::string> sets;    // --set KEY=VALUE, in order
+  std::string text;                 // a complete run file held in a checkpoint ("" for none)
 };
 
 // InputError (exit code 2) for any bad key, type or value, naming file and line.
