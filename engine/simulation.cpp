@@ -44,6 +44,15 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
   if (!(spec_.pulses.duration > 0) || !std::isfinite(spec_.pulses.duration))
     throw InputError("`pulses.duration` = " + std::to_string(spec_.pulses.duration) + ": must be > 0");
   beam_ = make_beam(spec_.beam, spec_.packing.sample_size);
+  // Energies that overflow would turn into NaN at the first hit: refuse them as input.
+  double pulse_energy = 0;
+  for (double e : beam_.ray_energies(spec_.pulses.duration)) pulse_energy += e;
+  if (!std::isfinite(pulse_energy) || !std::isfinite(pulse_energy * spec_.pulses.count)) {
+    std::ostringstream m;
+    m << "`beam.power` = " << spec_.beam.power << " with `pulses.duration` = "
+      << spec_.pulses.duration << " s: the pulse energy overflows double precision";
+    throw InputError(m.str());
+  }
   tracer_ = std::make_unique<Tracer>(particles_, spec_.optics);
   thermal_ = std::make_unique<ThermalModel>(particles_, spec_.materials, spec_.thermal);
   // Leave out what the scene does not need: without conductivity or walls there is no graph.
@@ -134,20 +143,26 @@ bool Simulation::step() {
   for (std::size_t i = 0; i < deposits_.size(); ++i) absorbed_[i] += deposits_[i];
   time_ += dt;
   ++counts_.steps;
+  // Numerical hygiene: a NaN or infinity stops the run here, before it reaches any output.
   for (std::size_t i = 0; i < particles_.size(); ++i) {
     const double t = particles_.temperature[i];
-    if (!std::isfinite(t)) {
-      std::ostringstream m;
-      m << "temperature of particle " << i << " is " << t << " after step " << counts_.steps
-        << " (t = " << time_ << " s); reproduce with the same run file and seeds";
-      throw RunError(m.str());
-    }
+    if (!std::isfinite(t) || !std::isfinite(deposits_[i])) non_finite(i, t, deposits_[i]);
     max_temperature_ = std::max(max_temperature_, t);
   }
   // Rebuild: vaporised particles leave the scene and the contact graph (paper, Remark 10).
   if (!report.vaporized.empty()) remove_vaporized(report.vaporized);
   if (done() && on_pulse_end_) on_pulse_end_(launched_ - 1);
   return !done();
+}
+
+void Simulation::non_finite(std::size_t particle, double temperature, double deposit) const {
+  std::ostringstream m;
+  m << "non-finite value at step " << counts_.steps << " (t = " << time_ << " s, pulse "
+    << launched_ << "): particle " << particle << " has temperature " << temperature
+    << " K and absorbed " << deposit << " J in the step; reproduce with the same run file "
+    << "(packing.seed = " << spec_.packing.seed << ", beam.seed = " << spec_.beam.seed
+    << ") and stop at that step";
+  throw RunError(m.str());
 }
 
 void Simulation::remove_vaporized(const std::vector<std::uint32_t>& ids) {

@@ -99,6 +99,7 @@ class Simulation {
   void launch_pulse_if_due();
   double step_length(bool traced) const;
   void remove_vaporized(const std::vector<std::uint32_t>& ids);
+  [[noreturn]] void non_finite(std::size_t particle, double temperature, double deposit) const;
   double volume_fraction(Phase phase) const;
 
   SimulationSpec spec_;
