@@ -13,6 +13,7 @@
 
 #include "engine/beam.h"
 #include "engine/embree_scene.h"
+#include "engine/sphere_grid.h"
 #include "geometry/particles.h"
 
 namespace beampack {
@@ -23,11 +24,17 @@ struct MaterialOptics {
   double mu_hat = 1.0;
 };
 
+// How bounced rays find their next sphere (same answer bit for bit; docs/bench/optics.md):
+// Embree single rays, waves of incoherent Embree packets, or a uniform-grid walk.
+enum class BounceSearch { embree, packets, grid };
+
 struct OpticsSpec {
   std::vector<MaterialOptics> materials = std::vector<MaterialOptics>(1);  // by Particles::material
   double cutoff = 1e-10;    // optics.cutoff: epsilon, relative to the ray's initial energy
   int max_bounces = 1000;   // optics.max_bounces
   bool packets = true;      // primary rays in coherent 16-ray packets (false: single rays)
+  BounceSearch bounce_search = BounceSearch::grid;
+  double grid_cell_factor = 2.0;  // grid cell edge / largest radius
   SceneUpdate scene_update = SceneUpdate::deferred;  // docs/bench/optics.md: fastest measured
   unsigned spheres_per_primitive = 1;  // Embree primitive = cluster of this many spheres
 };
@@ -92,13 +99,18 @@ class Tracer {
 
  private:
   struct Chunk;
-  void trace_primaries(std::size_t begin, std::size_t end);
+  void trace_ids(const std::uint32_t* ids, std::size_t count, bool coherent);
+  void trace_packets(std::size_t begin, std::size_t end, bool coherent);
+  void trace_wave(const std::vector<std::uint32_t>& rays);
   void trace_segment(std::uint32_t ray);
+  bool step_ray(std::uint32_t ray, double& left, Chunk& chunk);
+  void count_segment(std::uint32_t ray, Chunk& chunk) const;
   void run_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
 
   const Particles& particles_;
   OpticsSpec spec_;
   std::unique_ptr<EmbreeScene> scene_;
+  std::unique_ptr<SphereGrid> grid_;  // bounced rays (BounceSearch::grid)
   Box box_;  // all particles grown by their radii: leaving it means escaped
   RayState state_;
 };
