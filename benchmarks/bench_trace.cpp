@@ -347,7 +347,7 @@ void register_all() {
                                  })
         ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
   }
-  for (double f : {1.0, 2.0, 3.0, 4.0, 6.0})
+  for (double f : {1.5, 2.0, 3.0, 4.0})
     benchmark::RegisterBenchmark(("trace/grid_cell/" + std::to_string(f).substr(0, 3) + "R/n200").c_str(),
                                  [f](benchmark::State& s) {
                                    run_tracer(s, true, 20.0, 1000, OpticsSpec{}.scene_update, 1,

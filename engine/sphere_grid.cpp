@@ -130,8 +130,29 @@ void SphereGrid::intersect1(const RayQuery& q, std::uint32_t id) const {
   std::uint32_t who = q.particle[id], best_slot = kNone;
   const float ox = static_cast<float>(o.x()), oy = static_cast<float>(o.y()), oz = static_cast<float>(o.z());
   const float dx = static_cast<float>(d.x()), dy = static_cast<float>(d.y()), dz = static_cast<float>(d.z());
+  // Lookahead: a copy of the walk runs two cells ahead and prefetches, so the next cells' rows
+  // and entries arrive while this cell is tested (the walk is bound by memory latency).
+  long ahead[3] = {cell[0], cell[1], cell[2]};
+  double ahead_t[3] = {t_max[0], t_max[1], t_max[2]};
+  bool ahead_ok = true;
+  auto step_ahead = [&]() -> long {
+    if (!ahead_ok) return -1;
+    const int a = ahead_t[0] < ahead_t[1] ? (ahead_t[0] < ahead_t[2] ? 0 : 2) : (ahead_t[1] < ahead_t[2] ? 1 : 2);
+    ahead[a] += step[a];
+    if (ahead_t[a] > t1 || ahead[a] < 0 || ahead[a] >= dims_[a]) return ahead_ok = false, -1;
+    ahead_t[a] += t_delta[a];
+    const long c = cell_index(ahead[0], ahead[1], ahead[2]);
+    __builtin_prefetch(&start_[static_cast<std::size_t>(c)]);
+    return c;
+  };
+  long next1 = step_ahead(), next2 = step_ahead();
   for (;;) {
     const auto c = static_cast<std::size_t>(cell_index(cell[0], cell[1], cell[2]));
+    if (next1 >= 0) {
+      const std::uint32_t first = start_[static_cast<std::size_t>(next1)];
+      __builtin_prefetch(&entry_sphere_[first]);
+      __builtin_prefetch(&entry_slot_[first]);
+    }
     for (std::uint32_t k = start_[c]; k < start_[c + 1]; ++k) {
       // Float prefilter: passes within r + pad of the centre, centre not behind by more.
       const FloatSphere& f = entry_sphere_[k];
@@ -154,6 +175,8 @@ void SphereGrid::intersect1(const RayQuery& q, std::uint32_t id) const {
     cell[axis] += step[axis];
     if (cell[axis] < 0 || cell[axis] >= dims_[axis]) break;
     t_max[axis] += t_delta[axis];
+    next1 = next2;
+    next2 = step_ahead();
   }
   if (best_slot == kNone) return;
   q.t_hit[id] = best;

@@ -16,7 +16,7 @@ namespace beampack {
 class SphereGrid {
  public:
   // Cells of edge cell_factor * (largest radius), at most ~4 cells per sphere.
-  explicit SphereGrid(const Particles& particles, double cell_factor = 2.0);
+  explicit SphereGrid(const Particles& particles, double cell_factor = 3.0);
 
   void remove(std::span<const std::uint32_t> ids);
   // Nearest outside hit of ray ray_id before query.t_hit[ray_id] (same contract as EmbreeScene).

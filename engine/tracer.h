@@ -34,7 +34,7 @@ struct OpticsSpec {
   int max_bounces = 1000;   // optics.max_bounces
   bool packets = true;      // primary rays in coherent 16-ray packets (false: single rays)
   BounceSearch bounce_search = BounceSearch::grid;
-  double grid_cell_factor = 2.0;  // grid cell edge / largest radius
+  double grid_cell_factor = 3.0;  // grid cell edge / largest radius (measured best of 1.5-4)
   SceneUpdate scene_update = SceneUpdate::deferred;  // docs/bench/optics.md: fastest measured
   unsigned spheres_per_primitive = 1;  // Embree primitive = cluster of this many spheres
 };
