@@ -276,6 +276,26 @@ void run_update(benchmark::State& state, SceneUpdate mode, bool under_beam) {
   state.counters["removed"] = static_cast<double>(ids.size());
 }
 
+// What the driver pays: Tracer::remove_particles (scene + grid masks, rays heading for a removed
+// sphere retraced later) with a pulse in flight.
+void run_tracer_remove(benchmark::State& state, bool under_beam) {
+  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  const auto ids = victims(p, under_beam);
+  for (auto _ : state) {
+    state.PauseTiming();
+    auto tracer = std::make_unique<Tracer>(p, OpticsSpec{});
+    tracer->launch(paper_beam(), 1e-9);
+    std::vector<double> deposits;
+    tracer->advance(2e-4, deposits);  // rays in flight inside the packing
+    state.ResumeTiming();
+    tracer->remove_particles(ids);
+    state.PauseTiming();
+    tracer.reset();
+    state.ResumeTiming();
+  }
+  state.counters["removed"] = static_cast<double>(ids.size());
+}
+
 void run_build(benchmark::State& state, SceneUpdate mode) {
   const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
   for (auto _ : state) {
@@ -366,6 +386,11 @@ void register_all() {
                                                        {"rebuild", SceneUpdate::rebuild},
                                                        {"refit", SceneUpdate::refit},
                                                        {"bricks", SceneUpdate::bricks}};
+  for (bool beam : {false, true})
+    benchmark::RegisterBenchmark(
+        (std::string("scene_update/tracer_remove_particles") + (beam ? "/beam_1pct" : "/random_1pct")).c_str(),
+        [beam](benchmark::State& s) { run_tracer_remove(s, beam); })
+        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->Iterations(5)->UseRealTime();
   for (const auto& [name, mode] : modes) {
     for (bool beam : {false, true}) {
       const std::string label = std::string("scene_update/") + name + (beam ? "/beam_1pct" : "/random_1pct");
