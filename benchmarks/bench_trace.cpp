@@ -61,9 +61,13 @@ void set_counters(benchmark::State& state, double primary, double bounced) {
 
 void run_tracer(benchmark::State& state, bool packets, double n_hat, int max_bounces,
                 SceneUpdate scene_update = OpticsSpec{}.scene_update,
-                unsigned per_prim = OpticsSpec{}.spheres_per_primitive) {
+                unsigned per_prim = OpticsSpec{}.spheres_per_primitive,
+                BounceSearch bounce = OpticsSpec{}.bounce_search,
+                double cell_factor = OpticsSpec{}.grid_cell_factor) {
   const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
   OpticsSpec spec;
+  spec.grid_cell_factor = cell_factor;
+  spec.bounce_search = bounce;
   spec.scene_update = scene_update;
   spec.spheres_per_primitive = per_prim;
   spec.materials[0].n_solid = n_hat;
@@ -272,6 +276,26 @@ void run_update(benchmark::State& state, SceneUpdate mode, bool under_beam) {
   state.counters["removed"] = static_cast<double>(ids.size());
 }
 
+// What the driver pays: Tracer::remove_particles (scene + grid masks, rays heading for a removed
+// sphere retraced later) with a pulse in flight.
+void run_tracer_remove(benchmark::State& state, bool under_beam) {
+  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  const auto ids = victims(p, under_beam);
+  for (auto _ : state) {
+    state.PauseTiming();
+    auto tracer = std::make_unique<Tracer>(p, OpticsSpec{});
+    tracer->launch(paper_beam(), 1e-9);
+    std::vector<double> deposits;
+    tracer->advance(2e-4, deposits);  // rays in flight inside the packing
+    state.ResumeTiming();
+    tracer->remove_particles(ids);
+    state.PauseTiming();
+    tracer.reset();
+    state.ResumeTiming();
+  }
+  state.counters["removed"] = static_cast<double>(ids.size());
+}
+
 void run_build(benchmark::State& state, SceneUpdate mode) {
   const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
   for (auto _ : state) {
@@ -297,8 +321,23 @@ void register_all() {
     benchmark::RegisterBenchmark(("trace/workload/tracer_packets" + tag).c_str(),
                                  [=](benchmark::State& s) { run_tracer(s, true, n_hat, 1000); })
         ->Apply(sizes);
+    benchmark::RegisterBenchmark(("trace/workload/tracer_packets_embree_bounces" + tag).c_str(),
+                                 [=](benchmark::State& s) {
+                                   run_tracer(s, true, n_hat, 1000, OpticsSpec{}.scene_update, 1,
+                                              BounceSearch::embree);
+                                 })
+        ->Apply(sizes);
+    benchmark::RegisterBenchmark(("trace/workload/tracer_packets_packet_bounces" + tag).c_str(),
+                                 [=](benchmark::State& s) {
+                                   run_tracer(s, true, n_hat, 1000, OpticsSpec{}.scene_update, 1,
+                                              BounceSearch::packets);
+                                 })
+        ->Apply(sizes);
     benchmark::RegisterBenchmark(("trace/workload/tracer_single" + tag).c_str(),
-                                 [=](benchmark::State& s) { run_tracer(s, false, n_hat, 1000); })
+                                 [=](benchmark::State& s) {
+                                   run_tracer(s, false, n_hat, 1000, OpticsSpec{}.scene_update, 1,
+                                              BounceSearch::embree);
+                                 })
         ->Apply(sizes);
     benchmark::RegisterBenchmark(("trace/workload/builtin_sphere" + tag).c_str(),
                                  [=](benchmark::State& s) { run_builtin(s, n_hat, 1000); })
@@ -328,10 +367,18 @@ void register_all() {
                                  })
         ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
   }
+  for (double f : {1.5, 2.0, 3.0, 4.0})
+    benchmark::RegisterBenchmark(("trace/grid_cell/" + std::to_string(f).substr(0, 3) + "R/n200").c_str(),
+                                 [f](benchmark::State& s) {
+                                   run_tracer(s, true, 20.0, 1000, OpticsSpec{}.scene_update, 1,
+                                              BounceSearch::grid, f);
+                                 })
+        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
   benchmark::RegisterBenchmark("trace/primary/tracer_packets",
                                [](benchmark::State& s) { run_tracer(s, true, 1.4, 1); })->Apply(sizes);
-  benchmark::RegisterBenchmark("trace/primary/tracer_single",
-                               [](benchmark::State& s) { run_tracer(s, false, 1.4, 1); })->Apply(sizes);
+  benchmark::RegisterBenchmark("trace/primary/tracer_single", [](benchmark::State& s) {
+    run_tracer(s, false, 1.4, 1, OpticsSpec{}.scene_update, 1, BounceSearch::embree);
+  })->Apply(sizes);
   benchmark::RegisterBenchmark("trace/primary/builtin_sphere",
                                [](benchmark::State& s) { run_builtin(s, 1.4, 1); })->Apply(sizes);
   const std::pair<const char*, SceneUpdate> modes[] = {{"deferred", SceneUpdate::deferred},
@@ -339,6 +386,11 @@ void register_all() {
                                                        {"rebuild", SceneUpdate::rebuild},
                                                        {"refit", SceneUpdate::refit},
                                                        {"bricks", SceneUpdate::bricks}};
+  for (bool beam : {false, true})
+    benchmark::RegisterBenchmark(
+        (std::string("scene_update/tracer_remove_particles") + (beam ? "/beam_1pct" : "/random_1pct")).c_str(),
+        [beam](benchmark::State& s) { run_tracer_remove(s, beam); })
+        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->Iterations(5)->UseRealTime();
   for (const auto& [name, mode] : modes) {
     for (bool beam : {false, true}) {
       const std::string label = std::string("scene_update/") + name + (beam ? "/beam_1pct" : "/random_1pct");

@@ -397,8 +397,9 @@ void EmbreeScene::intersect1(const RayQuery& query, std::uint32_t id) const {
   rtcIntersect1(impl_->scene, &ctx.base, &rh);
 }
 
-void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, int count) const {
-  QueryContext ctx = make_context(query, impl_->slack, true);
+void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, int count,
+                              bool coherent) const {
+  QueryContext ctx = make_context(query, impl_->slack, coherent);
   alignas(64) RTCRayHit16 rh;
   alignas(64) int valid[16];
   for (int i = 0; i < 16; ++i) {

@@ -59,8 +59,10 @@ class EmbreeScene {
 
   // Nearest outside hit of one ray (rtcIntersect1).
   void intersect1(const RayQuery& query, std::uint32_t ray_id) const;
-  // Nearest outside hits of up to 16 rays in one coherent packet (rtcIntersect16).
-  void intersect16(const RayQuery& query, const std::uint32_t* ray_ids, int count) const;
+  // Nearest outside hits of up to 16 rays in one packet (rtcIntersect16); coherent: the rays
+  // are a tile of a parallel beam (Embree's coherent context flag).
+  void intersect16(const RayQuery& query, const std::uint32_t* ray_ids, int count,
+                   bool coherent = true) const;
   // True when some particle is hit before query.t_hit[ray_id] (rtcOccluded1).
   bool occluded1(const RayQuery& query, std::uint32_t ray_id) const;
 

@@ -18,7 +18,7 @@ namespace beampack {
 namespace {
 
 constexpr std::size_t kChunkRays = 256;  // fixed: the reduction order must not depend on threads
-constexpr int kPacket = 16;
+constexpr std::size_t kPacket = 16;
 
 void validate(const OpticsSpec& spec, const Particles& particles) {
   if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
@@ -53,11 +53,18 @@ double box_exit_distance(const Box& box, const Vec3& o, const Vec3& d) {
   return std::isfinite(t_exit) ? std::max(t_exit, 0.0) : 0.0;
 }
 
-// Per chunk: deposits in ray order and partial sums, merged in chunk order.
+// What happened to a ray: energy into a particle, out of the box, or below the cutoff.
+constexpr std::uint32_t kEscapedBin = kNoParticle, kCutoffBin = kNoParticle - 1;
+struct Event {
+  std::uint32_t ray;
+  std::uint32_t bin;  // particle id, kEscapedBin or kCutoffBin
+  double energy;
+};
+
+// Per chunk: events sorted by ray (stable: each ray's own order), merged in chunk order, so the
+// sums never depend on threads, on packets, or on the order rays were stepped in.
 struct Tracer::Chunk {
-  std::vector<std::pair<std::uint32_t, double>> deposits;
-  double absorbed = 0.0, escaped = 0.0, cutoff = 0.0;
-  double longest_path = 0.0;  // most path any ray of the chunk travelled in this call
+  std::vector<Event> events;
   std::uint64_t primary = 0, bounced = 0, hits = 0;
   std::size_t ended = 0;
 };
@@ -67,6 +74,7 @@ Tracer::Tracer(const Particles& particles, OpticsSpec spec)
   validate(spec_, particles);
   scene_ = std::make_unique<EmbreeScene>(particles, spec_.scene_update, 4096, 0.1,
                                          spec_.spheres_per_primitive);
+  if (spec_.bounce_search == BounceSearch::grid) grid_ = std::make_unique<SphereGrid>(particles, spec_.grid_cell_factor);
   box_ = particles.bounds();
 }
 
@@ -102,6 +110,7 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
     s.energy.push_back(energies[k]);
     s.initial_energy.push_back(energies[k]);
     s.travelled.push_back(0.0);
+    s.path.push_back(0.0);
     s.t_next.push_back(-1.0);
     s.last_particle.push_back(kNoParticle);
     s.next_particle.push_back(kNoParticle);
@@ -123,6 +132,7 @@ void Tracer::compact() {
     s.energy[w] = s.energy[r];
     s.initial_energy[w] = s.initial_energy[r];
     s.travelled[w] = s.travelled[r];
+    s.path[w] = s.path[r];
     s.t_next[w] = s.t_next[r];
     s.last_particle[w] = s.last_particle[r];
     s.next_particle[w] = s.next_particle[r];
@@ -136,6 +146,7 @@ void Tracer::compact() {
   s.energy.resize(w);
   s.initial_energy.resize(w);
   s.travelled.resize(w);
+  s.path.resize(w);
   s.t_next.resize(w);
   s.last_particle.resize(w);
   s.next_particle.resize(w);
@@ -155,97 +166,133 @@ void Tracer::trace_segment(std::uint32_t r) {
   RayState& s = state_;
   s.t_next[r] = std::numeric_limits<double>::infinity();
   s.next_particle[r] = kNoParticle;
-  scene_->intersect1(query_of(s), r);
+  if (grid_ && s.bounces[r] > 0)
+    grid_->intersect1(query_of(s), r);
+  else
+    scene_->intersect1(query_of(s), r);
   if (s.next_particle[r] == kNoParticle) s.t_next[r] = box_exit_distance(box_, s.origin[r], s.direction[r]);
 }
 
-// Primary rays not yet traced, in coherent packets of 16 consecutive (tiled) rays.
-void Tracer::trace_primaries(std::size_t begin, std::size_t end) {
+// Traces the listed rays in packets of 16 consecutive ones (coherent: a tile of the beam).
+void Tracer::trace_ids(const std::uint32_t* ids, std::size_t count, bool coherent) {
   RayState& s = state_;
-  std::uint32_t ids[kPacket];
-  int count = 0;
   const RayQuery q = query_of(s);
-  auto flush = [&] {
-    if (count == 0) return;
-    scene_->intersect16(q, ids, count);
-    for (int i = 0; i < count; ++i)
-      if (s.next_particle[ids[i]] == kNoParticle)
-        s.t_next[ids[i]] = box_exit_distance(box_, s.origin[ids[i]], s.direction[ids[i]]);
-    count = 0;
-  };
-  for (std::size_t r = begin; r < end; ++r) {
-    if (!s.live[r] || s.t_next[r] >= 0.0 || s.bounces[r] != 0) continue;
-    s.t_next[r] = std::numeric_limits<double>::infinity();
-    s.next_particle[r] = kNoParticle;
-    ids[count++] = static_cast<std::uint32_t>(r);
-    if (count == kPacket) flush();
+  for (std::size_t k = 0; k < count; ++k) {
+    s.t_next[ids[k]] = std::numeric_limits<double>::infinity();
+    s.next_particle[ids[k]] = kNoParticle;
   }
-  flush();
+  for (std::size_t k = 0; k < count; k += kPacket)
+    scene_->intersect16(q, ids + k, static_cast<int>(std::min<std::size_t>(kPacket, count - k)), coherent);
+  for (std::size_t k = 0; k < count; ++k)
+    if (s.next_particle[ids[k]] == kNoParticle)
+      s.t_next[ids[k]] = box_exit_distance(box_, s.origin[ids[k]], s.direction[ids[k]]);
 }
 
-// Advances rays [begin, end) by the budget each. A hit deposits (1 - R) E in the particle (3.3)
-// and reflects the ray specularly, d' = d - 2 (d.n) n, carrying R E on.
+// Primary rays not yet traced, in coherent packets.
+void Tracer::trace_packets(std::size_t begin, std::size_t end, bool coherent) {
+  const RayState& s = state_;
+  std::vector<std::uint32_t> ids;
+  ids.reserve(end - begin);
+  for (std::size_t r = begin; r < end; ++r)
+    if (s.live[r] && s.t_next[r] < 0.0 && s.bounces[r] == 0) ids.push_back(static_cast<std::uint32_t>(r));
+  trace_ids(ids.data(), ids.size(), coherent);
+}
+
+// One wave of bounced segments in incoherent packets.
+void Tracer::trace_wave(const std::vector<std::uint32_t>& rays) {
+  trace_ids(rays.data(), rays.size(), false);
+}
+
+// Moves ray r along its known next event, up to `left` of path. A hit deposits (1 - R) E in the
+// particle (3.3) and reflects the ray specularly, d' = d - 2 (d.n) n, carrying R E on. Returns
+// true when the ray needs its next segment traced, false when it is done for this call.
+bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
+  RayState& s = state_;
+  for (;;) {
+    if (s.t_next[r] < 0.0) return true;
+    const double to_event = s.t_next[r] - s.travelled[r];
+    if (to_event > left) {  // the budget ends in free flight; the ray resumes here next call
+      s.travelled[r] += left;
+      s.path[r] += left;
+      left = 0.0;
+      return false;
+    }
+    left -= to_event;
+    s.path[r] += to_event;
+    const std::uint32_t p = s.next_particle[r];
+    if (p == kNoParticle) {  // left the box: escaped (MODEL.md 3a)
+      c.events.push_back({r, kEscapedBin, s.energy[r]});
+      s.live[r] = 0;
+      ++c.ended;
+      return false;
+    }
+    const Vec3 point = s.origin[r] + s.t_next[r] * s.direction[r];
+    const Vec3 normal = s.normal[r].normalized();  // (point - centre) / R from the scene
+    const double cos_i = -s.direction[r].dot(normal);
+    const double R = particle_reflectance(spec_.materials[particles_.material[p]],
+                                          particles_.phase[p], cos_i);
+    const double carried = R * s.energy[r];
+    c.events.push_back({r, p, s.energy[r] - carried});  // absorbed + carried == E exactly
+    ++c.hits;
+    s.direction[r] = reflect(s.direction[r], normal).normalized();
+    s.origin[r] = point;
+    s.energy[r] = carried;
+    s.last_particle[r] = p;
+    s.travelled[r] = 0.0;
+    s.t_next[r] = -1.0;
+    s.bounces[r] += 1;
+    if (carried < spec_.cutoff * s.initial_energy[r] || s.bounces[r] >= spec_.max_bounces) {
+      c.events.push_back({r, kCutoffBin, carried});  // MODEL.md 3b, 3c
+      s.live[r] = 0;
+      ++c.ended;
+      return false;
+    }
+  }
+}
+
+void Tracer::count_segment(std::uint32_t r, Chunk& c) const {
+  (state_.bounces[r] == 0 ? c.primary : c.bounced) += 1;
+}
+
+// Advances rays [begin, end) by the budget each: primaries first in coherent packets, then
+// bounced segments one ray at a time, or in waves of incoherent packets (BounceSearch::packets).
 void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budget) {
   RayState& s = state_;
   if (spec_.packets) {
     for (std::size_t r = begin; r < end; ++r)
       c.primary += s.live[r] && s.t_next[r] < 0.0 && s.bounces[r] == 0;
-    trace_primaries(begin, end);
+    trace_packets(begin, end, true);
   }
-  for (std::size_t r = begin; r < end; ++r) {
-    if (!s.live[r]) continue;
-    double left = budget, used = 0.0;
-    for (;;) {
-      if (s.t_next[r] < 0.0) {
-        (s.bounces[r] == 0 ? c.primary : c.bounced) += 1;
-        trace_segment(static_cast<std::uint32_t>(r));
-      }
-      const double to_event = s.t_next[r] - s.travelled[r];
-      if (to_event > left) {  // the budget ends in free flight; the ray resumes here next call
-        s.travelled[r] += left;
-        used += left;
-        break;
-      }
-      left -= to_event;
-      used += to_event;
-      const std::uint32_t p = s.next_particle[r];
-      if (p == kNoParticle) {  // left the box: escaped (MODEL.md 3a)
-        c.escaped += s.energy[r];
-        s.live[r] = 0;
-        ++c.ended;
-        break;
-      }
-      const Vec3 point = s.origin[r] + s.t_next[r] * s.direction[r];
-      const Vec3 normal = s.normal[r].normalized();  // (point - centre) / R from the scene
-      const double cos_i = -s.direction[r].dot(normal);
-      const double R = particle_reflectance(spec_.materials[particles_.material[p]],
-                                            particles_.phase[p], cos_i);
-      const double carried = R * s.energy[r];
-      const double absorbed = s.energy[r] - carried;  // so absorbed + carried == E exactly
-      c.deposits.emplace_back(p, absorbed);
-      c.absorbed += absorbed;
-      ++c.hits;
-      s.direction[r] = reflect(s.direction[r], normal).normalized();
-      s.origin[r] = point;
-      s.energy[r] = carried;
-      s.last_particle[r] = p;
-      s.travelled[r] = 0.0;
-      s.t_next[r] = -1.0;
-      s.bounces[r] += 1;
-      if (carried < spec_.cutoff * s.initial_energy[r] || s.bounces[r] >= spec_.max_bounces) {
-        c.cutoff += carried;  // MODEL.md 3b, 3c
-        s.live[r] = 0;
-        ++c.ended;
-        break;
+  if (spec_.bounce_search != BounceSearch::packets) {
+    for (std::size_t r = begin; r < end; ++r) {
+      if (!s.live[r]) continue;
+      const auto ray = static_cast<std::uint32_t>(r);
+      double left = budget;
+      while (step_ray(ray, left, c)) {
+        count_segment(ray, c);
+        trace_segment(ray);
       }
     }
-    c.longest_path = std::max(c.longest_path, used);
+    return;
   }
+  std::vector<std::uint32_t> active, next;
+  std::vector<double> left(end - begin, budget);
+  for (std::size_t r = begin; r < end; ++r)
+    if (s.live[r]) active.push_back(static_cast<std::uint32_t>(r));
+  while (!active.empty()) {
+    next.clear();
+    for (std::uint32_t r : active)
+      if (step_ray(r, left[r - begin], c)) next.push_back(r), count_segment(r, c);
+    trace_wave(next);
+    active.swap(next);
+  }
+  std::stable_sort(c.events.begin(), c.events.end(),
+                   [](const Event& a, const Event& b) { return a.ray < b.ray; });
 }
 
 void RayState::write(StateWriter& out) const {
   out.vector(origin), out.vector(direction), out.vector(normal), out.vector(energy);
-  out.vector(initial_energy), out.vector(travelled), out.vector(t_next);
+  out.vector(initial_energy), out.vector(travelled), out.vector(t_next), out.vector(path);
   out.vector(last_particle), out.vector(next_particle), out.vector(bounces), out.vector(live);
   out.value(ledger), out.value(primary_segments), out.value(bounced_segments), out.value(hits);
   out.value(live_count);
@@ -253,14 +300,14 @@ void RayState::write(StateWriter& out) const {
 
 void RayState::read(StateReader& in) {
   in.vector(origin), in.vector(direction), in.vector(normal), in.vector(energy);
-  in.vector(initial_energy), in.vector(travelled), in.vector(t_next);
+  in.vector(initial_energy), in.vector(travelled), in.vector(t_next), in.vector(path);
   in.vector(last_particle), in.vector(next_particle), in.vector(bounces), in.vector(live);
   ledger = in.value<OpticsLedger>(), primary_segments = in.value<std::uint64_t>();
   bounced_segments = in.value<std::uint64_t>(), hits = in.value<std::uint64_t>();
   live_count = in.value<std::size_t>();
   const std::size_t n = origin.size();
   for (std::size_t size : {direction.size(), normal.size(), energy.size(), initial_energy.size(),
-                           travelled.size(), t_next.size(), last_particle.size(),
+                           travelled.size(), t_next.size(), path.size(), last_particle.size(),
                            next_particle.size(), bounces.size(), live.size()})
     if (size != n) throw InputError("checkpoint: ray arrays of unequal length");
 }
@@ -271,6 +318,7 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
   if (deposits.size() < particles_.size()) deposits.resize(particles_.size(), 0.0);
   RayState& s = state_;
   const std::size_t n = s.live.size();
+  const std::vector<double> path_before = s.path;
   std::vector<Chunk> chunks((n + kChunkRays - 1) / kChunkRays);
   tbb::parallel_for(
       tbb::blocked_range<std::size_t>(0, chunks.size(), 1),
@@ -279,24 +327,32 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
           run_chunk(chunks[k], k * kChunkRays, std::min(n, (k + 1) * kChunkRays), path_budget);
       },
       tbb::simple_partitioner());
-  // Deterministic reduction: chunk order, and ray order inside each chunk.
-  last_advance_path_ = 0.0;
+  // Deterministic reduction: chunk order, ray order inside each chunk, each ray's event order.
   for (const Chunk& c : chunks) {
-    last_advance_path_ = std::max(last_advance_path_, c.longest_path);
-    for (const auto& [p, e] : c.deposits) deposits[p] += e;
-    s.ledger.absorbed += c.absorbed;
-    s.ledger.escaped += c.escaped;
-    s.ledger.cutoff += c.cutoff;
+    for (const Event& e : c.events) {
+      if (e.bin == kEscapedBin) {
+        s.ledger.escaped += e.energy;
+      } else if (e.bin == kCutoffBin) {
+        s.ledger.cutoff += e.energy;
+      } else {
+        deposits[e.bin] += e.energy;
+        s.ledger.absorbed += e.energy;
+      }
+    }
     s.primary_segments += c.primary;
     s.bounced_segments += c.bounced;
     s.hits += c.hits;
     s.live_count -= c.ended;
   }
+  last_advance_path_ = 0.0;
+  for (std::size_t r = 0; r < n; ++r)
+    last_advance_path_ = std::max(last_advance_path_, s.path[r] - path_before[r]);
   return s.live_count;
 }
 
 void Tracer::remove_particles(std::span<const std::uint32_t> ids) {
   scene_->remove(ids);
+  if (grid_) grid_->remove(ids);
   RayState& s = state_;
   // A ray heading for a removed particle is retraced from its segment origin: particles only
   // disappear, so its new next event lies beyond the old one and beyond what it has travelled.

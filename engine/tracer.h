@@ -14,6 +14,7 @@
 #include "engine/beam.h"
 #include "engine/embree_scene.h"
 #include "engine/state_io.h"
+#include "engine/sphere_grid.h"
 #include "geometry/particles.h"
 
 namespace beampack {
@@ -24,11 +25,17 @@ struct MaterialOptics {
   double mu_hat = 1.0;
 };
 
+// How bounced rays find their next sphere (same answer bit for bit; docs/bench/optics.md):
+// Embree single rays, waves of incoherent Embree packets, or a uniform-grid walk.
+enum class BounceSearch { embree, packets, grid };
+
 struct OpticsSpec {
   std::vector<MaterialOptics> materials = std::vector<MaterialOptics>(1);  // by Particles::material
   double cutoff = 1e-10;    // optics.cutoff: epsilon, relative to the ray's initial energy
   int max_bounces = 1000;   // optics.max_bounces
   bool packets = true;      // primary rays in coherent 16-ray packets (false: single rays)
+  BounceSearch bounce_search = BounceSearch::grid;
+  double grid_cell_factor = 3.0;  // grid cell edge / largest radius (measured best of 1.5-4)
   SceneUpdate scene_update = SceneUpdate::deferred;  // docs/bench/optics.md: fastest measured
   unsigned spheres_per_primitive = 1;  // Embree primitive = cluster of this many spheres
 };
@@ -49,6 +56,7 @@ struct RayState {
   // (kNoParticle). t_next < 0: not yet traced.
   std::vector<Vec3> origin, direction, normal;  // normal: at the next hit
   std::vector<double> energy, initial_energy, travelled, t_next;
+  std::vector<double> path;  // path travelled since launch: the ray's time of flight times c
   std::vector<std::uint32_t> last_particle, next_particle;
   std::vector<std::int32_t> bounces;
   std::vector<std::uint8_t> live;
@@ -78,10 +86,10 @@ class Tracer {
   // Returns the number of rays still live.
   std::size_t advance(double path_budget, std::vector<double>& deposits);
 
-  bool has_live_rays() const { return state_.live_count > 0; }
   // The most path any ray travelled in the last advance(): with an infinite budget, the flight
   // of the pulse (the step length of thermal.dt = "pulse" is this over c).
   double last_advance_path() const { return last_advance_path_; }
+  bool has_live_rays() const { return state_.live_count > 0; }
   const OpticsLedger& ledger() const { return state_.ledger; }
   std::uint64_t primary_segments() const { return state_.primary_segments; }
   std::uint64_t bounced_segments() const { return state_.bounced_segments; }
@@ -100,13 +108,18 @@ class Tracer {
 
  private:
   struct Chunk;
-  void trace_primaries(std::size_t begin, std::size_t end);
+  void trace_ids(const std::uint32_t* ids, std::size_t count, bool coherent);
+  void trace_packets(std::size_t begin, std::size_t end, bool coherent);
+  void trace_wave(const std::vector<std::uint32_t>& rays);
   void trace_segment(std::uint32_t ray);
+  bool step_ray(std::uint32_t ray, double& left, Chunk& chunk);
+  void count_segment(std::uint32_t ray, Chunk& chunk) const;
   void run_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
 
   const Particles& particles_;
   OpticsSpec spec_;
   std::unique_ptr<EmbreeScene> scene_;
+  std::unique_ptr<SphereGrid> grid_;  // bounced rays (BounceSearch::grid)
   Box box_;  // all particles grown by their radii: leaving it means escaped
   RayState state_;
   double last_advance_path_ = 0.0;

@@ -8,6 +8,7 @@
 #include "engine/beam.h"
 #include "engine/embree_scene.h"
 #include "engine/fresnel.h"
+#include "engine/sphere_grid.h"
 #include "engine/tracer.h"
 #include "geometry/packing.h"
 #include "geometry/random.h"
@@ -189,6 +190,39 @@ TEST(OpticsSphere, SceneHitsEqualBruteForceBeforeAndAfterRemoval) {
     scene.remove(victims);
     EXPECT_EQ(scene.rebuilds(), mode == SceneUpdate::mask_only ? 0u : 1u);
     expect_brute_force_hits(scene, p, gone, rays);
+  }
+}
+
+// The grid walk for bounced rays gives the brute-force answer too, before and after removal.
+TEST(OpticsSphere, GridHitsEqualBruteForceBeforeAndAfterRemoval) {
+  const Particles p = random_overlap_packing(3000, 1e-3, 0.325, 12);
+  const RandomRays rays(p, 6000, 6);
+  for (double factor : {0.7, 2.0, 5.0}) {
+    SphereGrid grid(p, factor);
+    std::vector<std::uint8_t> gone(p.size(), 0);
+    for (int pass = 0; pass < 2; ++pass) {
+      const std::size_t n = rays.org.size();
+      std::vector<std::uint32_t> hit(n, kNoParticle);
+      std::vector<double> t(n, kNoHit);
+      std::vector<Vec3> normal(n);
+      const RayQuery q{rays.org.data(), rays.dir.data(), rays.skip.data(), t.data(), hit.data(),
+                       normal.data()};
+      for (std::uint32_t r = 0; r < n; ++r) grid.intersect1(q, r);
+      for (std::size_t r = 0; r < n; ++r) {
+        double best = kNoHit;
+        std::uint32_t who = kNoParticle;
+        for (std::uint32_t i = 0; i < p.size(); ++i) {
+          if (i == rays.skip[r] || gone[i]) continue;
+          const double ti = ray_sphere_entry(rays.org[r], rays.dir[r], p.centre[i], p.radius[i]);
+          if (ti < best) best = ti, who = i;
+        }
+        ASSERT_EQ(hit[r], who) << "factor " << factor << " pass " << pass << " ray " << r;
+        ASSERT_EQ(t[r], best) << "factor " << factor << " pass " << pass << " ray " << r;
+      }
+      std::vector<std::uint32_t> victims;
+      for (std::uint32_t i = 1; i < p.size(); i += 7) victims.push_back(i), gone[i] = 1;
+      grid.remove(victims);
+    }
   }
 }
 

@@ -27,10 +27,12 @@ struct Traced {
 };
 
 OpticsSpec optics_for(double n_hat, bool packets = true,
-                      SceneUpdate update = OpticsSpec{}.scene_update) {
+                      SceneUpdate update = OpticsSpec{}.scene_update,
+                      BounceSearch bounce = OpticsSpec{}.bounce_search) {
   OpticsSpec spec;
   spec.materials[0].n_solid = n_hat;
   spec.packets = packets;
+  spec.bounce_search = bounce;
   spec.scene_update = update;
   return spec;
 }
@@ -86,10 +88,21 @@ TEST(OpticsTracer, CutoffAndBounceLimitEndRaysIntoTheCutoffBin) {
   EXPECT_GT(cut.ledger.cutoff, 0.0);
 }
 
+// Packets or single rays for primaries, Embree or the grid for bounces: the same hits in double,
+// hence bit-identical deposits.
 TEST(OpticsTracer, PacketsAndSingleRaysGiveIdenticalDeposits) {
+  const SceneUpdate update = OpticsSpec{}.scene_update;
   for (double n_hat : {1.4, 20.0}) {
-    const Traced a = trace(packing_1e4(), optics_for(n_hat, true), BeamSpec{});
-    const Traced b = trace(packing_1e4(), optics_for(n_hat, false), BeamSpec{});
+    const Traced a = trace(packing_1e4(), optics_for(n_hat, true, update, BounceSearch::embree), BeamSpec{});
+    const Traced b = trace(packing_1e4(), optics_for(n_hat, false, update, BounceSearch::embree), BeamSpec{});
+    for (BounceSearch bounce : {BounceSearch::grid, BounceSearch::packets}) {
+      const Traced c = trace(packing_1e4(), optics_for(n_hat, true, update, bounce), BeamSpec{});
+      EXPECT_EQ(a.deposits, c.deposits);
+      EXPECT_EQ(a.ledger.absorbed, c.ledger.absorbed);
+      EXPECT_EQ(a.ledger.escaped, c.ledger.escaped);
+      EXPECT_EQ(a.ledger.cutoff, c.ledger.cutoff);
+      EXPECT_EQ(a.hits, c.hits);
+    }
     EXPECT_EQ(a.deposits, b.deposits);
     EXPECT_EQ(a.ledger.absorbed, b.ledger.absorbed);
     EXPECT_EQ(a.hits, b.hits);
