@@ -57,6 +57,7 @@ double max_error(const std::vector<double>& a, const std::vector<double>& b) {
 
 int converge_command(const RunOptions& options) {
   const RunConfig base = load_run_config(options.sources);
+  const auto threads = limit_threads(options.threads);
   std::vector<Ladder> all = ladders(base);
   std::string csv = "ladder,key,value,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
                     "temperature_l2_error_K,temperature_max_error_K\n";

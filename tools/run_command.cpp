@@ -165,6 +165,12 @@ void prepare_out_dir(const std::string& dir) {
   fs::remove(probe);
 }
 
+std::unique_ptr<tbb::global_control> limit_threads(int threads) {
+  if (threads <= 0) return nullptr;
+  return std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
+                                               std::size_t(threads));
+}
+
 RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label) {
   const auto start = Clock::now();
   Simulation sim(config.sim);
@@ -245,10 +251,7 @@ int run_command(const RunOptions& options) {
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
   const std::string out_dir = options.resume.empty() || options.out_set ? options.out_dir : options.resume;
   prepare_out_dir(out_dir);
-  std::unique_ptr<tbb::global_control> threads;
-  if (options.threads > 0)
-    threads = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
-                                                    std::size_t(options.threads));
+  const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
   Simulation sim(config.sim);
   if (saved) sim.read_state(*saved);
@@ -303,10 +306,7 @@ namespace beampack::tools {
 int sweep_command(const SweepOptions& options) {
   if (options.values.empty()) throw InputError("--values: give at least one value");
   prepare_out_dir(options.run.out_dir);
-  std::unique_ptr<tbb::global_control> threads;
-  if (options.run.threads > 0)
-    threads = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
-                                                    std::size_t(options.run.threads));
+  const auto threads = limit_threads(options.run.threads);
   // Resolve every configuration first: a bad value fails before any run starts.
   std::vector<RunConfig> configs;
   for (const std::string& value : options.values) {

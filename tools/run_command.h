@@ -1,6 +1,9 @@
 #pragma once
 // `beampack run` and `beampack sweep`: a scene from a run file, its outputs in a directory.
+#include <tbb/global_control.h>
+
 #include <atomic>
+#include <memory>
 #include <string>
 
 #include "tools/run_config.h"
@@ -42,6 +45,10 @@ struct RunResult {
 };
 // InputError naming --out when the directory cannot be created or written.
 void prepare_out_dir(const std::string& dir);
+
+// Caps TBB's worker threads while the returned object lives (threads <= 0: no cap). Results do
+// not depend on it; only the wall time does.
+std::unique_ptr<tbb::global_control> limit_threads(int threads);
 
 RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label = "");
 
