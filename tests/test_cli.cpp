@@ -328,3 +328,18 @@ TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
   EXPECT_EQ(r.code, 2) << r.output;
   EXPECT_NE(r.output.find("damaged or truncated"), std::string::npos) << r.output;
 }
+
+TEST(Cli, WallsTakeHeatAndTheLedgerStillCloses) {
+  // A hot sample against a cold wall: with walls on all six faces at 200 K below the 300 K start,
+  // every particle near a face loses heat to it, so `walls` is positive and large.
+  const fs::path out = fresh_dir("walls");
+  const Result r = run("run --preset quick --quiet --set material.conductivity=100 "
+                       "--set thermal.walls='\"x-,x+,y-,y+,z-,z+\"' --set thermal.wall_temperature=200 "
+                       "--set pulses.period=1e-9 --out " + out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  const auto e = read_json(out / "summary.json")["energy_J"];
+  const double absorbed = e["absorbed"], walls = e["walls"], stored = e["stored"];
+  EXPECT_GT(walls, absorbed);  // more heat leaves through the walls than the beam brought
+  EXPECT_LT(stored, 0.0);      // the sample ends colder than it started
+  EXPECT_NEAR(absorbed, stored + double(e["vaporized"]) + walls, 1e-8 * std::abs(walls));
+}

@@ -1,6 +1,8 @@
 #include "tools/run_config.h"
 
+#include <algorithm>
 #include <cmath>
+#include <sstream>
 #include <limits>
 
 #include "geometry/error.h"
@@ -64,6 +66,26 @@ void read_material(Params& p, Material& m) {
   m.latent_solidify = p.number("material.latent_solidify", 1000, 0, kBig);
   m.latent_vapor = p.number("material.latent_vapor", 1000, 0, kBig);
   m.validate("material");
+}
+
+// thermal.walls: isothermal walls on faces of the sample cube [0, D]^3, e.g. "z-" or "x-,x+";
+// a particle within thermal.wall_reach of a face (surface to face) exchanges heat with it.
+std::vector<Wall> read_walls(Params& p, double size) {
+  const std::string faces = p.text("thermal.walls", "");
+  const double temperature = p.number("thermal.wall_temperature", 300, 0, kBig, true);
+  const double reach = p.number("thermal.wall_reach", 0, 0, kBig);
+  const double conductance = p.number("thermal.wall_conductance", -1, -1, kBig);
+  std::vector<Wall> walls;
+  std::stringstream list(faces);
+  for (std::string face; std::getline(list, face, ',');) {
+    face.erase(std::remove(face.begin(), face.end(), ' '), face.end());
+    const std::string axes = "xyz";
+    if (face.size() != 2 || axes.find(face[0]) == std::string::npos || (face[1] != '-' && face[1] != '+'))
+      throw InputError("`thermal.walls` = \"" + faces + "\": faces are x-, x+, y-, y+, z-, z+ separated by commas");
+    walls.push_back({int(axes.find(face[0])), face[1] == '-' ? 0.0 : size, reach, temperature,
+                     conductance < 0 ? -1.0 : conductance});
+  }
+  return walls;
 }
 
 // thermal.dt: seconds, "pulse" (one step per pulse flight: the event-driven limit) or "paper"
@@ -136,6 +158,8 @@ RunConfig load_run_config(const RunSources& sources) {
   c.sim.materials = {m};
   const double paper_dt = read_pulses(p, c.sim, typical_radius(c.sim.packing));
   read_thermal(p, c.sim, paper_dt);
+  c.sim.thermal.walls = read_walls(p, c.sim.packing.sample_size);
+  c.sim.thermal.validate();
   c.paper_dt = paper_dt;
   c.output.frames = p.flag("output.frames", false);
   p.check_all_used();
