@@ -1,5 +1,6 @@
 #include "geometry/packing.h"
 
+#include <algorithm>
 #include <charconv>
 #include <cmath>
 #include <cstdio>
@@ -30,6 +31,39 @@ void check_common(std::size_t count, double size) {
   require(std::isfinite(size) && size > 0, "sample.size = " + str(size) + ": must be > 0");
 }
 
+// Interleaves the low 21 bits of x, y, z (a Morton code).
+std::uint64_t morton(std::uint64_t x, std::uint64_t y, std::uint64_t z) {
+  auto spread = [](std::uint64_t v) {
+    v &= 0x1fffff;
+    v = (v | v << 32) & 0x1f00000000ffffull;
+    v = (v | v << 16) & 0x1f0000ff0000ffull;
+    v = (v | v << 8) & 0x100f00f00f00f00full;
+    v = (v | v << 4) & 0x10c30c30c30c30c3ull;
+    v = (v | v << 2) & 0x1249249249249249ull;
+    return v;
+  };
+  return spread(x) | spread(y) << 1 | spread(z) << 2;
+}
+
+// Numbers generated particles along a Morton curve: neighbours in space become neighbours in
+// memory, which is what the contact search, the conduction matrix and the scene read together.
+// A deterministic function of the centres, so a seed still gives one packing everywhere.
+void sort_spatially(Particles& p, double size) {
+  const std::size_t n = p.size();
+  std::vector<std::pair<std::uint64_t, std::uint32_t>> keys(n);
+  const double scale = double((1u << 21) - 1) / size;
+  for (std::size_t i = 0; i < n; ++i) {
+    const Vec3 q = (p.centre[i] * scale).cwiseMax(0.0).cwiseMin(double((1u << 21) - 1));
+    keys[i] = {morton(std::uint64_t(q.x()), std::uint64_t(q.y()), std::uint64_t(q.z())),
+               static_cast<std::uint32_t>(i)};
+  }
+  std::sort(keys.begin(), keys.end());
+  Particles sorted;
+  sorted.reserve(n);
+  for (const auto& [key, i] : keys) sorted.add(p.centre[i], p.radius[i], p.material[i], p.temperature[i]);
+  p = std::move(sorted);
+}
+
 }  // namespace
 
 Particles random_overlap_packing(std::size_t count, double size, double radius_ratio,
@@ -46,6 +80,7 @@ Particles random_overlap_packing(std::size_t count, double size, double radius_r
     const double x = rng.uniform(0, size), y = rng.uniform(0, size), z = rng.uniform(0, size);
     p.add({x, y, z}, r);
   }
+  sort_spatially(p, size);
   return p;
 }
 
@@ -88,6 +123,7 @@ Particles rsa_packing(std::size_t count, double size, double solid_fraction, std
     failures = 0;
     grid.insert(c, static_cast<std::uint32_t>(p.add(c, r)));
   }
+  sort_spatially(p, size);
   return p;
 }
 

@@ -22,6 +22,8 @@ struct PackingSpec {
 
 Particles make_packing(const PackingSpec& spec);
 
+// Generated packings are numbered along a Morton curve (neighbours in space are neighbours in
+// memory); files keep their order.
 // Paper, section 5: centres uniform in [0, D]^3, equal radii R = L (D^3 / N)^(1/3), overlaps allowed.
 Particles random_overlap_packing(std::size_t count, double size, double radius_ratio,
                                  std::uint64_t seed);

@@ -31,15 +31,18 @@ SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
   // shrank so little that the cap would be reached long before the tolerance.
   constexpr int kGrowthLimit = 3;
   constexpr int kWindow = 20;
-  double previous = 0;
+  double previous = 0, previous_abs = 0;
   int growing = 0;
   std::vector<double> history;
   for (int k = 1; k <= max_iterations; ++k) {
     const Eigen::VectorXd update = (rhs - a * theta).cwiseQuotient(c);
     theta += update;
     const double scale = std::max(1.0, theta.cwiseAbs().maxCoeff());
-    const double u = update.cwiseAbs().maxCoeff() / scale;
-    const double ratio = k > 1 && previous > 0 ? u / previous : 0.0;
+    const double abs_u = update.cwiseAbs().maxCoeff();
+    const double u = abs_u / scale;
+    // Growth is judged on the absolute update: when theta itself grows geometrically the update
+    // relative to it stays near 1 and would look like stagnation.
+    const double ratio = k > 1 && previous_abs > 0 ? abs_u / previous_abs : 0.0;
     if (!std::isfinite(u)) fixed_point_failure("diverged to a non-finite field", k, u, ratio, contraction_estimate);
     if (u <= tolerance) return {k, u};
     growing = ratio > 1.0 ? growing + 1 : 0;
@@ -52,6 +55,7 @@ SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
         fixed_point_failure("stagnates", k, u, rate, contraction_estimate);
     }
     previous = u;
+    previous_abs = abs_u;
   }
   fixed_point_failure("did not converge within thermal.max_iterations", max_iterations, previous,
                       0.0, contraction_estimate);
