@@ -343,3 +343,21 @@ TEST(Cli, WallsTakeHeatAndTheLedgerStillCloses) {
   EXPECT_LT(stored, 0.0);      // the sample ends colder than it started
   EXPECT_NEAR(absorbed, stored + double(e["vaporized"]) + walls, 1e-8 * std::abs(walls));
 }
+
+TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
+  const fs::path whole = fresh_dir("int_whole"), dir = fresh_dir("int_part");
+  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --out " + whole.string()).code, 0);
+  const std::string cmd = "timeout --preserve-status -s INT 0.8 " + std::string(BEAMPACK_CLI) + " run " +
+                          kCheckpointScene + " --quiet --out " + dir.string() + " >/dev/null 2>&1";
+  const int status = std::system(cmd.c_str());
+  ASSERT_TRUE(WIFEXITED(status));
+  if (WEXITSTATUS(status) == 0) GTEST_SKIP() << "the run finished before the interrupt";
+  EXPECT_EQ(WEXITSTATUS(status), 1);
+  // What the run had: complete, parseable files, and a checkpoint that continues it.
+  const auto summary = read_json(dir / "summary.json");
+  EXPECT_TRUE(bool(summary["interrupted"]));
+  EXPECT_EQ(read_csv(dir / "particles.csv").size(), std::size_t(summary["counts"]["particles"]));
+  const Result r = run("run --resume " + dir.string() + " --quiet");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_EQ(file_text(dir / "particles.csv"), file_text(whole / "particles.csv"));
+}
