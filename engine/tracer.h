@@ -2,9 +2,12 @@
 // Rays through the packing: Fresnel bounces, absorbed energy per particle, an energy ledger
 // (MODEL.md sections 3 and 5, paper (3.3)).
 //
-// Determinism: rays are processed in fixed-size chunks; each chunk records its (particle, energy)
-// deposits in ray order, and the chunks are summed in chunk order on one thread. Deposits are
-// therefore bit-identical for any thread count and for packet or single-ray primary queries.
+// Determinism: rays are processed in fixed-size chunks; each chunk records its events (energy into
+// a particle, escaped, cut off) per ray in the ray's order, and the chunks are summed in chunk
+// order on one thread. Every search finds the same nearest hit in double. Deposits and ledger are
+// therefore bit-identical for any thread count, packets or single rays, Embree or grid.
+//
+// Particles in phase vapor must be removed (remove_particles); liquid ones use n_liquid.
 #include <complex>
 #include <cstdint>
 #include <memory>
