@@ -28,11 +28,11 @@ struct alignas(32) SphereRecord {
   Vec3 centre;
   double radius;  // negated once the particle is removed: the callback needs no other load
 };
-bool is_removed(const SphereRecord& s) { return !(s.radius > 0.0); }
+bool is_removed(const SphereRecord& s) { return !(s.radius > 0.0); }  // also r = 0 or NaN
 
-// One user geometry: a run of spheres in Morton order. primID indexes spheres/particle/removed,
-// which point at the geometry's first sphere.
-// A primitive is a cluster of `per_prim` consecutive spheres (the last one may be shorter).
+// One user geometry: a run of spheres in Morton order (the whole packing, or one brick). Its
+// pointers start at the geometry's first sphere; a primitive is a cluster of `per_prim`
+// consecutive spheres (1 by default; the last cluster may be shorter).
 struct SphereSet {
   const SphereRecord* spheres;
   const std::uint32_t* particle;  // particle id of each sphere

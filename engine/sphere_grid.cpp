@@ -96,7 +96,7 @@ void SphereGrid::remove(std::span<const std::uint32_t> ids) {
   }
 }
 
-void SphereGrid::intersect1(const RayQuery& q, std::uint32_t id) const {
+bool SphereGrid::intersect1(const RayQuery& q, std::uint32_t id, long max_cells) const {
   const Vec3& o = q.origin[id];
   const Vec3& d = q.direction[id];
   // Clip the ray to the grid's box.
@@ -107,10 +107,10 @@ void SphereGrid::intersect1(const RayQuery& q, std::uint32_t id) const {
       t0 = std::max(t0, std::min(ta, tb));
       t1 = std::min(t1, std::max(ta, tb));
     } else if (o[a] < box_.lower[a] || o[a] > box_.upper[a]) {
-      return;
+      return true;
     }
   }
-  if (!(t0 <= t1)) return;
+  if (!(t0 <= t1)) return true;
   long cell[3], step[3];
   double t_max[3], t_delta[3];
   for (int a = 0; a < 3; ++a) {
@@ -146,7 +146,8 @@ void SphereGrid::intersect1(const RayQuery& q, std::uint32_t id) const {
     return c;
   };
   long next1 = step_ahead(), next2 = step_ahead();
-  for (;;) {
+  for (long walked = 0;; ++walked) {
+    if (walked == max_cells) return false;
     const auto c = static_cast<std::size_t>(cell_index(cell[0], cell[1], cell[2]));
     if (next1 >= 0) {
       const std::uint32_t first = start_[static_cast<std::size_t>(next1)];
@@ -178,10 +179,11 @@ void SphereGrid::intersect1(const RayQuery& q, std::uint32_t id) const {
     next1 = next2;
     next2 = step_ahead();
   }
-  if (best_slot == kNone) return;
+  if (best_slot == kNone) return true;
   q.t_hit[id] = best;
   q.particle[id] = who;
   if (q.normal) q.normal[id] = (o + best * d - spheres_[best_slot].centre) / spheres_[best_slot].radius;
+  return true;
 }
 
 }  // namespace beampack

@@ -5,6 +5,7 @@
 // descent from the root (docs/bench/optics.md). Same answer as EmbreeScene, bit for bit: the
 // nearest outside hit in double, the sphere just left skipped, ties to the lower particle id.
 #include <cstdint>
+#include <limits>
 #include <span>
 #include <vector>
 
@@ -20,7 +21,10 @@ class SphereGrid {
 
   void remove(std::span<const std::uint32_t> ids);
   // Nearest outside hit of ray ray_id before query.t_hit[ray_id] (same contract as EmbreeScene).
-  void intersect1(const RayQuery& query, std::uint32_t ray_id) const;
+  // Gives up after max_cells cells (returns false, query untouched): long flights, such as rays
+  // on their way out, are cheaper in a BVH than cell by cell.
+  bool intersect1(const RayQuery& query, std::uint32_t ray_id,
+                  long max_cells = std::numeric_limits<long>::max()) const;
 
   std::size_t cells() const { return start_.empty() ? 0 : start_.size() - 1; }
 

@@ -2,11 +2,15 @@
 // Rays through the packing: Fresnel bounces, absorbed energy per particle, an energy ledger
 // (MODEL.md sections 3 and 5, paper (3.3)).
 //
-// Determinism: rays are processed in fixed-size chunks; each chunk records its (particle, energy)
-// deposits in ray order, and the chunks are summed in chunk order on one thread. Deposits are
-// therefore bit-identical for any thread count and for packet or single-ray primary queries.
+// Determinism: rays are processed in fixed-size chunks; each chunk records its events (energy into
+// a particle, escaped, cut off) per ray in the ray's order, and the chunks are summed in chunk
+// order on one thread. Every search finds the same nearest hit in double. Deposits and ledger are
+// therefore bit-identical for any thread count, packets or single rays, Embree or grid.
+//
+// Particles in phase vapor must be removed (remove_particles); liquid ones use n_liquid.
 #include <complex>
 #include <cstdint>
+#include <limits>
 #include <memory>
 #include <span>
 #include <vector>
@@ -36,6 +40,8 @@ struct OpticsSpec {
   bool packets = true;      // primary rays in coherent 16-ray packets (false: single rays)
   BounceSearch bounce_search = BounceSearch::grid;
   double grid_cell_factor = 3.0;  // grid cell edge / largest radius (measured best of 1.5-4)
+  // Cells walked before handing a bounced ray to Embree; measured fastest: never hand over.
+  long grid_max_cells = std::numeric_limits<long>::max();
   SceneUpdate scene_update = SceneUpdate::deferred;  // docs/bench/optics.md: fastest measured
   unsigned spheres_per_primitive = 1;  // Embree primitive = cluster of this many spheres
 };
