@@ -300,7 +300,12 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
                       ? per_prim * std::max<std::size_t>(1, particles_per_brick / per_prim)
                       : std::max<std::size_t>(1, n);
   const Box box = particles.bounds();
-  im.slack = box.empty() ? 0.0 : kFloatPad * (box.upper - box.lower).norm();
+  // Float error of a ray or a centre scales with the size of its coordinates, not of the box:
+  // a sample far from the origin (a DEM frame at metres, spheres of microns) has float spacing
+  // of many radii, and a pad sized to the box alone let the packet prefilter drop real hits.
+  im.slack = box.empty() ? 0.0
+                         : kFloatPad * ((box.upper - box.lower).norm() +
+                                        box.lower.cwiseAbs().cwiseMax(box.upper.cwiseAbs()).maxCoeff());
   const std::size_t geometries = std::max<std::size_t>(1, (n + im.brick_size - 1) / im.brick_size);
   im.sets.reserve(geometries);
   for (std::size_t b = 0; b < geometries; ++b) {

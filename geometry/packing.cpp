@@ -198,6 +198,15 @@ Particles read_packing_file(const std::string& path, double default_radius) {
                                        std::string(cols[k]) + "' is not finite");
     }
     require(v[3] > 0, where + "radius r = " + str(v[3]) + ": must be > 0");
+    // Finite numbers can still make a sphere the physics cannot hold (found by fuzz/): a radius
+    // whose volume, hence mass, rounds to 0 or overflows, or a centre +- r beyond the doubles.
+    const double volume = 4.0 / 3.0 * std::numbers::pi * v[3] * v[3] * v[3];
+    require(volume > 0 && std::isfinite(volume),
+            where + "radius r = " + str(v[3]) + ": its volume " + str(volume) +
+                " is not a positive finite double (|r| must be within ~1e-100 .. 1e100)");
+    for (int k = 0; k < 3; ++k)
+      require(std::isfinite(std::abs(v[k]) + v[3]),
+              where + "centre +- radius overflows in column " + std::to_string(k + 1));
     p.add({v[0], v[1], v[2]}, v[3]);
   }
   require(!in.bad(), "packing.file = \"" + path + "\": read error");

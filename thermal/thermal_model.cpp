@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <numeric>
 #include <sstream>
 
 #include "geometry/error.h"
@@ -98,10 +99,47 @@ void ThermalModel::assemble_if_needed() {
       diag_pos_[j] = std::lower_bound(begin, end, static_cast<int>(j)) - laplacian_.innerIndexPtr();
       diagonal_[j] = laplacian_.valuePtr()[diag_pos_[j]];
     }
+    find_insulated_clusters();
   } else {
     laplacian_ = SparseMatrix();
   }
   dirty_ = false;
+}
+
+// Connected components of the live conducting contacts (union-find); a component with a wall
+// contact is left out: the wall anchors its temperature level, there is no null space.
+void ThermalModel::find_insulated_clusters() {
+  const std::size_t n = p_.size();
+  std::vector<std::size_t> root(n);
+  std::iota(root.begin(), root.end(), std::size_t{0});
+  auto find = [&](std::size_t i) {
+    while (root[i] != i) i = root[i] = root[root[i]];
+    return i;
+  };
+  std::vector<std::uint8_t> joined(n, 0);
+  for (std::size_t e = 0; e < contacts_.size(); ++e) {
+    const Contact& k = contacts_[e];
+    if (!(g_[e] > 0) || !p_.alive[k.i] || !p_.alive[k.j]) continue;
+    joined[k.i] = joined[k.j] = 1;
+    const std::size_t a = find(k.i), b = find(k.j);
+    if (a != b) root[std::max(a, b)] = std::min(a, b);
+  }
+  std::vector<std::uint8_t> walled(n, 0);
+  for (std::size_t i = 0; i < n; ++i)
+    if (joined[i] && walls_.conductance[i] > 0) walled[find(i)] = 1;
+  cluster_.assign(n, -1);
+  ground_.clear();
+  std::vector<int> id_of_root(n, -1);
+  for (std::size_t i = 0; i < n; ++i) {  // i ascending: a cluster's ground is its lowest id
+    if (!joined[i]) continue;
+    const std::size_t r = find(i);
+    if (walled[r]) continue;
+    if (id_of_root[r] < 0) {
+      id_of_root[r] = static_cast<int>(ground_.size());
+      ground_.push_back(static_cast<Eigen::Index>(i));
+    }
+    cluster_[i] = id_of_root[r];
+  }
 }
 
 double ThermalModel::thermal_mass(std::size_t i) const {
@@ -203,11 +241,53 @@ void ThermalModel::solve(double dt, const Eigen::VectorXd& c, const Eigen::Vecto
     }
   }
   if (report.solver == "direct") {
-    direct_.solve(a, pattern_version_, rhs, theta1);
-    report.symbolic_reused = direct_.symbolic_reused();
-    report.factors_reused = direct_.factors_reused();
+    solve_direct_grounded(a, c, rhs, theta1, report);
   }
   report.iterations += stats.iterations;
+}
+
+// Stiff steps (dt phi G >> c, e.g. K = 1e9 or a long cooling step): on an insulated cluster
+// A = C + dt phi L is nearly singular: its constant vector has eigenvalue ~ c, next to others
+// ~ dt phi G up to 1e18 times larger. A factorisation of A then loses the cluster's mean
+// temperature, i.e. its energy (heat appeared, the maximum principle broke by kelvins), and
+// meets zero pivots. Grounding one particle r per cluster, A' = A + a_rr e_r e_r^T, makes the
+// matrix as well conditioned as the contact graph. The exact solution is theta = y + alpha u with
+// A' y = rhs and A' u = e_r: every row but r holds for any alpha, and row r holds exactly when
+// the cluster's energy balance does, 1^T A theta = c^T theta = 1^T rhs (L 1 = 0 without walls).
+// That fixes alpha = (1^T rhs - c^T y) / c^T u: Sherman-Morrison with its ill-conditioned scalar
+// replaced by the conservation law. One factorisation, two solves (all clusters at once).
+void ThermalModel::solve_direct_grounded(SparseMatrix& a, const Eigen::VectorXd& c,
+                                         const Eigen::VectorXd& rhs, Eigen::VectorXd& theta1,
+                                         StepReport& report) {
+  auto first_solve = [&](Eigen::VectorXd& x) {
+    direct_.solve(a, pattern_version_, rhs, x);
+    report.symbolic_reused = direct_.symbolic_reused();
+    report.factors_reused = direct_.factors_reused();
+  };
+  if (ground_.empty()) return first_solve(theta1);
+  Eigen::VectorXd e_r = Eigen::VectorXd::Zero(rhs.size());
+  for (Eigen::Index r : ground_) {
+    a.valuePtr()[diag_pos_[r]] *= 2.0;
+    e_r[r] = 1.0;
+  }
+  Eigen::VectorXd y, u;
+  first_solve(y);
+  direct_.solve(a, pattern_version_, e_r, u);  // same values: the factors are reused
+  const std::size_t clusters = ground_.size();
+  std::vector<double> energy(clusters, 0.0), cy(clusters, 0.0), cu(clusters, 0.0);
+  for (Eigen::Index i = 0; i < rhs.size(); ++i) {
+    const int k = cluster_[i];
+    if (k < 0) continue;
+    energy[k] += rhs[i];
+    cy[k] += c[i] * y[i];
+    cu[k] += c[i] * u[i];
+  }
+  theta1 = y;
+  for (Eigen::Index i = 0; i < rhs.size(); ++i) {
+    const int k = cluster_[i];
+    if (k >= 0) theta1[i] += (energy[k] - cy[k]) / cu[k] * u[i];
+  }
+  if (!theta1.allFinite()) throw RunError("thermal direct solver: non-finite temperature");
 }
 
 // Phase work is needed only where some particle is at or above theta_m before or after the

@@ -93,11 +93,14 @@ class ThermalModel {
  private:
   StepReport step_once(double dt, const Eigen::VectorXd& dh);
   void assemble_if_needed();
+  void find_insulated_clusters();
   Eigen::VectorXd base_capacity() const;
   Eigen::VectorXd capacity_with_bands(const Eigen::VectorXd& theta0,
                                       const std::vector<std::uint8_t>& bands) const;
   void solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
              const Eigen::VectorXd& dh, Eigen::VectorXd& theta1, StepReport& report);
+  void solve_direct_grounded(SparseMatrix& a, const Eigen::VectorXd& c, const Eigen::VectorXd& rhs,
+                             Eigen::VectorXd& theta1, StepReport& report);
   double contraction_estimate(double dt, const Eigen::VectorXd& c) const;
   std::string choose_solver(double contraction) const;
   bool phase_work_needed(const Eigen::VectorXd& theta0, const Eigen::VectorXd& theta1) const;
@@ -122,6 +125,10 @@ class ThermalModel {
   bool dirty_ = true;                // laplacian_ values out of date (contacts or live set)
   std::uint64_t pattern_version_ = 1;
   DirectSolver direct_;
+  // Insulated clusters (>= 2 live particles joined by conducting contacts, none touching a wall):
+  // cluster id per particle (-1: none) and the particle grounded in each (solve_direct_grounded).
+  std::vector<int> cluster_;
+  std::vector<Eigen::Index> ground_;
   std::vector<double> stored_;       // J per particle since the start
   ThermalLedger ledger_;
 };

@@ -2,6 +2,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <iterator>
 #include <sstream>
 
 #include "geometry/error.h"
@@ -72,20 +75,98 @@ std::vector<std::string> leaf_keys(const toml::table& table, const std::string& 
 
 namespace {
 
+// Walks the layer's own tables (not dotted paths: a quoted key such as "a.b", "" or "x[0]" is
+// one TOML key that a path lookup cannot find; fuzz/ found the null dereference that caused).
+// Such names cannot be run-file keys, whose parts are bare words joined by dots.
 void merge_layer(toml::table& merged, std::map<std::string, std::string>& origin,
-                 const toml::table& layer, const std::string& source, bool with_lines) {
-  for (const std::string& key : leaf_keys(layer)) {
-    const toml::node& node = *layer.at_path(key).node();
+                 const toml::table& layer, const std::string& source, bool with_lines,
+                 const std::string& prefix = "") {
+  for (const auto& [k, node] : layer) {
+    const std::string name(k.str());
+    const std::string at = with_lines ? source + ":" + std::to_string(node.source().begin.line) : source;
+    if (name.empty() || name.find_first_of(".[]") != std::string::npos)
+      throw InputError(at + ": key \"" + name + "\" (under `" + prefix +
+                       "`): run-file key names are bare words, without '.', '[' or ']'");
+    const std::string key = prefix.empty() ? name : prefix + "." + name;
+    if (const toml::table* sub = node.as_table()) {
+      merge_layer(merged, origin, *sub, source, with_lines, key);
+      continue;
+    }
     set_path(merged, key, node);
-    origin[key] = with_lines ? source + ":" + std::to_string(node.source().begin.line) : source;
+    origin[key] = at;
   }
+}
+
+// toml++ 3.3.0 (Debian 12) reaches __builtin_unreachable, i.e. undefined behaviour, in
+// is_non_ascii_horizontal_whitespace() for most code points in U+00A1..U+0499, U+2FCE..U+33C7
+// and U+FE5E..U+FEFE whenever one stands where it tests for whitespace: between tokens (found by
+// fuzz/; UBSan stops there). TOML 1.0 allows non-ASCII characters only inside strings and
+// comments, so the first one outside them is refused here, before the parser sees it.
+void reject_non_ascii_between_tokens(std::string_view text, const std::string& source) {
+  enum { normal, comment, basic, literal, multi_basic, multi_literal } state = normal;
+  std::size_t line = 1;
+  auto quotes_at = [&](std::size_t i, char q) {
+    return i + 2 < text.size() && text[i] == q && text[i + 1] == q && text[i + 2] == q;
+  };
+  for (std::size_t i = 0; i < text.size(); ++i) {
+    const char ch = text[i];
+    if (ch == '\n') ++line;
+    switch (state) {
+      case normal:
+        if (static_cast<unsigned char>(ch) >= 0x80) {
+          std::string bytes;
+          for (std::size_t j = i; j < text.size() && j < i + 4 &&
+                                  static_cast<unsigned char>(text[j]) >= 0x80; ++j) {
+            char hex[8];
+            std::snprintf(hex, sizeof hex, "\\x%02X", static_cast<unsigned char>(text[j]));
+            bytes += hex;
+          }
+          throw InputError(source + ":" + std::to_string(line) + ": unexpected character " + bytes +
+                           " outside a string or comment (TOML allows only ASCII there)");
+        }
+        if (ch == '#') state = comment;
+        else if (quotes_at(i, '"')) state = multi_basic, i += 2;
+        else if (quotes_at(i, '\'')) state = multi_literal, i += 2;
+        else if (ch == '"') state = basic;
+        else if (ch == '\'') state = literal;
+        break;
+      case comment:
+        if (ch == '\n') state = normal;
+        break;
+      case basic:
+        if (ch == '\\' && i + 1 < text.size() && text[i + 1] != '\n') ++i;
+        else if (ch == '"' || ch == '\n') state = normal;
+        break;
+      case literal:
+        if (ch == '\'' || ch == '\n') state = normal;
+        break;
+      case multi_basic:
+      case multi_literal: {
+        const char q = state == multi_basic ? '"' : '\'';
+        if (state == multi_basic && ch == '\\' && i + 1 < text.size()) {
+          line += text[i + 1] == '\n';
+          ++i;
+        } else if (quotes_at(i, q)) {
+          // Up to two quotes may end the content right before the closing three.
+          while (i + 1 < text.size() && text[i + 1] == q) ++i;
+          state = normal;
+        }
+        break;
+      }
+    }
+  }
+}
+
+toml::table parse_checked(const std::string& text, const std::string& source) {
+  reject_non_ascii_between_tokens(text, source);
+  return toml::parse(text, source);
 }
 
 }  // namespace
 
 void Params::merge_toml_text(const std::string& text, const std::string& source) {
   try {
-    merge_layer(merged_, origin_, toml::parse(text, source), source, false);
+    merge_layer(merged_, origin_, parse_checked(text, source), source, false);
   } catch (const toml::parse_error& e) {
     throw InputError(source + ":" + std::to_string(e.source().begin.line) + ": " +
                      std::string(e.description()));
@@ -93,13 +174,16 @@ void Params::merge_toml_text(const std::string& text, const std::string& source)
 }
 
 void Params::merge_toml_file(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw InputError(path + ": cannot open the run file for reading");
+  const std::string text{std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+  if (in.bad()) throw InputError(path + ": read error");
   toml::table layer;
   try {
-    layer = toml::parse_file(path);
+    layer = parse_checked(text, path);
   } catch (const toml::parse_error& e) {
-    const bool unreadable = e.source().begin.line == 0;
-    throw InputError(path + (unreadable ? "" : ":" + std::to_string(e.source().begin.line)) +
-                     ": " + std::string(e.description()));
+    throw InputError(path + ":" + std::to_string(e.source().begin.line) + ": " +
+                     std::string(e.description()));
   }
   merge_layer(merged_, origin_, layer, path, true);
 }
@@ -112,8 +196,8 @@ void Params::merge_assignment(const std::string& key_equals_value) {
   const std::string value = key_equals_value.substr(eq + 1);
   toml::table parsed;
   try {
-    parsed = toml::parse("v = " + value);
-  } catch (const toml::parse_error&) {
+    parsed = parse_checked("v = " + value, "--set");
+  } catch (const std::runtime_error&) {  // toml::parse_error, or non-ASCII outside quotes
     parsed = toml::table{{"v", value}};  // a bare word: a string
   }
   set_path(merged_, key, *parsed.get("v"));

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <sstream>
 #include <limits>
+#include <sstream>
 
 #include "geometry/error.h"
 
@@ -100,6 +101,12 @@ void read_thermal(Params& p, SimulationSpec& s, double paper_dt) {
   s.max_staggers = int(p.integer("thermal.max_staggers", 4, 0, 1000));
   double dt = 0;
   const std::string word = p.number_or_word("thermal.dt", dt, 0, kBig, {"pulse", "paper"}, "pulse");
+  if (word == "paper" && !(std::isfinite(paper_dt) && paper_dt > 0)) {
+    std::ostringstream m;
+    m << "`thermal.dt` = \"paper\" gives xi R / c = " << paper_dt
+      << " s: must be finite and > 0; give thermal.dt in seconds";
+    throw InputError(m.str());
+  }
   s.dt = word == "pulse" ? 0.0 : word == "paper" ? paper_dt : dt;
   t.validate();
 }
@@ -114,6 +121,15 @@ double read_pulses(Params& p, SimulationSpec& s, double radius) {
   const double energy = p.number("pulses.energy", 1e-9, 0, kBig, true);
   if (word == "auto") tau = xi * radius / kSpeedOfLight;
   if (word == "energy") tau = energy / s.beam.power;
+  // Each input is in range, but a quotient can still overflow or underflow (found by fuzz/).
+  if (!(std::isfinite(tau) && tau > 0)) {
+    std::ostringstream m;
+    m << "`pulses.duration` = \"" << word << "\" gives tau = " << tau << " s ("
+      << (word == "auto" ? "pulses.xi * R / c, R from sample.size and packing.*"
+                         : "pulses.energy / beam.power")
+      << "): must be finite and > 0; give pulses.duration in seconds";
+    throw InputError(m.str());
+  }
   s.pulses.duration = tau;
   double period = 0;
   const std::string pw = p.number_or_word("pulses.period", period, 0, kBig, {"auto"}, "auto");
@@ -122,8 +138,9 @@ double read_pulses(Params& p, SimulationSpec& s, double radius) {
 }
 
 double typical_radius(const PackingSpec& s) {
+  // D / cbrt(N), not cbrt(D^3 / N): D^3 overflows or underflows for sizes any double allows.
   if (s.source == "random-overlap" || s.source == "lattice")
-    return s.radius_ratio * std::cbrt(std::pow(s.sample_size, 3) / double(std::max<std::size_t>(s.count, 1)));
+    return s.radius_ratio * s.sample_size / std::cbrt(double(std::max<std::size_t>(s.count, 1)));
   if (s.source == "rsa")
     return s.sample_size * std::cbrt(3 * s.solid_fraction / (4 * M_PI * double(std::max<std::size_t>(s.count, 1))));
   return s.file_radius > 0 ? s.file_radius : s.sample_size / 100;
