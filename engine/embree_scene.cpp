@@ -1,6 +1,8 @@
 // The only file that includes Embree (STYLE.md point 2).
 #include "engine/embree_scene.h"
 
+#include "engine/float_mode.h"
+
 #include <embree3/rtcore.h>
 
 #include <algorithm>
@@ -326,7 +328,10 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
     rtcAttachGeometry(im.scene, g);
     im.geometries.push_back(g);
   }
-  rtcCommitScene(im.scene);
+  {
+    const KeepFloatMode keep;  // Embree's build may set FTZ/DAZ on this thread
+    rtcCommitScene(im.scene);
+  }
   im.check("building the particle scene");
 }
 
@@ -359,7 +364,10 @@ void EmbreeScene::remove(std::span<const std::uint32_t> ids) {
   } else {
     rtcCommitGeometry(im.geometries.front());
   }
-  rtcCommitScene(im.scene);
+  {
+    const KeepFloatMode keep;  // Embree's build may set FTZ/DAZ on this thread
+    rtcCommitScene(im.scene);
+  }
   im.check("updating the particle scene");
 }
 

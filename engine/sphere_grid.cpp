@@ -22,6 +22,13 @@ SphereGrid::SphereGrid(const Particles& particles, double cell_factor) {
   if (!(cell_factor > 0.0)) throw InputError("SphereGrid: cell factor must be > 0");
   for (std::size_t i = 0; i < n; ++i) box_.grow(particles.centre[i], particles.radius[i]);
   if (box_.empty()) box_.grow(Vec3::Zero(), 1.0);
+  // Pad beyond rounding: a ray just outside a sphere's bounding plane (by an ulp or a denormal)
+  // can still meet the sphere in the double test, where |perp|^2 rounds to R^2. Such a ray must
+  // be inside the grid's box, or the walk would skip a hit Embree and the brute force find.
+  const double pad = 1e-9 * ((box_.upper - box_.lower).norm() + box_.lower.cwiseAbs().maxCoeff() +
+                             box_.upper.cwiseAbs().maxCoeff()) + 1e-300;
+  box_.lower -= Vec3::Constant(pad);
+  box_.upper += Vec3::Constant(pad);
   const Vec3 extent = (box_.upper - box_.lower).cwiseMax(Vec3::Constant(1e-300));
   double r_max = 0.0;
   for (double r : particles.radius) r_max = std::max(r_max, r);

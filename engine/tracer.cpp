@@ -1,5 +1,7 @@
 #include "engine/tracer.h"
 
+#include "engine/float_mode.h"
+
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 #include <tbb/partitioner.h>
@@ -264,6 +266,7 @@ void Tracer::count_segment(std::uint32_t r, Chunk& c) const {
 // Advances rays [begin, end) by the budget each: primaries first in coherent packets, then
 // bounced segments one ray at a time, or in waves of incoherent packets (BounceSearch::packets).
 void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budget) {
+  const IeeeFloatMode ieee;  // whatever thread TBB runs this chunk on (engine/float_mode.h)
   RayState& s = state_;
   if (spec_.packets) {
     for (std::size_t r = begin; r < end; ++r)
