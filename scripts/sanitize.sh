@@ -2,11 +2,20 @@
 # Builds the test runner and the command with AddressSanitizer + UndefinedBehaviorSanitizer in
 # ./build-asan and runs the whole test suite under them; any report fails the run.
 #   scripts/sanitize.sh [extra cmake options]
-# RelWithDebInfo (-O2 -g): the suite is dominated by tracing and solves, which ASan slows ~2-3x
-# at -O2 but ~10x at -O0; -O2 keeps the full suite within a few minutes on 2 cores.
+# RelWithDebInfo (-O2 -g): the suite is dominated by tracing and solves; optimised, it runs in
+# 20-33 s under the sanitizers (5 s without), so the whole suite runs, not a subset.
 # Benchmarks are left out: they are not tests and take a third of the build.
+# Compiler: clang when installed (CXX=... overrides): measured on 2 cores, clang builds this in
+# 2.3-4.7 min (the machine is shared) against gcc's 9.5; both run the suite in 20-33 s with
+# zero reports.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+if [[ -z "${CXX:-}" ]] && command -v clang++ >/dev/null; then export CC=clang CXX=clang++; fi
+# CMake cannot switch the compiler of an existing build directory: start it afresh if it differs.
+if [[ -f build-asan/CMakeCache.txt ]] &&
+   ! grep -q "^CMAKE_CXX_COMPILER:[A-Z]*=$(command -v "${CXX:-c++}")$" build-asan/CMakeCache.txt; then
+  rm -rf build-asan
+fi
 cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DBEAMPACK_SANITIZE=ON \
       -DBEAMPACK_BUILD_BENCHMARKS=OFF "$@" >/dev/null
 cmake --build build-asan -j"$(nproc)" --target beampack-tests beampack_cli
