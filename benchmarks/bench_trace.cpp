@@ -80,6 +80,7 @@ void run_tracer(benchmark::State& state, bool packets, double n_hat, int max_bou
   double primary = 0, bounced = 0;
   for (auto _ : state) {
     const auto p0 = tracer.primary_segments(), b0 = tracer.bounced_segments();
+    tracer.compact();  // as the simulation does before each pulse: ended rays are dropped
     tracer.launch(paper_beam(), 1e-9);
     tracer.advance(std::numeric_limits<double>::infinity(), deposits);
     primary += static_cast<double>(tracer.primary_segments() - p0);

@@ -137,10 +137,12 @@ bool Simulation::step() {
       if (trial[i] == Phase::vapor) trial[i] = Phase::liquid;  // removed only from the next step
     optical_phase = std::move(trial);
     tracer_->restore(rays_before);
+    tracer_->take_segments();  // the redone trace records its own
     thermal_->restore(heat_before);
     report = StepReport{};
   }
   for (std::size_t i = 0; i < deposits_.size(); ++i) absorbed_[i] += deposits_[i];
+  for (RaySegment& seg : tracer_->take_segments()) ray_paths_.push_back(seg);
   time_ += dt;
   ++counts_.steps;
   // Numerical hygiene: a NaN or infinity stops the run here, before it reaches any output.

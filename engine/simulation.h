@@ -8,6 +8,7 @@
 #include <functional>
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "engine/beam.h"
@@ -89,6 +90,9 @@ class Simulation {
   const std::array<StageTime, kStages>& stages() const { return stages_; }
   const SimulationSpec& spec() const { return spec_; }
   const Tracer& tracer() const { return *tracer_; }
+  // Ray paths: while on, the segments of accepted steps are kept until taken.
+  void record_ray_paths(bool on) { tracer_->record_segments(on); }
+  std::vector<RaySegment> take_ray_paths() { return std::exchange(ray_paths_, {}); }
 
   // Checkpoint: the complete state between two steps (particles, rays, heat, clocks, counters).
   // Restoring it into a Simulation built from the same spec continues bit-identically.
@@ -109,6 +113,7 @@ class Simulation {
   std::unique_ptr<ThermalModel> thermal_;
   std::vector<double> absorbed_;   // cumulative J per particle
   std::vector<double> deposits_;   // this step's dH
+  std::vector<RaySegment> ray_paths_;
   double time_ = 0, next_pulse_time_ = 0, max_temperature_ = 0, total_volume_ = 0;
   int launched_ = 0;
   std::array<StageTime, kStages> stages_{};

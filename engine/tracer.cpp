@@ -67,6 +67,7 @@ struct Event {
 // sums never depend on threads, on packets, or on the order rays were stepped in.
 struct Tracer::Chunk {
   std::vector<Event> events;
+  std::vector<std::pair<std::uint32_t, RaySegment>> segments;  // when recording, by ray
   std::uint64_t primary = 0, bounced = 0, hits = 0;
   std::size_t ended = 0;
 };
@@ -227,6 +228,8 @@ bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
     left -= to_event;
     s.path[r] += to_event;
     const std::uint32_t p = s.next_particle[r];
+    if (record_segments_)
+      c.segments.push_back({r, {s.origin[r], s.origin[r] + s.t_next[r] * s.direction[r], s.energy[r]}});
     if (p == kNoParticle) {  // left the box: escaped (MODEL.md 3a)
       c.events.push_back({r, kEscapedBin, s.energy[r]});
       s.live[r] = 0;
@@ -338,7 +341,12 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
       },
       tbb::simple_partitioner());
   // Deterministic reduction: chunk order, ray order inside each chunk, each ray's event order.
-  for (const Chunk& c : chunks) {
+  for (Chunk& c : chunks) {
+    if (record_segments_) {  // ray order inside the chunk, whatever order the rays were stepped in
+      std::stable_sort(c.segments.begin(), c.segments.end(),
+                       [](const auto& a, const auto& b) { return a.first < b.first; });
+      for (const auto& seg : c.segments) segments_.push_back(seg.second);
+    }
     for (const Event& e : c.events) {
       if (e.bin == kEscapedBin) {
         s.ledger.escaped += e.energy;

@@ -13,6 +13,7 @@
 #include <limits>
 #include <memory>
 #include <span>
+#include <utility>
 #include <vector>
 
 #include "engine/beam.h"
@@ -32,6 +33,12 @@ struct MaterialOptics {
 // How bounced rays find their next sphere (same answer bit for bit; docs/bench/optics.md):
 // Embree single rays, waves of incoherent Embree packets, or a uniform-grid walk.
 enum class BounceSearch { embree, packets, grid };
+
+// One straight piece of a ray's path: from its segment origin to the hit or the box exit.
+struct RaySegment {
+  Vec3 from, to;
+  double energy;  // J carried along it
+};
 
 struct OpticsSpec {
   std::vector<MaterialOptics> materials = std::vector<MaterialOptics>(1);  // by Particles::material
@@ -92,6 +99,11 @@ class Tracer {
   // Returns the number of rays still live.
   std::size_t advance(double path_budget, std::vector<double>& deposits);
 
+  // Ray paths for output (rays_NNNN.vtp): while on, every completed segment is kept, in chunk
+  // and ray order; take_segments() hands them over and clears the store.
+  void record_segments(bool on) { record_segments_ = on; }
+  std::vector<RaySegment> take_segments() { return std::exchange(segments_, {}); }
+
   // The most path any ray travelled in the last advance(): with an infinite budget, the flight
   // of the pulse (the step length of thermal.dt = "pulse" is this over c).
   double last_advance_path() const { return last_advance_path_; }
@@ -128,6 +140,8 @@ class Tracer {
   std::unique_ptr<SphereGrid> grid_;  // bounced rays (BounceSearch::grid)
   Box box_;  // all particles grown by their radii: leaving it means escaped
   RayState state_;
+  bool record_segments_ = false;
+  std::vector<RaySegment> segments_;
   double last_advance_path_ = 0.0;
 };
 

@@ -208,7 +208,8 @@ TEST(Cli, ParaViewFilesHoldTheValuesOfParticlesCsv) {
   if (std::system("/usr/bin/python3 -c 'import vtk' >/dev/null 2>&1") != 0)
     GTEST_SKIP() << "python3-vtk9 not installed (scripts/setup.sh installs it)";
   const fs::path out = fresh_dir("vtk");
-  ASSERT_EQ(run("run --preset quick --set output.frames=true --quiet --out " + out.string()).code, 0);
+  ASSERT_EQ(run("run --preset quick --set output.frames=true --set output.rays=true --quiet --out " +
+                out.string()).code, 0);
   const std::string script = write(out / "check.py", R"(import sys, csv, vtk
 import xml.etree.ElementTree as ET
 out = sys.argv[1]
@@ -226,6 +227,18 @@ for i, row in enumerate(rows):
     assert float(row['absorbed_J']) == a.GetValue(i), i
     assert float(row['r']) == rad.GetValue(i), i
 print('ok', len(frames), len(rows))
+# Ray paths: one file per pulse; the segments' energies end where the ledger says they do.
+import glob, json
+summary = json.load(open(out + '/summary.json'))
+files = sorted(glob.glob(out + '/rays_*.vtp'))
+assert len(files) == len(frames), (len(files), len(frames))
+for f in files:
+    rr = vtk.vtkXMLPolyDataReader(); rr.SetFileName(f); rr.Update()
+    lines = rr.GetOutput()
+    assert lines.GetNumberOfCells() > 0, f
+    e = lines.GetCellData().GetArray('energy')
+    assert all(e.GetValue(i) > 0 for i in range(e.GetNumberOfTuples())), f
+print('rays ok', len(files))
 )");
   const Result py = [&] {
     std::FILE* pipe = popen(("/usr/bin/python3 " + script + " " + out.string() + " 2>&1").c_str(), "r");
@@ -237,6 +250,7 @@ print('ok', len(frames), len(rows))
   }();
   EXPECT_EQ(py.code, 0) << py.output;
   EXPECT_NE(py.output.find("ok 5 "), std::string::npos) << py.output;
+  EXPECT_NE(py.output.find("rays ok 5"), std::string::npos) << py.output;
 }
 
 TEST(Cli, ConvergeWritesLaddersWithTheFinestAsReference) {

@@ -255,10 +255,16 @@ int run_command(const RunOptions& options) {
   const auto start = Clock::now();
   Simulation sim(config.sim);
   if (saved) sim.read_state(*saved);
+  sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);
   bool checkpoint_due = false;
   sim.on_pulse_end([&](int pulse) {
     record.history += history_row(sim.figures());
+    if (config.output.rays) {
+      char name[64];
+      std::snprintf(name, sizeof name, "rays_%04d.vtp", pulse);
+      write_rays_vtp((out / name).string(), sim.take_ray_paths());
+    }
     if (config.output.frames) {
       char name[64];
       std::snprintf(name, sizeof name, "particles_%04d.vtp", pulse);

@@ -179,6 +179,7 @@ RunConfig load_run_config(const RunSources& sources) {
   c.sim.thermal.validate();
   c.paper_dt = paper_dt;
   c.output.frames = p.flag("output.frames", false);
+  c.output.rays = p.flag("output.rays", false);
   p.check_all_used();
   c.resolved = p.resolved();
   return c;

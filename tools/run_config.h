@@ -11,6 +11,7 @@ namespace beampack::tools {
 
 struct OutputSpec {
   bool frames = false;  // output.frames: particles_NNNN.vtp after every pulse, with particles.pvd
+  bool rays = false;    // output.rays: rays_NNNN.vtp, the paths of each pulse's rays
 };
 
 struct RunConfig {

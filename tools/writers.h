@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "engine/tracer.h"
 #include "geometry/particles.h"
 
 namespace beampack::tools {
@@ -21,10 +22,6 @@ void write_particles_csv(const std::string& path, const Particles& p,
 void write_particles_vtp(const std::string& path, const Particles& p,
                          const std::vector<double>& absorbed_J);
 // Ray segments as lines, with the energy each carried.
-struct RaySegment {
-  Vec3 from, to;
-  double energy;
-};
 void write_rays_vtp(const std::string& path, const std::vector<RaySegment>& segments);
 // The .pvd series index over frames (file name relative to the .pvd, time).
 void write_pvd(const std::string& path, const std::vector<std::pair<std::string, double>>& frames);
