@@ -384,27 +384,35 @@ QueryContext make_context(const RayQuery& query, double slack, bool coherent) {
   return ctx;
 }
 
+// The float ray Embree traverses for ray `id`: the double ray rounded, its far end padded so that
+// no sphere the double test accepts is culled.
+RTCRay float_ray(const RayQuery& query, std::uint32_t id, double slack) {
+  const Vec3& o = query.origin[id];
+  const Vec3& d = query.direction[id];
+  RTCRay ray;
+  ray.org_x = static_cast<float>(o.x());
+  ray.org_y = static_cast<float>(o.y());
+  ray.org_z = static_cast<float>(o.z());
+  ray.dir_x = static_cast<float>(d.x());
+  ray.dir_y = static_cast<float>(d.y());
+  ray.dir_z = static_cast<float>(d.z());
+  ray.tnear = 0.0f;
+  ray.tfar = query.t_hit[id] < kInf ? round_up(query.t_hit[id] * (1.0 + kFloatPad) + slack)
+                                    : std::numeric_limits<float>::infinity();
+  ray.time = 0.0f;
+  ray.mask = 0xFFFFFFFFu;
+  ray.id = id;
+  ray.flags = 0;
+  return ray;
+}
+
 }  // namespace
 
 void EmbreeScene::intersect1(const RayQuery& query, std::uint32_t id) const {
   QueryContext ctx = make_context(query, impl_->slack, false);
   ctx.skip_rank[0] = impl_->rank_of(query.skip[id]);
   RTCRayHit rh;
-  const Vec3& o = query.origin[id];
-  const Vec3& d = query.direction[id];
-  rh.ray.org_x = static_cast<float>(o.x());
-  rh.ray.org_y = static_cast<float>(o.y());
-  rh.ray.org_z = static_cast<float>(o.z());
-  rh.ray.dir_x = static_cast<float>(d.x());
-  rh.ray.dir_y = static_cast<float>(d.y());
-  rh.ray.dir_z = static_cast<float>(d.z());
-  rh.ray.tnear = 0.0f;
-  rh.ray.tfar = query.t_hit[id] < kInf ? round_up(query.t_hit[id] * (1.0 + kFloatPad) + impl_->slack)
-                                      : std::numeric_limits<float>::infinity();
-  rh.ray.time = 0.0f;
-  rh.ray.mask = 0xFFFFFFFFu;
-  rh.ray.id = id;
-  rh.ray.flags = 0;
+  rh.ray = float_ray(query, id, impl_->slack);
   rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
   rtcIntersect1(impl_->scene, &ctx.base, &rh);
@@ -444,22 +452,7 @@ void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, i
 bool EmbreeScene::occluded1(const RayQuery& query, std::uint32_t id) const {
   QueryContext ctx = make_context(query, impl_->slack, false);
   ctx.skip_rank[0] = impl_->rank_of(query.skip[id]);
-  RTCRay ray;
-  const Vec3& o = query.origin[id];
-  const Vec3& d = query.direction[id];
-  ray.org_x = static_cast<float>(o.x());
-  ray.org_y = static_cast<float>(o.y());
-  ray.org_z = static_cast<float>(o.z());
-  ray.dir_x = static_cast<float>(d.x());
-  ray.dir_y = static_cast<float>(d.y());
-  ray.dir_z = static_cast<float>(d.z());
-  ray.tnear = 0.0f;
-  ray.tfar = query.t_hit[id] < kInf ? round_up(query.t_hit[id] * (1.0 + kFloatPad) + impl_->slack)
-                                    : std::numeric_limits<float>::infinity();
-  ray.time = 0.0f;
-  ray.mask = 0xFFFFFFFFu;
-  ray.id = id;
-  ray.flags = 0;
+  RTCRay ray = float_ray(query, id, impl_->slack);
   rtcOccluded1(impl_->scene, &ctx.base, &ray);
   return ray.tfar < 0.0f;
 }

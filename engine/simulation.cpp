@@ -200,7 +200,7 @@ Figures Simulation::figures() const {
 }
 
 namespace {
-constexpr std::uint32_t kStateVersion = 2;
+constexpr std::uint32_t kStateVersion = 3;
 }
 
 void Simulation::write_state(StateWriter& out) const {

@@ -127,35 +127,13 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
 
 void Tracer::compact() {
   RayState& s = state_;
-  std::size_t w = 0;
-  for (std::size_t r = 0; r < s.live.size(); ++r) {
-    if (!s.live[r]) continue;
-    s.origin[w] = s.origin[r];
-    s.direction[w] = s.direction[r];
-    s.normal[w] = s.normal[r];
-    s.energy[w] = s.energy[r];
-    s.initial_energy[w] = s.initial_energy[r];
-    s.travelled[w] = s.travelled[r];
-    s.path[w] = s.path[r];
-    s.t_next[w] = s.t_next[r];
-    s.last_particle[w] = s.last_particle[r];
-    s.next_particle[w] = s.next_particle[r];
-    s.bounces[w] = s.bounces[r];
-    s.live[w] = 1;
-    ++w;
-  }
-  s.origin.resize(w);
-  s.direction.resize(w);
-  s.normal.resize(w);
-  s.energy.resize(w);
-  s.initial_energy.resize(w);
-  s.travelled.resize(w);
-  s.path.resize(w);
-  s.t_next.resize(w);
-  s.last_particle.resize(w);
-  s.next_particle.resize(w);
-  s.bounces.resize(w);
-  s.live.resize(w);
+  std::vector<std::size_t> keep;
+  for (std::size_t r = 0; r < s.live.size(); ++r)
+    if (s.live[r]) keep.push_back(r);
+  s.for_each_array([&](auto& v) {
+    for (std::size_t w = 0; w < keep.size(); ++w) v[w] = v[keep[w]];
+    v.resize(keep.size());
+  });
 }
 
 namespace {
@@ -304,25 +282,19 @@ void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budg
 }
 
 void RayState::write(StateWriter& out) const {
-  out.vector(origin), out.vector(direction), out.vector(normal), out.vector(energy);
-  out.vector(initial_energy), out.vector(travelled), out.vector(t_next), out.vector(path);
-  out.vector(last_particle), out.vector(next_particle), out.vector(bounces), out.vector(live);
+  for_each_array([&](const auto& v) { out.vector(v); });
   out.value(ledger), out.value(primary_segments), out.value(bounced_segments), out.value(hits);
   out.value(live_count);
 }
 
 void RayState::read(StateReader& in) {
-  in.vector(origin), in.vector(direction), in.vector(normal), in.vector(energy);
-  in.vector(initial_energy), in.vector(travelled), in.vector(t_next), in.vector(path);
-  in.vector(last_particle), in.vector(next_particle), in.vector(bounces), in.vector(live);
+  for_each_array([&](auto& v) { in.vector(v); });
   ledger = in.value<OpticsLedger>(), primary_segments = in.value<std::uint64_t>();
   bounced_segments = in.value<std::uint64_t>(), hits = in.value<std::uint64_t>();
   live_count = in.value<std::size_t>();
-  const std::size_t n = origin.size();
-  for (std::size_t size : {direction.size(), normal.size(), energy.size(), initial_energy.size(),
-                           travelled.size(), t_next.size(), path.size(), last_particle.size(),
-                           next_particle.size(), bounces.size(), live.size()})
-    if (size != n) throw InputError("checkpoint: ray arrays of unequal length");
+  for_each_array([&](const auto& v) {
+    if (v.size() != origin.size()) throw InputError("checkpoint: ray arrays of unequal length");
+  });
 }
 
 std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {

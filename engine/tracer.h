@@ -79,7 +79,19 @@ struct RayState {
   std::uint64_t hits = 0;
   std::size_t live_count = 0;
 
-  // Checkpoints (a field added above must be added to both).
+  // Calls f on every per-ray array: compaction and checkpoints go through this one list, so a
+  // field added above is added here and nowhere else.
+  template <class F>
+  void for_each_array(F&& f) {
+    f(origin), f(direction), f(normal), f(energy), f(initial_energy), f(travelled), f(t_next);
+    f(path), f(last_particle), f(next_particle), f(bounces), f(live);
+  }
+  template <class F>
+  void for_each_array(F&& f) const {
+    const_cast<RayState*>(this)->for_each_array([&](auto& v) { f(std::as_const(v)); });
+  }
+
+  // Checkpoints.
   void write(StateWriter& out) const;
   void read(StateReader& in);
 };
