@@ -318,7 +318,22 @@ void sizes(benchmark::internal::Benchmark* b) {
   b->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
 }
 
+// 1e7 spheres (about 3 GB with the scene and the grid): the top of the size ladder, a few
+// iterations only, so a full run stays within minutes.
+void huge(benchmark::internal::Benchmark* b) {
+  b->Arg(10'000'000)->Unit(benchmark::kMillisecond)->Iterations(3)->UseRealTime();
+}
+
 void register_all() {
+  for (double n_hat : {1.4, 20.0}) {
+    const std::string large = "/n" + std::to_string(static_cast<int>(std::lround(n_hat * 10)));
+    benchmark::RegisterBenchmark(("trace/workload/tracer_packets" + large).c_str(),
+                                 [=](benchmark::State& s) { run_tracer(s, true, n_hat, 1000); })
+        ->Apply(huge);
+    benchmark::RegisterBenchmark(("trace/workload/builtin_sphere" + large).c_str(),
+                                 [=](benchmark::State& s) { run_builtin(s, n_hat, 1000); })
+        ->Apply(huge);
+  }
   for (double n_hat : {1.4, 20.0}) {
     const std::string tag = "/n" + std::to_string(static_cast<int>(std::lround(n_hat * 10)));
     benchmark::RegisterBenchmark(("trace/workload/tracer_packets" + tag).c_str(),
