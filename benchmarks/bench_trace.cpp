@@ -407,6 +407,9 @@ void register_all() {
   benchmark::RegisterBenchmark("trace/primary/tracer_single", [](benchmark::State& s) {
     run_tracer(s, false, 1.4, 1, OpticsSpec{}.scene_update, 1, BounceSearch::embree);
   })->Apply(sizes);
+  benchmark::RegisterBenchmark("trace/primary/tracer_grid", [](benchmark::State& s) {
+    run_tracer(s, false, 1.4, 1, OpticsSpec{}.scene_update, 1, BounceSearch::grid);
+  })->Apply(sizes);
   benchmark::RegisterBenchmark("trace/primary/builtin_sphere",
                                [](benchmark::State& s) { run_builtin(s, 1.4, 1); })->Apply(sizes);
   const std::pair<const char*, SceneUpdate> modes[] = {{"deferred", SceneUpdate::deferred},
