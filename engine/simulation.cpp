@@ -126,13 +126,14 @@ bool Simulation::step() {
     }
     // Stagger: a phase change that alters the optics of a particle the rays met in this step
     // sends the step back to the trace, with the new indices (bounded number of times).
-    std::vector<Phase> trial = particles_.phase;
+    const std::vector<Phase>& now = particles_.phase;
     const bool optics_changed = std::any_of(
         report.phase_changed.begin(), report.phase_changed.end(),
-        [&](std::uint32_t i) { return deposits_[i] > 0 && (optical_phase.empty() || optical_phase[i] != trial[i]); });
+        [&](std::uint32_t i) { return deposits_[i] > 0 && (optical_phase.empty() || optical_phase[i] != now[i]); });
     if (!optics_changed || pass >= spec_.max_staggers) break;
     StageClock clock(stages_[kStagger]);
     ++counts_.staggers;
+    std::vector<Phase> trial = now;  // copied only when the step is redone
     for (std::size_t i = 0; i < trial.size(); ++i)
       if (trial[i] == Phase::vapor) trial[i] = Phase::liquid;  // removed only from the next step
     optical_phase = std::move(trial);
@@ -237,7 +238,9 @@ void Simulation::read_state(StateReader& in) {
   ThermalModel::Snapshot heat;
   in.vector(heat.stored);
   heat.ledger = in.value<ThermalLedger>();
-  // The scene's user geometry points into these arrays: copy into them, never replace them.
+  // The geometry must be the run file's: the scene, the grid and the contact graph were built
+  // from it. The state arrays are copied into place; the tracer and the heat model keep their
+  // references to particles_.
   if (p.centre != particles_.centre || p.radius != particles_.radius)
     throw InputError("checkpoint: its packing differs from the run file's (other seed or file?)");
   std::copy(p.material.begin(), p.material.end(), particles_.material.begin());

@@ -73,7 +73,9 @@ Particles random_overlap_packing(std::size_t count, double size, double radius_r
           "packing.radius_ratio = " + str(radius_ratio) + ": must be > 0");
   Particles p;
   if (count == 0) return p;
-  const double r = radius_ratio * std::cbrt(size * size * size / double(count));
+  PackingSpec spec;
+  spec.count = count, spec.sample_size = size, spec.radius_ratio = radius_ratio;
+  const double r = packing_radius(spec);
   Rng rng(seed);
   p.reserve(count);
   for (std::size_t i = 0; i < count; ++i) {
@@ -91,7 +93,10 @@ Particles rsa_packing(std::size_t count, double size, double solid_fraction, std
               ": must be in (0, 0.5); random sequential addition jams near 0.38");
   Particles p;
   if (count == 0) return p;
-  const double r = size * std::cbrt(3.0 * solid_fraction / (4.0 * std::numbers::pi * count));
+  PackingSpec spec;
+  spec.source = "rsa", spec.count = count, spec.sample_size = size;
+  spec.solid_fraction = solid_fraction;
+  const double r = packing_radius(spec);
   require(2 * r < size, "packing.solid_fraction = " + str(solid_fraction) +
                             ": spheres wider than the sample; raise packing.count");
   Box centres;
@@ -225,6 +230,13 @@ void write_packing_file(const std::string& path, const Particles& particles) {
     out << buf;
   }
   require(out.good(), "write error on \"" + path + "\"");
+}
+
+double packing_radius(const PackingSpec& s) {
+  const double n = double(std::max<std::size_t>(s.count, 1));
+  if (s.source == "rsa") return s.sample_size * std::cbrt(3.0 * s.solid_fraction / (4.0 * std::numbers::pi * n));
+  if (s.source == "file") return s.file_radius > 0 ? s.file_radius : s.sample_size / 100;
+  return s.radius_ratio * s.sample_size / std::cbrt(n);
 }
 
 Particles make_packing(const PackingSpec& spec) {

@@ -12,7 +12,7 @@ struct PackingSpec {
   std::string source = "random-overlap";  // random-overlap | rsa | lattice | file
   std::size_t count = 1000;               // N_p
   double sample_size = 1e-3;              // D, edge of the cube [0, D]^3
-  double radius_ratio = 0.325;            // L of the paper: R = L (D^3 / N_p)^(1/3)
+  double radius_ratio = 0.325;            // L of the paper: R = L (D^3 / N_p)^(1/3) = L D / N_p^(1/3)
   double solid_fraction = 0.3;            // rsa target: N (4/3) pi R^3 / D^3
   std::uint64_t seed = 1;
   std::string file;                       // x y z r columns (source = file)
@@ -21,6 +21,11 @@ struct PackingSpec {
 };
 
 Particles make_packing(const PackingSpec& spec);
+
+// The radius a generated packing gives its spheres (the file's radius, or D / 100 when the file
+// gives its own): R = L D / N^(1/3) for random-overlap and lattice (the paper's L, written so
+// that D^3 never over- or underflows), D (3 phi / (4 pi N))^(1/3) for rsa.
+double packing_radius(const PackingSpec& spec);
 
 // Generated packings are numbered along a Morton curve (neighbours in space are neighbours in
 // memory); files keep their order.

@@ -61,19 +61,25 @@ class Progress {
   bool shown_ = false;
 };
 
-std::string history_header() {
-  return "time_s,pulse,vaporized_fraction,melted_fraction,max_temperature_K,injected_J,"
-         "absorbed_J,escaped_J,cutoff_J,stored_J,vaporized_J,walls_J\n";
-}
+// The figures of a run as CSV columns: history.csv and sweep.csv share them.
+const char* kFigureColumns =
+    "vaporized_fraction,melted_fraction,max_temperature_K,injected_J,absorbed_J,escaped_J,"
+    "cutoff_J,stored_J,vaporized_J,walls_J";
 
-std::string history_row(const Figures& f) {
+std::string figure_columns(const Figures& f) {
   const EnergyLedger& e = f.energy;
   std::ostringstream s;
-  s << exact(f.time) << ',' << f.pulse << ',' << exact(f.vaporized_fraction) << ','
-    << exact(f.melted_fraction) << ',' << exact(f.max_temperature) << ',' << exact(e.injected) << ','
-    << exact(e.absorbed) << ',' << exact(e.escaped) << ',' << exact(e.cutoff) << ','
-    << exact(e.stored) << ',' << exact(e.vaporized) << ',' << exact(e.walls) << '\n';
+  s << exact(f.vaporized_fraction) << ',' << exact(f.melted_fraction) << ','
+    << exact(f.max_temperature) << ',' << exact(e.injected) << ',' << exact(e.absorbed) << ','
+    << exact(e.escaped) << ',' << exact(e.cutoff) << ',' << exact(e.stored) << ','
+    << exact(e.vaporized) << ',' << exact(e.walls);
   return s.str();
+}
+
+std::string history_header() { return std::string("time_s,pulse,") + kFigureColumns + "\n"; }
+
+std::string history_row(const Figures& f) {
+  return exact(f.time) + ',' + std::to_string(f.pulse) + ',' + figure_columns(f) + '\n';
 }
 
 nlohmann::json toml_to_json(const toml::table& table) {
@@ -320,23 +326,15 @@ int sweep_command(const SweepOptions& options) {
     sources.sets.push_back(options.param + "=" + value);
     configs.push_back(load_run_config(sources));
   }
-  std::string csv = options.param +
-                    ",vaporized_fraction,melted_fraction,max_temperature_K,injected_J,absorbed_J,"
-                    "escaped_J,cutoff_J,stored_J,vaporized_J,walls_J,steps,wall_seconds\n";
+  std::string csv = options.param + ',' + kFigureColumns + ",steps,wall_seconds\n";
   Series vv{"vaporized fraction", {}, {}};
   const auto start = Clock::now();
   for (std::size_t k = 0; k < configs.size(); ++k) {
     const RunResult r = run_scene(configs[k], true);
     if (r.interrupted) break;
     const Figures& f = r.figures;
-    const EnergyLedger& e = f.energy;
-    std::ostringstream row;
-    row << options.values[k] << ',' << exact(f.vaporized_fraction) << ',' << exact(f.melted_fraction)
-        << ',' << exact(f.max_temperature) << ',' << exact(e.injected) << ',' << exact(e.absorbed)
-        << ',' << exact(e.escaped) << ',' << exact(e.cutoff) << ',' << exact(e.stored) << ','
-        << exact(e.vaporized) << ',' << exact(e.walls) << ',' << r.counts.steps << ','
-        << exact(r.wall_seconds) << '\n';
-    csv += row.str();
+    csv += options.values[k] + ',' + figure_columns(f) + ',' + std::to_string(r.counts.steps) + ',' +
+           exact(r.wall_seconds) + '\n';
     char* end = nullptr;
     const double x = std::strtod(options.values[k].c_str(), &end);
     vv.x.push_back(end && *end == 0 ? x : double(k));

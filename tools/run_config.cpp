@@ -137,14 +137,6 @@ double read_pulses(Params& p, SimulationSpec& s, double radius) {
   return xi * radius / kSpeedOfLight;
 }
 
-double typical_radius(const PackingSpec& s) {
-  // D / cbrt(N), not cbrt(D^3 / N): D^3 overflows or underflows for sizes any double allows.
-  if (s.source == "random-overlap" || s.source == "lattice")
-    return s.radius_ratio * s.sample_size / std::cbrt(double(std::max<std::size_t>(s.count, 1)));
-  if (s.source == "rsa")
-    return s.sample_size * std::cbrt(3 * s.solid_fraction / (4 * M_PI * double(std::max<std::size_t>(s.count, 1))));
-  return s.file_radius > 0 ? s.file_radius : s.sample_size / 100;
-}
 
 }  // namespace
 
@@ -173,7 +165,7 @@ RunConfig load_run_config(const RunSources& sources) {
   Material m;
   read_material(p, m);
   c.sim.materials = {m};
-  const double paper_dt = read_pulses(p, c.sim, typical_radius(c.sim.packing));
+  const double paper_dt = read_pulses(p, c.sim, packing_radius(c.sim.packing));
   read_thermal(p, c.sim, paper_dt);
   c.sim.thermal.walls = read_walls(p, c.sim.packing.sample_size);
   c.sim.thermal.validate();

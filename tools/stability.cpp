@@ -5,6 +5,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -53,10 +54,11 @@ Outcome run_cell(const Cell& c) {
     const auto& t = sim.particles().temperature;
     const double lo = *std::min_element(t.begin(), t.end());
     const double hi = *std::max_element(t.begin(), t.end());
-    const double mass = sim.particles().size() ? sim.spec().materials[0].density * 4.0 / 3.0 * M_PI *
-                                                     std::pow(sim.particles().radius[0], 3) *
-                                                     sim.spec().materials[0].c_solid / sim.spec().thermal.time_scaling
-                                               : 1.0;
+    // The lightest particle's thermal mass m C_S / M (all share one material here).
+    const Material& m = sim.spec().materials[0];
+    double lightest = std::numeric_limits<double>::infinity();
+    for (std::size_t i = 0; i < sim.particles().size(); ++i) lightest = std::min(lightest, sim.particles().volume(i));
+    const double mass = std::isfinite(lightest) ? lightest * m.density * m.c_solid / sim.spec().thermal.time_scaling : 1.0;
     o.bounded = std::isfinite(lo) && std::isfinite(hi) && lo >= 300 - 1e-6 &&
                 hi <= 300 + e.absorbed / mass + 1e-6;
     // The heat ledger closes to the solver's tolerance: each iterative solve leaves a residual of
