@@ -75,6 +75,15 @@ TEST(FuzzRegressions, FindingsAreInputErrorsNamingTheLine) {
   EXPECT_NE(between.input_error.find(":2: unexpected character \\xC3\\xBD outside a string"),
             std::string::npos)
       << between.input_error;
+  // A non-ASCII character right after a bare value (`0"""è"`: no string to toml++) reached the
+  // same __builtin_unreachable, from a file and from --set (the fuzzer's input).
+  const Outcome after_value = check_run_file(bytes_of(found / "non_ascii_after_bare_value.toml"));
+  EXPECT_NE(after_value.input_error.find("run.toml:1:"), std::string::npos) << after_value.input_error;
+  EXPECT_FALSE(check_run_file(bytes_of(found / "non_ascii_after_bare_value_in_set.toml")).accepted);
+  // Invalid UTF-8 is refused before parsing, naming the line.
+  const Outcome bad_utf8 = check_run_file(bytes_of(found / "invalid_utf8_in_string.toml"));
+  EXPECT_NE(bad_utf8.input_error.find(":3: byte \\x87 is not valid UTF-8"), std::string::npos)
+      << bad_utf8.input_error;
   // Inside strings and comments they are valid TOML and stay accepted.
   const fs::path corpus = fs::path(BEAMPACK_FUZZ_DIR) / "corpus" / "run_config";
   EXPECT_TRUE(check_run_file(bytes_of(corpus / "non_ascii_in_strings.toml")).accepted);

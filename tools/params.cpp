@@ -102,31 +102,95 @@ void merge_layer(toml::table& merged, std::map<std::string, std::string>& origin
 // and U+FE5E..U+FEFE whenever one stands where it tests for whitespace: between tokens (found by
 // fuzz/; UBSan stops there). TOML 1.0 allows non-ASCII characters only inside strings and
 // comments, so the first one outside them is refused here, before the parser sees it.
-void reject_non_ascii_between_tokens(std::string_view text, const std::string& source) {
+// TOML files must be valid UTF-8, and toml++ 3.3 reaches undefined behaviour on some invalid
+// sequences inside strings (fuzz/regressions/run_config/invalid_utf8_in_string.toml):
+// refuse overlong forms, surrogates, code points above U+10FFFF and stray bytes first.
+void reject_invalid_utf8(std::string_view text, const std::string& source) {
+  std::size_t line = 1;
+  for (std::size_t i = 0; i < text.size();) {
+    const auto b = static_cast<unsigned char>(text[i]);
+    if (b == '\n') ++line;
+    if (b < 0x80) {
+      ++i;
+      continue;
+    }
+    const int extra = b >= 0xF0 && b <= 0xF4 ? 3 : b >= 0xE0 && b <= 0xEF ? 2 : b >= 0xC2 && b <= 0xDF ? 1 : -1;
+    std::uint32_t cp = extra == 3 ? b & 0x07u : extra == 2 ? b & 0x0Fu : b & 0x1Fu;
+    bool ok = extra > 0 && i + std::size_t(extra) < text.size();
+    for (int k = 1; ok && k <= extra; ++k) {
+      const auto c = static_cast<unsigned char>(text[i + k]);
+      ok = (c & 0xC0) == 0x80;
+      cp = (cp << 6) | (c & 0x3Fu);
+    }
+    ok = ok && !(extra == 2 && cp < 0x800) && !(extra == 3 && (cp < 0x10000 || cp > 0x10FFFF)) &&
+         !(cp >= 0xD800 && cp <= 0xDFFF);
+    if (!ok) {
+      char hex[8];
+      std::snprintf(hex, sizeof hex, "\\x%02X", b);
+      throw InputError(source + ":" + std::to_string(line) + ": byte " + hex +
+                       " is not valid UTF-8 (TOML files must be UTF-8)");
+    }
+    i += std::size_t(extra) + 1;
+  }
+}
+
+// The code point of the (already validated) UTF-8 sequence at text[i]; advances i past it.
+std::uint32_t decode_utf8(std::string_view text, std::size_t& i) {
+  const auto b = static_cast<unsigned char>(text[i]);
+  const int extra = b >= 0xF0 ? 3 : b >= 0xE0 ? 2 : 1;
+  std::uint32_t cp = b & (0x3Fu >> extra);
+  for (int k = 1; k <= extra; ++k) cp = (cp << 6) | (static_cast<unsigned char>(text[i + k]) & 0x3Fu);
+  i += std::size_t(extra) + 1;
+  return cp;
+}
+
+// The text toml++ is given holds no byte above 0x7F outside comments: toml++ 3.3 (Debian) tests
+// such bytes as possible whitespace while it scans a token, and its Unicode table reaches
+// __builtin_unreachable for many code points (found by fuzz/). Where it would scan is not always
+// where a string seems to start (`a = 0"""è"` is a bare token to it), so no non-ASCII byte may
+// reach it there: in basic strings each character becomes its \uXXXX escape (the same string in
+// TOML), in literal strings (no escapes) and between tokens it is refused, naming the line.
+std::string ascii_for_toml(std::string_view text, const std::string& source) {
   enum { normal, comment, basic, literal, multi_basic, multi_literal } state = normal;
   std::size_t line = 1;
+  std::string out;
+  out.reserve(text.size());
   auto quotes_at = [&](std::size_t i, char q) {
     return i + 2 < text.size() && text[i] == q && text[i + 1] == q && text[i + 2] == q;
   };
-  for (std::size_t i = 0; i < text.size(); ++i) {
+  auto refuse = [&](std::size_t i, const char* where) {
+    std::string bytes;
+    for (std::size_t j = i; j < text.size() && j < i + 4 && static_cast<unsigned char>(text[j]) >= 0x80; ++j) {
+      char hex[8];
+      std::snprintf(hex, sizeof hex, "\\x%02X", static_cast<unsigned char>(text[j]));
+      bytes += hex;
+    }
+    throw InputError(source + ":" + std::to_string(line) + ": unexpected character " + bytes + " " + where);
+  };
+  for (std::size_t i = 0; i < text.size();) {
     const char ch = text[i];
+    if (static_cast<unsigned char>(ch) >= 0x80) {
+      if (state == normal) refuse(i, "outside a string or comment (TOML allows only ASCII there)");
+      if (state == literal || state == multi_literal)
+        refuse(i, "in a literal string: write it in a \"...\" string (beampack reads non-ASCII only there)");
+      if (state == comment) {
+        out += ch;
+        ++i;
+        continue;
+      }
+      char escaped[16];
+      const std::uint32_t cp = decode_utf8(text, i);
+      std::snprintf(escaped, sizeof escaped, cp > 0xFFFF ? "\\U%08X" : "\\u%04X", cp);
+      out += escaped;
+      continue;
+    }
     if (ch == '\n') ++line;
+    out += ch;
     switch (state) {
       case normal:
-        if (static_cast<unsigned char>(ch) >= 0x80) {
-          std::string bytes;
-          for (std::size_t j = i; j < text.size() && j < i + 4 &&
-                                  static_cast<unsigned char>(text[j]) >= 0x80; ++j) {
-            char hex[8];
-            std::snprintf(hex, sizeof hex, "\\x%02X", static_cast<unsigned char>(text[j]));
-            bytes += hex;
-          }
-          throw InputError(source + ":" + std::to_string(line) + ": unexpected character " + bytes +
-                           " outside a string or comment (TOML allows only ASCII there)");
-        }
         if (ch == '#') state = comment;
-        else if (quotes_at(i, '"')) state = multi_basic, i += 2;
-        else if (quotes_at(i, '\'')) state = multi_literal, i += 2;
+        else if (quotes_at(i, '"')) state = multi_basic, out += "\"\"", i += 2;
+        else if (quotes_at(i, '\'')) state = multi_literal, out += "''", i += 2;
         else if (ch == '"') state = basic;
         else if (ch == '\'') state = literal;
         break;
@@ -134,32 +198,37 @@ void reject_non_ascii_between_tokens(std::string_view text, const std::string& s
         if (ch == '\n') state = normal;
         break;
       case basic:
-        if (ch == '\\' && i + 1 < text.size() && text[i + 1] != '\n') ++i;
-        else if (ch == '"' || ch == '\n') state = normal;
+      case multi_basic:
+        if (ch == '\\' && i + 1 < text.size()) {  // an escape: its next byte is taken as it is
+          if (static_cast<unsigned char>(text[i + 1]) >= 0x80) refuse(i + 1, "after a backslash (not an escape)");
+          line += text[i + 1] == '\n';
+          out += text[++i];
+        } else if (state == basic && (ch == '"' || ch == '\n')) {
+          state = normal;
+        } else if (state == multi_basic && quotes_at(i, '"')) {
+          // Up to two quotes may end the content right before the closing three.
+          while (i + 1 < text.size() && text[i + 1] == '"') out += text[++i];
+          state = normal;
+        }
         break;
       case literal:
         if (ch == '\'' || ch == '\n') state = normal;
         break;
-      case multi_basic:
-      case multi_literal: {
-        const char q = state == multi_basic ? '"' : '\'';
-        if (state == multi_basic && ch == '\\' && i + 1 < text.size()) {
-          line += text[i + 1] == '\n';
-          ++i;
-        } else if (quotes_at(i, q)) {
-          // Up to two quotes may end the content right before the closing three.
-          while (i + 1 < text.size() && text[i + 1] == q) ++i;
+      case multi_literal:
+        if (quotes_at(i, '\'')) {
+          while (i + 1 < text.size() && text[i + 1] == '\'') out += text[++i];
           state = normal;
         }
         break;
-      }
     }
+    ++i;
   }
+  return out;
 }
 
 toml::table parse_checked(const std::string& text, const std::string& source) {
-  reject_non_ascii_between_tokens(text, source);
-  return toml::parse(text, source);
+  reject_invalid_utf8(text, source);
+  return toml::parse(ascii_for_toml(text, source), source);
 }
 
 }  // namespace
