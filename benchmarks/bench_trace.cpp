@@ -41,14 +41,26 @@ const Particles& packing(std::size_t n) {
   return *slot;
 }
 
-const Beam& paper_beam() {
-  static const Beam beam = [] {
-    BeamSpec spec;  // 6000 W, 0.3 D, exponential a = 2, +x
-    spec.rays = kRays;
-    return make_beam(spec, kD);
-  }();
-  return beam;
+// The paper's beam (6000 W, 0.3 D, exponential a = 2, +x) split into `rays` rays.
+const Beam& paper_beam(std::size_t rays = kRays) {
+  static std::map<std::size_t, Beam> cache;
+  auto found = cache.find(rays);
+  if (found == cache.end()) {
+    BeamSpec spec;
+    spec.rays = rays;
+    found = cache.emplace(rays, make_beam(spec, kD)).first;
+  }
+  return found->second;
 }
+
+// The paper's resolution: 1000 rays on 1000 spheres is ~47 rays per sphere cross-section inside
+// the beam; keeping that density as the spheres shrink takes 1000 (N / 1000)^(2/3) rays.
+std::size_t paper_resolution_rays(std::size_t spheres) {
+  return static_cast<std::size_t>(std::lround(1000.0 * std::cbrt(std::pow(spheres / 1000.0, 2.0))));
+}
+
+std::size_t spheres_of(const benchmark::State& state) { return static_cast<std::size_t>(state.range(0)); }
+std::size_t rays_of(const benchmark::State& state) { return static_cast<std::size_t>(state.range(1)); }
 
 void set_counters(benchmark::State& state, double primary, double bounced) {
   state.counters["primary_seg/s"] = benchmark::Counter(primary, benchmark::Counter::kIsRate);
@@ -65,7 +77,8 @@ void run_tracer(benchmark::State& state, bool packets, double n_hat, int max_bou
                 BounceSearch bounce = OpticsSpec{}.bounce_search,
                 double cell_factor = OpticsSpec{}.grid_cell_factor,
                 long max_cells = OpticsSpec{}.grid_max_cells) {
-  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  const Particles& p = packing(spheres_of(state));
+  const Beam& beam = paper_beam(rays_of(state));
   OpticsSpec spec;
   spec.grid_max_cells = max_cells;
   spec.grid_cell_factor = cell_factor;
@@ -81,7 +94,7 @@ void run_tracer(benchmark::State& state, bool packets, double n_hat, int max_bou
   for (auto _ : state) {
     const auto p0 = tracer.primary_segments(), b0 = tracer.bounced_segments();
     tracer.compact();  // as the simulation does before each pulse: ended rays are dropped
-    tracer.launch(paper_beam(), 1e-9);
+    tracer.launch(beam, 1e-9);
     tracer.advance(std::numeric_limits<double>::infinity(), deposits);
     primary += static_cast<double>(tracer.primary_segments() - p0);
     bounced += static_cast<double>(tracer.bounced_segments() - b0);
@@ -180,9 +193,9 @@ Tally trace_builtin_ray(const BuiltinScene& s, const Particles& p, Vec3 o, Vec3 
 }
 
 void run_builtin(benchmark::State& state, double n_hat, int max_bounces) {
-  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  const Particles& p = packing(spheres_of(state));
   const BuiltinScene scene(p);
-  const Beam& beam = paper_beam();
+  const Beam& beam = paper_beam(rays_of(state));
   const auto energy = beam.ray_energies(1e-9);
   const double upstream = -2.0 * p.max_radius();
   double primary = 0, bounced = 0;
@@ -205,8 +218,8 @@ void run_builtin(benchmark::State& state, double n_hat, int max_bounces) {
 // ---- baseline: brute force over every sphere ------------------------------------------------
 
 void run_brute(benchmark::State& state, double n_hat) {
-  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
-  const Beam& beam = paper_beam();
+  const Particles& p = packing(spheres_of(state));
+  const Beam& beam = paper_beam(rays_of(state));
   const auto energy = beam.ray_energies(1e-9);
   const double upstream = -2.0 * p.max_radius();
   double primary = 0, bounced = 0;
@@ -313,15 +326,26 @@ double min_time() {
   return s ? std::atof(s) : 0.3;
 }
 
+// Arguments: spheres, rays. The size ladder with 10^4 rays throughout and with the paper's
+// resolution (paper_resolution_rays).
 void sizes(benchmark::internal::Benchmark* b) {
-  for (long n : {1000L, 10000L, 100000L, 1000000L}) b->Arg(n);
+  for (long n : {1000L, 10000L, 100000L, 1000000L}) {
+    b->Args({n, static_cast<long>(kRays)});
+    if (paper_resolution_rays(n) != kRays) b->Args({n, static_cast<long>(paper_resolution_rays(n))});
+  }
+  b->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+}
+
+// 1e5 and 1e6 spheres, 10^4 rays: the design comparisons (scene modes, clusters, grid settings).
+void large(benchmark::internal::Benchmark* b) {
+  for (long n : {100000L, 1000000L}) b->Args({n, static_cast<long>(kRays)});
   b->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
 }
 
 // 1e7 spheres (about 3 GB with the scene and the grid): the top of the size ladder, a few
 // iterations only, so a full run stays within minutes.
 void huge(benchmark::internal::Benchmark* b) {
-  b->Arg(10'000'000)->Unit(benchmark::kMillisecond)->Iterations(3)->UseRealTime();
+  b->Args({10'000'000, static_cast<long>(kRays)})->Unit(benchmark::kMillisecond)->Iterations(3)->UseRealTime();
 }
 
 void register_all() {
@@ -362,7 +386,7 @@ void register_all() {
         ->Apply(sizes);
     benchmark::RegisterBenchmark(("trace/workload/brute_force" + tag).c_str(),
                                  [=](benchmark::State& s) { run_brute(s, n_hat); })
-        ->Arg(1000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+        ->Args({1000, static_cast<long>(kRays)})->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
   }
   // The scene's update mode decides its build (static SAH for mask_only/rebuild, two-level
   // low quality for refit/bricks), hence its tracing speed too.
@@ -371,19 +395,19 @@ void register_all() {
                                    std::pair{"bricks", SceneUpdate::bricks}})
     benchmark::RegisterBenchmark(("trace/scene_mode/" + std::string(name) + "/n200").c_str(),
                                  [mode = mode](benchmark::State& s) { run_tracer(s, true, 20.0, 1000, mode); })
-        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+        ->Apply(large);
   // Embree primitive = a cluster of K consecutive (Morton) spheres: fewer callbacks, looser boxes.
   for (unsigned k : {1u, 2u, 4u, 8u}) {
     benchmark::RegisterBenchmark(("trace/cluster/" + std::to_string(k) + "/n200").c_str(),
                                  [k](benchmark::State& s) {
                                    run_tracer(s, true, 20.0, 1000, SceneUpdate::deferred, k);
                                  })
-        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+        ->Apply(large);
     benchmark::RegisterBenchmark(("trace/cluster/" + std::to_string(k) + "/primary").c_str(),
                                  [k](benchmark::State& s) {
                                    run_tracer(s, true, 20.0, 1, SceneUpdate::deferred, k);
                                  })
-        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+        ->Apply(large);
   }
   for (double f : {1.5, 2.0, 3.0, 4.0})
     benchmark::RegisterBenchmark(("trace/grid_cell/" + std::to_string(f).substr(0, 3) + "R/n200").c_str(),
@@ -391,7 +415,7 @@ void register_all() {
                                    run_tracer(s, true, 20.0, 1000, OpticsSpec{}.scene_update, 1,
                                               BounceSearch::grid, f);
                                  })
-        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+        ->Apply(large);
   for (double n_hat : {1.4, 20.0})
     for (long cells : {4L, 8L, 16L, 32L, 1L << 30}) {
       const std::string name = "trace/grid_max_cells/" +
@@ -400,7 +424,7 @@ void register_all() {
       benchmark::RegisterBenchmark(name.c_str(), [=](benchmark::State& s) {
         run_tracer(s, true, n_hat, 1000, OpticsSpec{}.scene_update, 1, BounceSearch::grid,
                    OpticsSpec{}.grid_cell_factor, cells);
-      })->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+      })->Apply(large);
     }
   benchmark::RegisterBenchmark("trace/primary/tracer_packets",
                                [](benchmark::State& s) { run_tracer(s, true, 1.4, 1); })->Apply(sizes);

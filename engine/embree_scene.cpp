@@ -4,8 +4,10 @@
 #include "engine/float_mode.h"
 
 #include <embree3/rtcore.h>
+#include <emmintrin.h>
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <mutex>
 #include <numeric>
@@ -51,6 +53,7 @@ struct QueryContext {
   RTCIntersectContext base;
   RayQuery query;
   double slack;                 // absolute pad of the float culling distance
+  float prefilter_pad;          // 10 slack: the packet prefilter's margin
   std::uint32_t skip_rank[16];  // per lane: Morton rank of the sphere just left (no id lookup)
 };
 
@@ -58,9 +61,13 @@ float round_down(double x) {
   float f = static_cast<float>(x);
   return f > x ? std::nextafter(f, -std::numeric_limits<float>::infinity()) : f;
 }
+// The float culling distance: called on every accepted hit, so no libm call. For t >= 0 the next
+// float up is the next bit pattern (up to +infinity).
 float round_up(double x) {
-  float f = static_cast<float>(x);
-  return f < x ? std::nextafter(f, std::numeric_limits<float>::infinity()) : f;
+  const float f = static_cast<float>(x);
+  if (!(f < x)) return f;
+  if (!(f >= 0.0f)) return std::nextafter(f, std::numeric_limits<float>::infinity());
+  return std::bit_cast<float>(std::bit_cast<std::uint32_t>(f) + 1u);
 }
 
 // Bounds of a cluster's live spheres, rounded outward; empty when all are removed (dropped by
@@ -92,74 +99,82 @@ bool improves(const RayQuery& q, unsigned id, double t, std::uint32_t p) {
   return t < q.t_hit[id] || (t == q.t_hit[id] && p < q.particle[id]);
 }
 
-// Packets: a float test over the whole packet first (fixed width, so it vectorises) keeps only
-// the lanes whose ray passes within r + pad of the centre, pad far above float round-off; most
-// lanes of a coherent packet miss any given sphere and never reach the double test.
+// Packets: a float test over the whole packet first keeps only the lanes whose ray passes within
+// r + pad of the centre, pad far above float round-off; most lanes of a coherent packet miss any
+// given sphere and never reach the double test. Four lanes per SSE step; the kept lanes come back
+// as bits, so the double test visits only them (no branch per lane).
 template <unsigned W>
-void packet_prefilter(const int* valid, RTCRayN* rays, const SphereRecord& sphere, float pad,
-                      int* keep) {
-  const float cx = static_cast<float>(sphere.centre.x()), cy = static_cast<float>(sphere.centre.y()),
-              cz = static_cast<float>(sphere.centre.z());
-  const float reach = static_cast<float>(sphere.radius) + pad;
-  const float* ox = &RTCRayN_org_x(rays, W, 0);
-  const float* oy = &RTCRayN_org_y(rays, W, 0);
-  const float* oz = &RTCRayN_org_z(rays, W, 0);
-  const float* dx = &RTCRayN_dir_x(rays, W, 0);
-  const float* dy = &RTCRayN_dir_y(rays, W, 0);
-  const float* dz = &RTCRayN_dir_z(rays, W, 0);
-  for (unsigned i = 0; i < W; ++i) {
-    const float fx = ox[i] - cx, fy = oy[i] - cy, fz = oz[i] - cz;
-    const float b = -(fx * dx[i] + fy * dy[i] + fz * dz[i]);
-    const float px = fx + b * dx[i], py = fy + b * dy[i], pz = fz + b * dz[i];
-    const float p2 = px * px + py * py + pz * pz;
-    keep[i] = (valid[i] == -1) & (p2 <= reach * reach) & (b > -reach);
+std::uint32_t packet_candidates(const int* valid, RTCRayN* rays, const SphereRecord& sphere,
+                                float pad) {
+  const __m128 cx = _mm_set1_ps(static_cast<float>(sphere.centre.x()));
+  const __m128 cy = _mm_set1_ps(static_cast<float>(sphere.centre.y()));
+  const __m128 cz = _mm_set1_ps(static_cast<float>(sphere.centre.z()));
+  const float r = static_cast<float>(sphere.radius) + pad;
+  const __m128 reach2 = _mm_set1_ps(r * r), minus_reach = _mm_set1_ps(-r);
+  std::uint32_t bits = 0;
+  for (unsigned g = 0; g < W; g += 4) {
+    const __m128 dx = _mm_loadu_ps(&RTCRayN_dir_x(rays, W, g));
+    const __m128 dy = _mm_loadu_ps(&RTCRayN_dir_y(rays, W, g));
+    const __m128 dz = _mm_loadu_ps(&RTCRayN_dir_z(rays, W, g));
+    const __m128 fx = _mm_sub_ps(_mm_loadu_ps(&RTCRayN_org_x(rays, W, g)), cx);
+    const __m128 fy = _mm_sub_ps(_mm_loadu_ps(&RTCRayN_org_y(rays, W, g)), cy);
+    const __m128 fz = _mm_sub_ps(_mm_loadu_ps(&RTCRayN_org_z(rays, W, g)), cz);
+    const __m128 b = _mm_sub_ps(_mm_setzero_ps(),
+                                _mm_add_ps(_mm_add_ps(_mm_mul_ps(fx, dx), _mm_mul_ps(fy, dy)),
+                                           _mm_mul_ps(fz, dz)));
+    const __m128 px = _mm_add_ps(fx, _mm_mul_ps(b, dx));
+    const __m128 py = _mm_add_ps(fy, _mm_mul_ps(b, dy));
+    const __m128 pz = _mm_add_ps(fz, _mm_mul_ps(b, dz));
+    const __m128 p2 = _mm_add_ps(_mm_add_ps(_mm_mul_ps(px, px), _mm_mul_ps(py, py)), _mm_mul_ps(pz, pz));
+    const __m128 on = _mm_castsi128_ps(_mm_cmpeq_epi32(
+        _mm_loadu_si128(reinterpret_cast<const __m128i*>(valid + g)), _mm_set1_epi32(-1)));
+    const __m128 keep = _mm_and_ps(on, _mm_and_ps(_mm_cmple_ps(p2, reach2), _mm_cmpgt_ps(b, minus_reach)));
+    bits |= static_cast<std::uint32_t>(_mm_movemask_ps(keep)) << g;
   }
+  return bits;
 }
 
+std::uint32_t candidates(const RTCIntersectFunctionNArguments* args, const SphereRecord& sphere,
+                         float pad) {
+  RTCRayN* rays = RTCRayHitN_RayN(args->rayhit, args->N);
+  if (args->N == 16) return packet_candidates<16>(args->valid, rays, sphere, pad);
+  if (args->N == 8) return packet_candidates<8>(args->valid, rays, sphere, pad);
+  std::uint32_t bits = 0;
+  for (unsigned i = 0; i < args->N; ++i) bits |= static_cast<std::uint32_t>(args->valid[i] == -1) << i;
+  return bits;
+}
+
+// The double test on the candidate lanes: first every lane's entry distance (independent
+// lanes, so their square roots and divisions overlap), then the nearer ones are taken. Only the
+// double side arrays carry the answer; Embree's own hit record is left alone, and its float tfar
+// is lowered (padded upward: Embree may still offer spheres the double test finds nearer, it must
+// never cull them).
 void intersect_sphere(const RTCIntersectFunctionNArguments* args, const SphereSet& set,
                       std::uint32_t k) {
   const SphereRecord& sphere = set.spheres[k];
   if (is_removed(sphere)) return;
-  const std::uint32_t rank = set.first + k;
   const auto& ctx = *reinterpret_cast<const QueryContext*>(args->context);
   const RayQuery& q = ctx.query;
-  const unsigned n = args->N;
-  RTCRayN* rays = RTCRayHitN_RayN(args->rayhit, n);
-  RTCHitN* hits = RTCRayHitN_HitN(args->rayhit, n);
-  alignas(64) int keep[16];
-  const int* lanes = args->valid;
-  int accept = -1;
-  const float pad = static_cast<float>(10.0 * ctx.slack);
-  if (n == 16) {
-    packet_prefilter<16>(args->valid, rays, sphere, pad, keep);
-    lanes = keep, accept = 1;
-  } else if (n == 8) {
-    packet_prefilter<8>(args->valid, rays, sphere, pad, keep);
-    lanes = keep, accept = 1;
+  const std::uint32_t rank = set.first + k;
+  RTCRayN* rays = RTCRayHitN_RayN(args->rayhit, args->N);
+  unsigned lanes[16], ids[16], m = 0;
+  double t[16];
+  for (std::uint32_t bits = candidates(args, sphere, ctx.prefilter_pad); bits != 0; bits &= bits - 1) {
+    const unsigned i = static_cast<unsigned>(__builtin_ctz(bits));
+    lanes[m] = i, ids[m] = RTCRayN_id(rays, args->N, i);
+    m += ctx.skip_rank[i] != rank;  // never the sphere the ray has just left
   }
-  for (unsigned i = 0; i < n; ++i) {
-    if (lanes[i] != accept || ctx.skip_rank[i] == rank) continue;  // skip: the sphere just left
-    const unsigned id = RTCRayN_id(rays, n, i);
-    const double t = ray_sphere_entry(q.origin[id], q.direction[id], sphere.centre, sphere.radius);
-    if (!(t < kNoHit)) continue;
-    const std::uint32_t p = set.particle[k];
-    if (!improves(q, id, t, p)) continue;
-    q.t_hit[id] = t;
+  for (unsigned j = 0; j < m; ++j)
+    t[j] = ray_sphere_entry(q.origin[ids[j]], q.direction[ids[j]], sphere.centre, sphere.radius);
+  const std::uint32_t p = set.particle[k];
+  for (unsigned j = 0; j < m; ++j) {
+    const unsigned id = ids[j];
+    if (!(t[j] < kNoHit) || !improves(q, id, t[j], p)) continue;
+    q.t_hit[id] = t[j];
     q.particle[id] = p;
     // The normal now, while the sphere is in cache; the tracer needs it in double.
-    const Vec3 normal = (q.origin[id] + t * q.direction[id] - sphere.centre) / sphere.radius;
-    if (q.normal) q.normal[id] = normal;
-    // Float culling distance padded upward: Embree may still offer spheres the double test
-    // finds nearer; it must never cull them.
-    RTCRayN_tfar(rays, n, i) = round_up(t * (1.0 + kFloatPad) + ctx.slack);
-    RTCHitN_primID(hits, n, i) = args->primID;
-    RTCHitN_geomID(hits, n, i) = args->geomID;
-    RTCHitN_instID(hits, n, i, 0) = args->context->instID[0];
-    RTCHitN_u(hits, n, i) = 0.0f;
-    RTCHitN_v(hits, n, i) = 0.0f;
-    RTCHitN_Ng_x(hits, n, i) = static_cast<float>(normal.x());
-    RTCHitN_Ng_y(hits, n, i) = static_cast<float>(normal.y());
-    RTCHitN_Ng_z(hits, n, i) = static_cast<float>(normal.z());
+    if (q.normal) q.normal[id] = (q.origin[id] + t[j] * q.direction[id] - sphere.centre) / sphere.radius;
+    RTCRayN_tfar(rays, args->N, lanes[j]) = round_up(t[j] * (1.0 + kFloatPad) + ctx.slack);
   }
 }
 
@@ -381,6 +396,7 @@ QueryContext make_context(const RayQuery& query, double slack, bool coherent) {
                             : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
   ctx.query = query;
   ctx.slack = slack;
+  ctx.prefilter_pad = static_cast<float>(10.0 * slack);
   return ctx;
 }
 

@@ -6,23 +6,10 @@
 namespace beampack {
 
 Reflectances reflectance_components(double cos_i, double n_hat, double mu_hat) {
-  cos_i = std::clamp(cos_i, 0.0, 1.0);
-  const double n2 = n_hat * n_hat;
-  // n^2 - sin^2 written as (n^2 - 1) + cos^2: exact for n = 1 and free of the 1 - cos^2
-  // cancellation near grazing incidence.
-  const double n2_minus_sin2 = (n2 - 1.0) + cos_i * cos_i;
-  if (n2_minus_sin2 <= 0.0) return {1.0, 1.0};  // total reflection (2.23)-(2.24)
-  const double root = std::sqrt(n2_minus_sin2);  // n_hat cos(theta_a)
-  const double a = n2 / mu_hat * cos_i;
-  const double r_par = (a - root) / (a + root);
-  const double b = root / mu_hat;
-  const double r_perp = (cos_i - b) / (cos_i + b);
+  const FresnelFractions f = fresnel_fractions(cos_i, n_hat, mu_hat);
+  if (f.total) return {1.0, 1.0};
+  const double r_par = f.par_num / f.par_den, r_perp = f.perp_num / f.perp_den;
   return {r_par * r_par, r_perp * r_perp};
-}
-
-double reflectance(double cos_i, double n_hat, double mu_hat) {
-  const Reflectances r = reflectance_components(cos_i, n_hat, mu_hat);
-  return 0.5 * (r.parallel + r.perpendicular);
 }
 
 double reflectance_polarised(double cos_i, double n_hat, double mu_hat, double gamma) {

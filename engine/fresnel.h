@@ -1,5 +1,7 @@
 #pragma once
 // Fresnel reflectance at a particle surface, section 2.4 of the paper. Pure functions.
+#include <algorithm>
+#include <cmath>
 #include <complex>
 
 #include "geometry/vec3.h"
@@ -11,12 +13,43 @@ struct Reflectances {
   double perpendicular;  // R_perp = r_perp^2
 };
 
+// The amplitude ratios of (2.14) as fractions, r_par = par_num / par_den and r_perp = perp_num /
+// perp_den, both sides multiplied by mu_hat so that no division precedes the last one:
+// r_par = (n^2 cos_i - mu n cos_t) / (n^2 cos_i + mu n cos_t),
+// r_perp = (mu cos_i - n cos_t) / (mu cos_i + n cos_t), with n cos_t = sqrt(n^2 - sin^2).
+// total: sin^2 > n_hat^2 (only for n_hat < 1), total reflection (2.23)-(2.24).
+struct FresnelFractions {
+  double par_num, par_den, perp_num, perp_den;
+  bool total;
+};
+inline FresnelFractions fresnel_fractions(double cos_i, double n_hat, double mu_hat) {
+  cos_i = std::clamp(cos_i, 0.0, 1.0);
+  const double n2 = n_hat * n_hat;
+  // n^2 - sin^2 written as (n^2 - 1) + cos^2: exact for n = 1 and free of the 1 - cos^2
+  // cancellation near grazing incidence.
+  const double n2_minus_sin2 = (n2 - 1.0) + cos_i * cos_i;
+  if (n2_minus_sin2 <= 0.0) return {1.0, 1.0, 1.0, 1.0, true};
+  const double root = std::sqrt(n2_minus_sin2);  // n_hat cos(theta_t)
+  const double a = n2 * cos_i, b = mu_hat * root, c = mu_hat * cos_i;
+  return {a - b, a + b, c - root, c + root, false};
+}
+
 // R_par and R_perp for incidence cos_i in [0, 1] on a medium of relative index n_hat and relative
 // permeability mu_hat (2.14). Where sin^2 > n_hat^2 (only for n_hat < 1) both are 1 (2.23)-(2.24).
 Reflectances reflectance_components(double cos_i, double n_hat, double mu_hat = 1.0);
 
-// Unpolarised reflectance (2.22)/(2.25): (R_par + R_perp) / 2.
-double reflectance(double cos_i, double n_hat, double mu_hat = 1.0);
+// Unpolarised reflectance (2.22)/(2.25): (R_par + R_perp) / 2. Inline with a single division:
+// the tracer calls it at every hit.
+inline double reflectance(double cos_i, double n_hat, double mu_hat = 1.0) {
+  const FresnelFractions f = fresnel_fractions(cos_i, n_hat, mu_hat);
+  if (f.total) return 1.0;
+  const double p2 = f.par_den * f.par_den, q2 = f.perp_den * f.perp_den, den = p2 * q2;
+  if (!std::isnormal(den)) {  // extreme indices (|n| beyond ~1e38 or tiny): two divisions
+    const Reflectances r = reflectance_components(cos_i, n_hat, mu_hat);
+    return 0.5 * (r.parallel + r.perpendicular);
+  }
+  return 0.5 * (f.par_num * f.par_num * q2 + f.perp_num * f.perp_num * p2) / den;
+}
 
 // Linear polarisation at angle gamma to the plane of incidence (2.18):
 // R = R_par cos^2(gamma) + R_perp sin^2(gamma).

@@ -7,6 +7,7 @@
 #include <tbb/partitioner.h>
 
 #include <algorithm>
+#include <array>
 #include <Eigen/Geometry>
 #include <cmath>
 #include <numeric>
@@ -70,6 +71,16 @@ struct Tracer::Chunk {
   std::vector<std::pair<std::uint32_t, RaySegment>> segments;  // when recording, by ray
   std::uint64_t primary = 0, bounced = 0, hits = 0;
   std::size_t ended = 0;
+  double flight = 0.0;  // the most path a ray of the chunk travelled in this advance
+
+  // Empty, keeping the storage: chunks are reused from one advance to the next.
+  void clear() {
+    events.clear();
+    segments.clear();
+    primary = bounced = hits = 0;
+    ended = 0;
+    flight = 0.0;
+  }
 };
 
 Tracer::Tracer(const Particles& particles, OpticsSpec spec)
@@ -106,23 +117,24 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
     }
     upstream -= 1e-6 * (box_.upper - box_.lower).norm();
   }
+  // Appended in the beam's order (already tiled); every array grown once, then filled.
   RayState& s = state_;
-  for (std::size_t k = 0; k < beam.size(); ++k) {  // the beam's order is already tiled
-    s.origin.push_back(beam.origin[k] + upstream * d);
-    s.direction.push_back(d);
-    s.normal.push_back(Vec3::Zero());
-    s.energy.push_back(energies[k]);
-    s.initial_energy.push_back(energies[k]);
-    s.travelled.push_back(0.0);
-    s.path.push_back(0.0);
-    s.t_next.push_back(-1.0);
-    s.last_particle.push_back(kNoParticle);
-    s.next_particle.push_back(kNoParticle);
-    s.bounces.push_back(0);
-    s.live.push_back(1);
+  const std::size_t first = s.live.size(), count = beam.size();
+  s.for_each_array([&](auto& v) { v.resize(first + count); });
+  for (std::size_t k = 0; k < count; ++k) {
+    const std::size_t r = first + k;
+    s.origin[r] = beam.origin[k] + upstream * d;
+    s.direction[r] = d;
+    s.normal[r] = Vec3::Zero();
+    s.energy[r] = s.initial_energy[r] = energies[k];
+    s.travelled[r] = s.path[r] = 0.0;
+    s.t_next[r] = -1.0;
+    s.last_particle[r] = s.next_particle[r] = kNoParticle;
+    s.bounces[r] = 0;
+    s.live[r] = 1;
     s.ledger.injected += energies[k];
   }
-  s.live_count += beam.size();
+  s.live_count += count;
 }
 
 void Tracer::compact() {
@@ -244,10 +256,17 @@ void Tracer::count_segment(std::uint32_t r, Chunk& c) const {
   (state_.bounces[r] == 0 ? c.primary : c.bounced) += 1;
 }
 
-// Advances rays [begin, end) by the budget each: primaries first in coherent packets, then
-// bounced segments one ray at a time, or in waves of incoherent packets (BounceSearch::packets).
 void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budget) {
   const IeeeFloatMode ieee;  // whatever thread TBB runs this chunk on (engine/float_mode.h)
+  std::array<double, kChunkRays> before;
+  std::copy(state_.path.begin() + begin, state_.path.begin() + end, before.begin());
+  trace_chunk(c, begin, end, budget);
+  for (std::size_t r = begin; r < end; ++r) c.flight = std::max(c.flight, state_.path[r] - before[r - begin]);
+}
+
+// Advances rays [begin, end) by the budget each: primaries first in coherent packets, then
+// bounced segments one ray at a time, or in waves of incoherent packets (BounceSearch::packets).
+void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double budget) {
   RayState& s = state_;
   if (spec_.packets) {
     for (std::size_t r = begin; r < end; ++r)
@@ -303,8 +322,9 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
   if (deposits.size() < particles_.size()) deposits.resize(particles_.size(), 0.0);
   RayState& s = state_;
   const std::size_t n = s.live.size();
-  const std::vector<double> path_before = s.path;
-  std::vector<Chunk> chunks((n + kChunkRays - 1) / kChunkRays);
+  std::vector<Chunk>& chunks = chunks_;
+  chunks.resize((n + kChunkRays - 1) / kChunkRays);
+  for (Chunk& c : chunks) c.clear();
   tbb::parallel_for(
       tbb::blocked_range<std::size_t>(0, chunks.size(), 1),
       [&](const tbb::blocked_range<std::size_t>& range) {
@@ -313,7 +333,9 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
       },
       tbb::simple_partitioner());
   // Deterministic reduction: chunk order, ray order inside each chunk, each ray's event order.
+  last_advance_path_ = 0.0;
   for (Chunk& c : chunks) {
+    last_advance_path_ = std::max(last_advance_path_, c.flight);
     if (record_segments_) {  // ray order inside the chunk, whatever order the rays were stepped in
       std::stable_sort(c.segments.begin(), c.segments.end(),
                        [](const auto& a, const auto& b) { return a.first < b.first; });
@@ -334,9 +356,6 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
     s.hits += c.hits;
     s.live_count -= c.ended;
   }
-  last_advance_path_ = 0.0;
-  for (std::size_t r = 0; r < n; ++r)
-    last_advance_path_ = std::max(last_advance_path_, s.path[r] - path_before[r]);
   return s.live_count;
 }
 

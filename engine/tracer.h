@@ -145,6 +145,7 @@ class Tracer {
   bool step_ray(std::uint32_t ray, double& left, Chunk& chunk);
   void count_segment(std::uint32_t ray, Chunk& chunk) const;
   void run_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
+  void trace_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
 
   const Particles& particles_;
   OpticsSpec spec_;
@@ -154,6 +155,7 @@ class Tracer {
   RayState state_;
   bool record_segments_ = false;
   std::vector<RaySegment> segments_;
+  std::vector<Chunk> chunks_;  // per advance; kept so their event storage is reused
   double last_advance_path_ = 0.0;
 };
 
