@@ -75,12 +75,10 @@ void run_tracer(benchmark::State& state, bool packets, double n_hat, int max_bou
                 SceneUpdate scene_update = OpticsSpec{}.scene_update,
                 unsigned per_prim = OpticsSpec{}.spheres_per_primitive,
                 BounceSearch bounce = OpticsSpec{}.bounce_search,
-                double cell_factor = OpticsSpec{}.grid_cell_factor,
-                long max_cells = OpticsSpec{}.grid_max_cells) {
+                double cell_factor = OpticsSpec{}.grid_cell_factor) {
   const Particles& p = packing(spheres_of(state));
   const Beam& beam = paper_beam(rays_of(state));
   OpticsSpec spec;
-  spec.grid_max_cells = max_cells;
   spec.grid_cell_factor = cell_factor;
   spec.bounce_search = bounce;
   spec.scene_update = scene_update;
@@ -416,23 +414,10 @@ void register_all() {
                                               BounceSearch::grid, f);
                                  })
         ->Apply(large);
-  for (double n_hat : {1.4, 20.0})
-    for (long cells : {4L, 8L, 16L, 32L, 1L << 30}) {
-      const std::string name = "trace/grid_max_cells/" +
-                               (cells > 1000 ? std::string("all") : std::to_string(cells)) + "/n" +
-                               std::to_string(static_cast<int>(std::lround(n_hat * 10)));
-      benchmark::RegisterBenchmark(name.c_str(), [=](benchmark::State& s) {
-        run_tracer(s, true, n_hat, 1000, OpticsSpec{}.scene_update, 1, BounceSearch::grid,
-                   OpticsSpec{}.grid_cell_factor, cells);
-      })->Apply(large);
-    }
   benchmark::RegisterBenchmark("trace/primary/tracer_packets",
                                [](benchmark::State& s) { run_tracer(s, true, 1.4, 1); })->Apply(sizes);
   benchmark::RegisterBenchmark("trace/primary/tracer_single", [](benchmark::State& s) {
     run_tracer(s, false, 1.4, 1, OpticsSpec{}.scene_update, 1, BounceSearch::embree);
-  })->Apply(sizes);
-  benchmark::RegisterBenchmark("trace/primary/tracer_grid", [](benchmark::State& s) {
-    run_tracer(s, false, 1.4, 1, OpticsSpec{}.scene_update, 1, BounceSearch::grid);
   })->Apply(sizes);
   benchmark::RegisterBenchmark("trace/primary/builtin_sphere",
                                [](benchmark::State& s) { run_builtin(s, 1.4, 1); })->Apply(sizes);

@@ -68,7 +68,7 @@ struct Event {
 // sums never depend on threads, on packets, or on the order rays were stepped in.
 struct Tracer::Chunk {
   std::vector<Event> events;
-  std::vector<std::pair<std::uint32_t, RaySegment>> segments;  // when recording, by ray
+  std::vector<Event> sorted;  // scratch of sort_events_by_ray  std::vector<std::pair<std::uint32_t, RaySegment>> segments;  // when recording, by ray
   std::uint64_t primary = 0, bounced = 0, hits = 0;
   std::size_t ended = 0;
   double flight = 0.0;  // the most path a ray of the chunk travelled in this advance
@@ -117,24 +117,32 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
     }
     upstream -= 1e-6 * (box_.upper - box_.lower).norm();
   }
-  // Appended in the beam's order (already tiled); every array grown once, then filled.
+  // Appended in the beam's order (already tiled); every array grown once, then filled in
+  // parallel (each ray on its own), the injected energy summed in ray order.
   RayState& s = state_;
   const std::size_t first = s.live.size(), count = beam.size();
   s.for_each_array([&](auto& v) { v.resize(first + count); });
-  for (std::size_t k = 0; k < count; ++k) {
-    const std::size_t r = first + k;
-    s.origin[r] = beam.origin[k] + upstream * d;
-    s.direction[r] = d;
-    s.normal[r] = Vec3::Zero();
-    s.energy[r] = s.initial_energy[r] = energies[k];
-    s.travelled[r] = s.path[r] = 0.0;
-    s.t_next[r] = -1.0;
-    s.last_particle[r] = s.next_particle[r] = kNoParticle;
-    s.bounces[r] = 0;
-    s.live[r] = 1;
-    s.ledger.injected += energies[k];
-  }
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, count, 4096),
+                    [&](const tbb::blocked_range<std::size_t>& range) {
+                      for (std::size_t k = range.begin(); k != range.end(); ++k)
+                        start_ray(first + k, beam.origin[k] + upstream * d, d, energies[k]);
+                    });
+  for (double e : energies) s.ledger.injected += e;
   s.live_count += count;
+}
+
+// Ray r at its launch: on the start plane, no bounce yet, not traced.
+void Tracer::start_ray(std::size_t r, const Vec3& origin, const Vec3& direction, double energy) {
+  RayState& s = state_;
+  s.origin[r] = origin;
+  s.direction[r] = direction;
+  s.normal[r] = Vec3::Zero();
+  s.energy[r] = s.initial_energy[r] = energy;
+  s.travelled[r] = s.path[r] = 0.0;
+  s.t_next[r] = -1.0;
+  s.last_particle[r] = s.next_particle[r] = kNoParticle;
+  s.bounces[r] = 0;
+  s.live[r] = 1;
 }
 
 void Tracer::compact() {
@@ -155,15 +163,13 @@ RayQuery query_of(RayState& s) {
 }
 }  // namespace
 
-// Nearest outside hit of one ray's segment, or the distance to where it leaves the box.
+// Nearest outside hit of one ray's segment through Embree (BounceSearch::embree), or the distance
+// to where it leaves the box.
 void Tracer::trace_segment(std::uint32_t r) {
   RayState& s = state_;
   s.t_next[r] = std::numeric_limits<double>::infinity();
   s.next_particle[r] = kNoParticle;
-  // Bounced rays walk the grid (up to grid_max_cells cells, then Embree). Both give the exact
-  // nearest hit, so the split changes speed, not results.
-  if (!(grid_ && s.bounces[r] > 0 && grid_->intersect1(query_of(s), r, spec_.grid_max_cells)))
-    scene_->intersect1(query_of(s), r);
+  scene_->intersect1(query_of(s), r);
   if (s.next_particle[r] == kNoParticle) s.t_next[r] = box_exit_distance(box_, s.origin[r], s.direction[r]);
 }
 
@@ -196,9 +202,26 @@ void Tracer::trace_packets(std::size_t begin, std::size_t end, bool coherent) {
   trace_ids(ids.data(), ids.size(), coherent);
 }
 
-// One wave of bounced segments in incoherent packets.
+// One wave of queries: the next nearest hit of every listed ray. Bounced rays walk the grid,
+// interleaved; primaries (traced here only without packets) go to Embree one by one.
 void Tracer::trace_wave(const std::vector<std::uint32_t>& rays) {
-  trace_ids(rays.data(), rays.size(), false);
+  if (spec_.bounce_search == BounceSearch::packets) {
+    trace_ids(rays.data(), rays.size(), false);
+    return;
+  }
+  RayState& s = state_;
+  const RayQuery q = query_of(s);
+  std::vector<std::uint32_t> walkers;
+  walkers.reserve(rays.size());
+  for (std::uint32_t r : rays) {
+    s.t_next[r] = std::numeric_limits<double>::infinity();
+    s.next_particle[r] = kNoParticle;
+    if (s.bounces[r] > 0) walkers.push_back(r);
+    else scene_->intersect1(q, r);
+  }
+  grid_->intersect_many(q, walkers);
+  for (std::uint32_t r : rays)
+    if (s.next_particle[r] == kNoParticle) s.t_next[r] = box_exit_distance(box_, s.origin[r], s.direction[r]);
 }
 
 // Moves ray r along its known next event, up to `left` of path. A hit deposits (1 - R) E in the
@@ -264,8 +287,8 @@ void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budg
   for (std::size_t r = begin; r < end; ++r) c.flight = std::max(c.flight, state_.path[r] - before[r - begin]);
 }
 
-// Advances rays [begin, end) by the budget each: primaries first in coherent packets, then
-// bounced segments one ray at a time, or in waves of incoherent packets (BounceSearch::packets).
+// Advances rays [begin, end) by the budget each: primaries first in coherent packets, then the
+// bounced segments, one ray at a time (BounceSearch::embree) or in waves (packets, grid).
 void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double budget) {
   RayState& s = state_;
   if (spec_.packets) {
@@ -273,7 +296,7 @@ void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double bu
       c.primary += s.live[r] && s.t_next[r] < 0.0 && s.bounces[r] == 0;
     trace_packets(begin, end, true);
   }
-  if (spec_.bounce_search != BounceSearch::packets) {
+  if (spec_.bounce_search == BounceSearch::embree) {
     for (std::size_t r = begin; r < end; ++r) {
       if (!s.live[r]) continue;
       const auto ray = static_cast<std::uint32_t>(r);
@@ -285,10 +308,18 @@ void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double bu
     }
     return;
   }
+  trace_in_waves(c, begin, end, budget);
+}
+
+// Every live ray steps to its next query, then the wave's queries run together (interleaved grid
+// walks, or incoherent packets), until no ray needs another. A ray's events stay in its own
+// order but interleave with other rays'; they are put back in ray order at the end.
+void Tracer::trace_in_waves(Chunk& c, std::size_t begin, std::size_t end, double budget) {
   std::vector<std::uint32_t> active, next;
-  std::vector<double> left(end - begin, budget);
+  std::array<double, kChunkRays> left;
+  left.fill(budget);
   for (std::size_t r = begin; r < end; ++r)
-    if (s.live[r]) active.push_back(static_cast<std::uint32_t>(r));
+    if (state_.live[r]) active.push_back(static_cast<std::uint32_t>(r));
   while (!active.empty()) {
     next.clear();
     for (std::uint32_t r : active)
@@ -296,8 +327,17 @@ void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double bu
     trace_wave(next);
     active.swap(next);
   }
-  std::stable_sort(c.events.begin(), c.events.end(),
-                   [](const Event& a, const Event& b) { return a.ray < b.ray; });
+  sort_events_by_ray(c, begin, end);
+}
+
+// Stable counting sort of the chunk's events by ray: O(events), no comparisons.
+void Tracer::sort_events_by_ray(Chunk& c, std::size_t begin, std::size_t end) {
+  std::array<std::uint32_t, kChunkRays + 1> start{};
+  for (const Event& e : c.events) ++start[e.ray - begin + 1];
+  for (std::size_t k = 0; k + 1 < end - begin + 1; ++k) start[k + 1] += start[k];
+  c.sorted.resize(c.events.size());
+  for (const Event& e : c.events) c.sorted[start[e.ray - begin]++] = e;
+  c.events.swap(c.sorted);
 }
 
 void RayState::write(StateWriter& out) const {

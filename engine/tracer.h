@@ -47,8 +47,6 @@ struct OpticsSpec {
   bool packets = true;      // primary rays in coherent 16-ray packets (false: single rays)
   BounceSearch bounce_search = BounceSearch::grid;
   double grid_cell_factor = 3.0;  // grid cell edge / largest radius (measured best of 1.5-4)
-  // Cells walked before handing a bounced ray to Embree; measured fastest: never hand over.
-  long grid_max_cells = std::numeric_limits<long>::max();
   SceneUpdate scene_update = SceneUpdate::deferred;  // docs/bench/optics.md: fastest measured
   unsigned spheres_per_primitive = 1;  // Embree primitive = cluster of this many spheres
 };
@@ -138,6 +136,7 @@ class Tracer {
 
  private:
   struct Chunk;
+  void start_ray(std::size_t r, const Vec3& origin, const Vec3& direction, double energy);
   void trace_ids(const std::uint32_t* ids, std::size_t count, bool coherent);
   void trace_packets(std::size_t begin, std::size_t end, bool coherent);
   void trace_wave(const std::vector<std::uint32_t>& rays);
@@ -146,6 +145,8 @@ class Tracer {
   void count_segment(std::uint32_t ray, Chunk& chunk) const;
   void run_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
   void trace_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
+  void trace_in_waves(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
+  static void sort_events_by_ray(Chunk& chunk, std::size_t begin, std::size_t end);
 
   const Particles& particles_;
   OpticsSpec spec_;

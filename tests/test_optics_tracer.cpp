@@ -95,14 +95,12 @@ TEST(OpticsTracer, PacketsAndSingleRaysGiveIdenticalDeposits) {
   for (double n_hat : {1.4, 20.0}) {
     const Traced a = trace(packing_1e4(), optics_for(n_hat, true, update, BounceSearch::embree), BeamSpec{});
     const Traced b = trace(packing_1e4(), optics_for(n_hat, false, update, BounceSearch::embree), BeamSpec{});
-    // Grid walks to the end, grid handing over to Embree after 3 cells, incoherent packets.
-    const std::pair<BounceSearch, long> variants[] = {
-        {BounceSearch::grid, OpticsSpec{}.grid_max_cells}, {BounceSearch::grid, 3},
-        {BounceSearch::packets, 0}};
-    for (const auto& [bounce, max_cells] : variants) {
-      OpticsSpec spec = optics_for(n_hat, true, update, bounce);
-      spec.grid_max_cells = max_cells;
-      const Traced c = trace(packing_1e4(), spec, BeamSpec{});
+    // Interleaved grid walks (after packets, or after single-ray primaries in the same waves),
+    // incoherent packets.
+    const std::pair<BounceSearch, bool> variants[] = {
+        {BounceSearch::grid, true}, {BounceSearch::grid, false}, {BounceSearch::packets, true}};
+    for (const auto& [bounce, packets] : variants) {
+      const Traced c = trace(packing_1e4(), optics_for(n_hat, packets, update, bounce), BeamSpec{});
       EXPECT_EQ(a.deposits, c.deposits);
       EXPECT_EQ(a.ledger.absorbed, c.ledger.absorbed);
       EXPECT_EQ(a.ledger.escaped, c.ledger.escaped);
