@@ -23,6 +23,7 @@
 #include "engine/beam.h"
 #include "engine/embree_scene.h"
 #include "engine/fresnel.h"
+#include "engine/sphere_grid.h"
 #include "engine/tracer.h"
 #include "geometry/packing.h"
 #include "geometry/random.h"
@@ -346,6 +347,84 @@ void huge(benchmark::internal::Benchmark* b) {
   b->Args({10'000'000, static_cast<long>(kRays)})->Unit(benchmark::kMillisecond)->Iterations(3)->UseRealTime();
 }
 
+// ---- grid walk: one ray at a time against interleaved walks ---------------------------------
+// trace/grid_batch/<variant>/<N>: 10^4 bounced rays (each leaves a random sphere outward, that
+// sphere skipped, no distance limit) through SphereGrid::intersect1 one by one (`single`) or
+// intersect_many in batches of 256 (`many`). Answers whether overlapping the cache misses of
+// several walks pays at 10^6 spheres, where the walk is bound by memory latency.
+
+struct BouncedRays {
+  std::vector<Vec3> origin, direction;
+  std::vector<std::uint32_t> skip;
+};
+
+Vec3 random_unit(Rng& rng) {
+  for (;;) {  // rejection from the cube: isotropic without trigonometry
+    const Vec3 u(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1));
+    const double n2 = u.squaredNorm();
+    if (n2 > 1e-6 && n2 <= 1.0) return u / std::sqrt(n2);
+  }
+}
+
+BouncedRays bounced_rays(const Particles& p, std::size_t count) {
+  BouncedRays rays;
+  Rng rng(31);
+  for (std::size_t k = 0; k < count; ++k) {
+    const auto i = static_cast<std::uint32_t>(rng.next() % p.size());
+    const Vec3 n = random_unit(rng);
+    Vec3 d = random_unit(rng);
+    if (d.dot(n) < 0.0) d = -d;  // outward, as a reflection leaves the surface
+    rays.origin.push_back(p.centre[i] + p.radius[i] * n);
+    rays.direction.push_back(d);
+    rays.skip.push_back(i);
+  }
+  return rays;
+}
+
+const SphereGrid& grid_of(std::size_t n) {
+  static std::map<std::size_t, std::unique_ptr<SphereGrid>> cache;
+  auto& slot = cache[n];
+  if (!slot) slot = std::make_unique<SphereGrid>(packing(n), OpticsSpec{}.grid_cell_factor);
+  return *slot;
+}
+
+void run_grid_batch(benchmark::State& state, bool many) {
+  const auto n = static_cast<std::size_t>(state.range(0));
+  const SphereGrid& grid = grid_of(n);
+  const BouncedRays rays = bounced_rays(packing(n), kRays);
+  std::vector<double> t(kRays);
+  std::vector<std::uint32_t> hit(kRays), ids(kRays);
+  std::vector<Vec3> normal(kRays);
+  std::iota(ids.begin(), ids.end(), 0u);
+  const RayQuery q{rays.origin.data(), rays.direction.data(), rays.skip.data(), t.data(),
+                   hit.data(), normal.data()};
+  constexpr std::size_t kBatch = 256;
+  for (auto _ : state) {
+    std::fill(t.begin(), t.end(), kNoHit);
+    std::fill(hit.begin(), hit.end(), kNoParticle);
+    if (many) {
+      for (std::size_t k = 0; k < kRays; k += kBatch)
+        grid.intersect_many(q, std::span(ids).subspan(k, std::min(kBatch, kRays - k)));
+    } else {
+      for (std::uint32_t r = 0; r < kRays; ++r) grid.intersect1(q, r);
+    }
+    benchmark::DoNotOptimize(t.data());
+    benchmark::ClobberMemory();
+  }
+  state.counters["time/ray"] =
+      benchmark::Counter(static_cast<double>(kRays),
+                         benchmark::Counter::kIsIterationInvariantRate | benchmark::Counter::kInvert);
+  state.counters["hit_fraction"] = static_cast<double>(std::count_if(
+      hit.begin(), hit.end(), [](std::uint32_t p) { return p != kNoParticle; })) / kRays;
+}
+
+void register_grid_batch() {
+  for (bool many : {false, true})
+    benchmark::RegisterBenchmark(many ? "trace/grid_batch/many" : "trace/grid_batch/single",
+                                 [many](benchmark::State& s) { run_grid_batch(s, many); })
+        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMicrosecond)->MinTime(min_time())->UseRealTime();
+}
+
 void register_all() {
   for (double n_hat : {1.4, 20.0}) {
     const std::string large = "/n" + std::to_string(static_cast<int>(std::lround(n_hat * 10)));
@@ -442,6 +521,7 @@ void register_all() {
                                  [mode = mode](benchmark::State& s) { run_build(s, mode); })
         ->Arg(1000000)->Unit(benchmark::kMillisecond)->Iterations(3)->UseRealTime();
   }
+  register_grid_batch();
 }
 
 // BEAMPACK_BENCH_THREADS=k limits TBB (Embree builds and the tracers) to k threads: with other

@@ -25,6 +25,10 @@ class SphereGrid {
   // on their way out, are cheaper in a BVH than cell by cell.
   bool intersect1(const RayQuery& query, std::uint32_t ray_id,
                   long max_cells = std::numeric_limits<long>::max()) const;
+  // Nearest outside hits of the listed rays (same contract as intersect1 with max_cells
+  // unlimited, same answer bit for bit for each ray). The walks are interleaved cell by cell, a
+  // few rays in flight at once, so one ray's cache misses overlap another's work.
+  void intersect_many(const RayQuery& query, std::span<const std::uint32_t> ray_ids) const;
 
   std::size_t cells() const { return start_.empty() ? 0 : start_.size() - 1; }
 
@@ -39,6 +43,17 @@ class SphereGrid {
     return (((z >> 2) * blocks_[1] + (y >> 2)) * blocks_[0] + (x >> 2)) * 64 +
            ((z & 3) * 16 + (y & 3) * 4 + (x & 3));
   }
+
+  // One ray's walk: intersect1 runs one to its end, intersect_many several in turn, cell by cell
+  // (sphere_grid.cpp).
+  struct Walk;
+  bool start_walk(const RayQuery& query, std::uint32_t ray_id, Walk& walk) const;
+  long current_cell(const Walk& walk) const;
+  long step_ahead(Walk& walk) const;
+  void prefetch_entries(long cell) const;
+  void test_cell(Walk& walk, std::size_t cell) const;
+  bool visit_cell(Walk& walk) const;
+  void record_hit(const RayQuery& query, const Walk& walk) const;
 
   Box box_;
   double h_ = 1.0, inv_h_ = 1.0;
