@@ -45,86 +45,80 @@ SphereGrid::SphereGrid(const Particles& particles, double cell_factor) {
     blocks_[a] = (dims_[a] + 3) / 4;
   }
 
-  auto cell_of = [&](double x, int a) {
-    return std::clamp(static_cast<long>(std::floor((x - box_.lower[a]) * inv_h_)), 0L, dims_[a] - 1);
-  };
-  // Spheres in the order of their centre's cell: the spheres of a cell sit together in memory.
-  std::vector<std::pair<long, std::uint32_t>> order(n);
-  for (std::size_t i = 0; i < n; ++i) {
-    const Vec3& c = particles.centre[i];
-    order[i] = {cell_index(cell_of(c.x(), 0), cell_of(c.y(), 1), cell_of(c.z(), 2)),
-                static_cast<std::uint32_t>(i)};
-  }
-  std::sort(order.begin(), order.end());
+  // Every entry a copy of its sphere in double: the exact test needs no second, random load.
   spheres_.resize(n);
-  particle_.resize(n);
-  slot_.resize(n);
-  for (std::size_t s = 0; s < n; ++s) {
-    const std::uint32_t p = order[s].second;
-    particle_[s] = p;
-    slot_[p] = static_cast<std::uint32_t>(s);
-    spheres_[s] = {particles.centre[p], particles.alive[p] ? particles.radius[p] : -particles.radius[p]};
-  }
+  for (std::size_t p = 0; p < n; ++p)
+    spheres_[p] = {particles.centre[p], particles.alive[p] ? particles.radius[p] : -particles.radius[p]};
   // CSR fill in two passes: count, then place.
   const std::size_t cell_count = static_cast<std::size_t>(blocks_[0] * blocks_[1] * blocks_[2] * 64);
   start_.assign(cell_count + 1, 0);
-  auto for_cells = [&](std::size_t s, auto&& visit) {
-    const Sphere& sp = spheres_[s];
-    const double r = std::abs(sp.radius) + kRegisterPad * h_;
-    long lo[3], hi[3];
-    for (int a = 0; a < 3; ++a) lo[a] = cell_of(sp.centre[a] - r, a), hi[a] = cell_of(sp.centre[a] + r, a);
-    for (long z = lo[2]; z <= hi[2]; ++z)
-      for (long y = lo[1]; y <= hi[1]; ++y)
-        for (long x = lo[0]; x <= hi[0]; ++x) visit(static_cast<std::size_t>(cell_index(x, y, z)));
-  };
-  for (std::size_t s = 0; s < n; ++s) for_cells(s, [&](std::size_t c) { ++start_[c + 1]; });
+  for (std::size_t p = 0; p < n; ++p) for_cells(spheres_[p], [&](std::size_t c) { ++start_[c + 1]; });
   for (std::size_t c = 0; c < cell_count; ++c) start_[c + 1] += start_[c];
-  entry_sphere_.resize(start_[cell_count]);
-  entry_slot_.resize(start_[cell_count]);
+  entries_.resize(start_[cell_count]);
   std::vector<std::uint32_t> fill(start_.begin(), start_.end() - 1);
-  for (std::size_t s = 0; s < n; ++s)
-    for_cells(s, [&](std::size_t c) {
-      const Sphere& sp = spheres_[s];
-      entry_sphere_[fill[c]] = {static_cast<float>(sp.centre.x()), static_cast<float>(sp.centre.y()),
-                                static_cast<float>(sp.centre.z()), static_cast<float>(std::abs(sp.radius))};
-      entry_slot_[fill[c]++] = static_cast<std::uint32_t>(s);
+  for (std::size_t p = 0; p < n; ++p)
+    for_cells(spheres_[p], [&](std::size_t c) {
+      entries_[fill[c]++] = {spheres_[p].centre, spheres_[p].radius, static_cast<std::uint32_t>(p)};
     });
-  prefilter_pad_ = static_cast<float>(1e-6 * ((box_.upper - box_.lower).norm() +
-                                              box_.lower.cwiseAbs().maxCoeff() +
-                                              box_.upper.cwiseAbs().maxCoeff()));
 }
 
+long SphereGrid::cell_of(double x, int axis) const {
+  return std::clamp(static_cast<long>(std::floor((x - box_.lower[axis]) * inv_h_)), 0L, dims_[axis] - 1);
+}
+
+// Calls visit(cell) for every cell that the sphere's box, grown by kRegisterPad cells, touches.
+template <class Visit>
+void SphereGrid::for_cells(const Sphere& sphere, Visit&& visit) const {
+  const double r = std::abs(sphere.radius) + kRegisterPad * h_;
+  long lo[3], hi[3];
+  for (int a = 0; a < 3; ++a) lo[a] = cell_of(sphere.centre[a] - r, a), hi[a] = cell_of(sphere.centre[a] + r, a);
+  for (long z = lo[2]; z <= hi[2]; ++z)
+    for (long y = lo[1]; y <= hi[1]; ++y)
+      for (long x = lo[0]; x <= hi[0]; ++x) visit(static_cast<std::size_t>(cell_index(x, y, z)));
+}
+
+// Negates the radius of the particle and of every entry that copies it.
 void SphereGrid::remove(std::span<const std::uint32_t> ids) {
   for (std::uint32_t p : ids) {
-    if (p >= slot_.size())
+    if (p >= spheres_.size())
       throw InputError("remove_particles: particle id " + std::to_string(p) + " >= count " +
-                       std::to_string(slot_.size()));
-    Sphere& s = spheres_[slot_[p]];
-    s.radius = -std::abs(s.radius);
+                       std::to_string(spheres_.size()));
+    Sphere& sphere = spheres_[p];
+    sphere.radius = -std::abs(sphere.radius);
+    for_cells(sphere, [&](std::size_t c) {
+      for (std::uint32_t k = start_[c]; k < start_[c + 1]; ++k)
+        if (entries_[k].particle == p) entries_[k].radius = sphere.radius;
+    });
   }
 }
 
-// The 3D-DDA state of one ray, its best hit so far, and a copy of the DDA running two cells
-// ahead that prefetches (the walk is bound by memory latency): each visit prefetches the entries
-// of the next cell, whose start_ row was prefetched a visit earlier. Self-contained, so that
-// intersect_many can keep several in flight.
+// One ray's walk. A single 3D-DDA runs two cells ahead of the tests and queues the cells it
+// enters with the distance at which the ray leaves each; entering a cell prefetches its start_
+// row, and a cell's entries are prefetched one visit before it is tested (the walk is bound by
+// memory latency). Self-contained, so that intersect_many can keep several in flight.
 struct SphereGrid::Walk {
   Vec3 o, d;
-  float fo[3], fd[3];  // for the float prefilter
-  long cell[3], step[3];
-  double t_max[3], t_delta[3];
+  long step[3];
+  double t_delta[3];
   double t1;  // end of the ray's interval clipped to the box
   double best;
-  std::uint32_t who, best_slot, skip, ray;
-  long ahead[3];
-  double ahead_t[3];
-  bool ahead_ok;
-  long next1, next2;  // the next two cells (-1: the walk ends first)
+  std::uint32_t who, best_entry, skip, ray;  // skip: the particle the ray has just left
+  long cell[3];       // the DDA: the last cell queued, and where the ray crosses its walls
+  double t_max[3];
+  int exit_axis;      // the wall through which the ray leaves that cell
+  bool more;          // the DDA can still queue a cell
+  long queue[3];      // queue[0]: the cell to test now
+  double exit[3];     // where the ray leaves each queued cell
+  int queued;
 };
 
 namespace {
+// The axis whose cell wall the ray crosses first (ties as in t0 < t1 ? (t0 < t2 ? 0 : 2) :
+// (t1 < t2 ? 1 : 2)), without branches: which wall comes first is a coin toss the branch
+// predictor loses at every step.
 int nearest_exit_axis(const double* t_max) {
-  return t_max[0] < t_max[1] ? (t_max[0] < t_max[2] ? 0 : 2) : (t_max[1] < t_max[2] ? 1 : 2);
+  const int c01 = t_max[0] < t_max[1], c02 = t_max[0] < t_max[2], c12 = t_max[1] < t_max[2];
+  return c01 * (2 - 2 * c02) + (1 - c01) * (2 - c12);
 }
 }  // namespace
 
@@ -132,10 +126,13 @@ int nearest_exit_axis(const double* t_max) {
 bool SphereGrid::start_walk(const RayQuery& q, std::uint32_t id, Walk& w) const {
   const Vec3& o = q.origin[id];
   const Vec3& d = q.direction[id];
+  // Reciprocal once, products after: the walk starts at every bounce, and the DDA's distances
+  // need no exact rounding (cells are registered with a pad far above it).
+  const Vec3 inv_d(1.0 / d.x(), 1.0 / d.y(), 1.0 / d.z());
   double t0 = 0.0, t1 = q.t_hit[id];
   for (int a = 0; a < 3; ++a) {
     if (d[a] != 0.0) {
-      const double ta = (box_.lower[a] - o[a]) / d[a], tb = (box_.upper[a] - o[a]) / d[a];
+      const double ta = (box_.lower[a] - o[a]) * inv_d[a], tb = (box_.upper[a] - o[a]) * inv_d[a];
       t0 = std::max(t0, std::min(ta, tb));
       t1 = std::min(t1, std::max(ta, tb));
     } else if (o[a] < box_.lower[a] || o[a] > box_.upper[a]) {
@@ -151,95 +148,88 @@ bool SphereGrid::start_walk(const RayQuery& q, std::uint32_t id, Walk& w) const 
     w.step[a] = d[a] > 0.0 ? 1 : -1;
     if (d[a] != 0.0) {
       const double boundary = box_.lower[a] + static_cast<double>(w.cell[a] + (d[a] > 0.0)) * h_;
-      w.t_max[a] = (boundary - o[a]) / d[a];
-      w.t_delta[a] = h_ / std::abs(d[a]);
+      w.t_max[a] = (boundary - o[a]) * inv_d[a];
+      w.t_delta[a] = h_ * std::abs(inv_d[a]);
     } else {
       w.t_max[a] = w.t_delta[a] = std::numeric_limits<double>::infinity();
     }
-    w.fo[a] = static_cast<float>(o[a]);
-    w.fd[a] = static_cast<float>(d[a]);
-    w.ahead[a] = w.cell[a];
-    w.ahead_t[a] = w.t_max[a];
   }
-  w.skip = q.skip[id] < slot_.size() ? slot_[q.skip[id]] : kNone;
+  w.skip = q.skip[id];
   w.best = q.t_hit[id];
   w.who = q.particle[id];
-  w.best_slot = kNone;
-  w.ahead_ok = true;
-  __builtin_prefetch(&start_[static_cast<std::size_t>(current_cell(w))]);
-  w.next1 = step_ahead(w);
-  w.next2 = step_ahead(w);
+  w.best_entry = kNone;
+  w.more = true;
+  w.queued = 0;
+  enqueue(w, cell_index(w.cell[0], w.cell[1], w.cell[2]));
+  while (w.queued < 3 && step_dda(w)) {}
   return true;
 }
 
-long SphereGrid::current_cell(const Walk& w) const {
-  return cell_index(w.cell[0], w.cell[1], w.cell[2]);
+// Queues cell c, the DDA's current cell, with where the ray leaves it; prefetches its start_ row.
+void SphereGrid::enqueue(Walk& w, long c) const {
+  __builtin_prefetch(&start_[static_cast<std::size_t>(c)]);
+  w.exit_axis = nearest_exit_axis(w.t_max);
+  w.queue[w.queued] = c;
+  w.exit[w.queued] = w.t_max[w.exit_axis];
+  ++w.queued;
 }
 
-// Advances the lookahead copy of the DDA by one cell and prefetches that cell's start_ row.
-long SphereGrid::step_ahead(Walk& w) const {
-  if (!w.ahead_ok) return -1;
-  const int a = nearest_exit_axis(w.ahead_t);
-  w.ahead[a] += w.step[a];
-  if (w.ahead_t[a] > w.t1 || w.ahead[a] < 0 || w.ahead[a] >= dims_[a]) {
-    w.ahead_ok = false;
-    return -1;
-  }
-  w.ahead_t[a] += w.t_delta[a];
-  const long c = cell_index(w.ahead[0], w.ahead[1], w.ahead[2]);
-  __builtin_prefetch(&start_[static_cast<std::size_t>(c)]);
-  return c;
+// Moves the DDA into the next cell along the ray and queues it; false once the ray's interval
+// ends in the last cell queued, or the next cell is outside the grid.
+bool SphereGrid::step_dda(Walk& w) const {
+  if (!w.more) return false;
+  const int a = w.exit_axis;
+  w.cell[a] += w.step[a];
+  if (w.t_max[a] > w.t1 || w.cell[a] < 0 || w.cell[a] >= dims_[a]) return w.more = false;
+  w.t_max[a] += w.t_delta[a];
+  enqueue(w, cell_index(w.cell[0], w.cell[1], w.cell[2]));
+  return true;
 }
 
 // Tests the spheres registered in cell c; keeps the nearest hit, ties to the lower particle id.
+// Most entries are misses: the line passes them by, or they lie behind (the disc and b of
+// ray_sphere_entry, without its square root and division), and removed ones have r < 0.
 void SphereGrid::test_cell(Walk& w, std::size_t c) const {
   for (std::uint32_t k = start_[c]; k < start_[c + 1]; ++k) {
-    // Float prefilter: passes within r + pad of the centre, centre not behind by more.
-    const FloatSphere& f = entry_sphere_[k];
-    const float fx = w.fo[0] - f.x, fy = w.fo[1] - f.y, fz = w.fo[2] - f.z;
-    const float b = -(fx * w.fd[0] + fy * w.fd[1] + fz * w.fd[2]);
-    const float px = fx + b * w.fd[0], py = fy + b * w.fd[1], pz = fz + b * w.fd[2];
-    const float reach = f.r + prefilter_pad_;
-    if (px * px + py * py + pz * pz > reach * reach || b < -reach) continue;
-    const std::uint32_t s = entry_slot_[k];
-    const Sphere& sp = spheres_[s];
-    if (s == w.skip || !(sp.radius > 0.0)) continue;
-    const double t = ray_sphere_entry(w.o, w.d, sp.centre, sp.radius);
+    const Entry& e = entries_[k];
+    const Vec3 f = w.o - e.centre;
+    const double b = -f.dot(w.d);
+    const Vec3 perp = f + b * w.d;
+    if (!(e.radius > 0.0) || b <= 0.0 || perp.squaredNorm() > e.radius * e.radius) continue;
+    const double t = ray_sphere_entry(w.o, w.d, e.centre, e.radius);
     if (!(t < kNoHit)) continue;
-    const std::uint32_t p = particle_[s];
-    if (t < w.best || (t == w.best && p < w.who)) w.best = t, w.who = p, w.best_slot = s;
+    const std::uint32_t p = e.particle;
+    if (p == w.skip) continue;
+    if (t < w.best || (t == w.best && p < w.who)) w.best = t, w.who = p, w.best_entry = k;
   }
 }
 
-// Prefetches the first entries of a cell whose start_ row was prefetched a visit earlier.
+// Prefetches the first entries of a cell whose start_ row was prefetched a visit earlier (a
+// cell holds about four: three cache lines).
 void SphereGrid::prefetch_entries(long cell) const {
-  const std::uint32_t first = start_[static_cast<std::size_t>(cell)];
-  __builtin_prefetch(&entry_sphere_[first]);
-  __builtin_prefetch(&entry_slot_[first]);
+  const auto* first = reinterpret_cast<const char*>(&entries_[start_[static_cast<std::size_t>(cell)]]);
+  for (int line = 0; line < 3; ++line) __builtin_prefetch(first + 64 * line);
 }
 
-// Tests the walk's current cell and steps to the next one; false when the walk is over.
+// Tests the walk's current cell and moves on to the next; false when the walk is over.
 bool SphereGrid::visit_cell(Walk& w) const {
-  const auto c = static_cast<std::size_t>(current_cell(w));
-  if (w.next1 >= 0) prefetch_entries(w.next1);
-  test_cell(w, c);
+  if (w.queued > 1) prefetch_entries(w.queue[1]);
+  test_cell(w, static_cast<std::size_t>(w.queue[0]));
   // Any hit nearer than this cell's exit has its entry point in a cell already walked.
-  const int axis = nearest_exit_axis(w.t_max);
-  if (w.best <= w.t_max[axis] || w.t_max[axis] > w.t1) return false;
-  w.cell[axis] += w.step[axis];
-  if (w.cell[axis] < 0 || w.cell[axis] >= dims_[axis]) return false;
-  w.t_max[axis] += w.t_delta[axis];
-  w.next1 = w.next2;
-  w.next2 = step_ahead(w);
+  if (w.best <= w.exit[0] || w.exit[0] > w.t1 || w.queued == 1) return false;
+  w.queue[0] = w.queue[1], w.exit[0] = w.exit[1];
+  w.queue[1] = w.queue[2], w.exit[1] = w.exit[2];
+  --w.queued;
+  step_dda(w);
   return true;
 }
 
 // Writes a finished walk's hit to the query (untouched when the walk found none).
 void SphereGrid::record_hit(const RayQuery& q, const Walk& w) const {
-  if (w.best_slot == kNone) return;
+  if (w.best_entry == kNone) return;
   q.t_hit[w.ray] = w.best;
   q.particle[w.ray] = w.who;
-  const Sphere& sp = spheres_[w.best_slot];
+  const Entry& sp = entries_[w.best_entry];
   if (q.normal) q.normal[w.ray] = (w.o + w.best * w.d - sp.centre) / sp.radius;
 }
 
@@ -277,7 +267,7 @@ void SphereGrid::intersect_many(const RayQuery& q, std::span<const std::uint32_t
     for (int i = 0; i < live;) {
       if (fresh[i]) {
         fresh[i] = false;
-        prefetch_entries(current_cell(ring[i]));
+        prefetch_entries(ring[i].queue[0]);
       } else if (!visit_cell(ring[i])) {
         record_hit(q, ring[i]);
         if (!start_next(i)) {

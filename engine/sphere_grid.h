@@ -46,10 +46,13 @@ class SphereGrid {
 
   // One ray's walk: intersect1 runs one to its end, intersect_many several in turn, cell by cell
   // (sphere_grid.cpp).
+  long cell_of(double x, int axis) const;
+  template <class Visit>
+  void for_cells(const Sphere& sphere, Visit&& visit) const;
   struct Walk;
   bool start_walk(const RayQuery& query, std::uint32_t ray_id, Walk& walk) const;
-  long current_cell(const Walk& walk) const;
-  long step_ahead(Walk& walk) const;
+  void enqueue(Walk& walk, long cell) const;
+  bool step_dda(Walk& walk) const;
   void prefetch_entries(long cell) const;
   void test_cell(Walk& walk, std::size_t cell) const;
   bool visit_cell(Walk& walk) const;
@@ -59,18 +62,16 @@ class SphereGrid {
   double h_ = 1.0, inv_h_ = 1.0;
   long dims_[3] = {1, 1, 1};
   long blocks_[3] = {1, 1, 1};
-  std::vector<Sphere> spheres_;           // by Morton-like (cell) order
-  std::vector<std::uint32_t> particle_;   // particle id of each sphere
-  std::vector<std::uint32_t> slot_;       // sphere slot of each particle
-  // CSR: cell -> entries. Each entry carries the sphere in float for a conservative prefilter
-  // (most candidates are misses; the double record is loaded only for near ones) and its slot.
-  struct alignas(16) FloatSphere {
-    float x, y, z, r;
+  std::vector<Sphere> spheres_;  // by particle id (removal finds a sphere's cells from it)
+  // CSR: cell -> entries, each a copy of a sphere registered in the cell with its particle id
+  // (one record: a hit needs no second, random load).
+  struct Entry {
+    Vec3 centre;
+    double radius;  // negated once removed
+    std::uint32_t particle;
   };
   std::vector<std::uint32_t> start_;
-  std::vector<FloatSphere> entry_sphere_;
-  std::vector<std::uint32_t> entry_slot_;
-  float prefilter_pad_ = 0.0f;  // far above float round-off of coordinates in the box
+  std::vector<Entry> entries_;
 };
 
 }  // namespace beampack

@@ -68,7 +68,8 @@ struct Event {
 // sums never depend on threads, on packets, or on the order rays were stepped in.
 struct Tracer::Chunk {
   std::vector<Event> events;
-  std::vector<Event> sorted;  // scratch of sort_events_by_ray  std::vector<std::pair<std::uint32_t, RaySegment>> segments;  // when recording, by ray
+  std::vector<Event> sorted;  // scratch of sort_events_by_ray
+  std::vector<std::pair<std::uint32_t, RaySegment>> segments;  // when recording, by ray
   std::uint64_t primary = 0, bounced = 0, hits = 0;
   std::size_t ended = 0;
   double flight = 0.0;  // the most path a ray of the chunk travelled in this advance
