@@ -21,13 +21,10 @@ class SphereGrid {
 
   void remove(std::span<const std::uint32_t> ids);
   // Nearest outside hit of ray ray_id before query.t_hit[ray_id] (same contract as EmbreeScene).
-  // Gives up after max_cells cells (returns false, query untouched): long flights, such as rays
-  // on their way out, are cheaper in a BVH than cell by cell.
-  bool intersect1(const RayQuery& query, std::uint32_t ray_id,
-                  long max_cells = std::numeric_limits<long>::max()) const;
-  // Nearest outside hits of the listed rays (same contract as intersect1 with max_cells
-  // unlimited, same answer bit for bit for each ray). The walks are interleaved cell by cell, a
-  // few rays in flight at once, so one ray's cache misses overlap another's work.
+  void intersect1(const RayQuery& query, std::uint32_t ray_id) const;
+  // Nearest outside hits of the listed rays (same contract as intersect1, same answer bit for
+  // bit for each ray). The walks are interleaved cell by cell, a few rays in flight at once, so
+  // one ray's cache misses overlap another's work.
   void intersect_many(const RayQuery& query, std::span<const std::uint32_t> ray_ids) const;
 
   std::size_t cells() const { return start_.empty() ? 0 : start_.size() - 1; }
