@@ -4,6 +4,7 @@
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_pipeline.h>
 #include <tbb/partitioner.h>
 
 #include <algorithm>
@@ -22,6 +23,7 @@ namespace {
 
 constexpr std::size_t kChunkRays = 256;  // fixed: the reduction order must not depend on threads
 constexpr std::size_t kPacket = 16;
+constexpr std::size_t kChunksInFlight = 16;  // chunks traced ahead of the in-order reduction
 
 void validate(const OpticsSpec& spec, const Particles& particles) {
   if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
@@ -251,7 +253,9 @@ bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
       return false;
     }
     const Vec3 point = s.origin[r] + s.t_next[r] * s.direction[r];
-    const Vec3 normal = s.normal[r].normalized();  // (point - centre) / R from the scene
+    // (point - centre) / R from the scene, normalised again: far from the origin, point - centre
+    // loses digits (spheres of 1e-9 m at x = 3 m: |n| off by 1e-7; tests/test_extreme.cpp).
+    const Vec3 normal = s.normal[r].normalized();
     const double cos_i = -s.direction[r].dot(normal);
     // One material (the usual case): no per-particle lookup, one cache miss fewer per hit.
     const MaterialOptics& m =
@@ -321,14 +325,15 @@ void Tracer::trace_in_waves(Chunk& c, std::size_t begin, std::size_t end, double
   left.fill(budget);
   for (std::size_t r = begin; r < end; ++r)
     if (state_.live[r]) active.push_back(static_cast<std::uint32_t>(r));
-  while (!active.empty()) {
+  int waves = 0;
+  for (; !active.empty(); ++waves) {
     next.clear();
     for (std::uint32_t r : active)
       if (step_ray(r, left[r - begin], c)) next.push_back(r), count_segment(r, c);
     trace_wave(next);
     active.swap(next);
   }
-  sort_events_by_ray(c, begin, end);
+  if (waves > 1) sort_events_by_ray(c, begin, end);  // one wave: already in ray order
 }
 
 // Stable counting sort of the chunk's events by ray: O(events), no comparisons.
@@ -357,6 +362,33 @@ void RayState::read(StateReader& in) {
   });
 }
 
+// Adds a traced chunk to the deposits, the ledger and the counters: ray order inside the chunk,
+// each ray's event order (the chunks come in chunk order).
+void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits) {
+  const IeeeFloatMode ieee;  // the sums must not flush denormals on some threads only
+  RayState& s = state_;
+  last_advance_path_ = std::max(last_advance_path_, c.flight);
+  if (record_segments_) {  // ray order inside the chunk, whatever order the rays were stepped in
+    std::stable_sort(c.segments.begin(), c.segments.end(),
+                     [](const auto& a, const auto& b) { return a.first < b.first; });
+    for (const auto& seg : c.segments) segments_.push_back(seg.second);
+  }
+  for (const Event& e : c.events) {
+    if (e.bin == kEscapedBin) {
+      s.ledger.escaped += e.energy;
+    } else if (e.bin == kCutoffBin) {
+      s.ledger.cutoff += e.energy;
+    } else {
+      deposits[e.bin] += e.energy;
+      s.ledger.absorbed += e.energy;
+    }
+  }
+  s.primary_segments += c.primary;
+  s.bounced_segments += c.bounced;
+  s.hits += c.hits;
+  s.live_count -= c.ended;
+}
+
 std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
   if (!(path_budget >= 0.0))
     throw InputError("advance: path budget " + std::to_string(path_budget) + " must be >= 0");
@@ -365,38 +397,26 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
   const std::size_t n = s.live.size();
   std::vector<Chunk>& chunks = chunks_;
   chunks.resize((n + kChunkRays - 1) / kChunkRays);
-  for (Chunk& c : chunks) c.clear();
-  tbb::parallel_for(
-      tbb::blocked_range<std::size_t>(0, chunks.size(), 1),
-      [&](const tbb::blocked_range<std::size_t>& range) {
-        for (std::size_t k = range.begin(); k != range.end(); ++k)
-          run_chunk(chunks[k], k * kChunkRays, std::min(n, (k + 1) * kChunkRays), path_budget);
-      },
-      tbb::simple_partitioner());
-  // Deterministic reduction: chunk order, ray order inside each chunk, each ray's event order.
   last_advance_path_ = 0.0;
-  for (Chunk& c : chunks) {
-    last_advance_path_ = std::max(last_advance_path_, c.flight);
-    if (record_segments_) {  // ray order inside the chunk, whatever order the rays were stepped in
-      std::stable_sort(c.segments.begin(), c.segments.end(),
-                       [](const auto& a, const auto& b) { return a.first < b.first; });
-      for (const auto& seg : c.segments) segments_.push_back(seg.second);
-    }
-    for (const Event& e : c.events) {
-      if (e.bin == kEscapedBin) {
-        s.ledger.escaped += e.energy;
-      } else if (e.bin == kCutoffBin) {
-        s.ledger.cutoff += e.energy;
-      } else {
-        deposits[e.bin] += e.energy;
-        s.ledger.absorbed += e.energy;
-      }
-    }
-    s.primary_segments += c.primary;
-    s.bounced_segments += c.bounced;
-    s.hits += c.hits;
-    s.live_count -= c.ended;
-  }
+  // Chunks are traced in parallel and summed one by one in chunk order as they finish, so the
+  // (serial, deterministic) reduction overlaps the tracing of later chunks.
+  std::size_t next = 0;
+  tbb::parallel_pipeline(
+      kChunksInFlight,
+      tbb::make_filter<void, std::size_t>(tbb::filter_mode::serial_in_order,
+                                          [&](tbb::flow_control& control) -> std::size_t {
+                                            if (next == chunks.size()) control.stop();
+                                            return next++;
+                                          }) &
+          tbb::make_filter<std::size_t, std::size_t>(
+              tbb::filter_mode::parallel,
+              [&](std::size_t k) {
+                chunks[k].clear();
+                run_chunk(chunks[k], k * kChunkRays, std::min(n, (k + 1) * kChunkRays), path_budget);
+                return k;
+              }) &
+          tbb::make_filter<std::size_t, void>(tbb::filter_mode::serial_in_order,
+                                              [&](std::size_t k) { add_chunk(chunks[k], deposits); }));
   return s.live_count;
 }
 

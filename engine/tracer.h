@@ -144,6 +144,7 @@ class Tracer {
   bool step_ray(std::uint32_t ray, double& left, Chunk& chunk);
   void count_segment(std::uint32_t ray, Chunk& chunk) const;
   void run_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
+  void add_chunk(Chunk& chunk, std::vector<double>& deposits);
   void trace_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
   void trace_in_waves(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
   static void sort_events_by_ray(Chunk& chunk, std::size_t begin, std::size_t end);
