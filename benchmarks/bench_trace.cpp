@@ -1,9 +1,13 @@
 // Optics benchmarks, side by side in one run (STYLE.md point 9):
-//   trace/workload/<variant>/n<index x10>/<N>: the paper's beam (6000 W, d_b = 0.3 D, exponential
-//       a = 2, 10^4 rays) on a random-overlap packing (D = 1e-3, L = 0.325), all bounces to the
-//       cutoff; variants: this tracer with primary packets, the tracer with single rays only, a
-//       plain rtcIntersect1 loop over Embree's built-in spheres, brute force (small N).
-//   trace/primary/<variant>/<N>: the first segment of every ray only (max_bounces = 1).
+//   trace/workload/<variant>/n<index x10>/<N>/<rays>: the paper's beam (6000 W, d_b = 0.3 D,
+//       exponential a = 2) in 10^4 rays, or at the paper's resolution (1000 (N/1000)^(2/3) rays),
+//       on a random-overlap packing (D = 1e-3, L = 0.325), all bounces to the cutoff; variants:
+//       this tracer (primary packets, interleaved grid walks), the tracer with Embree single rays
+//       or incoherent packets for bounces, single rays only, a plain rtcIntersect1 loop over
+//       Embree's built-in spheres, brute force (small N).
+//   trace/primary/<variant>/<N>/<rays>: the first segment of every ray only (max_bounces = 1).
+//   trace/scene_mode, trace/cluster, trace/grid_cell: design choices; trace/grid_batch: the grid
+//       walk alone, one ray at a time or interleaved.
 //   scene_update/<mode>/<pattern>/<N>: removing 1% of the spheres, random or under the beam.
 // Counters: primary and bounced segments per second (whole-workload time).
 #include <benchmark/benchmark.h>
@@ -335,6 +339,12 @@ void sizes(benchmark::internal::Benchmark* b) {
   b->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
 }
 
+// The size ladder with 10^4 rays only: the slower design alternatives.
+void sizes_fixed_rays(benchmark::internal::Benchmark* b) {
+  for (long n : {1000L, 10000L, 100000L, 1000000L}) b->Args({n, static_cast<long>(kRays)});
+  b->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+}
+
 // 1e5 and 1e6 spheres, 10^4 rays: the design comparisons (scene modes, clusters, grid settings).
 void large(benchmark::internal::Benchmark* b) {
   for (long n : {100000L, 1000000L}) b->Args({n, static_cast<long>(kRays)});
@@ -445,19 +455,19 @@ void register_all() {
                                    run_tracer(s, true, n_hat, 1000, OpticsSpec{}.scene_update, 1,
                                               BounceSearch::embree);
                                  })
-        ->Apply(sizes);
+        ->Apply(sizes_fixed_rays);
     benchmark::RegisterBenchmark(("trace/workload/tracer_packets_packet_bounces" + tag).c_str(),
                                  [=](benchmark::State& s) {
                                    run_tracer(s, true, n_hat, 1000, OpticsSpec{}.scene_update, 1,
                                               BounceSearch::packets);
                                  })
-        ->Apply(sizes);
+        ->Apply(sizes_fixed_rays);
     benchmark::RegisterBenchmark(("trace/workload/tracer_single" + tag).c_str(),
                                  [=](benchmark::State& s) {
                                    run_tracer(s, false, n_hat, 1000, OpticsSpec{}.scene_update, 1,
                                               BounceSearch::embree);
                                  })
-        ->Apply(sizes);
+        ->Apply(sizes_fixed_rays);
     benchmark::RegisterBenchmark(("trace/workload/builtin_sphere" + tag).c_str(),
                                  [=](benchmark::State& s) { run_builtin(s, n_hat, 1000); })
         ->Apply(sizes);
