@@ -12,12 +12,17 @@ from collections import defaultdict
 
 
 def family_and_size(name):
-    parts = [p for p in name.split("/") if not p.startswith(("real_time", "min_time", "repeats"))]
+    """The size N is the first numeric argument. A second one is a ray count (trace/): 10000
+    stays in the family's name; any other is the paper's resolution, which grows with N."""
+    parts = [p for p in name.split("/") if not p.startswith(("real_time", "min_time", "repeats",
+                                                            "iterations"))]
     sizes = [i for i, p in enumerate(parts) if p.isdigit()]
     if not sizes:
         return None, None
-    i = sizes[-1]
-    return "/".join(parts[:i] + parts[i + 1:]), int(parts[i])
+    i = sizes[0]
+    rest = [("rays=1e4" if p == "10000" else "rays=paper") if p.isdigit() else p
+            for p in parts[i + 1:]]
+    return "/".join(parts[:i] + rest), int(parts[i])
 
 
 def slope(points):
