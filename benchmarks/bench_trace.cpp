@@ -485,12 +485,12 @@ void register_all() {
         ->Apply(large);
   // Embree primitive = a cluster of K consecutive (Morton) spheres: fewer callbacks, looser boxes.
   for (unsigned k : {1u, 2u, 4u, 8u}) {
-    benchmark::RegisterBenchmark(("trace/cluster/" + std::to_string(k) + "/n200").c_str(),
+    benchmark::RegisterBenchmark(("trace/cluster/k" + std::to_string(k) + "/n200").c_str(),
                                  [k](benchmark::State& s) {
                                    run_tracer(s, true, 20.0, 1000, SceneUpdate::deferred, k);
                                  })
         ->Apply(large);
-    benchmark::RegisterBenchmark(("trace/cluster/" + std::to_string(k) + "/primary").c_str(),
+    benchmark::RegisterBenchmark(("trace/cluster/k" + std::to_string(k) + "/primary").c_str(),
                                  [k](benchmark::State& s) {
                                    run_tracer(s, true, 20.0, 1, SceneUpdate::deferred, k);
                                  })

@@ -173,7 +173,7 @@ void intersect_sphere(const RTCIntersectFunctionNArguments* args, const SphereSe
     q.t_hit[id] = t[j];
     q.particle[id] = p;
     // The normal now, while the sphere is in cache; the tracer needs it in double.
-    if (q.normal) q.normal[id] = (q.origin[id] + t[j] * q.direction[id] - sphere.centre) / sphere.radius;
+    if (q.normal) q.normal[id] = q.origin[id] + t[j] * q.direction[id] - sphere.centre;
     RTCRayN_tfar(rays, args->N, lanes[j]) = round_up(t[j] * (1.0 + kFloatPad) + ctx.slack);
   }
 }

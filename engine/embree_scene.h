@@ -32,7 +32,9 @@ struct RayQuery {
   const std::uint32_t* skip = nullptr;
   double* t_hit = nullptr;
   std::uint32_t* particle = nullptr;
-  Vec3* normal = nullptr;  // optional: unit outward normal at the hit, in double
+  // Optional: the outward normal at the hit in double, as hit point - centre (length R, not
+  // normalised: the tracer normalises it once, so no division here).
+  Vec3* normal = nullptr;
 };
 
 // How the acceleration structure follows removals (benchmarks/bench_trace.cpp compares them;

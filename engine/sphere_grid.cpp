@@ -230,7 +230,7 @@ void SphereGrid::record_hit(const RayQuery& q, const Walk& w) const {
   q.t_hit[w.ray] = w.best;
   q.particle[w.ray] = w.who;
   const Entry& sp = entries_[w.best_entry];
-  if (q.normal) q.normal[w.ray] = (w.o + w.best * w.d - sp.centre) / sp.radius;
+  if (q.normal) q.normal[w.ray] = w.o + w.best * w.d - sp.centre;
 }
 
 void SphereGrid::intersect1(const RayQuery& q, std::uint32_t id) const {
