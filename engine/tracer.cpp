@@ -71,6 +71,8 @@ struct Event {
 struct Tracer::Chunk {
   std::vector<Event> events;
   std::vector<Event> sorted;  // scratch of sort_events_by_ray
+  // Scratch lists of ray ids (packets, waves), kept with the chunk so no pulse allocates them.
+  std::vector<std::uint32_t> ids, active, next, walkers;
   std::vector<std::pair<std::uint32_t, RaySegment>> segments;  // when recording, by ray
   std::uint64_t primary = 0, bounced = 0, hits = 0;
   std::size_t ended = 0;
@@ -196,26 +198,26 @@ void Tracer::trace_ids(const std::uint32_t* ids, std::size_t count, bool coheren
 }
 
 // Primary rays not yet traced, in coherent packets.
-void Tracer::trace_packets(std::size_t begin, std::size_t end, bool coherent) {
+void Tracer::trace_packets(std::size_t begin, std::size_t end, Chunk& c) {
   const RayState& s = state_;
-  std::vector<std::uint32_t> ids;
-  ids.reserve(end - begin);
+  std::vector<std::uint32_t>& ids = c.ids;
+  ids.clear();
   for (std::size_t r = begin; r < end; ++r)
     if (s.live[r] && s.t_next[r] < 0.0 && s.bounces[r] == 0) ids.push_back(static_cast<std::uint32_t>(r));
-  trace_ids(ids.data(), ids.size(), coherent);
+  trace_ids(ids.data(), ids.size(), true);
 }
 
 // One wave of queries: the next nearest hit of every listed ray. Bounced rays walk the grid,
 // interleaved; primaries (traced here only without packets) go to Embree one by one.
-void Tracer::trace_wave(const std::vector<std::uint32_t>& rays) {
+void Tracer::trace_wave(const std::vector<std::uint32_t>& rays, Chunk& c) {
   if (spec_.bounce_search == BounceSearch::packets) {
     trace_ids(rays.data(), rays.size(), false);
     return;
   }
   RayState& s = state_;
   const RayQuery q = query_of(s);
-  std::vector<std::uint32_t> walkers;
-  walkers.reserve(rays.size());
+  std::vector<std::uint32_t>& walkers = c.walkers;
+  walkers.clear();
   for (std::uint32_t r : rays) {
     s.t_next[r] = std::numeric_limits<double>::infinity();
     s.next_particle[r] = kNoParticle;
@@ -297,7 +299,7 @@ void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double bu
   if (spec_.packets) {
     for (std::size_t r = begin; r < end; ++r)
       c.primary += s.live[r] && s.t_next[r] < 0.0 && s.bounces[r] == 0;
-    trace_packets(begin, end, true);
+    trace_packets(begin, end, c);
   }
   if (spec_.bounce_search == BounceSearch::embree) {
     for (std::size_t r = begin; r < end; ++r) {
@@ -318,7 +320,9 @@ void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double bu
 // walks, or incoherent packets), until no ray needs another. A ray's events stay in its own
 // order but interleave with other rays'; they are put back in ray order at the end.
 void Tracer::trace_in_waves(Chunk& c, std::size_t begin, std::size_t end, double budget) {
-  std::vector<std::uint32_t> active, next;
+  std::vector<std::uint32_t>& active = c.active;
+  std::vector<std::uint32_t>& next = c.next;
+  active.clear();
   std::array<double, kChunkRays> left;
   left.fill(budget);
   for (std::size_t r = begin; r < end; ++r)
@@ -328,7 +332,7 @@ void Tracer::trace_in_waves(Chunk& c, std::size_t begin, std::size_t end, double
     next.clear();
     for (std::uint32_t r : active)
       if (step_ray(r, left[r - begin], c)) next.push_back(r), count_segment(r, c);
-    trace_wave(next);
+    trace_wave(next, c);
     active.swap(next);
   }
   if (waves > 1) sort_events_by_ray(c, begin, end);  // one wave: already in ray order

@@ -138,8 +138,8 @@ class Tracer {
   struct Chunk;
   void start_ray(std::size_t r, const Vec3& origin, const Vec3& direction, double energy);
   void trace_ids(const std::uint32_t* ids, std::size_t count, bool coherent);
-  void trace_packets(std::size_t begin, std::size_t end, bool coherent);
-  void trace_wave(const std::vector<std::uint32_t>& rays);
+  void trace_packets(std::size_t begin, std::size_t end, Chunk& chunk);
+  void trace_wave(const std::vector<std::uint32_t>& rays, Chunk& chunk);
   void trace_segment(std::uint32_t ray);
   bool step_ray(std::uint32_t ray, double& left, Chunk& chunk);
   void count_segment(std::uint32_t ray, Chunk& chunk) const;
