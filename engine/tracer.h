@@ -4,7 +4,7 @@
 //
 // Determinism: rays are processed in fixed-size chunks; each chunk records its events (energy into
 // a particle, escaped, cut off) per ray in the ray's order, and the chunks are summed in chunk
-// order on one thread. Every search finds the same nearest hit in double. Deposits and ledger are
+// order, one at a time, as they finish. Every search finds the same nearest hit in double. Deposits and ledger are
 // therefore bit-identical for any thread count, packets or single rays, Embree or grid.
 //
 // Particles in phase vapor must be removed (remove_particles); liquid ones use n_liquid.
@@ -31,7 +31,8 @@ struct MaterialOptics {
 };
 
 // How bounced rays find their next sphere (same answer bit for bit; docs/bench/optics.md):
-// Embree single rays, waves of incoherent Embree packets, or a uniform-grid walk.
+// Embree single rays, waves of incoherent Embree packets, or waves of interleaved walks through a
+// uniform grid (the default: measured fastest).
 enum class BounceSearch { embree, packets, grid };
 
 // One straight piece of a ray's path: from its segment origin to the hit or the box exit.
