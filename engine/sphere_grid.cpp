@@ -187,16 +187,15 @@ bool SphereGrid::step_dda(Walk& w) const {
 }
 
 // Tests the spheres registered in cell c; keeps the nearest hit, ties to the lower particle id.
-// Most entries are misses: the line passes them by, or they lie behind (the disc and b of
-// ray_sphere_entry, without its square root and division), and removed ones have r < 0.
+// Most entries are misses: the line passes them by, or they lie behind (sphere_approach, without
+// the entry's square root and division), and removed ones have r < 0.
 void SphereGrid::test_cell(Walk& w, std::size_t c) const {
   for (std::uint32_t k = start_[c]; k < start_[c + 1]; ++k) {
     const Entry& e = entries_[k];
-    const Vec3 f = w.o - e.centre;
-    const double b = -f.dot(w.d);
-    const Vec3 perp = f + b * w.d;
-    if (!(e.radius > 0.0) || b <= 0.0 || perp.squaredNorm() > e.radius * e.radius) continue;
-    const double t = ray_sphere_entry(w.o, w.d, e.centre, e.radius);
+    if (!(e.radius > 0.0)) continue;
+    const SphereApproach approach = sphere_approach(w.o, w.d, e.centre, e.radius);
+    if (!approach.ahead_and_met()) continue;
+    const double t = ray_sphere_entry(approach);
     if (!(t < kNoHit)) continue;
     const std::uint32_t p = e.particle;
     if (p == w.skip) continue;
