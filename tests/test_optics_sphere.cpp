@@ -149,6 +149,23 @@ struct RandomRays {
   }
 };
 
+struct NearestHit {
+  double t = kNoHit;
+  std::uint32_t particle = kNoParticle;
+};
+
+// Ray r's nearest outside hit by brute force over every sphere not gone, the skipped one aside.
+NearestHit brute_force_nearest(const Particles& p, const std::vector<std::uint8_t>& gone,
+                               const RandomRays& rays, std::size_t r) {
+  NearestHit best;
+  for (std::uint32_t i = 0; i < p.size(); ++i) {
+    if (i == rays.skip[r] || gone[i]) continue;
+    const double t = ray_sphere_entry(rays.org[r], rays.dir[r], p.centre[i], p.radius[i]);
+    if (t < best.t) best = {t, i};
+  }
+  return best;
+}
+
 void expect_brute_force_hits(const EmbreeScene& scene, const Particles& p,
                              const std::vector<std::uint8_t>& gone, const RandomRays& rays) {
   const std::size_t n = rays.org.size();
@@ -159,17 +176,11 @@ void expect_brute_force_hits(const EmbreeScene& scene, const Particles& p,
   for (std::uint32_t r = 0; r < n; ++r) scene.intersect1(q1, r), ids[r] = r;
   for (std::size_t r = 0; r < n; r += 16) scene.intersect16(q16, ids.data() + r, 16);
   for (std::size_t r = 0; r < n; ++r) {
-    double best = kNoHit;
-    std::uint32_t who = kNoParticle;
-    for (std::uint32_t i = 0; i < p.size(); ++i) {
-      if (i == rays.skip[r] || gone[i]) continue;
-      const double t = ray_sphere_entry(rays.org[r], rays.dir[r], p.centre[i], p.radius[i]);
-      if (t < best) best = t, who = i;
-    }
-    ASSERT_EQ(hit1[r], who) << "ray " << r;
-    ASSERT_EQ(t1[r], best) << "ray " << r;
-    ASSERT_EQ(hit16[r], who) << "ray " << r;
-    ASSERT_EQ(t16[r], best) << "ray " << r;
+    const NearestHit truth = brute_force_nearest(p, gone, rays, r);
+    ASSERT_EQ(hit1[r], truth.particle) << "ray " << r;
+    ASSERT_EQ(t1[r], truth.t) << "ray " << r;
+    ASSERT_EQ(hit16[r], truth.particle) << "ray " << r;
+    ASSERT_EQ(t16[r], truth.t) << "ray " << r;
   }
 }
 
@@ -209,15 +220,9 @@ TEST(OpticsSphere, GridHitsEqualBruteForceBeforeAndAfterRemoval) {
                        normal.data()};
       for (std::uint32_t r = 0; r < n; ++r) grid.intersect1(q, r);
       for (std::size_t r = 0; r < n; ++r) {
-        double best = kNoHit;
-        std::uint32_t who = kNoParticle;
-        for (std::uint32_t i = 0; i < p.size(); ++i) {
-          if (i == rays.skip[r] || gone[i]) continue;
-          const double ti = ray_sphere_entry(rays.org[r], rays.dir[r], p.centre[i], p.radius[i]);
-          if (ti < best) best = ti, who = i;
-        }
-        ASSERT_EQ(hit[r], who) << "factor " << factor << " pass " << pass << " ray " << r;
-        ASSERT_EQ(t[r], best) << "factor " << factor << " pass " << pass << " ray " << r;
+        const NearestHit truth = brute_force_nearest(p, gone, rays, r);
+        ASSERT_EQ(hit[r], truth.particle) << "factor " << factor << " pass " << pass << " ray " << r;
+        ASSERT_EQ(t[r], truth.t) << "factor " << factor << " pass " << pass << " ray " << r;
       }
       std::vector<std::uint32_t> victims;
       for (std::uint32_t i = 1; i < p.size(); i += 7) victims.push_back(i), gone[i] = 1;
