@@ -280,39 +280,42 @@ std::vector<std::uint32_t> victims(const Particles& p, bool under_beam) {
   return ids;
 }
 
-void run_update(benchmark::State& state, SceneUpdate mode, bool under_beam) {
-  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
-  const auto ids = victims(p, under_beam);
+// Times remove(owner, ids) alone: the owner is made (make()) and destroyed outside the timing.
+template <class Make, class Remove>
+void time_removal(benchmark::State& state, bool under_beam, Make make, Remove remove) {
+  const auto ids = victims(packing(static_cast<std::size_t>(state.range(0))), under_beam);
   for (auto _ : state) {
     state.PauseTiming();
-    auto scene = std::make_unique<EmbreeScene>(p, mode);
+    auto owner = make();
     state.ResumeTiming();
-    scene->remove(ids);
+    remove(*owner, ids);
     state.PauseTiming();
-    scene.reset();
+    owner.reset();
     state.ResumeTiming();
   }
   state.counters["removed"] = static_cast<double>(ids.size());
+}
+
+void run_update(benchmark::State& state, SceneUpdate mode, bool under_beam) {
+  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  time_removal(
+      state, under_beam, [&] { return std::make_unique<EmbreeScene>(p, mode); },
+      [](EmbreeScene& scene, const auto& ids) { scene.remove(ids); });
 }
 
 // What the driver pays: Tracer::remove_particles (scene + grid masks, rays heading for a removed
 // sphere retraced later) with a pulse in flight.
 void run_tracer_remove(benchmark::State& state, bool under_beam) {
   const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
-  const auto ids = victims(p, under_beam);
-  for (auto _ : state) {
-    state.PauseTiming();
+  auto tracer_in_flight = [&] {
     auto tracer = std::make_unique<Tracer>(p, OpticsSpec{});
     tracer->launch(paper_beam(), 1e-9);
     std::vector<double> deposits;
     tracer->advance(2e-4, deposits);  // rays in flight inside the packing
-    state.ResumeTiming();
-    tracer->remove_particles(ids);
-    state.PauseTiming();
-    tracer.reset();
-    state.ResumeTiming();
-  }
-  state.counters["removed"] = static_cast<double>(ids.size());
+    return tracer;
+  };
+  time_removal(state, under_beam, tracer_in_flight,
+               [](Tracer& tracer, const auto& ids) { tracer.remove_particles(ids); });
 }
 
 void run_build(benchmark::State& state, SceneUpdate mode) {
