@@ -5,6 +5,7 @@
 #include <cmath>
 #include <complex>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
@@ -169,6 +170,12 @@ Outcome check_packing_file(std::span<const std::uint8_t> bytes) {
   Outcome three = guarded([&] { return check_particles(read_packing_file(path, 1e-5)); });
   if (!three.bug.empty()) three.bug = "(x y z, radius 1e-5) " + three.bug;
   return three.bug.empty() ? four : three;  // the x y z r reading, unless x y z found a bug
+}
+
+int report(const Outcome& outcome, const char* target) {
+  if (outcome.bug.empty()) return 0;
+  std::fprintf(stderr, "beampack fuzz bug (%s): %s\n", target, outcome.bug.c_str());
+  std::abort();
 }
 
 }  // namespace beampack::fuzz

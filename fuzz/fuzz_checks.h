@@ -28,4 +28,8 @@ Outcome check_run_file(std::span<const std::uint8_t> bytes);
 // finite, positive volume and bounding box.
 Outcome check_packing_file(std::span<const std::uint8_t> bytes);
 
+// A target's verdict on one input: a bug is printed with the target's name and aborts the
+// process (libFuzzer saves the input as a crash artifact); anything else returns 0.
+int report(const Outcome& outcome, const char* target);
+
 }  // namespace beampack::fuzz
