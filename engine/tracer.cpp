@@ -168,33 +168,37 @@ RayQuery query_of(RayState& s) {
 }
 }  // namespace
 
+// Before a search for ray r's next event: none known yet, the search keeps the nearest hit.
+void Tracer::open_query(std::uint32_t r) {
+  state_.t_next[r] = std::numeric_limits<double>::infinity();
+  state_.next_particle[r] = kNoParticle;
+}
+
+// After it: no hit means the next event is leaving the box (MODEL.md 3a). True when it hit.
+bool Tracer::close_query(std::uint32_t r) {
+  RayState& s = state_;
+  if (s.next_particle[r] != kNoParticle) return true;
+  s.t_next[r] = box_exit_distance(box_, s.origin[r], s.direction[r]);
+  return false;
+}
+
 // Nearest outside hit of one ray's segment through Embree (BounceSearch::embree), or the distance
 // to where it leaves the box.
 void Tracer::trace_segment(std::uint32_t r) {
-  RayState& s = state_;
-  s.t_next[r] = std::numeric_limits<double>::infinity();
-  s.next_particle[r] = kNoParticle;
-  scene_->intersect1(query_of(s), r);
-  if (s.next_particle[r] == kNoParticle) s.t_next[r] = box_exit_distance(box_, s.origin[r], s.direction[r]);
+  open_query(r);
+  scene_->intersect1(query_of(state_), r);
+  close_query(r);
 }
 
 // Traces the listed rays in packets of 16 consecutive ones (coherent: a tile of the beam).
 void Tracer::trace_ids(const std::uint32_t* ids, std::size_t count, bool coherent) {
-  RayState& s = state_;
-  const RayQuery q = query_of(s);
-  for (std::size_t k = 0; k < count; ++k) {
-    s.t_next[ids[k]] = std::numeric_limits<double>::infinity();
-    s.next_particle[ids[k]] = kNoParticle;
-  }
+  const RayQuery q = query_of(state_);
+  for (std::size_t k = 0; k < count; ++k) open_query(ids[k]);
   for (std::size_t k = 0; k < count; k += kPacket)
     scene_->intersect16(q, ids + k, static_cast<int>(std::min<std::size_t>(kPacket, count - k)), coherent);
-  for (std::size_t k = 0; k < count; ++k) {
-    const std::uint32_t p = s.next_particle[ids[k]];
-    if (p == kNoParticle)
-      s.t_next[ids[k]] = box_exit_distance(box_, s.origin[ids[k]], s.direction[ids[k]]);
-    else
-      __builtin_prefetch(&particles_.phase[p]);  // read when the hit is processed
-  }
+  for (std::size_t k = 0; k < count; ++k)
+    if (close_query(ids[k]))  // the phase is read when the hit is processed
+      __builtin_prefetch(&particles_.phase[state_.next_particle[ids[k]]]);
 }
 
 // Primary rays not yet traced, in coherent packets.
@@ -219,14 +223,12 @@ void Tracer::trace_wave(const std::vector<std::uint32_t>& rays, Chunk& c) {
   std::vector<std::uint32_t>& walkers = c.walkers;
   walkers.clear();
   for (std::uint32_t r : rays) {
-    s.t_next[r] = std::numeric_limits<double>::infinity();
-    s.next_particle[r] = kNoParticle;
+    open_query(r);
     if (s.bounces[r] > 0) walkers.push_back(r);
     else scene_->intersect1(q, r);
   }
   grid_->intersect_many(q, walkers);
-  for (std::uint32_t r : rays)
-    if (s.next_particle[r] == kNoParticle) s.t_next[r] = box_exit_distance(box_, s.origin[r], s.direction[r]);
+  for (std::uint32_t r : rays) close_query(r);
 }
 
 // Moves ray r along its known next event, up to `left` of path. A hit deposits (1 - R) E in the

@@ -138,6 +138,8 @@ class Tracer {
  private:
   struct Chunk;
   void start_ray(std::size_t r, const Vec3& origin, const Vec3& direction, double energy);
+  void open_query(std::uint32_t ray);
+  bool close_query(std::uint32_t ray);
   void trace_ids(const std::uint32_t* ids, std::size_t count, bool coherent);
   void trace_packets(std::size_t begin, std::size_t end, Chunk& chunk);
   void trace_wave(const std::vector<std::uint32_t>& rays, Chunk& chunk);
