@@ -5,7 +5,6 @@
 // descent from the root (docs/bench/optics.md). Same answer as EmbreeScene, bit for bit: the
 // nearest outside hit in double, the sphere just left skipped, ties to the lower particle id.
 #include <cstdint>
-#include <limits>
 #include <span>
 #include <vector>
 
