@@ -41,6 +41,10 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
       throw InputError("`optics.n_solid`, `optics.n_liquid` and mu_hat must be > 0");
 }
 
+// v / |v| with one division (Eigen's normalized() divides each component): the hit normal and
+// the reflected direction, nonzero by construction.
+Vec3 unit(const Vec3& v) { return v * (1.0 / v.norm()); }
+
 // Unpolarised Fresnel reflectance (2.25) with the particle's current index (solid or liquid).
 double particle_reflectance(const MaterialOptics& m, Phase phase, double cos_i) {
   const std::complex<double> n = phase == Phase::solid ? m.n_solid : m.n_liquid;
@@ -257,7 +261,7 @@ bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
       return false;
     }
     const Vec3 point = s.origin[r] + s.t_next[r] * s.direction[r];
-    const Vec3 normal = s.normal[r].normalized();  // point - centre from the scene
+    const Vec3 normal = unit(s.normal[r]);  // point - centre from the scene
     const double cos_i = -s.direction[r].dot(normal);
     // One material (the usual case): no per-particle lookup, one cache miss fewer per hit.
     const MaterialOptics& m =
@@ -266,7 +270,7 @@ bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
     const double carried = R * s.energy[r];
     c.events.push_back({r, p, s.energy[r] - carried});  // absorbed + carried == E exactly
     ++c.hits;
-    s.direction[r] = reflect(s.direction[r], normal).normalized();
+    s.direction[r] = unit(reflect(s.direction[r], normal));
     s.origin[r] = point;
     s.energy[r] = carried;
     s.last_particle[r] = p;
