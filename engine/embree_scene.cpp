@@ -61,14 +61,20 @@ float round_down(double x) {
   float f = static_cast<float>(x);
   return f > x ? std::nextafter(f, -std::numeric_limits<float>::infinity()) : f;
 }
-// The float culling distance: called on every accepted hit, so no libm call. For t >= 0 the next
-// float up is the next bit pattern (up to +infinity).
 float round_up(double x) {
   const float f = static_cast<float>(x);
-  if (!(f < x)) return f;
-  if (!(f >= 0.0f)) return std::nextafter(f, std::numeric_limits<float>::infinity());
-  return std::bit_cast<float>(std::bit_cast<std::uint32_t>(f) + 1u);
+  return f < x ? std::nextafter(f, std::numeric_limits<float>::infinity()) : f;
 }
+// The float culling distance of a hit at x >= 0: called on every accepted hit, so no libm call
+// and no branch (whether the nearest float lies above or below x is a coin toss). For x >= 0 the
+// next float up is the next bit pattern (up to +infinity).
+float round_up_distance(double x) {
+  const float f = static_cast<float>(x);
+  return std::bit_cast<float>(std::bit_cast<std::uint32_t>(f) + static_cast<std::uint32_t>(f < x));
+}
+// Embree's float tfar for a double hit distance t: padded upward, so Embree never culls a sphere
+// the double test would find nearer.
+float culling_distance(double t, double slack) { return round_up_distance(t * (1.0 + kFloatPad) + slack); }
 
 // Bounds of a cluster's live spheres, rounded outward; empty when all are removed (dropped by
 // builds and refits).
@@ -174,7 +180,7 @@ void intersect_sphere(const RTCIntersectFunctionNArguments* args, const SphereSe
     q.particle[id] = p;
     // The normal now, while the sphere is in cache; the tracer needs it in double.
     if (q.normal) q.normal[id] = q.origin[id] + t[j] * q.direction[id] - sphere.centre;
-    RTCRayN_tfar(rays, args->N, lanes[j]) = round_up(t[j] * (1.0 + kFloatPad) + ctx.slack);
+    RTCRayN_tfar(rays, args->N, lanes[j]) = culling_distance(t[j], ctx.slack);
   }
 }
 
@@ -413,7 +419,7 @@ RTCRay float_ray(const RayQuery& query, std::uint32_t id, double slack) {
   ray.dir_y = static_cast<float>(d.y());
   ray.dir_z = static_cast<float>(d.z());
   ray.tnear = 0.0f;
-  ray.tfar = query.t_hit[id] < kInf ? round_up(query.t_hit[id] * (1.0 + kFloatPad) + slack)
+  ray.tfar = query.t_hit[id] < kInf ? culling_distance(query.t_hit[id], slack)
                                     : std::numeric_limits<float>::infinity();
   ray.time = 0.0f;
   ray.mask = 0xFFFFFFFFu;
@@ -453,7 +459,7 @@ void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, i
     rh.ray.dir_z[i] = static_cast<float>(d.z());
     rh.ray.tnear[i] = 0.0f;
     rh.ray.tfar[i] = query.t_hit[id] < kInf
-                         ? round_up(query.t_hit[id] * (1.0 + kFloatPad) + impl_->slack)
+                         ? culling_distance(query.t_hit[id], impl_->slack)
                          : std::numeric_limits<float>::infinity();
     rh.ray.time[i] = 0.0f;
     rh.ray.mask[i] = 0xFFFFFFFFu;
