@@ -179,7 +179,7 @@ void intersect_sphere(const RTCIntersectFunctionNArguments* args, const SphereSe
     q.t_hit[id] = t[j];
     q.particle[id] = p;
     // The normal now, while the sphere is in cache; the tracer needs it in double.
-    if (q.normal) q.normal[id] = q.origin[id] + t[j] * q.direction[id] - sphere.centre;
+    if (q.normal) q.normal[id] = entry_normal(q.origin[id], q.direction[id], t[j], sphere.centre, sphere.radius);
     RTCRayN_tfar(rays, args->N, lanes[j]) = culling_distance(t[j], ctx.slack);
   }
 }

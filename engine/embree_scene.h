@@ -32,8 +32,8 @@ struct RayQuery {
   const std::uint32_t* skip = nullptr;
   double* t_hit = nullptr;
   std::uint32_t* particle = nullptr;
-  // Optional: the outward normal at the hit in double, as hit point - centre (length R, not
-  // normalised: the tracer normalises it once, so no division here).
+  // Optional: the outward normal at the hit in double, entry_normal (geometry/ray_sphere.h):
+  // (hit point - centre) / R, unit to the round-off of the hit point.
   Vec3* normal = nullptr;
 };
 

@@ -229,7 +229,7 @@ void SphereGrid::record_hit(const RayQuery& q, const Walk& w) const {
   q.t_hit[w.ray] = w.best;
   q.particle[w.ray] = w.who;
   const Entry& sp = entries_[w.best_entry];
-  if (q.normal) q.normal[w.ray] = w.o + w.best * w.d - sp.centre;
+  if (q.normal) q.normal[w.ray] = entry_normal(w.o, w.d, w.best, sp.centre, sp.radius);
 }
 
 void SphereGrid::intersect1(const RayQuery& q, std::uint32_t id) const {

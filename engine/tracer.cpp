@@ -17,6 +17,7 @@
 
 #include "engine/fresnel.h"
 #include "geometry/error.h"
+#include "geometry/ray_sphere.h"
 
 namespace beampack {
 namespace {
@@ -40,10 +41,6 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
     if (!(m.n_solid.real() > 0.0) || !(m.n_liquid.real() > 0.0) || !(m.mu_hat > 0.0))
       throw InputError("`optics.n_solid`, `optics.n_liquid` and mu_hat must be > 0");
 }
-
-// v / |v| with one division (Eigen's normalized() divides each component): the hit normal and
-// the reflected direction, nonzero by construction.
-Vec3 unit(const Vec3& v) { return v * (1.0 / v.norm()); }
 
 // Unpolarised Fresnel reflectance (2.25) with the particle's current index (solid or liquid).
 double particle_reflectance(const MaterialOptics& m, Phase phase, double cos_i) {
@@ -261,7 +258,7 @@ bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
       return false;
     }
     const Vec3 point = s.origin[r] + s.t_next[r] * s.direction[r];
-    const Vec3 normal = unit(s.normal[r]);  // point - centre from the scene
+    const Vec3 normal = near_unit(s.normal[r]);  // entry_normal from the scene
     const double cos_i = -s.direction[r].dot(normal);
     // One material (the usual case): no per-particle lookup, one cache miss fewer per hit.
     const MaterialOptics& m =
@@ -270,7 +267,7 @@ bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
     const double carried = R * s.energy[r];
     c.events.push_back({r, p, s.energy[r] - carried});  // absorbed + carried == E exactly
     ++c.hits;
-    s.direction[r] = unit(reflect(s.direction[r], normal));
+    s.direction[r] = near_unit(reflect(s.direction[r], normal));
     s.origin[r] = point;
     s.energy[r] = carried;
     s.last_particle[r] = p;

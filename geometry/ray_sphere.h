@@ -45,4 +45,18 @@ inline double ray_sphere_entry(const Vec3& o, const Vec3& d, const Vec3& c, doub
   return ray_sphere_entry(sphere_approach(o, d, c, r));
 }
 
+// The outward normal at the entry point o + t d of sphere (c, r): (point - c) / r, unit to within
+// the round-off of the point (make it unit with near_unit). Both scene searches use this one.
+inline Vec3 entry_normal(const Vec3& o, const Vec3& d, double t, const Vec3& c, double r) {
+  return (o + t * d - c) * (1.0 / r);
+}
+
+// v / |v| for a v whose length is already near 1 (an entry_normal, a unit direction reflected
+// about a unit normal): then one Newton step for 1 / sqrt(|v|^2) from 1, no square root or
+// division, relative error below 1e-16; otherwise (a point known to few digits) the division.
+inline Vec3 near_unit(const Vec3& v) {
+  const double s = v.squaredNorm();
+  return std::abs(s - 1.0) < 1e-8 ? Vec3(v * (1.5 - 0.5 * s)) : Vec3(v / std::sqrt(s));
+}
+
 }  // namespace beampack
