@@ -371,8 +371,8 @@ void RayState::read(StateReader& in) {
 // each ray's event order (the chunks come in chunk order).
 void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits) {
   const IeeeFloatMode ieee;  // the sums must not flush denormals on some threads only
-  RayState& s = state_;
-  last_advance_path_ = std::max(last_advance_path_, c.flight);
+  Totals& t = totals_;
+  t.flight = std::max(t.flight, c.flight);
   if (record_segments_) {  // ray order inside the chunk, whatever order the rays were stepped in
     std::stable_sort(c.segments.begin(), c.segments.end(),
                      [](const auto& a, const auto& b) { return a.first < b.first; });
@@ -380,18 +380,18 @@ void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits) {
   }
   for (const Event& e : c.events) {
     if (e.bin == kEscapedBin) {
-      s.ledger.escaped += e.energy;
+      t.ledger.escaped += e.energy;
     } else if (e.bin == kCutoffBin) {
-      s.ledger.cutoff += e.energy;
+      t.ledger.cutoff += e.energy;
     } else {
       deposits[e.bin] += e.energy;
-      s.ledger.absorbed += e.energy;
+      t.ledger.absorbed += e.energy;
     }
   }
-  s.primary_segments += c.primary;
-  s.bounced_segments += c.bounced;
-  s.hits += c.hits;
-  s.live_count -= c.ended;
+  t.primary += c.primary;
+  t.bounced += c.bounced;
+  t.hits += c.hits;
+  t.ended += c.ended;
 }
 
 std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
@@ -402,7 +402,8 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
   const std::size_t n = s.live.size();
   std::vector<Chunk>& chunks = chunks_;
   chunks.resize((n + kChunkRays - 1) / kChunkRays);
-  last_advance_path_ = 0.0;
+  totals_ = Totals{};
+  totals_.ledger = s.ledger;  // summed on in the same order as ever: bit-identical ledgers
   // Chunks are traced in parallel and summed one by one in chunk order as they finish, so the
   // (serial, deterministic) reduction overlaps the tracing of later chunks.
   std::size_t next = 0;
@@ -415,13 +416,20 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
                                           }) &
           tbb::make_filter<std::size_t, std::size_t>(
               tbb::filter_mode::parallel,
-              [&](std::size_t k) {
-                chunks[k].clear();
-                run_chunk(chunks[k], k * kChunkRays, std::min(n, (k + 1) * kChunkRays), path_budget);
+              [this, n, path_budget](std::size_t k) {  // by value: no shared stack line
+                Chunk& chunk = chunks_[k];
+                chunk.clear();
+                run_chunk(chunk, k * kChunkRays, std::min(n, (k + 1) * kChunkRays), path_budget);
                 return k;
               }) &
           tbb::make_filter<std::size_t, void>(tbb::filter_mode::serial_in_order,
                                               [&](std::size_t k) { add_chunk(chunks[k], deposits); }));
+  s.ledger = totals_.ledger;
+  s.primary_segments += totals_.primary;
+  s.bounced_segments += totals_.bounced;
+  s.hits += totals_.hits;
+  s.live_count -= totals_.ended;
+  last_advance_path_ = totals_.flight;
   return s.live_count;
 }
 
