@@ -267,19 +267,19 @@ bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
     const double carried = R * s.energy[r];
     c.events.push_back({r, p, s.energy[r] - carried});  // absorbed + carried == E exactly
     ++c.hits;
-    s.direction[r] = near_unit(reflect(s.direction[r], normal));
-    s.origin[r] = point;
     s.energy[r] = carried;
-    s.last_particle[r] = p;
-    s.travelled[r] = 0.0;
-    s.t_next[r] = -1.0;
     s.bounces[r] += 1;
     if (carried < spec_.cutoff * s.initial_energy[r] || s.bounces[r] >= spec_.max_bounces) {
       c.events.push_back({r, kCutoffBin, carried});  // MODEL.md 3b, 3c
-      s.live[r] = 0;
+      s.live[r] = 0;  // ended: its path is not updated further (fewer stores per ray)
       ++c.ended;
       return false;
     }
+    s.direction[r] = near_unit(reflect(s.direction[r], normal));
+    s.origin[r] = point;
+    s.last_particle[r] = p;
+    s.travelled[r] = 0.0;
+    s.t_next[r] = -1.0;
   }
 }
 
