@@ -94,3 +94,41 @@ TEST(RaySphere, TangentAndNearTangentRays) {
     EXPECT_NEAR(Vec3(-10 + t, y, 0).norm(), r, 1e-12);
   }
 }
+
+// The hit normal (entry_normal, made unit by near_unit) is unit to round-off and points from the
+// centre to the hit point, for radii from 1e-6 to 1 and origins up to 1e6 radii away.
+TEST(RaySphere, EntryNormalIsUnitAndRadial) {
+  Rng rng(1729);
+  int hits = 0;
+  for (int k = 0; k < 100000; ++k) {
+    const Vec3 c(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1));
+    const double r = std::pow(10.0, rng.uniform(-6, 0));
+    const Vec3 o = c + r * (1.0 + std::pow(10.0, rng.uniform(-3, 6))) * random_unit(rng);
+    const Vec3 d = (c + 1.2 * r * rng.uniform() * random_unit(rng) - o).normalized();
+    const double t = ray_sphere_entry(o, d, c, r);
+    if (t == kNoHit) continue;
+    ++hits;
+    const Vec3 n = near_unit(entry_normal(o, d, t, c, r));
+    ASSERT_NEAR(n.norm(), 1.0, 4e-16) << k;
+    const Vec3 exact = (o + t * d - c).normalized();
+    // As accurate as the hit point itself: its round-off relative to r (see the test above).
+    const double scale = std::max({o.cwiseAbs().maxCoeff(), c.cwiseAbs().maxCoeff(), r});
+    ASSERT_LT((n - exact).norm(), 1e-15 + 64e-16 * scale / r) << k;
+    ASSERT_LT(n.dot(d), 0.0) << k;  // an outside hit: the normal faces the ray
+  }
+  EXPECT_GT(hits, 30000);
+}
+
+// near_unit: one Newton step for vectors already near unit length, the division otherwise; both
+// give |v| = 1 to round-off and keep the direction.
+TEST(RaySphere, NearUnitNormalisesNearAndFarFromUnitLength) {
+  Rng rng(99);
+  for (int k = 0; k < 20000; ++k) {
+    const Vec3 u = random_unit(rng);
+    for (double length : {1.0, 1.0 + 1e-12, 1.0 - 3e-9, 1.0 + 2e-8, 0.5, 7.0, 1e-9, 1e12}) {
+      const Vec3 n = near_unit(length * u);
+      ASSERT_NEAR(n.norm(), 1.0, 4e-16) << length;
+      ASSERT_LT((n - u).norm(), 1e-15) << length;
+    }
+  }
+}
