@@ -3,7 +3,9 @@
 
 #include <sys/wait.h>
 
+#include <algorithm>
 #include <array>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -311,14 +313,20 @@ TEST(Cli, ResumeFromACheckpointEndsBitIdentical) {
 
 TEST(Cli, SigkillAtRandomMomentsLeavesALoadableCheckpoint) {
   const fs::path whole = fresh_dir("kill_whole");
-  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --out " + whole.string()).code, 0);
+  const auto start = std::chrono::steady_clock::now();
+  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --checkpoint-every 1 --out " + whole.string()).code, 0);
+  // Kill moments as fractions of this machine's own run time (a sanitizer build or a loaded
+  // machine is several times slower; fixed delays in ms then all fell before the first pulse).
+  const double run_ms =
+      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
   const std::string reference = file_text(whole / "particles.csv");
   std::uint64_t seed = 12345;
   int resumed = 0;
   for (int trial = 0; trial < 4; ++trial) {
     const fs::path dir = fresh_dir("kill_" + std::to_string(trial));
     seed = seed * 6364136223846793005ull + 1442695040888963407ull;
-    const int delay_ms = 300 + int((seed >> 33) % 1700);
+    const double fraction = 0.3 + 0.65 * double((seed >> 33) % 1000) / 1000.0;  // [0.3, 0.95)
+    const int delay_ms = std::max(1, int(fraction * run_ms));
     const std::string cmd = "timeout -s KILL " + std::to_string(delay_ms / 1000.0) + " " +
                             BEAMPACK_CLI + " run " + kCheckpointScene +
                             " --quiet --checkpoint-every 1 --out " + dir.string() + " >/dev/null 2>&1";
