@@ -173,6 +173,13 @@ bool parse_number(std::string_view text, double& value) {
   return ec == std::errc() && end == text.data() + text.size();
 }
 
+// A header names the columns: no column of it is a number. A data line with a typo in its first
+// column is not one, and is reported instead of skipped.
+bool is_header(const std::vector<std::string_view>& cols) {
+  double probe;
+  return std::none_of(cols.begin(), cols.end(), [&](std::string_view c) { return parse_number(c, probe); });
+}
+
 }  // namespace
 
 Particles read_packing_file(const std::string& path, double default_radius) {
@@ -182,7 +189,7 @@ Particles read_packing_file(const std::string& path, double default_radius) {
   const std::string layout = need == 4 ? "x y z r" : "x y z";
   Particles p;
   std::string line;
-  bool seen_data = false;
+  bool seen_data = false, seen_header = false;
   for (std::size_t line_no = 1; std::getline(in, line); ++line_no) {
     std::string_view view(line);
     if (auto hash = view.find('#'); hash != std::string_view::npos) view = view.substr(0, hash);
@@ -190,8 +197,11 @@ Particles read_packing_file(const std::string& path, double default_radius) {
     if (cols.empty()) continue;
     const std::string where = path + ":" + std::to_string(line_no) + ": ";
     double v[4] = {0, 0, 0, default_radius};
-    double probe;
-    if (!seen_data && !parse_number(cols[0], probe)) continue;  // one header line before the data
+    if (!seen_data && is_header(cols)) {  // one header line (no column a number) before the data
+      require(!seen_header, where + "a second header line; one is allowed, before the data");
+      seen_header = true;
+      continue;
+    }
     seen_data = true;
     require(cols.size() == need, where + "expected " + std::to_string(need) + " columns (" +
                                      layout + "), found " + std::to_string(cols.size()));

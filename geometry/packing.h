@@ -40,7 +40,8 @@ Particles rsa_packing(std::size_t count, double size, double solid_fraction, std
 Particles lattice_packing(std::size_t count, double size, double radius_ratio);
 
 // Columns x y z r (or x y z with default_radius > 0); '#' comments, blank lines and one header
-// line allowed. InputError with "path:line:" for missing columns, non-numbers, NaN/inf, r <= 0,
+// line (no column a number) before the data allowed. InputError with "path:line:" for missing
+// columns, non-numbers (a typo in the first data line too), a second header, NaN/inf, r <= 0,
 // a volume that is not a positive finite double, or a centre +- r that overflows.
 Particles read_packing_file(const std::string& path, double default_radius = 0.0);
 void write_packing_file(const std::string& path, const Particles& particles);

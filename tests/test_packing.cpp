@@ -151,6 +151,11 @@ TEST(PackingFile, EachErrorNamesItsLine) {
   EXPECT_NE(read_error("extra", "1 2 3 1 5\n").find(":1: expected 4 columns"), std::string::npos);
   EXPECT_NE(read_error("header_late", "1 2 3 1\nx y z r\n").find(":2: column 1 'x' is not a number"),
             std::string::npos);
+  // Before the data: one header, and a typo in the first data line is an error, not a header.
+  EXPECT_NE(read_error("two_headers", "x y z r\nid x y z\n1 2 3 1\n").find(":2: a second header line"),
+            std::string::npos);
+  EXPECT_NE(read_error("typo_first", "1.0e-3x 2 3 1\n4 5 6 1\n").find(":1: column 1 '1.0e-3x' is not a number"),
+            std::string::npos);
   try {
     read_packing_file("/nonexistent/beampack.xyz");
     FAIL();
