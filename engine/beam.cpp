@@ -100,18 +100,27 @@ constexpr std::size_t kTile = 16;  // rays per packet in the tracer
 // kTile consecutive rays are then a compact patch of the beam (a coherent packet), and
 // consecutive tiles are neighbours. (A Morton order of random points, used before, lets some runs
 // of 16 straddle a jump of the curve: measured, those split packets cost traversal time.)
+// The order is fixed by the points alone, not by the standard library: nth_element leaves each
+// half's order unspecified, so a finished tile is sorted (the sums over rays follow this order).
 void tile(std::vector<Eigen::Vector2d>& points, std::size_t begin, std::size_t end) {
-  if (end - begin <= kTile) return;
+  const auto first = points.begin() + static_cast<std::ptrdiff_t>(begin);
+  const auto last = points.begin() + static_cast<std::ptrdiff_t>(end);
+  const auto along = [](int axis) {  // a total order on distinct points
+    return [axis](const Eigen::Vector2d& a, const Eigen::Vector2d& b) {
+      return a[axis] < b[axis] || (a[axis] == b[axis] && a[1 - axis] < b[1 - axis]);
+    };
+  };
+  if (end - begin <= kTile) {
+    std::sort(first, last, along(0));
+    return;
+  }
   Eigen::Vector2d lower = points[begin], upper = points[begin];
   for (std::size_t k = begin; k < end; ++k)
     lower = lower.cwiseMin(points[k]), upper = upper.cwiseMax(points[k]);
   const int axis = (upper - lower).x() >= (upper - lower).y() ? 0 : 1;
   const std::size_t tiles = (end - begin + kTile - 1) / kTile;
   const std::size_t middle = begin + kTile * (tiles / 2);
-  std::nth_element(points.begin() + begin, points.begin() + middle, points.begin() + end,
-                   [axis](const Eigen::Vector2d& a, const Eigen::Vector2d& b) {
-                     return a[axis] < b[axis] || (a[axis] == b[axis] && a[1 - axis] < b[1 - axis]);
-                   });
+  std::nth_element(first, points.begin() + static_cast<std::ptrdiff_t>(middle), last, along(axis));
   tile(points, begin, middle);
   tile(points, middle, end);
 }
