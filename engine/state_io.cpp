@@ -1,5 +1,7 @@
 #include "engine/state_io.h"
 
+#include <algorithm>
+
 namespace beampack {
 namespace {
 
@@ -9,7 +11,20 @@ std::uint64_t fnv1a(const char* p, std::size_t n) {
   return h;
 }
 
+// The first bytes of every state: 0x01020304 as this machine stores it, then the sizes of the
+// types the state is made of. Values are written in the machine's own layout, so a state from a
+// machine of another byte order or type sizes is refused by name, before its checksum is read.
+std::string layout_tag() {
+  const std::uint32_t order = 0x01020304u;
+  std::string tag(reinterpret_cast<const char*>(&order), sizeof order);
+  for (std::size_t size : {sizeof(double), sizeof(std::size_t), sizeof(long double)})
+    tag.push_back(static_cast<char>(size));
+  return tag;
+}
+
 }  // namespace
+
+StateWriter::StateWriter() : buffer_(layout_tag()) {}
 
 std::string StateWriter::finish() const {
   std::string out = buffer_;
@@ -20,11 +35,24 @@ std::string StateWriter::finish() const {
 
 StateReader::StateReader(std::string data, std::string source)
     : data_(std::move(data)), source_(std::move(source)) {
+  const std::string tag = layout_tag();
+  if (data_.compare(0, tag.size(), tag) != 0) {
+    std::string swapped = tag;
+    std::reverse(swapped.begin(), swapped.begin() + 4);
+    if (data_.compare(0, tag.size(), swapped) == 0)
+      throw InputError(source_ + ": checkpoint written on a machine of the other byte order; "
+                                 "checkpoints are read only where their byte order is native");
+    if (data_.compare(0, 4, tag, 0, 4) == 0)
+      throw InputError(source_ + ": checkpoint written with other sizes of double, size_t or long "
+                                 "double than this build's");
+    damaged();
+  }
   std::uint64_t stored = 0;
   if (data_.size() < sizeof stored) damaged();
   std::memcpy(&stored, data_.data() + data_.size() - sizeof stored, sizeof stored);
   data_.resize(data_.size() - sizeof stored);
   if (fnv1a(data_.data(), data_.size()) != stored) damaged();
+  pos_ = tag.size();
 }
 
 void StateReader::damaged() const {

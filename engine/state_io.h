@@ -1,6 +1,7 @@
 #pragma once
-// Binary state for checkpoints: plain values and vectors of trivially copyable values, in the
-// machine's byte order, followed by an FNV-1a checksum so a damaged file is refused, not loaded.
+// Binary state for checkpoints: a layout tag (byte order, type sizes), then plain values and
+// vectors of trivially copyable values in the machine's byte order, then an FNV-1a checksum, so
+// a damaged file, or one from a machine of another byte order, is refused by name, not loaded.
 #include <cstdint>
 #include <cstring>
 #include <string>
@@ -13,6 +14,7 @@ namespace beampack {
 
 class StateWriter {
  public:
+  StateWriter();
   template <class T>
   void value(const T& v) {
     static_assert(std::is_trivially_copyable_v<T>);
@@ -69,7 +71,7 @@ class StateReader {
   }
   [[noreturn]] void damaged() const;
   std::string data_, source_;
-  std::size_t pos_ = 0;
+  std::size_t pos_ = 0;  // the constructor moves it past the layout tag
 };
 
 }  // namespace beampack

@@ -349,6 +349,13 @@ TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
   const Result r = run("run --resume " + dir.string() + " --quiet");
   EXPECT_EQ(r.code, 2) << r.output;
   EXPECT_NE(r.output.find("damaged or truncated"), std::string::npos) << r.output;
+  // As if written on a machine of the other byte order: the layout tag's first word reversed.
+  std::string swapped = bytes;
+  std::reverse(swapped.begin(), swapped.begin() + 4);
+  std::ofstream(dir / "checkpoint.bin", std::ios::binary).write(swapped.data(), std::streamsize(swapped.size()));
+  const Result other = run("run --resume " + dir.string() + " --quiet");
+  EXPECT_EQ(other.code, 2) << other.output;
+  EXPECT_NE(other.output.find("other byte order"), std::string::npos) << other.output;
 }
 
 TEST(Cli, WallsTakeHeatAndTheLedgerStillCloses) {
