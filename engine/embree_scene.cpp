@@ -4,7 +4,9 @@
 #include "engine/float_mode.h"
 
 #include <embree3/rtcore.h>
+#if defined(__SSE2__) && !defined(BEAMPACK_NO_SSE)
 #include <emmintrin.h>
+#endif
 
 #include <algorithm>
 #include <bit>
@@ -109,6 +111,7 @@ bool improves(const RayQuery& q, unsigned id, double t, std::uint32_t p) {
 // r + pad of the centre, pad far above float round-off; most lanes of a coherent packet miss any
 // given sphere and never reach the double test. Four lanes per SSE step; the kept lanes come back
 // as bits, so the double test visits only them (no branch per lane).
+#if defined(__SSE2__) && !defined(BEAMPACK_NO_SSE)
 template <unsigned W>
 std::uint32_t packet_candidates(const int* valid, RTCRayN* rays, const SphereRecord& sphere,
                                 float pad) {
@@ -139,6 +142,28 @@ std::uint32_t packet_candidates(const int* valid, RTCRayN* rays, const SphereRec
   }
   return bits;
 }
+#else
+// The same test one lane at a time, in the same float operations (machines without SSE2; also
+// built on x86 with -DBEAMPACK_NO_SSE to test it).
+template <unsigned W>
+std::uint32_t packet_candidates(const int* valid, RTCRayN* rays, const SphereRecord& sphere,
+                                float pad) {
+  const float cx = static_cast<float>(sphere.centre.x()), cy = static_cast<float>(sphere.centre.y()),
+              cz = static_cast<float>(sphere.centre.z());
+  const float r = static_cast<float>(sphere.radius) + pad;
+  std::uint32_t bits = 0;
+  for (unsigned i = 0; i < W; ++i) {
+    const float dx = RTCRayN_dir_x(rays, W, i), dy = RTCRayN_dir_y(rays, W, i), dz = RTCRayN_dir_z(rays, W, i);
+    const float fx = RTCRayN_org_x(rays, W, i) - cx, fy = RTCRayN_org_y(rays, W, i) - cy,
+                fz = RTCRayN_org_z(rays, W, i) - cz;
+    const float b = -(fx * dx + fy * dy + fz * dz);
+    const float px = fx + b * dx, py = fy + b * dy, pz = fz + b * dz;
+    const bool keep = valid[i] == -1 && px * px + py * py + pz * pz <= r * r && b > -r;
+    bits |= static_cast<std::uint32_t>(keep) << i;
+  }
+  return bits;
+}
+#endif
 
 std::uint32_t candidates(const RTCIntersectFunctionNArguments* args, const SphereRecord& sphere,
                          float pad) {
