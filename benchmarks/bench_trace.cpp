@@ -195,20 +195,17 @@ Tally trace_builtin_ray(const BuiltinScene& s, const Particles& p, Vec3 o, Vec3 
   }
 }
 
-void run_builtin(benchmark::State& state, double n_hat, int max_bounces) {
-  const Particles& p = packing(spheres_of(state));
-  const BuiltinScene scene(p);
-  const Beam& beam = paper_beam(rays_of(state));
-  const auto energy = beam.ray_energies(1e-9);
-  const double upstream = -2.0 * p.max_radius();
+// Every ray of the beam once per iteration, in chunks of 256 rays over TBB; trace_ray(k) traces
+// ray k and returns its tally.
+template <class TraceRay>
+void run_rays(benchmark::State& state, const Beam& beam, const TraceRay& trace_ray) {
   double primary = 0, bounced = 0;
   for (auto _ : state) {
     std::vector<Tally> chunks((beam.size() + 255) / 256);
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, chunks.size(), 1), [&](auto range) {
       for (std::size_t c = range.begin(); c != range.end(); ++c)
         for (std::size_t k = c * 256; k < std::min(beam.size(), (c + 1) * 256); ++k) {
-          const Tally t = trace_builtin_ray(scene, p, beam.origin[k] + upstream * beam.direction,
-                                            beam.direction, energy[k], n_hat, max_bounces);
+          const Tally t = trace_ray(k);
           chunks[c].primary += t.primary;
           chunks[c].bounced += t.bounced;
         }
@@ -218,43 +215,52 @@ void run_builtin(benchmark::State& state, double n_hat, int max_bounces) {
   set_counters(state, primary, bounced);
 }
 
+void run_builtin(benchmark::State& state, double n_hat, int max_bounces) {
+  const Particles& p = packing(spheres_of(state));
+  const BuiltinScene scene(p);
+  const Beam& beam = paper_beam(rays_of(state));
+  const auto energy = beam.ray_energies(1e-9);
+  const double upstream = -2.0 * p.max_radius();
+  run_rays(state, beam, [&](std::size_t k) {
+    return trace_builtin_ray(scene, p, beam.origin[k] + upstream * beam.direction, beam.direction,
+                             energy[k], n_hat, max_bounces);
+  });
+}
+
 // ---- baseline: brute force over every sphere ------------------------------------------------
+
+// Segments only (the brute-force loop is a speed baseline): nearest outside hit over all spheres.
+Tally trace_brute_ray(const Particles& p, Vec3 o, Vec3 d, double e, double n_hat) {
+  Tally t;
+  const double e0 = e;
+  std::uint32_t skip = kNoParticle;
+  for (int bounce = 0; bounce < 1000; ++bounce) {
+    (bounce == 0 ? t.primary : t.bounced) += 1;
+    double best = kNoHit;
+    std::uint32_t who = kNoParticle;
+    for (std::uint32_t i = 0; i < p.size(); ++i) {
+      if (i == skip) continue;
+      const double hit = ray_sphere_entry(o, d, p.centre[i], p.radius[i]);
+      if (hit < best) best = hit, who = i;
+    }
+    if (who == kNoParticle) break;
+    const Vec3 point = o + best * d;
+    const Vec3 n = (point - p.centre[who]).normalized();
+    const double carried = reflectance(-d.dot(n), n_hat) * e;
+    if (carried < 1e-10 * e0) break;
+    e = carried, d = reflect(d, n).normalized(), o = point, skip = who;
+  }
+  return t;
+}
 
 void run_brute(benchmark::State& state, double n_hat) {
   const Particles& p = packing(spheres_of(state));
   const Beam& beam = paper_beam(rays_of(state));
   const auto energy = beam.ray_energies(1e-9);
   const double upstream = -2.0 * p.max_radius();
-  double primary = 0, bounced = 0;
-  for (auto _ : state) {
-    std::vector<Tally> chunks((beam.size() + 255) / 256);
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, chunks.size(), 1), [&](auto range) {
-      for (std::size_t c = range.begin(); c != range.end(); ++c)
-        for (std::size_t k = c * 256; k < std::min(beam.size(), (c + 1) * 256); ++k) {
-          Vec3 o = beam.origin[k] + upstream * beam.direction, d = beam.direction;
-          double e = energy[k];
-          std::uint32_t skip = kNoParticle;
-          for (int bounce = 0; bounce < 1000; ++bounce) {
-            (bounce == 0 ? chunks[c].primary : chunks[c].bounced) += 1;
-            double best = kNoHit;
-            std::uint32_t who = kNoParticle;
-            for (std::uint32_t i = 0; i < p.size(); ++i) {
-              if (i == skip) continue;
-              const double t = ray_sphere_entry(o, d, p.centre[i], p.radius[i]);
-              if (t < best) best = t, who = i;
-            }
-            if (who == kNoParticle) break;
-            const Vec3 point = o + best * d;
-            const Vec3 n = (point - p.centre[who]).normalized();
-            const double carried = reflectance(-d.dot(n), n_hat) * e;
-            if (carried < 1e-10 * energy[k]) break;
-            e = carried, d = reflect(d, n).normalized(), o = point, skip = who;
-          }
-        }
-    });
-    for (const Tally& t : chunks) primary += t.primary, bounced += t.bounced;
-  }
-  set_counters(state, primary, bounced);
+  run_rays(state, beam, [&](std::size_t k) {
+    return trace_brute_ray(p, beam.origin[k] + upstream * beam.direction, beam.direction, energy[k], n_hat);
+  });
 }
 
 // ---- scene updates --------------------------------------------------------------------------
