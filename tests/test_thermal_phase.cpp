@@ -42,6 +42,7 @@ TEST(ThermalPhase, ThroughMeltAndVaporInOneStepVaporisesWithBothBands) {
   const StepReport r = s.model.step(1e-9, {dh});
   ASSERT_EQ(r.vaporized, std::vector<std::uint32_t>{0});
   EXPECT_TRUE(r.phases_ran);
+  EXPECT_GT(r.phases_seconds, 0.0);  // timed apart from the heat step (the phases stage)
   EXPECT_TRUE(r.phase_corrected);
   EXPECT_FALSE(r.conduction_ran);
   EXPECT_EQ(s.p.alive[0], 0);
@@ -164,6 +165,7 @@ TEST(ThermalPhase, NoParticleNearMeltMeansNoPhaseWork) {
   Single s(300.0);
   const StepReport r = s.model.step(1e-9, {mass_over_m(s.m) * s.m.c_solid * 10.0});
   EXPECT_FALSE(r.phases_ran);
+  EXPECT_EQ(r.phases_seconds, 0.0);  // the phases stage is charged nothing
   EXPECT_EQ(r.solver, "none");
   EXPECT_NEAR(s.p.temperature[0], 310.0, 1e-9);
 }

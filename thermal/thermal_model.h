@@ -51,6 +51,7 @@ struct StepReport {
   double contraction_estimate = 0;  // dt phi max_i (2 sum_j G_ij + W_i) / c_i, see solvers.h
   bool conduction_ran = false;  // false: no contact conducts (K = 0): no matrix, no solve
   bool phases_ran = false;      // false: no particle at or above theta_m before or after the step
+  double phases_seconds = 0;    // wall time of the latent-heat work (section 4), all sub-steps
   bool phase_corrected = false; // a band was crossed and the step re-solved with C_eff
   bool symbolic_reused = false; // direct: analysis kept from an earlier step
   bool factors_reused = false;  // direct: numeric factors kept too
