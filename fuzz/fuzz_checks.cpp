@@ -9,6 +9,8 @@
 #include <filesystem>
 #include <fstream>
 #include <sstream>
+#include <system_error>
+#include <vector>
 
 #include "geometry/error.h"
 #include "geometry/packing.h"
@@ -19,11 +21,23 @@ namespace {
 
 namespace fs = std::filesystem;
 
+// The scratch files this process wrote, removed when it exits normally.
+struct ScratchFiles {
+  std::vector<fs::path> paths;
+  ~ScratchFiles() {
+    std::error_code ignored;
+    for (const fs::path& p : paths) fs::remove(p, ignored);
+  }
+};
+
 // One file per process and kind, rewritten for every input: libFuzzer runs inputs one at a
 // time, and ctest may run the two targets (two processes) side by side.
 std::string scratch_file(const char* kind, std::span<const std::uint8_t> bytes) {
+  static ScratchFiles written;
   const fs::path path =
       fs::temp_directory_path() / ("beampack_fuzz_" + std::to_string(::getpid()) + "_" + kind);
+  if (std::find(written.paths.begin(), written.paths.end(), path) == written.paths.end())
+    written.paths.push_back(path);
   std::ofstream out(path, std::ios::binary | std::ios::trunc);
   out.write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
   out.close();

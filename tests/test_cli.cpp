@@ -14,6 +14,8 @@
 #include <nlohmann/json.hpp>
 #include <sstream>
 
+#include "tests/test_dirs.h"
+
 namespace fs = std::filesystem;
 
 namespace {
@@ -33,12 +35,7 @@ Result run(const std::string& args) {
   return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
 }
 
-fs::path fresh_dir(const std::string& name) {
-  const fs::path dir = fs::temp_directory_path() / ("beampack_cli_" + name);
-  fs::remove_all(dir);
-  fs::create_directories(dir);
-  return dir;
-}
+using beampack::testing::fresh_dir;
 
 std::string write(const fs::path& path, const std::string& text) {
   std::ofstream(path) << text;

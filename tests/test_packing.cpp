@@ -10,6 +10,7 @@
 #include "geometry/contact.h"
 #include "geometry/error.h"
 #include "geometry/packing.h"
+#include "tests/test_dirs.h"
 
 using namespace beampack;
 namespace fs = std::filesystem;
@@ -21,7 +22,7 @@ bool same_packing(const Particles& a, const Particles& b) {
 }
 
 std::string temp_file(const std::string& name, const std::string& text) {
-  const fs::path path = fs::temp_directory_path() / ("beampack_test_" + name);
+  const fs::path path = beampack::testing::process_dir() / name;
   std::ofstream(path) << text;
   return path.string();
 }
@@ -125,7 +126,7 @@ TEST(Packing, BadParametersNameTheKey) {
 
 TEST(PackingFile, RoundTripIsExact) {
   const Particles p = random_overlap_packing(1000, 1e-3, 0.325, 5);
-  const std::string path = (fs::temp_directory_path() / "beampack_roundtrip.xyzr").string();
+  const std::string path = (beampack::testing::process_dir() / "roundtrip.xyzr").string();
   write_packing_file(path, p);
   EXPECT_TRUE(same_packing(read_packing_file(path), p));
 }
