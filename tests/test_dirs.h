@@ -10,22 +10,23 @@
 
 namespace beampack::testing {
 
-inline std::filesystem::path process_dir() {
-  static const std::filesystem::path dir =
-      std::filesystem::temp_directory_path() / ("beampack_tests_" + std::to_string(::getpid()));
-  static const bool cleanup = [] {
-    struct RemoveWhenPassed : ::testing::Environment {
-      void TearDown() override {
-        if (::testing::UnitTest::GetInstance()->Passed()) std::filesystem::remove_all(dir);
-      }
-    };
-    ::testing::AddGlobalTestEnvironment(new RemoveWhenPassed);
-    return true;
+// This process's folder, made on first use.
+inline const std::filesystem::path& process_dir() {
+  static const std::filesystem::path dir = [] {
+    auto d = std::filesystem::temp_directory_path() / ("beampack_tests_" + std::to_string(::getpid()));
+    std::filesystem::create_directories(d);
+    return d;
   }();
-  (void)cleanup;
-  std::filesystem::create_directories(dir);
   return dir;
 }
+
+struct RemoveProcessDirWhenPassed : ::testing::Environment {
+  void TearDown() override {
+    if (::testing::UnitTest::GetInstance()->Passed()) std::filesystem::remove_all(process_dir());
+  }
+};
+inline ::testing::Environment* const remove_process_dir =
+    ::testing::AddGlobalTestEnvironment(new RemoveProcessDirWhenPassed);
 
 // An empty folder `name` in this process's folder.
 inline std::filesystem::path fresh_dir(const std::string& name) {

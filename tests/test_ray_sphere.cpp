@@ -18,20 +18,36 @@ Vec3 random_unit(Rng& rng) {
   }
 }
 
+// A sphere of radius 1e-6 to 1 near the origin and a ray from just outside it to 1e6 radii away,
+// aimed at a point within `aim` radii of the centre. Each draw is its own statement, so the
+// sequence does not depend on the compiler's order of evaluating operands.
+struct SphereRay {
+  Vec3 c;
+  double r;
+  double dist;  // of the origin from the centre
+  Vec3 o, d;
+};
+
+SphereRay random_sphere_ray(Rng& rng, double aim) {
+  SphereRay s;
+  s.c = Vec3(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1));
+  s.r = std::pow(10.0, rng.uniform(-6, 0));
+  s.dist = s.r * (1.0 + std::pow(10.0, rng.uniform(-3, 6)));
+  s.o = s.c + s.dist * random_unit(rng);
+  const double offset = aim * s.r * rng.uniform();
+  const Vec3 target = s.c + offset * random_unit(rng);
+  s.d = (target - s.o).normalized();
+  return s;
+}
+
 }  // namespace
 
 TEST(RaySphere, HitPointLiesOnTheSphereForRandomRays) {
   Rng rng(20131023);
   int hits = 0;
   for (int k = 0; k < 200000; ++k) {
-    const Vec3 c(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1));
-    const double r = std::pow(10.0, rng.uniform(-6, 0));
-    // Origins from just outside to 1e6 radii away.
-    const double dist = r * (1.0 + std::pow(10.0, rng.uniform(-3, 6)));
-    const Vec3 o = c + dist * random_unit(rng);
-    // Aim near the sphere so that about half the rays hit.
-    const Vec3 target = c + 1.5 * r * rng.uniform() * random_unit(rng);
-    const Vec3 d = (target - o).normalized();
+    // Aimed near the sphere so that about half the rays hit.
+    const auto [c, r, dist, o, d] = random_sphere_ray(rng, 1.5);
     const double t = ray_sphere_entry(o, d, c, r);
     if (t == kNoHit) continue;
     ++hits;
@@ -101,10 +117,7 @@ TEST(RaySphere, EntryNormalIsUnitAndRadial) {
   Rng rng(1729);
   int hits = 0;
   for (int k = 0; k < 100000; ++k) {
-    const Vec3 c(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1));
-    const double r = std::pow(10.0, rng.uniform(-6, 0));
-    const Vec3 o = c + r * (1.0 + std::pow(10.0, rng.uniform(-3, 6))) * random_unit(rng);
-    const Vec3 d = (c + 1.2 * r * rng.uniform() * random_unit(rng) - o).normalized();
+    const auto [c, r, dist, o, d] = random_sphere_ray(rng, 1.2);
     const double t = ray_sphere_entry(o, d, c, r);
     if (t == kNoHit) continue;
     ++hits;

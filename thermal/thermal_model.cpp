@@ -14,6 +14,14 @@ namespace beampack {
 
 namespace {
 
+// Wall time of work(), in seconds.
+template <class Work>
+double seconds_of(const Work& work) {
+  const auto start = std::chrono::steady_clock::now();
+  work();
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
 template <class T>
 [[noreturn]] void input_error(const char* key, const T& value, const std::string& limit) {
   std::ostringstream msg;
@@ -386,15 +394,12 @@ StepReport ThermalModel::step_once(double dt, const Eigen::VectorXd& dh_in) {
   Eigen::VectorXd theta1 = theta0;
   solve(dt, c, theta0, dh, theta1, report);  // predictor
   report.phases_ran = phase_work_needed(theta0, theta1);
-  const auto phases_start = std::chrono::steady_clock::now();
-  if (report.phases_ran) correct_phases(dt, theta0, dh, c, theta1, report);
-  auto phases_time = std::chrono::steady_clock::now() - phases_start;
+  if (report.phases_ran)
+    report.phases_seconds += seconds_of([&] { correct_phases(dt, theta0, dh, c, theta1, report); });
   account(dt, c, theta0, theta1, dh);
-  const auto update_start = std::chrono::steady_clock::now();
-  update_phases(theta1, report);
-  phases_time += std::chrono::steady_clock::now() - update_start;
+  const double update = seconds_of([&] { update_phases(theta1, report); });
   // Below theta_m everywhere the phase update is a scan that finds nothing: heat's time.
-  if (report.phases_ran) report.phases_seconds = std::chrono::duration<double>(phases_time).count();
+  if (report.phases_ran) report.phases_seconds += update;
   return report;
 }
 
