@@ -59,8 +59,6 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
   if (needs_conduction(spec_)) {
     StageClock clock(stages_[kRebuild]);
     thermal_->set_contacts(find_contacts(particles_));
-  } else {
-    stages_[kRebuild].skipped_because = "no conductivity and no walls: no contact graph";
   }
   absorbed_.assign(particles_.size(), 0.0);
   deposits_.assign(particles_.size(), 0.0);
@@ -182,6 +180,26 @@ void Simulation::remove_vaporized(const std::vector<std::uint32_t>& ids) {
 
 void Simulation::run(const std::atomic<bool>* stop) {
   while (!done() && !(stop && stop->load())) step();
+}
+
+std::array<StageTime, Simulation::kStages> Simulation::stages() const {
+  std::array<StageTime, kStages> out = stages_;
+  for (int k = 0; k < kStages; ++k)
+    if (out[k].calls == 0) out[k].skipped_because = skip_reason(k);
+  return out;
+}
+
+// Why stage k has not run so far: the condition under which the loop of step() leaves it out.
+std::string Simulation::skip_reason(int stage) const {
+  if (stage == kRebuild) return "no contact graph (no conductivity, no walls) and no particle vaporised";
+  if (launched_ == 0)
+    return spec_.pulses.count == 0 ? "`pulses.count` = 0: no pulse" : "no step taken yet";
+  if (stage == kTrace) return "no ray was live in any step";
+  if (stage == kHeat)
+    return particles_.size() == 0 ? "no particles" : "no step had a positive length";
+  if (stage == kPhases) return "no particle reached the melting temperature";
+  if (spec_.max_staggers == 0) return "`thermal.max_staggers` = 0";
+  return "no phase change altered the optics of a particle the rays met";
 }
 
 double Simulation::volume_fraction(Phase phase) const {

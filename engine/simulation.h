@@ -87,7 +87,8 @@ class Simulation {
   const std::vector<double>& absorbed() const { return absorbed_; }  // J per particle, cumulative
   Figures figures() const;
   Counts counts() const;
-  const std::array<StageTime, kStages>& stages() const { return stages_; }
+  // Time and calls per stage; a stage that never ran says why (the run reports what it skipped).
+  std::array<StageTime, kStages> stages() const;
   const SimulationSpec& spec() const { return spec_; }
   const Tracer& tracer() const { return *tracer_; }
   // Ray paths: while on, the segments of accepted steps are kept until taken.
@@ -105,6 +106,7 @@ class Simulation {
   void remove_vaporized(const std::vector<std::uint32_t>& ids);
   [[noreturn]] void non_finite(std::size_t particle, double temperature, double deposit) const;
   double volume_fraction(Phase phase) const;
+  std::string skip_reason(int stage) const;
 
   SimulationSpec spec_;
   Particles particles_;

@@ -111,8 +111,9 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
                  {"segments", r.counts.segments},   {"steps", r.counts.steps},
                  {"rebuilds", r.counts.rebuilds},   {"staggers", r.counts.staggers}};
   nlohmann::json stages = nlohmann::json::object();
+  const auto stage_times = sim.stages();
   for (int k = 0; k < Simulation::kStages; ++k) {
-    const StageTime& s = sim.stages()[k];
+    const StageTime& s = stage_times[k];
     stages[Simulation::kStageNames[k]] = {{"seconds", s.seconds}, {"calls", s.calls},
                                           {"skipped", s.calls == 0},
                                           {"skipped_because", s.skipped_because}};
@@ -142,11 +143,12 @@ void print_table(const Simulation& sim, const RunResult& r) {
               e.optics_imbalance() / std::max(e.injected, 1e-300),
               e.heat_imbalance() / std::max(e.absorbed, 1e-300));
   std::printf("stages, s\n");
+  const auto stage_times = sim.stages();
   for (int k = 0; k < Simulation::kStages; ++k) {
-    const StageTime& s = sim.stages()[k];
+    const StageTime& s = stage_times[k];
     if (s.calls == 0)
-      std::printf("  %-26s %14s  skipped%s%s\n", Simulation::kStageNames[k], "-",
-                  s.skipped_because.empty() ? "" : ": ", s.skipped_because.c_str());
+      std::printf("  %-26s %14s  skipped: %s\n", Simulation::kStageNames[k], "-",
+                  s.skipped_because.c_str());
     else
       std::printf("  %-26s %14.4f  (%llu calls)\n", Simulation::kStageNames[k], s.seconds,
                   static_cast<unsigned long long>(s.calls));

@@ -1,0 +1,106 @@
+// The run says what it skipped: a stage that never ran carries the reason the loop left it out,
+// and a stage that ran carries none (brief: "no stage runs unless the scene needs it").
+#include <gtest/gtest.h>
+
+#include <string>
+
+#include "engine/simulation.h"
+
+namespace beampack {
+namespace {
+
+constexpr double kD = 1e-3;
+
+// The `quick` preset's scene: 200 spheres, 200 rays, pulses long enough to melt and vaporise.
+SimulationSpec quick_spec() {
+  SimulationSpec s;
+  s.packing.sample_size = kD;
+  s.packing.count = 200;
+  s.packing.seed = 7;
+  s.beam.rays = 200;
+  s.beam.seed = 7;
+  s.pulses.count = 5;
+  s.pulses.duration = 3e-13;
+  s.materials[0].conductivity = 20.0;
+  return s;
+}
+
+StageTime stage(const Simulation& sim, const std::string& name) {
+  for (int k = 0; k < Simulation::kStages; ++k)
+    if (name == Simulation::kStageNames[k]) return sim.stages()[k];
+  ADD_FAILURE() << "no stage " << name;
+  return {};
+}
+
+void expect_ran(const Simulation& sim, const std::string& name) {
+  const StageTime s = stage(sim, name);
+  EXPECT_GT(s.calls, 0u) << name;
+  EXPECT_EQ(s.skipped_because, "") << name;
+}
+
+void expect_skipped(const Simulation& sim, const std::string& name, const std::string& reason) {
+  const StageTime s = stage(sim, name);
+  EXPECT_EQ(s.calls, 0u) << name;
+  EXPECT_EQ(s.seconds, 0.0) << name;
+  EXPECT_NE(s.skipped_because.find(reason), std::string::npos)
+      << name << " skipped because \"" << s.skipped_because << "\", expected \"" << reason << "\"";
+}
+
+TEST(SimulationStages, AMeltingRunRunsEveryStageAndGivesNoReason) {
+  Simulation sim(quick_spec());
+  sim.run();
+  ASSERT_GT(sim.figures().vaporized_fraction, 0.0);  // the scene needs every stage
+  for (const char* name : Simulation::kStageNames) expect_ran(sim, name);
+}
+
+TEST(SimulationStages, AColdRunWithoutConductionSaysWhyItSkipsPhasesStaggerAndGraph) {
+  SimulationSpec spec = quick_spec();
+  spec.pulses.duration = 1e-16;  // a few kelvin: nobody melts
+  spec.materials[0].conductivity = 0;
+  Simulation sim(spec);
+  sim.run();
+  ASSERT_LT(sim.figures().max_temperature, spec.materials[0].melt_temperature);
+  expect_ran(sim, "trace");
+  expect_ran(sim, "heat");
+  expect_skipped(sim, "phases", "melting temperature");
+  expect_skipped(sim, "stagger", "no phase change");
+  EXPECT_EQ(sim.counts().rebuilds, 0u);
+  expect_skipped(sim, "rebuild", "no conductivity, no walls");
+}
+
+TEST(SimulationStages, NoStaggerWhenTheUserAllowsNone) {
+  SimulationSpec spec = quick_spec();
+  spec.max_staggers = 0;
+  Simulation sim(spec);
+  sim.run();
+  ASSERT_GT(sim.figures().melted_fraction + sim.figures().vaporized_fraction, 0.0);
+  expect_skipped(sim, "stagger", "`thermal.max_staggers` = 0");
+}
+
+TEST(SimulationStages, NoPulseSkipsTracingAndHeat) {
+  SimulationSpec spec = quick_spec();
+  spec.pulses.count = 0;
+  Simulation sim(spec);
+  sim.run();
+  expect_skipped(sim, "trace", "`pulses.count` = 0");
+  expect_skipped(sim, "heat", "`pulses.count` = 0");
+}
+
+TEST(SimulationStages, AnEmptyPackingTracesButHasNoHeatToConduct) {
+  SimulationSpec spec = quick_spec();
+  spec.packing.count = 0;
+  Simulation sim(spec);
+  sim.run();
+  expect_ran(sim, "trace");
+  expect_skipped(sim, "heat", "no particles");
+  expect_skipped(sim, "phases", "melting temperature");
+}
+
+TEST(SimulationStages, BeforeTheFirstStepNothingHasRunYet) {
+  Simulation sim(quick_spec());
+  expect_skipped(sim, "trace", "no step taken yet");
+  expect_ran(sim, "rebuild");  // the contact graph is built with the scene
+}
+
+}  // namespace
+}  // namespace beampack
