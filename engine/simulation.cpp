@@ -53,6 +53,7 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
       << spec_.pulses.duration << " s: the pulse energy overflows double precision";
     throw InputError(m.str());
   }
+  check_thermal_masses(pulse_energy * std::max(spec_.pulses.count, 1));
   tracer_ = std::make_unique<Tracer>(particles_, spec_.optics);
   thermal_ = std::make_unique<ThermalModel>(particles_, spec_.materials, spec_.thermal);
   // Leave out what the scene does not need: without conductivity or walls there is no graph.
@@ -70,6 +71,29 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
 }
 
 Simulation::~Simulation() = default;
+
+// Every particle's thermal mass rho V C must be a normal double, and the run's whole energy in
+// it must warm it by a finite amount: otherwise the first solve gives infinities (density 1e-300,
+// a radius of 1e-120 m). Refused as input, naming the material's keys and the particle.
+void Simulation::check_thermal_masses(double run_energy) const {
+  for (std::size_t i = 0; i < particles_.size(); ++i) {
+    const std::size_t k = particles_.material[i];
+    if (k >= spec_.materials.size()) continue;  // the thermal model reports a missing material
+    const Material& m = spec_.materials[k];
+    const double mass_heat = m.density * particles_.volume(i) * std::min(m.c_solid, m.c_liquid);
+    if (mass_heat >= std::numeric_limits<double>::min() && std::isfinite(mass_heat) &&
+        std::isfinite(run_energy / mass_heat))
+      continue;
+    const std::string key = spec_.materials.size() == 1 ? "material" : "material[" + std::to_string(k) + "]";
+    std::ostringstream msg;
+    msg << "particle " << i << " (radius " << particles_.radius[i] << " m) has a thermal mass `"
+        << key << ".density` x volume x min(`" << key << ".c_solid`, `" << key << ".c_liquid`) = "
+        << m.density << " x " << particles_.volume(i) << " x " << std::min(m.c_solid, m.c_liquid)
+        << " = " << mass_heat << " J/K: must be a finite normal number that the run's "
+        << run_energy << " J warms by a finite amount";
+    throw InputError(msg.str());
+  }
+}
 
 bool Simulation::done() const {
   return launched_ >= spec_.pulses.count && !tracer_->has_live_rays();

@@ -107,6 +107,7 @@ class Simulation {
   [[noreturn]] void non_finite(std::size_t particle, double temperature, double deposit) const;
   double volume_fraction(Phase phase) const;
   std::string skip_reason(int stage) const;
+  void check_thermal_masses(double run_energy) const;
 
   SimulationSpec spec_;
   Particles particles_;

@@ -16,6 +16,7 @@
 #include "engine/simulation.h"
 #include "engine/tracer.h"
 #include "geometry/contact.h"
+#include "geometry/error.h"
 #include "geometry/packing.h"
 #include "geometry/ray_sphere.h"
 #include "thermal/thermal_model.h"
@@ -556,6 +557,27 @@ TEST(Extreme, SpheresAMillionthOfTheBoxAreNeitherMissedNorPhantom) {
       expect_beam_matches_reference(p, spec, origins, Vec3::UnitX());
     }
   }
+}
+
+// A thermal mass that underflows (density 1e-300) made the first solve return infinities, reported
+// as "thermal direct solver: non-finite temperature" after the run had started. It is input, and
+// refused as such, naming the keys; a small but normal mass still runs.
+TEST(Extreme, ThermalMassThatUnderflowsIsRefusedAsInputNamingTheKeys) {
+  SimulationSpec spec = small_spec(1);
+  spec.materials[0].density = 1e-300;
+  try {
+    Simulation sim(spec);
+    FAIL() << "density 1e-300 accepted";
+  } catch (const InputError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("`material.density`"), std::string::npos) << what;
+    EXPECT_NE(what.find("1e-300"), std::string::npos) << what;
+  }
+  spec.materials[0].density = 1e-200;
+  Simulation sim(spec);
+  sim.run();
+  expect_finite_state(sim);
+  expect_ledgers_close(sim.figures());
 }
 
 }  // namespace
