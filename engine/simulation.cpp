@@ -243,7 +243,8 @@ Figures Simulation::figures() const {
   f.max_temperature = max_temperature_;
   const OpticsLedger& o = tracer_->ledger();
   const ThermalLedger& h = thermal_->ledger();
-  f.energy = {o.injected, o.absorbed, o.escaped, o.cutoff, h.stored, h.vaporized, h.walls};
+  f.energy = {o.injected, o.absorbed, o.escaped, o.cutoff, tracer_->energy_in_flight(),
+              h.stored, h.vaporized, h.walls};
   return f;
 }
 

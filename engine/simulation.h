@@ -41,8 +41,9 @@ struct SimulationSpec {
 // Energy ledger of a run, J (MODEL.md section 6).
 struct EnergyLedger {
   double injected = 0, absorbed = 0, escaped = 0, cutoff = 0;  // optics
+  double in_flight = 0;  // carried by rays still live (a run stopped mid-pulse)
   double stored = 0, vaporized = 0, walls = 0;                 // heat
-  double optics_imbalance() const { return injected - absorbed - escaped - cutoff; }
+  double optics_imbalance() const { return injected - absorbed - escaped - cutoff - in_flight; }
   double heat_imbalance() const { return absorbed - stored - vaporized - walls; }
 };
 

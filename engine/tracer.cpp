@@ -151,6 +151,13 @@ void Tracer::start_ray(std::size_t r, const Vec3& origin, const Vec3& direction,
   s.live[r] = 1;
 }
 
+double Tracer::energy_in_flight() const {
+  double sum = 0.0;
+  for (std::size_t r = 0; r < state_.live.size(); ++r)
+    if (state_.live[r]) sum += state_.energy[r];
+  return sum;
+}
+
 void Tracer::compact() {
   RayState& s = state_;
   std::vector<std::size_t> keep;

@@ -119,6 +119,8 @@ class Tracer {
   // of the pulse (the step length of thermal.dt = "pulse" is this over c).
   double last_advance_path() const { return last_advance_path_; }
   bool has_live_rays() const { return state_.live_count > 0; }
+  // Energy the live rays carry, summed in ray order: between advances, ledger().in_flight().
+  double energy_in_flight() const;
   const OpticsLedger& ledger() const { return state_.ledger; }
   std::uint64_t primary_segments() const { return state_.primary_segments; }
   std::uint64_t bounced_segments() const { return state_.bounced_segments; }

@@ -383,6 +383,11 @@ TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
   const auto summary = read_json(dir / "summary.json");
   EXPECT_TRUE(bool(summary["interrupted"]));
   EXPECT_EQ(read_csv(dir / "particles.csv").size(), std::size_t(summary["counts"]["particles"]));
+  // Its ledger closes with the energy of the rays it stopped in flight.
+  const auto e = summary["energy_J"];
+  const double injected = e["injected"];
+  EXPECT_NEAR(injected, double(e["absorbed"]) + double(e["escaped"]) + double(e["cutoff"]) +
+                            double(e["in_flight"]), 1e-12 * injected);
   const Result r = run("run --resume " + dir.string() + " --quiet");
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_EQ(file_text(dir / "particles.csv"), file_text(whole / "particles.csv"));

@@ -159,6 +159,23 @@ TEST(OpticsTracer, BudgetLimitsThePathOfEveryRay) {
   EXPECT_FALSE(tracer.has_live_rays());
 }
 
+// Between budgeted advances the ledger's open part is exactly what the live rays carry: a run
+// stopped mid-pulse reports it as in flight, not as an imbalance.
+TEST(OpticsTracer, EnergyInFlightIsWhatTheLedgerHasNotClosed) {
+  Tracer tracer(packing_1e4(), optics_for(20.0));
+  tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+  std::vector<double> deposits;
+  for (int step = 0; step < 6 && tracer.has_live_rays(); ++step) {
+    tracer.advance(1e-4, deposits);
+    const OpticsLedger& l = tracer.ledger();
+    EXPECT_GT(tracer.energy_in_flight(), 0.0) << step;
+    EXPECT_GT(l.absorbed, 0.0) << step;
+    EXPECT_NEAR(tracer.energy_in_flight(), l.in_flight(), 1e-12 * l.injected) << step;
+  }
+  tracer.advance(kAll, deposits);
+  EXPECT_EQ(tracer.energy_in_flight(), 0.0);
+}
+
 TEST(OpticsTracer, SaveAndRestoreRedoAStep) {
   Tracer tracer(packing_1e4(), optics_for(1.4));
   tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);

@@ -64,7 +64,7 @@ class Progress {
 // The figures of a run as CSV columns: history.csv and sweep.csv share them.
 const char* kFigureColumns =
     "vaporized_fraction,melted_fraction,max_temperature_K,injected_J,absorbed_J,escaped_J,"
-    "cutoff_J,stored_J,vaporized_J,walls_J";
+    "cutoff_J,stored_J,vaporized_J,walls_J,in_flight_J";
 
 std::string figure_columns(const Figures& f) {
   const EnergyLedger& e = f.energy;
@@ -72,7 +72,7 @@ std::string figure_columns(const Figures& f) {
   s << exact(f.vaporized_fraction) << ',' << exact(f.melted_fraction) << ','
     << exact(f.max_temperature) << ',' << exact(e.injected) << ',' << exact(e.absorbed) << ','
     << exact(e.escaped) << ',' << exact(e.cutoff) << ',' << exact(e.stored) << ','
-    << exact(e.vaporized) << ',' << exact(e.walls);
+    << exact(e.vaporized) << ',' << exact(e.walls) << ',' << exact(e.in_flight);
   return s.str();
 }
 
@@ -105,6 +105,7 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
   j["time_s"] = f.time;
   j["pulses"] = f.pulse;
   j["energy_J"] = {{"injected", e.injected}, {"absorbed", e.absorbed}, {"escaped", e.escaped},
+                   {"in_flight", e.in_flight},
                    {"cutoff", e.cutoff},     {"stored", e.stored},     {"vaporized", e.vaporized},
                    {"walls", e.walls}};
   j["counts"] = {{"particles", r.counts.particles}, {"rays", r.counts.rays},
@@ -136,6 +137,7 @@ void print_table(const Simulation& sim, const RunResult& r) {
   std::printf("  %-26s %14.6e\n", "absorbed", e.absorbed);
   std::printf("  %-26s %14.6e\n", "escaped", e.escaped);
   std::printf("  %-26s %14.6e\n", "cut off", e.cutoff);
+  if (e.in_flight != 0) std::printf("  %-26s %14.6e\n", "in flight (run stopped)", e.in_flight);
   std::printf("  %-26s %14.6e\n", "stored as heat", e.stored);
   std::printf("  %-26s %14.6e\n", "carried off by vapour", e.vaporized);
   std::printf("  %-26s %14.6e\n", "lost to walls", e.walls);
