@@ -392,3 +392,18 @@ TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_EQ(file_text(dir / "particles.csv"), file_text(whole / "particles.csv"));
 }
+
+// A thermal.dt far below light's crossing time of the sample is legal but makes millions of steps
+// per pulse: the run says so before it starts; a step of a thousandth of the crossing does not.
+TEST(Cli, ATimeStepOfMillionsOfStepsPerCrossingIsAnnounced) {
+  const fs::path out = fresh_dir("tiny_dt");
+  const Result tiny = run("run --preset quick --quiet --set pulses.count=0 --set thermal.dt=1e-20 --out " +
+                          out.string());
+  ASSERT_EQ(tiny.code, 0) << tiny.output;
+  EXPECT_NE(tiny.output.find("warning: `thermal.dt` = 1e-20 s"), std::string::npos) << tiny.output;
+  EXPECT_NE(tiny.output.find("3.34e+08 steps"), std::string::npos) << tiny.output;
+  const Result fine = run("run --preset quick --quiet --set pulses.count=0 --set thermal.dt=1e-15 --out " +
+                          out.string());
+  ASSERT_EQ(fine.code, 0) << fine.output;
+  EXPECT_EQ(fine.output.find("warning"), std::string::npos) << fine.output;
+}

@@ -245,6 +245,20 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
 
 }  // namespace
 
+// A fixed thermal.dt far below the light's crossing time of the sample makes a run of millions
+// of steps per pulse: legal (the budget per step is c dt), but say so before it starts.
+void warn_of_many_steps(const SimulationSpec& spec) {
+  if (!(spec.dt > 0)) return;
+  const double crossing = spec.packing.sample_size / kSpeedOfLight;
+  const double steps = crossing / spec.dt;
+  if (steps < 1e6) return;
+  std::fprintf(stderr,
+               "beampack: warning: `thermal.dt` = %g s: light crosses the sample (%g m) in %.3g s, "
+               "%.3g steps of this length per crossing; `thermal.dt = \"pulse\"` takes one step "
+               "per pulse flight\n",
+               spec.dt, spec.packing.sample_size, crossing, steps);
+}
+
 int run_command(const RunOptions& options) {
   if (!options.resume.empty() && (!options.sources.file.empty() || !options.sources.preset.empty() ||
                                   !options.sources.sets.empty()))
@@ -258,6 +272,7 @@ int run_command(const RunOptions& options) {
     sources.text = record.config_text;
   }
   const RunConfig config = load_run_config(sources);
+  warn_of_many_steps(config.sim);
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
   const std::string out_dir = options.resume.empty() || options.out_set ? options.out_dir : options.resume;
   prepare_out_dir(out_dir);
