@@ -225,6 +225,9 @@ Particles read_packing_file(const std::string& path, double default_radius) {
     p.add({v[0], v[1], v[2]}, v[3]);
   }
   require(!in.bad(), "packing.file = \"" + path + "\": read error");
+  // An empty bed is allowed when asked for (packing.count = 0), not from a file that lost its data.
+  require(p.size() > 0, "packing.file = \"" + path + "\": holds no particle (" +
+                            (seen_header ? "a header line only" : "no data line") + ")");
   return p;
 }
 

@@ -407,3 +407,19 @@ TEST(Cli, ATimeStepOfMillionsOfStepsPerCrossingIsAnnounced) {
   ASSERT_EQ(fine.code, 0) << fine.output;
   EXPECT_EQ(fine.output.find("warning"), std::string::npos) << fine.output;
 }
+
+TEST(Cli, ABeamThatMeetsNoParticleIsAnnounced) {
+  const fs::path out = fresh_dir("beam_misses");
+  const std::string base = "run --preset quick --quiet --set pulses.count=1 --set packing.source=file ";
+  // Default sample: the cube [0, 1e-3]^3 m, beam along +x centred at y = z = 5e-4 m.
+  const std::string outside = write(out / "outside.xyz", "5e-4 0.5 0.5 1e-5\n");
+  const Result missed = run(base + "--set packing.file=" + outside + " --out " + (out / "a").string());
+  ASSERT_EQ(missed.code, 0) << missed.output;
+  EXPECT_NE(missed.output.find("warning: the beam"), std::string::npos) << missed.output;
+  EXPECT_NE(missed.output.find("meets no particle"), std::string::npos) << missed.output;
+  EXPECT_NE(missed.output.find("y [0.5, 0.5]"), std::string::npos) << missed.output;
+  const std::string on_axis = write(out / "on_axis.xyz", "5e-4 5e-4 5e-4 1e-5\n");
+  const Result hit = run(base + "--set packing.file=" + on_axis + " --out " + (out / "b").string());
+  ASSERT_EQ(hit.code, 0) << hit.output;
+  EXPECT_EQ(hit.output.find("warning"), std::string::npos) << hit.output;
+}

@@ -157,6 +157,12 @@ TEST(PackingFile, EachErrorNamesItsLine) {
             std::string::npos);
   EXPECT_NE(read_error("typo_first", "1.0e-3x 2 3 1\n4 5 6 1\n").find(":1: column 1 '1.0e-3x' is not a number"),
             std::string::npos);
+  // A file without data is refused (an empty bed is asked for with packing.count = 0).
+  EXPECT_NE(read_error("empty", "").find("holds no particle (no data line)"), std::string::npos);
+  EXPECT_NE(read_error("comments", "# x y z r\n\n# nothing\n").find("holds no particle"),
+            std::string::npos);
+  EXPECT_NE(read_error("header_only", "x y z r\n").find("holds no particle (a header line only)"),
+            std::string::npos);
   try {
     read_packing_file("/nonexistent/beampack.xyz");
     FAIL();

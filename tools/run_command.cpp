@@ -259,6 +259,27 @@ void warn_of_many_steps(const SimulationSpec& spec) {
                spec.dt, spec.packing.sample_size, crossing, steps);
 }
 
+// A beam whose tube meets no particle is legal but almost always a misplaced sample (a file
+// packing whose coordinates lie outside the cube [0, D]^3 the beam is centred on): say so.
+void warn_if_beam_meets_nothing(const Simulation& sim) {
+  const Particles& p = sim.particles();
+  const Beam& beam = sim.beam();
+  if (p.size() == 0) return;
+  Vec3 lo = p.centre[0], hi = p.centre[0];
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    const Vec3 off = p.centre[i] - beam.centre;
+    const Vec3 across = off - off.dot(beam.direction) * beam.direction;
+    if (across.norm() < beam.radius + p.radius[i]) return;
+    lo = lo.cwiseMin(p.centre[i]), hi = hi.cwiseMax(p.centre[i]);
+  }
+  std::fprintf(stderr,
+               "beampack: warning: the beam (disk of radius %g m centred at (%g, %g, %g) m on the "
+               "face of the sample cube [0, %g]^3 m, `sample.size`) meets no particle: the "
+               "particles' centres span x [%g, %g], y [%g, %g], z [%g, %g] m\n",
+               beam.radius, beam.centre.x(), beam.centre.y(), beam.centre.z(),
+               sim.spec().packing.sample_size, lo.x(), hi.x(), lo.y(), hi.y(), lo.z(), hi.z());
+}
+
 int run_command(const RunOptions& options) {
   if (!options.resume.empty() && (!options.sources.file.empty() || !options.sources.preset.empty() ||
                                   !options.sources.sets.empty()))
@@ -279,6 +300,7 @@ int run_command(const RunOptions& options) {
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
   Simulation sim(config.sim);
+  warn_if_beam_meets_nothing(sim);
   if (saved) sim.read_state(*saved);
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);
