@@ -241,6 +241,7 @@ Figures Simulation::figures() const {
   f.vaporized_fraction = volume_fraction(Phase::vapor);
   f.melted_fraction = volume_fraction(Phase::liquid);
   f.max_temperature = max_temperature_;
+  f.particles = particles_.size();
   const OpticsLedger& o = tracer_->ledger();
   const ThermalLedger& h = thermal_->ledger();
   f.energy = {o.injected, o.absorbed, o.escaped, o.cutoff, tracer_->energy_in_flight(),

@@ -423,3 +423,18 @@ TEST(Cli, ABeamThatMeetsNoParticleIsAnnounced) {
   ASSERT_EQ(hit.code, 0) << hit.output;
   EXPECT_EQ(hit.output.find("warning"), std::string::npos) << hit.output;
 }
+
+TEST(Cli, AnEmptyBedHasNoPeakTemperatureRatherThanZeroKelvin) {
+  const fs::path out = fresh_dir("empty_bed");
+  const Result r = run("run --preset quick --set packing.count=0 --set pulses.count=2 --out " + out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("peak temperature             - (no particles)"), std::string::npos) << r.output;
+  EXPECT_EQ(r.output.find(" 0 K"), std::string::npos) << r.output;
+  const nlohmann::json summary = read_json(out / "summary.json");
+  EXPECT_TRUE(summary["max_temperature_K"].is_null()) << summary.dump();
+  EXPECT_EQ(double(summary["energy_J"]["escaped"]), double(summary["energy_J"]["injected"]));
+  const auto history = read_csv(out / "history.csv");
+  ASSERT_EQ(history.size(), 2u);
+  EXPECT_EQ(history.back().at("max_temperature_K"), "");
+  EXPECT_EQ(std::stod(history.back().at("injected_J")), double(summary["energy_J"]["injected"]));
+}

@@ -35,6 +35,14 @@ namespace {
 using Clock = std::chrono::steady_clock;
 
 // One progress line on stderr, refreshed at most twice a second once a run passes two seconds.
+// The peak temperature as printed: a particle-free scene has none (not 0 K).
+std::string peak_text(const Figures& f, const char* format) {
+  if (f.particles == 0) return "- (no particles)";
+  char text[64];
+  std::snprintf(text, sizeof text, format, f.max_temperature);
+  return text;
+}
+
 class Progress {
  public:
   Progress(bool quiet, std::string label) : quiet_(quiet), label_(std::move(label)) {}
@@ -44,9 +52,9 @@ class Progress {
     if (elapsed < 2.0 || elapsed - last_ < 0.5) return;
     last_ = elapsed;
     const Figures f = sim.figures();
-    std::fprintf(stderr, "\r%spulse %d/%d  t = %.3e s  v_v = %.4f  T_max = %.0f K  %.1f s   ",
+    std::fprintf(stderr, "\r%spulse %d/%d  t = %.3e s  v_v = %.4f  T_max = %s  %.1f s   ",
                  label_.c_str(), f.pulse, sim.spec().pulses.count, f.time, f.vaporized_fraction,
-                 f.max_temperature, elapsed);
+                 peak_text(f, "%.0f K").c_str(), elapsed);
     shown_ = true;
   }
   ~Progress() {
@@ -70,7 +78,7 @@ std::string figure_columns(const Figures& f) {
   const EnergyLedger& e = f.energy;
   std::ostringstream s;
   s << exact(f.vaporized_fraction) << ',' << exact(f.melted_fraction) << ','
-    << exact(f.max_temperature) << ',' << exact(e.injected) << ',' << exact(e.absorbed) << ','
+    << (f.particles > 0 ? exact(f.max_temperature) : "") << ',' << exact(e.injected) << ',' << exact(e.absorbed) << ','
     << exact(e.escaped) << ',' << exact(e.cutoff) << ',' << exact(e.stored) << ','
     << exact(e.vaporized) << ',' << exact(e.walls) << ',' << exact(e.in_flight);
   return s.str();
@@ -101,7 +109,7 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
   nlohmann::json j;
   j["vaporized_fraction"] = f.vaporized_fraction;
   j["melted_fraction"] = f.melted_fraction;
-  j["max_temperature_K"] = f.max_temperature;
+  j["max_temperature_K"] = f.particles > 0 ? nlohmann::json(f.max_temperature) : nlohmann::json(nullptr);
   j["time_s"] = f.time;
   j["pulses"] = f.pulse;
   j["energy_J"] = {{"injected", e.injected}, {"absorbed", e.absorbed}, {"escaped", e.escaped},
@@ -131,7 +139,7 @@ void print_table(const Simulation& sim, const RunResult& r) {
   const EnergyLedger& e = f.energy;
   std::printf("%-28s %14.6g\n", "vaporized fraction", f.vaporized_fraction);
   std::printf("%-28s %14.6g\n", "melted fraction", f.melted_fraction);
-  std::printf("%-28s %14.6g K\n", "peak temperature", f.max_temperature);
+  std::printf("%-28s %16s\n", "peak temperature", peak_text(f, "%14.6g K").c_str());
   std::printf("energy ledger, J\n");
   std::printf("  %-26s %14.6e\n", "injected", e.injected);
   std::printf("  %-26s %14.6e\n", "absorbed", e.absorbed);
@@ -380,9 +388,9 @@ int sweep_command(const SweepOptions& options) {
     const double x = std::strtod(options.values[k].c_str(), &end);
     vv.x.push_back(end && *end == 0 ? x : double(k));
     vv.y.push_back(f.vaporized_fraction);
-    std::printf("%-24s %s = %-10s v_v = %.4f  melted = %.4f  T_max = %.0f K  (%.2f s)\n",
+    std::printf("%-24s %s = %-10s v_v = %.4f  melted = %.4f  T_max = %s  (%.2f s)\n",
                 "sweep", options.param.c_str(), options.values[k].c_str(), f.vaporized_fraction,
-                f.melted_fraction, f.max_temperature, r.wall_seconds);
+                f.melted_fraction, peak_text(f, "%.0f K").c_str(), r.wall_seconds);
     std::fflush(stdout);
   }
   const fs::path out(options.run.out_dir);
