@@ -13,9 +13,8 @@ Reflectances reflectance_components(double cos_i, double n_hat, double mu_hat) {
 }
 
 double reflectance_polarised(double cos_i, double n_hat, double mu_hat, double gamma) {
-  const Reflectances r = reflectance_components(cos_i, n_hat, mu_hat);
-  const double c = std::cos(gamma), s = std::sin(gamma);
-  return r.parallel * c * c + r.perpendicular * s * s;
+  return polarised_reflectance(reflectance_components(cos_i, n_hat, mu_hat), std::cos(gamma),
+                               std::sin(gamma));
 }
 
 Reflectances reflectance_components(double cos_i, std::complex<double> n_hat, double mu_hat) {

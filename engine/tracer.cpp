@@ -11,6 +11,7 @@
 #include <array>
 #include <Eigen/Geometry>
 #include <cmath>
+#include <numbers>
 #include <numeric>
 #include <string>
 #include <utility>
@@ -40,12 +41,25 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
   for (const auto& m : spec.materials)
     if (!(m.n_solid.real() > 0.0) || !(m.n_liquid.real() > 0.0) || !(m.mu_hat > 0.0))
       throw InputError("`optics.n_solid`, `optics.n_liquid` and mu_hat must be > 0");
+  const double gamma = spec.polarisation.gamma;
+  if (spec.polarisation.linear && !(gamma >= 0.0 && gamma <= 0.5 * std::numbers::pi))
+    throw InputError("`optics.polarisation` = " + std::to_string(gamma * 180.0 / std::numbers::pi) +
+                     " degrees: the angle to the plane of incidence must be in [0, 90]");
 }
 
 // Unpolarised Fresnel reflectance (2.25) with the particle's current index (solid or liquid).
 double particle_reflectance(const MaterialOptics& m, Phase phase, double cos_i) {
   const std::complex<double> n = phase == Phase::solid ? m.n_solid : m.n_liquid;
   return n.imag() == 0.0 ? reflectance(cos_i, n.real(), m.mu_hat) : reflectance(cos_i, n, m.mu_hat);
+}
+
+// The same for light polarised linearly at gamma to the plane of incidence (2.18).
+double particle_reflectance(const MaterialOptics& m, Phase phase, double cos_i, double cos_gamma,
+                            double sin_gamma) {
+  const std::complex<double> n = phase == Phase::solid ? m.n_solid : m.n_liquid;
+  const Reflectances r = n.imag() == 0.0 ? reflectance_components(cos_i, n.real(), m.mu_hat)
+                                         : reflectance_components(cos_i, n, m.mu_hat);
+  return polarised_reflectance(r, cos_gamma, sin_gamma);
 }
 
 }  // namespace
@@ -97,6 +111,7 @@ Tracer::Tracer(const Particles& particles, OpticsSpec spec)
   if (spec_.bounce_search == BounceSearch::grid)
     grid_ = std::make_unique<SphereGrid>(particles, spec_.grid_cell_factor);
   box_ = particles.bounds();
+  cos_gamma_ = std::cos(spec_.polarisation.gamma), sin_gamma_ = std::sin(spec_.polarisation.gamma);
 }
 
 Tracer::~Tracer() = default;
@@ -270,7 +285,9 @@ bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
     // One material (the usual case): no per-particle lookup, one cache miss fewer per hit.
     const MaterialOptics& m =
         spec_.materials.size() == 1 ? spec_.materials[0] : spec_.materials[particles_.material[p]];
-    const double R = particle_reflectance(m, particles_.phase[p], cos_i);
+    const double R = spec_.polarisation.linear
+                         ? particle_reflectance(m, particles_.phase[p], cos_i, cos_gamma_, sin_gamma_)
+                         : particle_reflectance(m, particles_.phase[p], cos_i);
     const double carried = R * s.energy[r];
     c.events.push_back({r, p, s.energy[r] - carried});  // absorbed + carried == E exactly
     ++c.hits;

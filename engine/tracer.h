@@ -30,6 +30,14 @@ struct MaterialOptics {
   double mu_hat = 1.0;
 };
 
+// The light's polarisation at a hit: unpolarised (2.22), the default, or linear at gamma to the
+// plane of incidence (2.18). The paper's linear case keeps the same gamma at every hit; a ray's
+// polarisation is not followed through its reflections.
+struct Polarisation {
+  bool linear = false;
+  double gamma = 0.0;  // rad, in [0, pi/2]; optics.polarisation in degrees
+};
+
 // How bounced rays find their next sphere (same answer bit for bit; docs/bench/optics.md):
 // Embree single rays, waves of incoherent Embree packets, or waves of interleaved walks through a
 // uniform grid (the default: measured fastest).
@@ -45,6 +53,7 @@ struct OpticsSpec {
   std::vector<MaterialOptics> materials = std::vector<MaterialOptics>(1);  // by Particles::material
   double cutoff = 1e-10;    // optics.cutoff: epsilon, relative to the ray's initial energy
   int max_bounces = 1000;   // optics.max_bounces
+  Polarisation polarisation;  // optics.polarisation
   bool packets = true;      // primary rays in coherent 16-ray packets (false: single rays)
   BounceSearch bounce_search = BounceSearch::grid;
   double grid_cell_factor = 3.0;  // grid cell edge / largest radius (measured best of 1.5-4)
@@ -159,6 +168,7 @@ class Tracer {
   std::unique_ptr<EmbreeScene> scene_;
   std::unique_ptr<SphereGrid> grid_;  // bounced rays (BounceSearch::grid)
   Box box_;  // all particles grown by their radii: leaving it means escaped
+  double cos_gamma_ = 0.0, sin_gamma_ = 0.0;  // of spec_.polarisation.gamma, once
   RayState state_;
   bool record_segments_ = false;
   std::vector<RaySegment> segments_;

@@ -175,6 +175,10 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"--set material.conductivity=-3", "material.conductivity", "must be >= 0"});
   expect_input_error("syntax", "[beam\nrays = 3\n", "", {"run.toml:1"});
   expect_input_error("preset", "", "--preset nosuch", {"nosuch", "zohdi2013"});
+  expect_input_error("polarisation", "", "--preset quick --set optics.polarisation=95",
+                     {"optics.polarisation", "95", "<= 90"});
+  expect_input_error("polarisation_word", "[optics]\npolarisation = \"linear\"\n", "",
+                     {"run.toml:2", "optics.polarisation", "\"linear\"", "number in degrees or \"unpolarised\""});
   expect_input_error("overflow", "", "--preset quick --set beam.power=1e308",
                      {"beam.power", "pulses.duration", "overflows"});
 }

@@ -10,6 +10,7 @@
 #include "engine/fresnel.h"
 #include "engine/sphere_grid.h"
 #include "engine/tracer.h"
+#include "geometry/error.h"
 #include "geometry/packing.h"
 #include "geometry/random.h"
 #include "geometry/ray_sphere.h"
@@ -40,9 +41,11 @@ struct SingleSphere {
   SingleSphere() { particles.add(Vec3::Constant(0.5 * D), R); }
 };
 
-double traced_absorbed(const SingleSphere& s, const BeamSpec& spec, double& ray_energy) {
+double traced_absorbed(const SingleSphere& s, const BeamSpec& spec, double& ray_energy,
+                       Polarisation polarisation = {}) {
   OpticsSpec optics;
   optics.materials[0].n_solid = s.n_hat;
+  optics.polarisation = polarisation;
   Tracer tracer(s.particles, optics);
   const Beam beam = make_beam(spec, s.D);
   tracer.launch(beam, 1.0);  // tau = 1 s: energies in J equal powers in W
@@ -65,6 +68,46 @@ TEST(OpticsSphere, UniformBeamStratifiedMatchesQuadrature) {
   const double expected =
       I * cross_section_integral(s.R, [&](double c) { return 1.0 - reflectance(c, s.n_hat); });
   EXPECT_NEAR(absorbed, expected, 1e-3 * expected);
+}
+
+// Linear polarisation (2.18) at gamma = 0 weighs R_par alone, at 90 degrees R_perp alone; on one
+// sphere (a ray meets it once) their absorbed powers average to the unpolarised one.
+TEST(OpticsSphere, PolarisedBeamMatchesQuadratureOfEachComponent) {
+  SingleSphere s;
+  BeamSpec spec;
+  spec.profile = "flat";
+  spec.sampling = "stratified";
+  spec.rays = 100000;
+  const double I = spec.power / (kPi * 0.15e-3 * 0.15e-3);
+  double e;
+  const double par = traced_absorbed(s, spec, e, {true, 0.0});
+  const double perp = traced_absorbed(s, spec, e, {true, 0.5 * kPi});
+  const double unpolarised = traced_absorbed(s, spec, e);
+  const double expected_par = I * cross_section_integral(s.R, [&](double c) {
+    return 1.0 - reflectance_components(c, s.n_hat).parallel;
+  });
+  const double expected_perp = I * cross_section_integral(s.R, [&](double c) {
+    return 1.0 - reflectance_components(c, s.n_hat).perpendicular;
+  });
+  EXPECT_NEAR(par, expected_par, 1e-3 * expected_par);
+  EXPECT_NEAR(perp, expected_perp, 1e-3 * expected_perp);
+  EXPECT_GT(par, perp * (1.0 + 1e-2));  // p-light reflects less (Brewster): a real difference
+  EXPECT_NEAR(0.5 * (par + perp), unpolarised, 1e-12 * unpolarised);
+  // 45 degrees is unpolarised light up to the rounding of cos^2(pi/4).
+  EXPECT_NEAR(traced_absorbed(s, spec, e, {true, 0.25 * kPi}), unpolarised, 1e-12 * unpolarised);
+}
+
+TEST(OpticsSphere, PolarisationAngleOutsideItsRangeIsRefused) {
+  SingleSphere s;
+  OpticsSpec optics;
+  optics.polarisation = {true, 2.0};
+  try {
+    Tracer tracer(s.particles, optics);
+    FAIL() << "an angle of 2 rad was accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("optics.polarisation"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("[0, 90]"), std::string::npos) << e.what();
+  }
 }
 
 TEST(OpticsSphere, UniformBeamRandomWithinThreeStandardErrors) {

@@ -359,7 +359,8 @@ bool Params::flag(const std::string& key, bool fallback) {
 
 std::string Params::number_or_word(const std::string& key, double& value, double lo, double hi,
                                    std::initializer_list<const char*> words,
-                                   const std::string& fallback_word) {
+                                   const std::string& fallback_word, const std::string& unit,
+                                   bool lo_open) {
   const toml::node* node = find(key);
   if (!node || node->is_string()) {
     const std::string w = node ? std::string(node->as_string()->get()) : fallback_word;
@@ -370,9 +371,9 @@ std::string Params::number_or_word(const std::string& key, double& value, double
       }
     std::string list;
     for (const char* a : words) list += std::string(" or \"") + a + "\"";
-    fail(key, "\"" + w + "\"", "must be a number in seconds" + list);
+    fail(key, "\"" + w + "\"", "must be a number in " + unit + list);
   }
-  value = number(key, 0.0, lo, hi, true);
+  value = number(key, 0.0, lo, hi, lo_open);
   return "";
 }
 

@@ -32,9 +32,11 @@ class Params {
   bool flag(const std::string& key, bool fallback);
   bool has(const std::string& key) const;
   // A number, or one of the given words (`thermal.dt = "pulse"`, `pulses.period = "auto"`).
-  // Returns the word, or "" and sets value.
+  // Returns the word, or "" and sets value. `unit` names the number's unit in the error message;
+  // lo itself is allowed only when lo_open is false.
   std::string number_or_word(const std::string& key, double& value, double lo, double hi,
-                             std::initializer_list<const char*> words, const std::string& fallback_word);
+                             std::initializer_list<const char*> words, const std::string& fallback_word,
+                             const std::string& unit = "seconds", bool lo_open = true);
 
   // InputError for the first key present in the layers but never read.
   void check_all_used() const;

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <sstream>
 #include <limits>
+#include <numbers>
 #include <sstream>
 
 #include "geometry/error.h"
@@ -52,7 +53,11 @@ void read_optics(Params& p, OpticsSpec& o) {
   m.mu_hat = p.number("optics.mu_hat", 1.0, 0, kBig, true);
   o.materials = {m};
   o.cutoff = p.number("optics.cutoff", 1e-10, 0, 1);
-  o.max_bounces = int(p.integer("optics.max_bounces", 1000, 0, 1'000'000));
+  o.max_bounces = int(p.integer("optics.max_bounces", 1000, 1, 1'000'000));
+  double degrees = 0.0;
+  const std::string word =
+      p.number_or_word("optics.polarisation", degrees, 0, 90, {"unpolarised"}, "unpolarised", "degrees", false);
+  o.polarisation = {word.empty(), degrees * std::numbers::pi / 180.0};
   o.packets = p.flag("optics.packets", true);
 }
 
