@@ -121,7 +121,7 @@ double explicit_limit(AgreeScene& s) {
   spec.phi = 0;
   ThermalModel model(s.p, {s.m}, spec);
   model.set_contacts(find_contacts(s.p));
-  return model.explicit_step_limit();
+  return model.monotone_step_limit();
 }
 
 TEST(ThermalSolvers, AllThreeAgree) {

@@ -8,6 +8,7 @@
 #include "geometry/contact.h"
 #include "geometry/error.h"
 #include "geometry/packing.h"
+#include "tests/thermal_test_util.h"
 #include "thermal/thermal_model.h"
 
 namespace beampack {
@@ -35,7 +36,7 @@ double explicit_limit(Particles& p) {
   spec.phi = 0;
   ThermalModel model(p, {conductive()}, spec);
   model.set_contacts(find_contacts(p));
-  return model.explicit_step_limit();
+  return model.monotone_step_limit();
 }
 
 class StiffImplicit : public ::testing::TestWithParam<const char*> {};
@@ -120,6 +121,62 @@ TEST(ThermalStiff, ExplicitModeratelyBeyondLimitIsSubSteppedAndStable) {
   EXPECT_GE(*std::min_element(p.temperature.begin(), p.temperature.end()), lo0 - 1e-9);
   EXPECT_LE(*std::max_element(p.temperature.begin(), p.temperature.end()), hi0 + 1e-9);
   EXPECT_NEAR(model.ledger().stored, 0.0, 1e-12);
+}
+
+// Crank-Nicolson is stable at any step but monotone only below the same limit (its stiff modes
+// are multiplied by ~-1 per step): beyond it the step is split, so no particle leaves the range
+// of the starting temperatures; far beyond it the step is refused by name.
+TEST(ThermalStiff, CrankNicolsonIsSubSteppedToKeepTheMaximumPrinciple) {
+  for (const char* solver : {"cg", "direct"}) {
+    Particles p = stiff_packing();
+    ThermalSpec spec;
+    spec.phi = 0.5;
+    spec.solver = solver;
+    spec.tolerance = 1e-12;
+    ThermalModel model(p, {conductive()}, spec);
+    model.set_contacts(find_contacts(p));
+    const double limit = model.monotone_step_limit();
+    ASSERT_NEAR(limit, 2.0 * explicit_limit(p), 1e-12 * limit);  // (1 - phi) halves the weight
+    const double lo0 = *std::min_element(p.temperature.begin(), p.temperature.end());
+    const double hi0 = *std::max_element(p.temperature.begin(), p.temperature.end());
+    for (int s = 0; s < 5; ++s) EXPECT_EQ(model.step(50.5 * limit, {}).substeps, 51) << solver;
+    EXPECT_GE(*std::min_element(p.temperature.begin(), p.temperature.end()), lo0 - 1e-9) << solver;
+    EXPECT_LE(*std::max_element(p.temperature.begin(), p.temperature.end()), hi0 + 1e-9) << solver;
+    try {
+      model.step(1e6 * limit, {});
+      FAIL() << "a Crank-Nicolson step 1e6 x beyond its monotone limit was accepted";
+    } catch (const InputError& e) {
+      const std::string msg = e.what();
+      EXPECT_NE(msg.find("thermal.phi = 0.5"), std::string::npos) << msg;
+      EXPECT_NE(msg.find("limit for a monotone step"), std::string::npos) << msg;
+      EXPECT_NE(msg.find("use thermal.phi = 1"), std::string::npos) << msg;
+    }
+  }
+}
+
+// The case that showed it: five spheres in a row, the first at 1034 K, cooled in one long step.
+TEST(ThermalStiff, CrankNicolsonLongStepOnAChainStaysAboveTheColdestParticle) {
+  Particles p = test::chain(5, 1e-4);
+  p.temperature[0] = 1034.0;
+  Material m = conductive();
+  ThermalSpec spec;
+  spec.phi = 0.5;
+  spec.solver = "direct";
+  spec.max_substeps = 100000;
+  ThermalModel model(p, {m}, spec);
+  model.set_contacts(find_contacts(p));
+  // 1000 x the limit, which is twice the explicit one (found with phi = 0: no circular check).
+  ThermalSpec explicit_spec;
+  explicit_spec.phi = 0;
+  Particles copy = p;
+  ThermalModel explicit_model(copy, {m}, explicit_spec);
+  explicit_model.set_contacts(find_contacts(copy));
+  const StepReport r = model.step(2e3 * explicit_model.monotone_step_limit(), {});
+  EXPECT_EQ(r.substeps, 1000);
+  for (double t : p.temperature) {
+    EXPECT_GE(t, 300.0 - 1e-9);
+    EXPECT_LE(t, 1034.0 + 1e-9);
+  }
 }
 
 TEST(ThermalStiff, FixedPointBeyondItsLimitReportsFailure) {

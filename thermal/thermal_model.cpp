@@ -187,8 +187,8 @@ Eigen::VectorXd ThermalModel::capacity_with_bands(const Eigen::VectorXd& theta0,
   return c;
 }
 
-double ThermalModel::explicit_step_limit() const {
-  if (spec_.phi >= 0.5) return std::numeric_limits<double>::infinity();
+double ThermalModel::monotone_step_limit() const {
+  if (spec_.phi >= 1.0) return std::numeric_limits<double>::infinity();
   const_cast<ThermalModel*>(this)->assemble_if_needed();
   double limit = std::numeric_limits<double>::infinity();
   const Eigen::VectorXd c = base_capacity();
@@ -419,15 +419,16 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
                      " (the ray scene was not updated after its removal)");
     dh[static_cast<Eigen::Index>(i)] = absorbed[i];
   }
-  // phi < 1/2 is stable and monotone only below its step limit: split the step, or refuse.
-  const double limit = explicit_step_limit();
+  // phi < 1 is monotone (and for phi < 1/2 stable) only below its step limit: split, or refuse.
+  const double limit = monotone_step_limit();
   const double parts = dt > limit ? std::ceil(dt / limit) : 1.0;
   if (parts > spec_.max_substeps) {
     std::ostringstream msg;
-    msg << "thermal.dt = " << dt << " s with thermal.phi = " << spec_.phi
-        << " exceeds the explicit stability limit " << limit << " s (min_i m_i C_i / (M (1 - phi) "
-        << "sum_j G_ij)) and would need " << parts << " sub-steps > thermal.max_substeps = "
-        << spec_.max_substeps << ": use thermal.phi >= 0.5 or a smaller thermal.dt";
+    msg << "thermal.dt = " << dt << " s with thermal.phi = " << spec_.phi << " exceeds the "
+        << (spec_.phi < 0.5 ? "explicit stability limit " : "limit for a monotone step ") << limit
+        << " s (min_i m_i C_i / (M (1 - phi) sum_j G_ij)) and would need " << parts
+        << " sub-steps > thermal.max_substeps = " << spec_.max_substeps
+        << ": use thermal.phi = 1 (monotone at any step) or a smaller thermal.dt";
     throw InputError(msg.str());
   }
   const std::vector<Phase> phase_before = p_.phase;

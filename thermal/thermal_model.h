@@ -20,8 +20,8 @@ struct ThermalSpec {
   std::string solver = "auto";     // thermal.solver: fixed-point | cg | direct | auto
   double tolerance = 1e-10;        // thermal.tolerance: relative, see solvers.h
   int max_iterations = 1000;       // thermal.max_iterations: fixed-point and cg
-  // thermal.max_substeps: phi < 1/2 beyond its stability limit is split into at most this many
-  // sub-steps; more would be needed -> InputError.
+  // thermal.max_substeps: phi < 1 beyond its step limit (monotone_step_limit) is split into at
+  // most this many sub-steps; more would be needed -> InputError.
   int max_substeps = 1000;
   // Predictor-corrector passes of the phase step: stop when no new band is crossed.
   int max_phase_corrections = 4;
@@ -80,9 +80,14 @@ class ThermalModel {
   StepReport step(double dt, const std::vector<double>& absorbed);
 
   const ThermalLedger& ledger() const { return ledger_; }
-  // Largest dt for which phi < 1/2 needs no sub-steps: min_i c_i / ((1 - phi) D_i), D_i the
-  // diagonal of L + W; infinite for phi >= 1/2 or without conduction.
-  double explicit_step_limit() const;
+  // Largest dt for which a step keeps the discrete maximum principle (no temperature leaves the
+  // range of its neighbours', the walls' and its own plus the heat it absorbed):
+  // min_i c_i / ((1 - phi) D_i), D_i the diagonal of L + W, where the explicit part's weight on
+  // theta_i^n, c_i - (1 - phi) dt D_i, is still >= 0. For phi < 1/2 it is also the stability
+  // limit; for 1/2 <= phi < 1 the step is stable beyond it but not monotone (Crank-Nicolson's
+  // stiff modes flip sign every step: a 5-sphere chain cooled in one 1 us step went to -136 K).
+  // Infinite for phi = 1 or without conduction.
+  double monotone_step_limit() const;
   // Thermal mass m_i C_i / M of particle i in its current phase (no bands).
   double thermal_mass(std::size_t i) const;
 
