@@ -153,17 +153,13 @@ bool Simulation::step() {
     }
     // Stagger: a phase change that alters the optics of a particle the rays met in this step
     // sends the step back to the trace, with the new indices (bounded number of times).
-    const std::vector<Phase>& now = particles_.phase;
-    const bool optics_changed = std::any_of(
-        report.phase_changed.begin(), report.phase_changed.end(),
-        [&](std::uint32_t i) { return deposits_[i] > 0 && (optical_phase.empty() || optical_phase[i] != now[i]); });
-    if (!optics_changed || pass >= spec_.max_staggers) break;
+    if (!optics_changed(optical_phase.empty() ? heat_before.phase : optical_phase) ||
+        pass >= spec_.max_staggers)
+      break;
     StageClock clock(stages_[kStagger]);
     ++counts_.staggers;
-    std::vector<Phase> trial = now;  // copied only when the step is redone
-    for (std::size_t i = 0; i < trial.size(); ++i)
-      if (trial[i] == Phase::vapor) trial[i] = Phase::liquid;  // removed only from the next step
-    optical_phase = std::move(trial);
+    optical_phase = particles_.phase;  // copied only when the step is redone
+    for (Phase& phase : optical_phase) phase = optical(phase);
     tracer_->restore(rays_before);
     tracer_->take_segments();  // the redone trace records its own
     thermal_->restore(heat_before);
@@ -183,6 +179,19 @@ bool Simulation::step() {
   if (!report.vaporized.empty()) remove_vaporized(report.vaporized);
   if (done() && on_pulse_end_) on_pulse_end_(launched_ - 1);
   return !done();
+}
+
+// The phase whose index the rays see: a particle that vaporised in this step is still hit during
+// it, as liquid (it leaves the scene from the next step, the paper's Remark 10).
+Phase Simulation::optical(Phase phase) { return phase == Phase::vapor ? Phase::liquid : phase; }
+
+// Whether a particle the rays met in this step ends it with another index than the trace used:
+// solid <-> liquid, and solid -> vapour (which passed through liquid). `seen` is what the trace
+// used; every particle is compared, so one the redo saw as liquid that ends solid counts too.
+bool Simulation::optics_changed(const std::vector<Phase>& seen) const {
+  for (std::size_t i = 0; i < deposits_.size(); ++i)
+    if (deposits_[i] > 0 && optical(particles_.phase[i]) != seen[i]) return true;
+  return false;
 }
 
 void Simulation::non_finite(std::size_t particle, double temperature, double deposit) const {

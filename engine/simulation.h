@@ -108,6 +108,8 @@ class Simulation {
   double step_length(bool traced) const;
   void remove_vaporized(const std::vector<std::uint32_t>& ids);
   [[noreturn]] void non_finite(std::size_t particle, double temperature, double deposit) const;
+  static Phase optical(Phase phase);
+  bool optics_changed(const std::vector<Phase>& seen) const;
   double volume_fraction(Phase phase) const;
   std::string skip_reason(int stage) const;
   void check_thermal_masses(double run_energy) const;

@@ -4,6 +4,7 @@
 
 #include <string>
 
+#include "engine/beam.h"
 #include "engine/simulation.h"
 
 namespace beampack {
@@ -100,6 +101,46 @@ TEST(SimulationStages, BeforeTheFirstStepNothingHasRunYet) {
   Simulation sim(quick_spec());
   expect_skipped(sim, "trace", "no step taken yet");
   expect_ran(sim, "rebuild");  // the contact graph is built with the scene
+}
+
+}  // namespace
+}  // namespace beampack
+
+namespace beampack {
+namespace {
+
+// One sphere under a wide flat beam, heated from 300 K past theta_v in one step: it melted on the
+// way, so the rays must meet it as liquid (n_l = 1, R_F = 0: it absorbs every ray that meets it),
+// which takes one redo of the step. Before, only solid <-> liquid changes asked for the redo.
+TEST(SimulationStages, ASphereVaporisedFromSolidInOneStepIsRetracedAsLiquid) {
+  SimulationSpec spec;
+  spec.packing.sample_size = kD;
+  spec.beam.profile = "flat";
+  spec.beam.sampling = "stratified";
+  spec.beam.rays = 4000;
+  spec.pulses.count = 1;
+  spec.pulses.duration = 1e-10;  // ~6e4 K for the sphere's share of the beam
+  const double R = 0.1e-3;
+  const Vec3 centre = Vec3::Constant(0.5 * kD);
+  Particles one;
+  one.add(centre, R);
+  const Beam beam = make_beam(spec.beam, kD);
+  const std::vector<double> energy = beam.ray_energies(spec.pulses.duration);
+  double met = 0;  // the energy of the rays whose line passes through the sphere
+  for (std::size_t k = 0; k < beam.size(); ++k) {
+    const Vec3 off = beam.origin[k] - centre;
+    if ((off - off.dot(beam.direction) * beam.direction).norm() < R) met += energy[k];
+  }
+  Simulation sim(spec, one);
+  sim.run();
+  ASSERT_EQ(sim.figures().vaporized_fraction, 1.0);
+  EXPECT_EQ(sim.counts().staggers, 1u);
+  EXPECT_NEAR(sim.absorbed()[0], met, 1e-12 * met);
+
+  spec.max_staggers = 0;  // as solid: Fresnel reflection keeps a visible share out
+  Simulation solid(spec, one);
+  solid.run();
+  EXPECT_LT(solid.absorbed()[0], 0.97 * met);
 }
 
 }  // namespace
