@@ -179,6 +179,29 @@ TEST(ThermalStiff, CrankNicolsonLongStepOnAChainStaysAboveTheColdestParticle) {
   }
 }
 
+// A wall of 1e12 W/K holds the particle that touches it at theta_w: the heat the chain absorbs
+// flows into the wall, by changes far below the last digit of 300 K. They must still reach the
+// ledger: before, the solve's right side was dominated by g theta_w, CG stopped at once and the
+// absorbed heat was in no bin (heat imbalance 1.0 in a lit run).
+TEST(ThermalStiff, AWallOfHugeConductanceTakesTheHeatIntoTheLedger) {
+  for (const char* solver : {"cg", "direct", "auto"}) {
+    Particles p = test::chain(3, 1e-4);  // the first sphere touches x = 0
+    ThermalSpec spec;
+    spec.solver = solver;
+    spec.walls.push_back({0, 0.0, 0.0, 300.0, 1e12});
+    ThermalModel model(p, {conductive()}, spec);
+    model.set_contacts(find_contacts(p));
+    const std::vector<double> dh = {1e-12, 1e-12, 1e-12};
+    for (int s = 0; s < 10; ++s) model.step(1e-9, dh);
+    const ThermalLedger& l = model.ledger();
+    EXPECT_DOUBLE_EQ(l.absorbed, 3e-11) << solver;
+    EXPECT_NEAR(l.imbalance(), 0.0, 1e-9 * l.absorbed) << solver;
+    EXPECT_GT(l.walls, 0.1 * l.absorbed) << solver;  // the chain conducts part of it out
+    EXPECT_GT(l.stored, 0.0) << solver;
+    for (double t : p.temperature) EXPECT_GE(t, 300.0) << solver;
+  }
+}
+
 TEST(ThermalStiff, FixedPointBeyondItsLimitReportsFailure) {
   Particles p = stiff_packing();
   const double dt = 1e6 * explicit_limit(p);

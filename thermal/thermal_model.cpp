@@ -65,6 +65,7 @@ ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials
   }
   walls_ = wall_coupling(p_, materials_, spec_.walls);
   has_walls_ = walls_.any();
+  if (has_walls_) reference_ = spec_.walls.front().temperature;
   stored_.assign(p_.size(), 0.0);
 }
 
@@ -92,7 +93,7 @@ void ThermalModel::assemble_if_needed() {
   diagonal_ = Eigen::VectorXd::Zero(n);
   for (Eigen::Index i = 0; i < n; ++i) {
     if (!p_.alive[i]) continue;
-    wall_source_[i] = walls_.source[i];
+    wall_source_[i] = walls_.source[i] - walls_.conductance[i] * reference_;  // b relative to it
     diagonal_[i] = walls_.conductance[i];
   }
   // Only contacts between live particles conduct: after vaporisations there may be none left.
@@ -218,9 +219,17 @@ std::string ThermalModel::choose_solver(double contraction) const {
 // Solves (3.10) for theta1 given the capacities c:
 //   (c + dt phi (L + W)) theta1 = c theta0 + dt (1 - phi) Q(theta0) + dt phi b + dH,
 // Q(theta) = b - (L + W) theta, b the wall sources. Without a conducting contact the system is
-// diagonal and no matrix is built.
-void ThermalModel::solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
-                         const Eigen::VectorXd& dh, Eigen::VectorXd& theta1, StepReport& report) {
+// diagonal and no matrix is built. Solved for t.rel1 from t.rel0 (relative to reference_, which
+// moves b only); t.theta1 follows.
+void ThermalModel::solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& dh,
+                         StepTemperatures& t, StepReport& report) {
+  solve_relative(dt, c, t.rel0, dh, t.rel1, report);
+  t.theta1 = t.rel1.array() + reference_;
+}
+
+void ThermalModel::solve_relative(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
+                                  const Eigen::VectorXd& dh, Eigen::VectorXd& theta1,
+                                  StepReport& report) {
   const double implicit = dt * spec_.phi, explicit_part = dt * (1.0 - spec_.phi);
   const Eigen::VectorXd flux_in =
       has_conduction_ ? Eigen::VectorXd(laplacian_ * theta0) : diagonal_.cwiseProduct(theta0);
@@ -315,9 +324,10 @@ bool ThermalModel::phase_work_needed(const Eigen::VectorXd& theta0,
 // theta_v is re-solved with C_eff = C + delta P / delta theta for every band crossed. Bands are
 // kept once crossed within the step so the passes cannot cycle; passes stop when no new band
 // appears (or at thermal.max_phase_corrections). Returns the number of corrector solves.
-int ThermalModel::correct_phases(double dt, const Eigen::VectorXd& theta0,
-                                 const Eigen::VectorXd& dh, Eigen::VectorXd& c,
-                                 Eigen::VectorXd& theta1, StepReport& report) {
+int ThermalModel::correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::VectorXd& c,
+                                 StepTemperatures& t, StepReport& report) {
+  const Eigen::VectorXd& theta0 = t.theta0;
+  const Eigen::VectorXd& theta1 = t.theta1;
   std::vector<std::uint8_t> bands(p_.size(), 0);
   int passes = 0;
   for (;;) {
@@ -332,7 +342,7 @@ int ThermalModel::correct_phases(double dt, const Eigen::VectorXd& theta0,
     }
     if (!grew || passes == spec_.max_phase_corrections) break;
     c = capacity_with_bands(theta0, bands);
-    solve(dt, c, theta0, dh, theta1, report);
+    solve(dt, c, dh, t, report);
     report.phase_corrected = true;
     ++passes;
   }
@@ -341,8 +351,10 @@ int ThermalModel::correct_phases(double dt, const Eigen::VectorXd& theta0,
 
 // The ledger: stored gains the M-scaled (m C_eff / M) dtheta actually used in the solve, so
 // absorbed = stored + vaporized + walls holds to the solver tolerance.
-void ThermalModel::account(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
-                           const Eigen::VectorXd& theta1, const Eigen::VectorXd& dh) {
+void ThermalModel::account(double dt, const Eigen::VectorXd& c, const StepTemperatures& t,
+                           const Eigen::VectorXd& dh) {
+  const Eigen::VectorXd& theta0 = t.rel0;
+  const Eigen::VectorXd& theta1 = t.rel1;
   double stored = 0, walls = 0;
   for (std::size_t i = 0; i < p_.size(); ++i) {
     if (!p_.alive[i]) continue;
@@ -350,7 +362,7 @@ void ThermalModel::account(double dt, const Eigen::VectorXd& c, const Eigen::Vec
     stored_[i] += de;
     stored += de;
     const double mean = spec_.phi * theta1[i] + (1.0 - spec_.phi) * theta0[i];
-    walls += dt * (walls_.conductance[i] * mean - walls_.source[i]);
+    walls += dt * (walls_.conductance[i] * mean - wall_source_[i]);
   }
   ledger_.absorbed += dh.sum();
   ledger_.stored += stored;
@@ -389,15 +401,17 @@ StepReport ThermalModel::step_once(double dt, const Eigen::VectorXd& dh_in) {
     ledger_.vaporized += dh[i];
     dh[i] = 0;
   }
-  const Eigen::VectorXd theta0 = Eigen::Map<const Eigen::VectorXd>(p_.temperature.data(), n);
+  StepTemperatures t;
+  t.theta0 = Eigen::Map<const Eigen::VectorXd>(p_.temperature.data(), n);
+  t.rel0 = t.theta0.array() - reference_;
+  t.rel1 = t.rel0;  // the iterative solvers' first guess
   Eigen::VectorXd c = base_capacity();
-  Eigen::VectorXd theta1 = theta0;
-  solve(dt, c, theta0, dh, theta1, report);  // predictor
-  report.phases_ran = phase_work_needed(theta0, theta1);
+  solve(dt, c, dh, t, report);  // predictor
+  report.phases_ran = phase_work_needed(t.theta0, t.theta1);
   if (report.phases_ran)
-    report.phases_seconds += seconds_of([&] { correct_phases(dt, theta0, dh, c, theta1, report); });
-  account(dt, c, theta0, theta1, dh);
-  const double update = seconds_of([&] { update_phases(theta1, report); });
+    report.phases_seconds += seconds_of([&] { correct_phases(dt, dh, c, t, report); });
+  account(dt, c, t, dh);
+  const double update = seconds_of([&] { update_phases(t.theta1, report); });
   // Below theta_m everywhere the phase update is a scan that finds nothing: heat's time.
   if (report.phases_ran) report.phases_seconds += update;
   return report;

@@ -97,23 +97,31 @@ class ThermalModel {
   void restore(const Snapshot& snapshot);
 
  private:
+  // A step's temperatures: absolute (the phase rules) and relative to reference_ (the solve and
+  // the ledger: a change below the last digit of a temperature near 300 K keeps its digits there).
+  struct StepTemperatures {
+    Eigen::VectorXd theta0, theta1;  // K
+    Eigen::VectorXd rel0, rel1;      // K - reference_
+  };
   StepReport step_once(double dt, const Eigen::VectorXd& dh);
   void assemble_if_needed();
   void find_insulated_clusters();
   Eigen::VectorXd base_capacity() const;
   Eigen::VectorXd capacity_with_bands(const Eigen::VectorXd& theta0,
                                       const std::vector<std::uint8_t>& bands) const;
-  void solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
-             const Eigen::VectorXd& dh, Eigen::VectorXd& theta1, StepReport& report);
+  void solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& dh, StepTemperatures& t,
+             StepReport& report);
+  void solve_relative(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
+                      const Eigen::VectorXd& dh, Eigen::VectorXd& theta1, StepReport& report);
   void solve_direct_grounded(SparseMatrix& a, const Eigen::VectorXd& c, const Eigen::VectorXd& rhs,
                              Eigen::VectorXd& theta1, StepReport& report);
   double contraction_estimate(double dt, const Eigen::VectorXd& c) const;
   std::string choose_solver(double contraction) const;
   bool phase_work_needed(const Eigen::VectorXd& theta0, const Eigen::VectorXd& theta1) const;
-  int correct_phases(double dt, const Eigen::VectorXd& theta0, const Eigen::VectorXd& dh,
-                     Eigen::VectorXd& c, Eigen::VectorXd& theta1, StepReport& report);
-  void account(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
-               const Eigen::VectorXd& theta1, const Eigen::VectorXd& dh);
+  int correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::VectorXd& c, StepTemperatures& t,
+                     StepReport& report);
+  void account(double dt, const Eigen::VectorXd& c, const StepTemperatures& t,
+               const Eigen::VectorXd& dh);
   void update_phases(const Eigen::VectorXd& theta1, StepReport& report);
 
   Particles& p_;
@@ -127,7 +135,12 @@ class ThermalModel {
   SparseMatrix laplacian_;           // L + W with the live mask applied
   std::vector<Eigen::Index> diag_pos_;  // index of (i, i) in laplacian_'s values
   Eigen::VectorXd diagonal_;         // D_i = sum_j G_ij + W_i (live)
-  Eigen::VectorXd wall_source_;      // sum_w g_w theta_w (live), W
+  Eigen::VectorXd wall_source_;      // sum_w g_w (theta_w - reference_) (live), W
+  // The temperature the solve measures from: the first wall's (0 K without walls). L 1 = 0, so
+  // the shift moves only the wall sources, to 0 at a wall of that temperature; a particle held
+  // near it by a wall of 1e9 W/K then changes by digits a temperature near 300 K cannot hold,
+  // and they still reach the solver and the ledger (before: CG stopped at once, heat imbalance 1).
+  double reference_ = 0;
   bool dirty_ = true;                // laplacian_ values out of date (contacts or live set)
   std::uint64_t pattern_version_ = 1;
   DirectSolver direct_;
