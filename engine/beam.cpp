@@ -75,10 +75,12 @@ std::vector<Eigen::Vector2d> stratified_disk(std::size_t n) {
 
 // Scale I_k = I_0 f_k with I_0 = P / (A_r sum f): sum I_k A_r = P (MODEL.md section 2). The
 // largest ray then absorbs the round-off residual so the sum, taken in ray order, is P to the ulp.
-void normalise(std::vector<double>& intensity, double ray_area, double power) {
+void normalise(const BeamSpec& spec, std::vector<double>& intensity, double ray_area, double power) {
   double shape_sum = 0.0;
   for (double f : intensity) shape_sum += f;
-  if (!(shape_sum > 0.0)) throw InputError("beam profile is zero on every ray (check `beam.decay`)");
+  constexpr const char* kZero = "too narrow a profile: it underflows to zero on every ray";
+  if (!(shape_sum > 0.0) && spec.profile == "gaussian") bad("beam.gaussian_width", spec.gaussian_width, kZero);
+  if (!(shape_sum > 0.0)) bad("beam.decay", spec.decay, kZero);
   const double i0 = power / (ray_area * shape_sum);
   std::size_t largest = 0;
   for (std::size_t k = 0; k < intensity.size(); ++k) {
@@ -155,7 +157,7 @@ Beam make_beam(const BeamSpec& spec, double sample_size) {
     beam.origin.push_back(beam.centre + beam.radius * (q.x() * u + q.y() * v));
     beam.intensity.push_back(beam_profile(spec, beam.radius * q.norm(), beam.radius));
   }
-  normalise(beam.intensity, beam.ray_area, beam.power);
+  normalise(spec, beam.intensity, beam.ray_area, beam.power);
   return beam;
 }
 

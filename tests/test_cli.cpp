@@ -167,7 +167,7 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
   expect_input_error("unknown", "[material]\nconductivty = 3\n", "",
                      {"run.toml:2", "material.conductivty", "did you mean `material.conductivity`"});
   expect_input_error("type", "[beam]\nrays = \"many\"\n", "", {"run.toml:2", "beam.rays", "must be an integer"});
-  expect_input_error("negative", "[sample]\n\nsize = -1e-3\n", "", {"run.toml:3", "sample.size", "must be > 0"});
+  expect_input_error("negative", "[sample]\n\nsize = -1e-3\n", "", {"run.toml:3", "sample.size", "must be >= 1e-12 and <= 1e+06"});
   expect_input_error("nan", "[material]\nconductivity = nan\n", "", {"run.toml:2", "material.conductivity", "finite"});
   expect_input_error("missing_file", "[packing]\nsource = \"file\"\nfile = \"/nonexistent/bed.xyz\"\n", "",
                      {"packing.file", "/nonexistent/bed.xyz", "cannot open"});
@@ -175,6 +175,15 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"--set material.conductivity=-3", "material.conductivity", "must be >= 0"});
   expect_input_error("syntax", "[beam\nrays = 3\n", "", {"run.toml:1"});
   expect_input_error("preset", "", "--preset nosuch", {"nosuch", "zohdi2013"});
+  expect_input_error("walls_twice", "[thermal]\nwalls = \"x-,z+,x-\"\n", "",
+                     {"run.toml:2", "thermal.walls", "face x- is listed twice"});
+  expect_input_error("walls_face", "[thermal]\n\nwalls = \"q\"\n", "", {"run.toml:3", "thermal.walls", "x-, x+"});
+  expect_input_error("zero_direction", "[beam]\ndirection_x = 0.0\n", "",
+                     {"run.toml:2", "beam.direction_x", "must not be zero"});
+  expect_input_error("cutoff_one", "[optics]\ncutoff = 1.0\n", "", {"run.toml:2", "optics.cutoff", "must be < 1"});
+  expect_input_error("gaussian", "", "--preset quick --set beam.profile=gaussian --set beam.gaussian_width=1e-9",
+                     {"beam.gaussian_width", "1e-09", "underflows"});
+  expect_input_error("resume_empty", "", "--resume ''", {"--resume", "does not exist"});
   expect_input_error("polarisation", "", "--preset quick --set optics.polarisation=95",
                      {"optics.polarisation", "95", "<= 90"});
   expect_input_error("polarisation_word", "[optics]\npolarisation = \"linear\"\n", "",
@@ -441,4 +450,53 @@ TEST(Cli, AnEmptyBedHasNoPeakTemperatureRatherThanZeroKelvin) {
   ASSERT_EQ(history.size(), 2u);
   EXPECT_EQ(history.back().at("max_temperature_K"), "");
   EXPECT_EQ(std::stod(history.back().at("injected_J")), double(summary["energy_J"]["injected"]));
+}
+
+// A sweep value that fails leaves its own row empty and the exit code non-zero; the values
+// before and after it still run and are written.
+TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
+  const fs::path out = fresh_dir("sweep_fail");
+  const std::string bed = write(out / "bed.xyz", "5e-4 5e-4 5e-4 1e-4\n");
+  const std::string missing = (out / "missing.xyz").string();
+  const Result r = run("sweep --preset quick --quiet --set packing.source=file --param packing.file --values " +
+                       bed + "," + missing + "," + bed + " --out " + out.string());
+  EXPECT_EQ(r.code, 2) << r.output;
+  EXPECT_NE(r.output.find("missing.xyz\": cannot open"), std::string::npos) << r.output;
+  const auto rows = read_csv(out / "sweep.csv");
+  ASSERT_EQ(rows.size(), 3u);
+  EXPECT_EQ(rows[1].at("vaporized_fraction"), "");
+  EXPECT_EQ(rows[1].at("wall_seconds"), "");
+  EXPECT_EQ(rows[0].at("absorbed_J"), rows[2].at("absorbed_J"));
+  EXPECT_GT(std::stod(rows[0].at("absorbed_J")), 0.0);
+  for (const char* command : {"sweep --param material.conductivity --values 0", "converge"}) {
+    const Result threads = run(std::string(command) + " --preset quick --threads -3 --out " + out.string());
+    EXPECT_EQ(threads.code, 2) << command << ": " << threads.output;
+    EXPECT_NE(threads.output.find("--threads: Value -3 not in range 0 to 4096"), std::string::npos) << threads.output;
+  }
+}
+
+// converge checks its output directory and every rung's input before the first run, and an
+// interrupted rung is not written as a result.
+TEST(Cli, ConvergeRefusesBadOutputFirstAndKeepsNoInterruptedRung) {
+  const fs::path dir = fresh_dir("converge_io");
+  const std::string blocker = write(dir / "file", "x");
+  const auto start = std::chrono::steady_clock::now();
+  const Result bad = run("converge --preset zohdi2013 --quiet --out " + blocker);
+  EXPECT_EQ(bad.code, 2) << bad.output;
+  EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(), 2.0)
+      << "the ladder ran before the output directory was checked";
+  const fs::path out = dir / "out";
+  const std::string cmd = "timeout --preserve-status -s INT 0.5 " + std::string(BEAMPACK_CLI) +
+                          " converge --preset zohdi2013 --quiet --out " + out.string() + " 2>&1";
+  std::FILE* pipe = popen(cmd.c_str(), "r");
+  std::string text;
+  std::array<char, 4096> buf;
+  while (std::fgets(buf.data(), buf.size(), pipe)) text += buf.data();
+  const int status = pclose(pipe);
+  ASSERT_TRUE(WIFEXITED(status));
+  EXPECT_EQ(WEXITSTATUS(status), 1) << text;
+  EXPECT_NE(text.find("converge interrupted during time step"), std::string::npos) << text;
+  // The reference rung of the time-step ladder takes seconds: it was cut, so no row was written.
+  ASSERT_TRUE(fs::exists(out / "convergence.csv")) << text;
+  EXPECT_TRUE(read_csv(out / "convergence.csv").empty()) << text;
 }

@@ -1,5 +1,6 @@
 // `beampack converge`: error against run time. Each ladder varies one resolution of the scene
 // (time step, rays per pulse, solver tolerance); the finest rung is the reference.
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -22,7 +23,8 @@ struct Rung {
 struct Ladder {
   std::string name, key;
   std::vector<std::string> values;  // finest first
-  std::vector<Rung> rungs;
+  std::vector<RunConfig> configs;   // one per value, resolved before any run
+  std::vector<Rung> rungs;          // the rungs that finished
 };
 
 std::vector<Ladder> ladders(const RunConfig& base) {
@@ -33,11 +35,11 @@ std::vector<Ladder> ladders(const RunConfig& base) {
     s << v;
     return s.str();
   };
-  Ladder dt{"time step", "thermal.dt", {}, {}};
+  Ladder dt{"time step", "thermal.dt", {}, {}, {}};
   for (double f : {1.0, 4.0, 16.0, 64.0}) dt.values.push_back(seconds(f * paper_dt));
   dt.values.push_back("\"pulse\"");
-  Ladder rays{"rays per pulse", "beam.rays", {"100000", "30000", "10000", "3000", "1000", "300", "100"}, {}};
-  Ladder tol{"solver tolerance", "thermal.tolerance", {"1e-12", "1e-10", "1e-8", "1e-6", "1e-4"}, {}};
+  Ladder rays{"rays per pulse", "beam.rays", {"100000", "30000", "10000", "3000", "1000", "300", "100"}, {}, {}};
+  Ladder tol{"solver tolerance", "thermal.tolerance", {"1e-12", "1e-10", "1e-8", "1e-6", "1e-4"}, {}, {}};
   return {dt, rays, tol};
 }
 
@@ -53,24 +55,56 @@ double max_error(const std::vector<double>& a, const std::vector<double>& b) {
   return m;
 }
 
+// Runs every rung of the ladder that can run; a rung that fails is reported and left out, and an
+// interrupted one is not kept (a part of a run is not a result). Returns the exit code so far.
+int run_ladder(Ladder& ladder, bool quiet) {
+  int code = 0;
+  for (std::size_t k = 0; k < ladder.values.size() && !stop_requested().load(); ++k) {
+    const std::string rung = ladder.name + " " + ladder.values[k], label = rung + ": ";
+    try {
+      RunResult r = run_scene(ladder.configs[k], quiet, label);
+      if (r.interrupted) {
+        std::fprintf(stderr, "beampack: converge interrupted during %s; that rung and the rest "
+                             "are not in convergence.csv\n", rung.c_str());
+        break;
+      }
+      ladder.rungs.push_back({ladder.values[k], std::move(r)});
+    } catch (const std::exception& e) {
+      const bool input = dynamic_cast<const InputError*>(&e) != nullptr;
+      std::fprintf(stderr, "beampack: %s%s %s (left out of convergence.csv)\n", label.c_str(),
+                   input ? "error:" : "run failed:", e.what());
+      code = std::max(code, input ? 2 : 1);
+    }
+  }
+  // The reference is the finest rung: without it the others have nothing to be compared with.
+  if (!ladder.rungs.empty() && ladder.rungs.front().value != ladder.values.front()) {
+    std::fprintf(stderr, "beampack: %s: the reference rung %s did not finish; ladder left out\n",
+                 ladder.name.c_str(), ladder.values.front().c_str());
+    ladder.rungs.clear();
+  }
+  return code;
+}
+
 }  // namespace
 
 int converge_command(const RunOptions& options) {
   const RunConfig base = load_run_config(options.sources);
   const auto threads = limit_threads(options.threads);
+  prepare_out_dir(options.out_dir);  // an unusable --out fails before the runs, not after
   std::vector<Ladder> all = ladders(base);
+  for (Ladder& ladder : all)
+    for (const std::string& value : ladder.values) {  // a bad rung fails before any run starts
+      RunSources sources = options.sources;
+      sources.sets.push_back(ladder.key + "=" + value);
+      ladder.configs.push_back(load_run_config(sources));
+    }
   std::string csv = "ladder,key,value,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
                     "temperature_l2_error_K,temperature_max_error_K\n";
   Chart chart{"error of the vaporised fraction against run time", "wall seconds",
               "|v_v - v_v(finest)|", true, true, {}};
+  int code = 0;
   for (Ladder& ladder : all) {
-    for (const std::string& value : ladder.values) {
-      if (stop_requested().load()) break;
-      RunSources sources = options.sources;
-      sources.sets.push_back(ladder.key + "=" + value);
-      Rung rung{value, run_scene(load_run_config(sources), options.quiet, ladder.name + " " + value + ": ")};
-      ladder.rungs.push_back(std::move(rung));
-    }
+    code = std::max(code, run_ladder(ladder, options.quiet));
     if (ladder.rungs.empty()) continue;
     const RunResult& ref = ladder.rungs.front().result;
     Series series{ladder.name, {}, {}};
@@ -95,13 +129,12 @@ int converge_command(const RunOptions& options) {
     }
     chart.series.push_back(series);
   }
-  prepare_out_dir(options.out_dir);
   const fs::path out(options.out_dir);
   write_atomically((out / "convergence.csv").string(), [&](std::ostream& o) { o << csv; });
   write_atomically((out / "convergence.svg").string(), [&](std::ostream& o) { o << render_svg(chart); });
   std::printf("converge: %s/convergence.csv, %s/convergence.svg\n", options.out_dir.c_str(),
               options.out_dir.c_str());
-  return stop_requested().load() ? 1 : 0;
+  return stop_requested().load() ? std::max(code, 1) : code;
 }
 
 }  // namespace beampack::tools

@@ -36,6 +36,7 @@ int print_config(const RunSources& sources) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  const CLI::Range kThreads(0, 4096);
   CLI::App app{"beampack: laser processing of packed powders (Zohdi 2013)", "beampack"};
   app.require_subcommand(1);
   RunOptions run;
@@ -45,24 +46,26 @@ int main(int argc, char** argv) {
   CLI::App* run_cmd = app.add_subcommand("run", "run one scene and write its outputs");
   add_run_sources(run_cmd, run);
   run_cmd->add_option("--out", run.out_dir, "output directory")->capture_default_str();
-  run_cmd->add_option("--threads", run.threads, "worker threads (0: all cores)")->check(CLI::NonNegativeNumber);
+  run_cmd->add_option("--threads", run.threads, "worker threads (0: all cores)")->check(kThreads);
   run_cmd->add_flag("--quiet", run.quiet, "no progress line");
   run_cmd->add_option("--checkpoint-every", run.checkpoint_every,
-                      "write DIR/checkpoint.bin every N pulses (atomically)")->check(CLI::NonNegativeNumber);
-  run_cmd->add_option("--resume", run.resume, "continue the run whose checkpoint is in DIR");
+                      "write DIR/checkpoint.bin every N pulses (atomically)")->check(CLI::Range(0, 1'000'000'000));
+  run_cmd->add_option("--resume", run.resume, "continue the run whose checkpoint is in DIR")
+      ->check(CLI::ExistingDirectory);
 
   CLI::App* sweep_cmd = app.add_subcommand("sweep", "one run per value of a parameter");
   add_run_sources(sweep_cmd, sweep.run);
   sweep_cmd->add_option("--param", sweep.param, "key to vary")->required();
   sweep_cmd->add_option("--values", sweep.values, "comma-separated values")->required()->delimiter(',');
   sweep_cmd->add_option("--out", sweep.run.out_dir, "output directory")->capture_default_str();
-  sweep_cmd->add_option("--threads", sweep.run.threads, "worker threads (0: all cores)");
+  sweep_cmd->add_option("--threads", sweep.run.threads, "worker threads (0: all cores)")->check(kThreads);
+  sweep_cmd->add_flag("--quiet", sweep.run.quiet, "no progress line");
 
   RunOptions converge;
   CLI::App* converge_cmd = app.add_subcommand("converge", "error against run time over resolution ladders");
   add_run_sources(converge_cmd, converge);
   converge_cmd->add_option("--out", converge.out_dir, "output directory")->capture_default_str();
-  converge_cmd->add_option("--threads", converge.threads, "worker threads (0: all cores)");
+  converge_cmd->add_option("--threads", converge.threads, "worker threads (0: all cores)")->check(kThreads);
   converge_cmd->add_flag("--quiet", converge.quiet, "no progress line");
 
   CLI::App* validate_cmd = app.add_subcommand("validate", "run the analytic cases and print a table");

@@ -40,6 +40,10 @@ class Params {
 
   // InputError for the first key present in the layers but never read.
   void check_all_used() const;
+  // InputError "<file>:<line>: `key` = value: limit" (the line when a layer set the key): for
+  // checks beyond a key's own range, such as one key against another.
+  [[noreturn]] void fail(const std::string& key, const std::string& value,
+                         const std::string& limit) const;
   // Every key read, with the value used (defaults included): `beampack config` and summary.json.
   const toml::table& resolved() const { return resolved_; }
 
@@ -47,8 +51,6 @@ class Params {
   const toml::node* find(const std::string& key) const;
   std::string where(const std::string& key) const;  // "run.toml:12: " or "--set: " or ""
   void record(const std::string& key, toml::node&& value);
-  [[noreturn]] void fail(const std::string& key, const std::string& value,
-                         const std::string& limit) const;
 
   toml::table merged_;
   std::map<std::string, std::string> origin_;  // key -> "file:line" of the layer that set it

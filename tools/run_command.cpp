@@ -2,6 +2,7 @@
 
 #include <tbb/global_control.h>
 
+#include <algorithm>
 #include <chrono>
 #include <csignal>
 #include <cstdlib>
@@ -364,6 +365,15 @@ int run_command(const RunOptions& options) {
 
 namespace beampack::tools {
 
+namespace {
+
+// The cells after the first of a CSV row with the header's columns, all empty: ",,,...".
+std::string empty_cells(const std::string& header) {
+  return std::string(static_cast<std::size_t>(std::count(header.begin(), header.end(), ',')), ',');
+}
+
+}  // namespace
+
 int sweep_command(const SweepOptions& options) {
   if (options.values.empty()) throw InputError("--values: give at least one value");
   prepare_out_dir(options.run.out_dir);
@@ -375,12 +385,29 @@ int sweep_command(const SweepOptions& options) {
     sources.sets.push_back(options.param + "=" + value);
     configs.push_back(load_run_config(sources));
   }
-  std::string csv = options.param + ',' + kFigureColumns + ",steps,wall_seconds\n";
+  const std::string header = options.param + ',' + kFigureColumns + ",steps,wall_seconds";
+  std::string csv = header + '\n';
   Series vv{"vaporized fraction", {}, {}};
   const auto start = Clock::now();
+  int code = 0;  // a value that fails leaves its row empty; the others still run and are written
   for (std::size_t k = 0; k < configs.size(); ++k) {
-    const RunResult r = run_scene(configs[k], true);
-    if (r.interrupted) break;
+    const std::string label = "sweep " + options.param + " = " + options.values[k] + ": ";
+    RunResult r;
+    try {
+      r = run_scene(configs[k], options.run.quiet, label);
+    } catch (const std::exception& e) {
+      const bool input = dynamic_cast<const InputError*>(&e) != nullptr;
+      std::fprintf(stderr, "beampack: %s%s %s (its row in sweep.csv is empty)\n", label.c_str(),
+                   input ? "error:" : "run failed:", e.what());
+      code = std::max(code, input ? 2 : 1);
+      csv += options.values[k] + empty_cells(header) + '\n';
+      continue;
+    }
+    if (r.interrupted) {
+      std::fprintf(stderr, "beampack: sweep interrupted during %s = %s: that value and the rest "
+                           "are not in sweep.csv\n", options.param.c_str(), options.values[k].c_str());
+      break;
+    }
     const Figures& f = r.figures;
     csv += options.values[k] + ',' + figure_columns(f) + ',' + std::to_string(r.counts.steps) + ',' +
            exact(r.wall_seconds) + '\n';
@@ -401,7 +428,7 @@ int sweep_command(const SweepOptions& options) {
   const double total = std::chrono::duration<double>(Clock::now() - start).count();
   std::printf("sweep: %zu runs in %.2f s; %s/sweep.csv, %s/sweep.svg\n", vv.x.size(), total,
               options.run.out_dir.c_str(), options.run.out_dir.c_str());
-  return stop_requested().load() ? 1 : 0;
+  return stop_requested().load() ? std::max(code, 1) : code;
 }
 
 }  // namespace beampack::tools

@@ -17,7 +17,8 @@ constexpr double kBig = std::numeric_limits<double>::max();
 // Every key is read whatever the source, so `beampack config` lists them all and a preset's
 // keys never count as unused; the ones a source ignores are documented as such.
 void read_packing(Params& p, PackingSpec& s) {
-  s.sample_size = p.number("sample.size", 1e-3, 0, kBig, true);
+  // Embree's boxes are floats: far below 1e-12 m their corners underflow and every ray escapes.
+  s.sample_size = p.number("sample.size", 1e-3, 1e-12, 1e6);
   s.source = p.choice("packing.source", "random-overlap", {"random-overlap", "rsa", "lattice", "file"});
   s.count = std::size_t(p.integer("packing.count", 1000, 0, 100'000'000));
   s.radius_ratio = p.number("packing.radius_ratio", 0.325, 0, 10, true);
@@ -26,7 +27,7 @@ void read_packing(Params& p, PackingSpec& s) {
   s.file = p.text("packing.file", "");
   s.file_radius = p.number("packing.radius", 0.0, 0, kBig);
   if (s.source == "file" && s.file.empty())
-    throw InputError("`packing.file` = \"\": required with packing.source = \"file\"");
+    p.fail("packing.file", "\"\"", "required with packing.source = \"file\"");
 }
 
 void read_beam(Params& p, BeamSpec& b) {
@@ -42,7 +43,11 @@ void read_beam(Params& p, BeamSpec& b) {
   const double dy = p.number("beam.direction_y", 0.0, -1, 1);
   const double dz = p.number("beam.direction_z", 0.0, -1, 1);
   const Vec3 d(dx, dy, dz);
-  if (d.norm() < 1e-12) throw InputError("`beam.direction_x/y/z` = (0, 0, 0): must not be zero");
+  if (d.norm() < 1e-12) {
+    std::ostringstream v;
+    v << dx << " (with beam.direction_y = " << dy << ", beam.direction_z = " << dz << ")";
+    p.fail("beam.direction_x", v.str(), "the direction must not be zero (length >= 1e-12)");
+  }
   b.direction = d.normalized();
 }
 
@@ -53,6 +58,7 @@ void read_optics(Params& p, OpticsSpec& o) {
   m.mu_hat = p.number("optics.mu_hat", 1.0, 0, kBig, true);
   o.materials = {m};
   o.cutoff = p.number("optics.cutoff", 1e-10, 0, 1);
+  if (o.cutoff == 1.0) p.fail("optics.cutoff", "1", "must be < 1 (a ray would end before its first hit)");
   o.max_bounces = int(p.integer("optics.max_bounces", 1000, 1, 1'000'000));
   double degrees = 0.0;
   const std::string word =
@@ -82,12 +88,16 @@ std::vector<Wall> read_walls(Params& p, double size) {
   const double reach = p.number("thermal.wall_reach", 0, 0, kBig);
   const double conductance = p.number("thermal.wall_conductance", -1, -1, kBig);
   std::vector<Wall> walls;
+  std::vector<std::string> seen;
   std::stringstream list(faces);
   for (std::string face; std::getline(list, face, ',');) {
     face.erase(std::remove(face.begin(), face.end(), ' '), face.end());
     const std::string axes = "xyz";
     if (face.size() != 2 || axes.find(face[0]) == std::string::npos || (face[1] != '-' && face[1] != '+'))
-      throw InputError("`thermal.walls` = \"" + faces + "\": faces are x-, x+, y-, y+, z-, z+ separated by commas");
+      p.fail("thermal.walls", "\"" + faces + "\"", "faces are x-, x+, y-, y+, z-, z+ separated by commas");
+    if (std::count(seen.begin(), seen.end(), face))  // a face listed twice would conduct twice
+      p.fail("thermal.walls", "\"" + faces + "\"", "face " + face + " is listed twice");
+    seen.push_back(face);
     walls.push_back({int(axes.find(face[0])), face[1] == '-' ? 0.0 : size, reach, temperature,
                      conductance < 0 ? -1.0 : conductance});
   }
