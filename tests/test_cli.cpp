@@ -500,3 +500,24 @@ TEST(Cli, ConvergeRefusesBadOutputFirstAndKeepsNoInterruptedRung) {
   ASSERT_TRUE(fs::exists(out / "convergence.csv")) << text;
   EXPECT_TRUE(read_csv(out / "convergence.csv").empty()) << text;
 }
+
+// A new run into the directory of an earlier one removes that run's checkpoint and frames: they
+// would outlive it, and --resume would continue the earlier run over the new outputs.
+TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
+  const fs::path out = fresh_dir("earlier_run");
+  const Result first = run("run --preset quick --quiet --set output.frames=true --checkpoint-every 1 --out " +
+                           out.string());
+  ASSERT_EQ(first.code, 0) << first.output;
+  ASSERT_TRUE(fs::exists(out / "checkpoint.bin"));
+  ASSERT_TRUE(fs::exists(out / "particles_0000.vtp"));
+  const std::string mine = write(out / "notes.txt", "the user's own file");
+  const Result second = run("run --preset quick --quiet --set pulses.count=2 --out " + out.string());
+  ASSERT_EQ(second.code, 0) << second.output;
+  EXPECT_NE(second.output.find("removed"), std::string::npos) << second.output;
+  EXPECT_FALSE(fs::exists(out / "checkpoint.bin"));
+  EXPECT_FALSE(fs::exists(out / "particles_0000.vtp"));
+  EXPECT_FALSE(fs::exists(out / "particles.pvd"));
+  EXPECT_TRUE(fs::exists(mine));
+  EXPECT_EQ(int(read_json(out / "summary.json")["pulses"]), 2);
+  EXPECT_EQ(run("run --resume " + out.string() + " --quiet").code, 2);  // nothing left to resume
+}

@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <fstream>
 #include <optional>
+#include <regex>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <sstream>
@@ -289,6 +290,21 @@ void warn_if_beam_meets_nothing(const Simulation& sim) {
                sim.spec().packing.sample_size, lo.x(), hi.x(), lo.y(), hi.y(), lo.z(), hi.z());
 }
 
+// A new run into a directory that holds an earlier one: that run's checkpoint and frames would
+// outlive it (and `--resume` would continue the earlier run over the new outputs), so they go.
+// Only beampack's own names; summary.json, history.csv and particles.csv are rewritten anyway.
+void remove_earlier_run(const fs::path& dir) {
+  const std::regex ours(R"((particles|rays)_\d{4}\.vtp|particles\.pvd|checkpoint\.bin)");
+  std::vector<fs::path> earlier;
+  for (const fs::directory_entry& e : fs::directory_iterator(dir))
+    if (e.is_regular_file() && std::regex_match(e.path().filename().string(), ours))
+      earlier.push_back(e.path());
+  for (const fs::path& f : earlier) fs::remove(f);
+  if (!earlier.empty())
+    std::fprintf(stderr, "beampack: note: removed %zu files of an earlier run from %s "
+                         "(checkpoint.bin, frames)\n", earlier.size(), dir.c_str());
+}
+
 int run_command(const RunOptions& options) {
   if (!options.resume.empty() && (!options.sources.file.empty() || !options.sources.preset.empty() ||
                                   !options.sources.sets.empty()))
@@ -306,6 +322,7 @@ int run_command(const RunOptions& options) {
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
   const std::string out_dir = options.resume.empty() || options.out_set ? options.out_dir : options.resume;
   prepare_out_dir(out_dir);
+  if (options.resume.empty()) remove_earlier_run(out_dir);
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
   Simulation sim(config.sim);
