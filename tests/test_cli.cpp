@@ -521,3 +521,19 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   EXPECT_EQ(int(read_json(out / "summary.json")["pulses"]), 2);
   EXPECT_EQ(run("run --resume " + out.string() + " --quiet").code, 2);  // nothing left to resume
 }
+
+// The stability grid (minutes) stops at Ctrl-C after the cell it is in, and says how far it got.
+TEST(Cli, StabilityGridStopsAtCtrlC) {
+  const auto start = std::chrono::steady_clock::now();
+  const std::string cmd = "timeout --preserve-status -s INT 1 " + std::string(BEAMPACK_CLI) +
+                          " validate --stiff --quiet 2>&1";
+  std::FILE* pipe = popen(cmd.c_str(), "r");
+  std::string text;
+  std::array<char, 4096> buf;
+  while (std::fgets(buf.data(), buf.size(), pipe)) text += buf.data();
+  const int status = pclose(pipe);
+  ASSERT_TRUE(WIFEXITED(status));
+  EXPECT_EQ(WEXITSTATUS(status), 1) << text;
+  EXPECT_NE(text.find("stability: interrupted after"), std::string::npos) << text;
+  EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(), 30.0);
+}

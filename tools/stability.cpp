@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "geometry/error.h"
+#include "tools/run_command.h"
 #include "tools/run_config.h"
 #include "tools/stability.h"
 
@@ -44,7 +45,11 @@ Outcome run_cell(const Cell& c) {
   try {
     const RunConfig config = load_run_config(sources);
     Simulation sim(config.sim);
-    sim.run();
+    sim.run(&stop_requested());
+    if (!sim.done()) {
+      o.status = "interrupted";
+      return o;
+    }
     const Figures f = sim.figures();
     const EnergyLedger& e = f.energy;
     o.optics_error = e.injected > 0 ? std::abs(e.optics_imbalance()) / e.injected : 0;
@@ -97,24 +102,30 @@ int run_stability_report(bool quiet) {
   const std::vector<std::string> indices{"1.0", "1.4", "20", "metal"};
   const std::vector<std::string> counts{"1", "100", "3000"};
   const std::vector<std::string> solvers{"fixed-point", "cg", "direct", "auto"};
-  int ok = 0, refused = 0, failed = 0;
-  std::printf("%-8s %-9s %-6s %-6s %-12s %-8s %-8s %-10s %-10s %s\n", "K", "dt", "index", "N",
-              "solver", "status", "bounded", "optics", "heat", "note");
+  std::vector<Cell> cells;
   for (const auto& k : conductivities)
     for (const auto& dt : steps)
       for (const auto& n : indices)
         for (const auto& count : counts)
-          for (const auto& solver : solvers) {
-            const Cell cell{k, dt, n, count, solver};
-            const Outcome o = run_cell(cell);
-            (o.status == "ok" ? ok : o.status == "refused" ? refused : failed) += 1;
-            if (quiet && o.status == "ok") continue;
-            std::string note = o.note.substr(0, 90);
-            std::printf("%-8s %-9s %-6s %-6s %-12s %-8s %-8s %-10.1e %-10.1e %s\n", k.c_str(),
-                        dt.c_str(), n.c_str(), count.c_str(), solver.c_str(), o.status.c_str(),
-                        o.bounded ? "yes" : "NO", o.optics_error, o.heat_error, note.c_str());
-            std::fflush(stdout);
-          }
+          for (const auto& solver : solvers) cells.push_back({k, dt, n, count, solver});
+  int ok = 0, refused = 0, failed = 0;
+  std::printf("%-8s %-9s %-6s %-6s %-12s %-8s %-8s %-10s %-10s %s\n", "K", "dt", "index", "N",
+              "solver", "status", "bounded", "optics", "heat", "note");
+  for (const Cell& cell : cells) {
+    const Outcome o = run_cell(cell);
+    if (o.status == "interrupted") {  // Ctrl-C: the cells so far stand, the rest never ran
+      std::printf("stability: interrupted after %d of %zu cells: %d passed, %d failed, %d refused\n",
+                  ok + failed + refused, cells.size(), ok, failed, refused);
+      return 1;
+    }
+    (o.status == "ok" ? ok : o.status == "refused" ? refused : failed) += 1;
+    if (quiet && o.status == "ok") continue;
+    std::string note = o.note.substr(0, 90);
+    std::printf("%-8s %-9s %-6s %-6s %-12s %-8s %-8s %-10.1e %-10.1e %s\n", cell.conductivity.c_str(),
+                cell.dt.c_str(), cell.index.c_str(), cell.count.c_str(), cell.solver.c_str(),
+                o.status.c_str(), o.bounded ? "yes" : "NO", o.optics_error, o.heat_error, note.c_str());
+    std::fflush(stdout);
+  }
   std::printf("stability: %d passed, %d failed, %d refused with a message\n", ok, failed, refused);
   return failed == 0 ? 0 : 1;
 }
