@@ -25,8 +25,9 @@ struct Result {
   std::string output;  // stdout and stderr
 };
 
-Result run(const std::string& args) {
-  const std::string command = std::string(BEAMPACK_CLI) + " " + args + " 2>&1";
+// `beampack args`, optionally under `prefix` (e.g. "timeout -s INT 1").
+Result run(const std::string& args, const std::string& prefix = "") {
+  const std::string command = prefix + " " + std::string(BEAMPACK_CLI) + " " + args + " 2>&1";
   std::FILE* pipe = popen(command.c_str(), "r");
   std::string out;
   std::array<char, 4096> buf;
@@ -486,15 +487,9 @@ TEST(Cli, ConvergeRefusesBadOutputFirstAndKeepsNoInterruptedRung) {
   EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(), 2.0)
       << "the ladder ran before the output directory was checked";
   const fs::path out = dir / "out";
-  const std::string cmd = "timeout --preserve-status -s INT 0.5 " + std::string(BEAMPACK_CLI) +
-                          " converge --preset zohdi2013 --quiet --out " + out.string() + " 2>&1";
-  std::FILE* pipe = popen(cmd.c_str(), "r");
-  std::string text;
-  std::array<char, 4096> buf;
-  while (std::fgets(buf.data(), buf.size(), pipe)) text += buf.data();
-  const int status = pclose(pipe);
-  ASSERT_TRUE(WIFEXITED(status));
-  EXPECT_EQ(WEXITSTATUS(status), 1) << text;
+  const auto [code, text] = run("converge --preset zohdi2013 --quiet --out " + out.string(),
+                                "timeout --preserve-status -s INT 0.5");
+  EXPECT_EQ(code, 1) << text;
   EXPECT_NE(text.find("converge interrupted during time step"), std::string::npos) << text;
   // The reference rung of the time-step ladder takes seconds: it was cut, so no row was written.
   ASSERT_TRUE(fs::exists(out / "convergence.csv")) << text;
@@ -525,15 +520,8 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
 // The stability grid (minutes) stops at Ctrl-C after the cell it is in, and says how far it got.
 TEST(Cli, StabilityGridStopsAtCtrlC) {
   const auto start = std::chrono::steady_clock::now();
-  const std::string cmd = "timeout --preserve-status -s INT 1 " + std::string(BEAMPACK_CLI) +
-                          " validate --stiff --quiet 2>&1";
-  std::FILE* pipe = popen(cmd.c_str(), "r");
-  std::string text;
-  std::array<char, 4096> buf;
-  while (std::fgets(buf.data(), buf.size(), pipe)) text += buf.data();
-  const int status = pclose(pipe);
-  ASSERT_TRUE(WIFEXITED(status));
-  EXPECT_EQ(WEXITSTATUS(status), 1) << text;
+  const auto [code, text] = run("validate --stiff --quiet", "timeout --preserve-status -s INT 1");
+  EXPECT_EQ(code, 1) << text;
   EXPECT_NE(text.find("stability: interrupted after"), std::string::npos) << text;
   EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(), 30.0);
 }
