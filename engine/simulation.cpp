@@ -108,8 +108,18 @@ void Simulation::launch_pulse_if_due() {
   tracer_->compact();
   tracer_->launch(beam_, spec_.pulses.duration);
   counts_.rays += beam_.size();
+  note_pulse_delay(time_ - next_pulse_time_);
   ++launched_;
-  next_pulse_time_ = time_ + spec_.pulses.period;
+  // Pulse k is due at k T_p (MODEL.md section 5), however late the one before it started.
+  next_pulse_time_ = launched_ * spec_.pulses.period;
+}
+
+// A pulse starts at a step boundary: with thermal.dt = "pulse" a step is a whole flight, so a
+// T_p shorter than the flight delays every pulse to the end of the one before.
+void Simulation::note_pulse_delay(double delay) {
+  if (!(spec_.pulses.period > 0)) return;
+  if (delay > 0.01 * spec_.pulses.period) ++counts_.late_pulses;
+  counts_.max_pulse_delay = std::max(counts_.max_pulse_delay, delay);
 }
 
 // The step's length: the user's dt; in "pulse" mode (dt = 0) the flight of the rays traced to
@@ -259,7 +269,7 @@ Figures Simulation::figures() const {
 }
 
 namespace {
-constexpr std::uint32_t kStateVersion = 3;
+constexpr std::uint32_t kStateVersion = 4;  // 4: Counts has the pulse delays
 }
 
 void Simulation::write_state(StateWriter& out) const {

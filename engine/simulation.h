@@ -66,6 +66,10 @@ struct Figures {
 
 struct Counts {
   std::uint64_t particles = 0, rays = 0, segments = 0, steps = 0, rebuilds = 0, staggers = 0;
+  // With pulses.period: pulse k is due at k T_p but starts at the first step boundary after it;
+  // pulses that started more than 1% of T_p late, and the longest delay (s).
+  std::uint64_t late_pulses = 0;
+  double max_pulse_delay = 0;
 };
 
 class Simulation {
@@ -109,6 +113,7 @@ class Simulation {
   void remove_vaporized(const std::vector<std::uint32_t>& ids);
   [[noreturn]] void non_finite(std::size_t particle, double temperature, double deposit) const;
   static Phase optical(Phase phase);
+  void note_pulse_delay(double delay);
   bool optics_changed(const std::vector<Phase>& seen) const;
   double volume_fraction(Phase phase) const;
   std::string skip_reason(int stage) const;

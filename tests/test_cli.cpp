@@ -525,3 +525,27 @@ TEST(Cli, StabilityGridStopsAtCtrlC) {
   EXPECT_NE(text.find("stability: interrupted after"), std::string::npos) << text;
   EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(), 30.0);
 }
+
+// Pulse k is due at k T_p and starts at the first step boundary after it (MODEL.md section 5):
+// with T_p = 1e-11 s and steps of 3e-12 s the pulses start at 0, 12, 21, 30 and 42 ps (the
+// history row of a pulse is written when the next one starts); being late never accumulates.
+// Starts more than 1% of T_p late are counted and announced; a step that divides T_p is not.
+TEST(Cli, PulsesStartAtTheirPeriodAndLateStartsAreAnnounced) {
+  const fs::path out = fresh_dir("period");
+  const Result late = run("run --preset quick --quiet --set pulses.period=1e-11 --set thermal.dt=3e-12 --out " +
+                          out.string());
+  ASSERT_EQ(late.code, 0) << late.output;
+  EXPECT_NE(late.output.find("warning: 3 of 5 pulses started"), std::string::npos) << late.output;
+  const auto history = read_csv(out / "history.csv");
+  ASSERT_EQ(history.size(), 5u);
+  const double starts[] = {12e-12, 21e-12, 30e-12, 42e-12};
+  for (int k = 0; k < 4; ++k) EXPECT_NEAR(std::stod(history[k].at("time_s")), starts[k], 1e-18) << k;
+  const auto summary = read_json(out / "summary.json");
+  EXPECT_EQ(int(summary["counts"]["late_pulses"]), 3);
+  EXPECT_NEAR(double(summary["max_pulse_delay_s"]), 2e-12, 1e-18);
+  const Result exact = run("run --preset quick --quiet --set pulses.period=1e-11 --set thermal.dt=1e-12 --out " +
+                           out.string());
+  ASSERT_EQ(exact.code, 0) << exact.output;
+  EXPECT_EQ(exact.output.find("warning"), std::string::npos) << exact.output;
+  EXPECT_EQ(int(read_json(out / "summary.json")["counts"]["late_pulses"]), 0);
+}

@@ -120,7 +120,9 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
                    {"walls", e.walls}};
   j["counts"] = {{"particles", r.counts.particles}, {"rays", r.counts.rays},
                  {"segments", r.counts.segments},   {"steps", r.counts.steps},
-                 {"rebuilds", r.counts.rebuilds},   {"staggers", r.counts.staggers}};
+                 {"rebuilds", r.counts.rebuilds},   {"staggers", r.counts.staggers},
+                 {"late_pulses", r.counts.late_pulses}};
+  j["max_pulse_delay_s"] = r.counts.max_pulse_delay;
   nlohmann::json stages = nlohmann::json::object();
   const auto stage_times = sim.stages();
   for (int k = 0; k < Simulation::kStages; ++k) {
@@ -269,6 +271,19 @@ void warn_of_many_steps(const SimulationSpec& spec) {
                spec.dt, spec.packing.sample_size, crossing, steps);
 }
 
+// Pulses start at step boundaries: a pulses.period shorter than a step delays them.
+void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts) {
+  if (counts.late_pulses == 0) return;
+  std::fprintf(stderr,
+               "beampack: warning: %llu of %d pulses started more than 1%% of `pulses.period` = %g s "
+               "after k x period (up to %g s late): a pulse starts at a step boundary, and %s; use a "
+               "fixed `thermal.dt` that divides the period\n",
+               static_cast<unsigned long long>(counts.late_pulses), spec.pulses.count,
+               spec.pulses.period, counts.max_pulse_delay,
+               spec.dt > 0 ? "`thermal.dt` does not divide the period"
+                           : "with `thermal.dt` = \"pulse\" a step is a whole pulse flight, longer than the period");
+}
+
 // A beam whose tube meets no particle is legal but almost always a misplaced sample (a file
 // packing whose coordinates lie outside the cube [0, D]^3 the beam is centred on): say so.
 void warn_if_beam_meets_nothing(const Simulation& sim) {
@@ -368,6 +383,7 @@ int run_command(const RunOptions& options) {
   write_atomically((out / "summary.json").string(),
                    [&](std::ostream& o) { o << summary_json(sim, r, config).dump(2) << '\n'; });
   print_table(sim, r);
+  warn_of_late_pulses(config.sim, r.counts);
   if (r.interrupted) {
     std::fprintf(stderr,
                  "beampack: interrupted at t = %.6g s after %d pulses; outputs in %s hold that state; "
