@@ -185,6 +185,10 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
   expect_input_error("gaussian", "", "--preset quick --set beam.profile=gaussian --set beam.gaussian_width=1e-9",
                      {"beam.gaussian_width", "1e-09", "underflows"});
   expect_input_error("resume_empty", "", "--resume ''", {"--resume", "does not exist"});
+  expect_input_error("initial_vapour", "[material]\ninitial_temperature = 900\n", "",
+                     {"run.toml:2", "material.initial_temperature", "900", "< material.vapor_temperature = 700"});
+  expect_input_error("file_unused", "[packing]\nfile = \"bed.xyz\"\n", "",
+                     {"run.toml:2", "packing.file", "needs packing.source = \"file\""});
   expect_input_error("polarisation", "", "--preset quick --set optics.polarisation=95",
                      {"optics.polarisation", "95", "<= 90"});
   expect_input_error("polarisation_word", "[optics]\npolarisation = \"linear\"\n", "",
@@ -469,6 +473,16 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
   EXPECT_EQ(rows[1].at("wall_seconds"), "");
   EXPECT_EQ(rows[0].at("absorbed_J"), rows[2].at("absorbed_J"));
   EXPECT_GT(std::stod(rows[0].at("absorbed_J")), 0.0);
+  for (const char* values : {"1,,2", "1,2,", " "}) {
+    const Result empty = run("sweep --preset quick --param material.conductivity --values '" + std::string(values) +
+                             "' --out " + out.string());
+    EXPECT_EQ(empty.code, 2) << values << ": " << empty.output;
+    EXPECT_NE(empty.output.find("is empty"), std::string::npos) << empty.output;
+  }
+  const Result swept = run("sweep --preset quick --set material.conductivity=3 --param material.conductivity "
+                           "--values 1 --out " + out.string());
+  EXPECT_EQ(swept.code, 2) << swept.output;
+  EXPECT_NE(swept.output.find("is the swept --param"), std::string::npos) << swept.output;
   for (const char* command : {"sweep --param material.conductivity --values 0", "converge"}) {
     const Result threads = run(std::string(command) + " --preset quick --threads -3 --out " + out.string());
     EXPECT_EQ(threads.code, 2) << command << ": " << threads.output;

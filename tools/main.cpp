@@ -56,7 +56,8 @@ int main(int argc, char** argv) {
   CLI::App* sweep_cmd = app.add_subcommand("sweep", "one run per value of a parameter");
   add_run_sources(sweep_cmd, sweep.run);
   sweep_cmd->add_option("--param", sweep.param, "key to vary")->required();
-  sweep_cmd->add_option("--values", sweep.values, "comma-separated values")->required()->delimiter(',');
+  // Split by sweep_command itself, which refuses an empty value instead of dropping it.
+  sweep_cmd->add_option("--values", sweep.values, "comma-separated values")->required();
   sweep_cmd->add_option("--out", sweep.run.out_dir, "output directory")->capture_default_str();
   sweep_cmd->add_option("--threads", sweep.run.threads, "worker threads (0: all cores)")->check(kThreads);
   sweep_cmd->add_flag("--quiet", sweep.run.quiet, "no progress line");

@@ -241,7 +241,7 @@ void write_checkpoint(const fs::path& path, const Simulation& sim, const RunReco
 
 StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   std::ifstream in(path, std::ios::binary);
-  if (!in) throw InputError("--resume: cannot read " + path.string());
+  if (!in || !fs::is_regular_file(path)) throw InputError("--resume: cannot read " + path.string());
   std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   StateReader r(std::move(bytes), path.string());
   if (r.text() != kCheckpointMagic) throw InputError(path.string() + ": not a beampack checkpoint");
@@ -403,7 +403,7 @@ int run_command(const RunOptions& options) {
   warn_if_ledger_open(config.sim, r.figures.energy);
   if (r.interrupted) {
     std::fprintf(stderr,
-                 "beampack: interrupted at t = %.6g s after %d pulses; outputs in %s hold that state; "
+                 "beampack: interrupted at t = %.6g s after %d pulse(s); outputs in %s hold that state; "
                  "continue with: beampack run --resume %s\n",
                  r.figures.time, r.figures.pulse, out_dir.c_str(), out_dir.c_str());
     return 1;
@@ -424,8 +424,32 @@ std::string empty_cells(const std::string& header) {
 
 }  // namespace
 
-int sweep_command(const SweepOptions& options) {
-  if (options.values.empty()) throw InputError("--values: give at least one value");
+// The swept values, trimmed; an empty one ("1,,2", a stray comma) is refused, not dropped, and so
+// is a --set of the swept key (--values would override it without a word).
+std::vector<std::string> sweep_values(const SweepOptions& options) {
+  std::vector<std::string> items;
+  for (const std::string& arg : options.values) {
+    std::stringstream list(arg);
+    for (std::string item; std::getline(list, item, ',');) items.push_back(item);
+    if (!arg.empty() && arg.back() == ',') items.push_back("");
+  }
+  std::vector<std::string> values;
+  for (std::string v : items) {
+    v.erase(0, v.find_first_not_of(" \t"));
+    v.erase(v.find_last_not_of(" \t") + 1);
+    if (v.empty()) throw InputError("--values: value " + std::to_string(values.size() + 1) + " is empty");
+    values.push_back(v);
+  }
+  if (values.empty()) throw InputError("--values: give at least one value");
+  for (const std::string& s : options.run.sources.sets)
+    if (s.rfind(options.param + "=", 0) == 0)
+      throw InputError("--set " + s + ": `" + options.param + "` is the swept --param; its values come from --values");
+  return values;
+}
+
+int sweep_command(const SweepOptions& options_in) {
+  SweepOptions options = options_in;
+  options.values = sweep_values(options_in);
   prepare_out_dir(options.run.out_dir);
   const auto threads = limit_threads(options.run.threads);
   // Resolve every configuration first: a bad value fails before any run starts.

@@ -16,6 +16,13 @@ constexpr double kBig = std::numeric_limits<double>::max();
 
 // Every key is read whatever the source, so `beampack config` lists them all and a preset's
 // keys never count as unused; the ones a source ignores are documented as such.
+// A number as a message shows it (%g-like: 300, 1e-09).
+std::string number_text(double v) {
+  std::ostringstream s;
+  s << v;
+  return s.str();
+}
+
 void read_packing(Params& p, PackingSpec& s) {
   // Embree's boxes are floats: far below 1e-12 m their corners underflow and every ray escapes.
   s.sample_size = p.number("sample.size", 1e-3, 1e-12, 1e6);
@@ -26,6 +33,10 @@ void read_packing(Params& p, PackingSpec& s) {
   s.seed = std::uint64_t(p.integer("packing.seed", 1, 0, std::numeric_limits<std::int64_t>::max()));
   s.file = p.text("packing.file", "");
   s.file_radius = p.number("packing.radius", 0.0, 0, kBig);
+  if (s.source != "file" && !s.file.empty())  // it would be read by nobody
+    p.fail("packing.file", "\"" + s.file + "\"", "needs packing.source = \"file\" (it is \"" + s.source + "\")");
+  if (s.source != "file" && s.file_radius != 0.0)
+    p.fail("packing.radius", number_text(s.file_radius), "applies to packing.source = \"file\" only");
   if (s.source == "file" && s.file.empty())
     p.fail("packing.file", "\"\"", "required with packing.source = \"file\"");
 }
@@ -180,6 +191,11 @@ RunConfig load_run_config(const RunSources& sources) {
   Material m;
   read_material(p, m);
   c.sim.materials = {m};
+  if (!(c.sim.packing.initial_temperature < m.vapor_temperature)) {
+    p.fail("material.initial_temperature", number_text(c.sim.packing.initial_temperature),
+           "must be < material.vapor_temperature = " + number_text(m.vapor_temperature) +
+               " (every particle would start as vapour)");
+  }
   const double paper_dt = read_pulses(p, c.sim, packing_radius(c.sim.packing));
   read_thermal(p, c.sim, paper_dt);
   c.sim.thermal.walls = read_walls(p, c.sim.packing.sample_size);
