@@ -72,24 +72,26 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
 
 Simulation::~Simulation() = default;
 
-// Every particle's thermal mass rho V C must be a normal double, and the run's whole energy in
-// it must warm it by a finite amount: otherwise the first solve gives infinities (density 1e-300,
-// a radius of 1e-120 m). Refused as input, naming the material's keys and the particle.
+// Every particle's thermal mass rho V C / M (M = thermal.time_scaling, as the solver uses it) must
+// be a normal double, and the run's whole energy in it must warm it by a finite amount: otherwise
+// the first solve gives infinities (density 1e-300, a radius of 1e-120 m, M = 1e300). Refused as
+// input, naming the keys and the particle.
 void Simulation::check_thermal_masses(double run_energy) const {
   for (std::size_t i = 0; i < particles_.size(); ++i) {
     const std::size_t k = particles_.material[i];
     if (k >= spec_.materials.size()) continue;  // the thermal model reports a missing material
     const Material& m = spec_.materials[k];
-    const double mass_heat = m.density * particles_.volume(i) * std::min(m.c_solid, m.c_liquid);
+    const double mass_heat =
+        m.density * particles_.volume(i) * std::min(m.c_solid, m.c_liquid) / spec_.thermal.time_scaling;
     if (mass_heat >= std::numeric_limits<double>::min() && std::isfinite(mass_heat) &&
         std::isfinite(run_energy / mass_heat))
       continue;
     const std::string key = spec_.materials.size() == 1 ? "material" : "material[" + std::to_string(k) + "]";
     std::ostringstream msg;
     msg << "particle " << i << " (radius " << particles_.radius[i] << " m) has a thermal mass `"
-        << key << ".density` x volume x min(`" << key << ".c_solid`, `" << key << ".c_liquid`) = "
-        << m.density << " x " << particles_.volume(i) << " x " << std::min(m.c_solid, m.c_liquid)
-        << " = " << mass_heat << " J/K: must be a finite normal number that the run's "
+        << key << ".density` x volume x min(`" << key << ".c_solid`, `" << key << ".c_liquid`) / "
+        << "`thermal.time_scaling` = " << m.density << " x " << particles_.volume(i) << " x "
+        << std::min(m.c_solid, m.c_liquid) << " / " << spec_.thermal.time_scaling << " = " << mass_heat << " J/K: must be a finite normal number that the run's "
         << run_energy << " J warms by a finite amount";
     throw InputError(msg.str());
   }
@@ -150,6 +152,10 @@ bool Simulation::step() {
       if (!optical_phase.empty()) std::swap(particles_.phase, optical_phase);
     }
     dt = step_length(traced);
+    // A step of no length cannot take the heat its trace deposited: it would leave the ledger.
+    if (!(dt > 0) && std::any_of(deposits_.begin(), deposits_.end(), [](double e) { return e > 0; }))
+      throw RunError("step " + std::to_string(counts_.steps) + ": rays deposited energy in a step of "
+                     "length 0 (the rays travelled no path); please report the run file");
     // Heat and phases: the implicit step (3.10) with dH, then the latent-heat bands (section 4).
     if (dt > 0) {
       {

@@ -578,6 +578,15 @@ TEST(Extreme, ThermalMassThatUnderflowsIsRefusedAsInputNamingTheKeys) {
   sim.run();
   expect_finite_state(sim);
   expect_ledgers_close(sim.figures());
+  // The solver divides m C by M: a normal m C (1.4e-7 J/K) over M = 1e305 underflows all the same.
+  spec.materials[0].density = 1000;
+  spec.thermal.time_scaling = 1e305;
+  try {
+    Simulation scaled(spec);
+    FAIL() << "thermal.time_scaling = 1e305 accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("`thermal.time_scaling`"), std::string::npos) << e.what();
+  }
 }
 
 }  // namespace
