@@ -483,6 +483,10 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
                            "--values 1 --out " + out.string());
   EXPECT_EQ(swept.code, 2) << swept.output;
   EXPECT_NE(swept.output.find("is the swept --param"), std::string::npos) << swept.output;
+  const Result frames = run("sweep --preset quick --set output.frames=true --param material.conductivity "
+                            "--values 1 --out " + out.string());
+  EXPECT_EQ(frames.code, 2) << frames.output;
+  EXPECT_NE(frames.output.find("written by `beampack run` only"), std::string::npos) << frames.output;
   for (const char* command : {"sweep --param material.conductivity --values 0", "converge"}) {
     const Result threads = run(std::string(command) + " --preset quick --threads -3 --out " + out.string());
     EXPECT_EQ(threads.code, 2) << command << ": " << threads.output;

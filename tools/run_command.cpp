@@ -415,6 +415,14 @@ int run_command(const RunOptions& options) {
 
 namespace beampack::tools {
 
+// output.frames and output.rays are files of one run; sweep and converge write their tables only.
+void refuse_run_only_outputs(const RunConfig& config, const char* command) {
+  if (config.output.frames || config.output.rays)
+    throw InputError(std::string("`output.") + (config.output.frames ? "frames" : "rays") +
+                     "` = true: written by `beampack run` only; `beampack " + command +
+                     "` writes its table and chart");
+}
+
 namespace {
 
 // The cells after the first of a CSV row with the header's columns, all empty: ",,,...".
@@ -458,6 +466,7 @@ int sweep_command(const SweepOptions& options_in) {
     RunSources sources = options.run.sources;
     sources.sets.push_back(options.param + "=" + value);
     configs.push_back(load_run_config(sources));
+    refuse_run_only_outputs(configs.back(), "sweep");
   }
   const std::string header = options.param + ',' + kFigureColumns + ",steps,wall_seconds";
   std::string csv = header + '\n';

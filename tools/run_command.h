@@ -45,6 +45,8 @@ struct RunResult {
 };
 // InputError naming --out when the directory cannot be created or written.
 void prepare_out_dir(const std::string& dir);
+// InputError when a sweep or converge run file asks for output.frames or output.rays.
+void refuse_run_only_outputs(const RunConfig& config, const char* command);
 
 // Caps TBB's worker threads while the returned object lives (threads <= 0: no cap). Results do
 // not depend on it; only the wall time does.
