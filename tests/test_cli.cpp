@@ -185,6 +185,7 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
   expect_input_error("gaussian", "", "--preset quick --set beam.profile=gaussian --set beam.gaussian_width=1e-9",
                      {"beam.gaussian_width", "1e-09", "underflows"});
   expect_input_error("resume_empty", "", "--resume ''", {"--resume", "does not exist"});
+  expect_input_error("substeps", "[thermal]\nmax_substeps = 0\n", "", {"run.toml:2", "thermal.max_substeps", "must be >= 1"});
   expect_input_error("initial_vapour", "[material]\ninitial_temperature = 900\n", "",
                      {"run.toml:2", "material.initial_temperature", "900", "< material.vapor_temperature = 700"});
   expect_input_error("file_unused", "[packing]\nfile = \"bed.xyz\"\n", "",
@@ -487,6 +488,11 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
                             "--values 1 --out " + out.string());
   EXPECT_EQ(frames.code, 2) << frames.output;
   EXPECT_NE(frames.output.find("written by `beampack run` only"), std::string::npos) << frames.output;
+  // A bad swept value is named as the --param/--values the user typed, not as a --set.
+  const Result typo = run("sweep --preset quick --param material.conductivty --values 1 --out " + out.string());
+  EXPECT_EQ(typo.code, 2) << typo.output;
+  EXPECT_NE(typo.output.find("--param material.conductivty --values 1: unknown key"), std::string::npos)
+      << typo.output;
   for (const char* command : {"sweep --param material.conductivity --values 0", "converge"}) {
     const Result threads = run(std::string(command) + " --preset quick --threads -3 --out " + out.string());
     EXPECT_EQ(threads.code, 2) << command << ": " << threads.output;

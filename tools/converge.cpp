@@ -95,7 +95,8 @@ int converge_command(const RunOptions& options) {
   for (Ladder& ladder : all)
     for (const std::string& value : ladder.values) {  // a bad rung fails before any run starts
       RunSources sources = options.sources;
-      sources.sets.push_back(ladder.key + "=" + value);
+      sources.swept = ladder.key + "=" + value;
+      sources.swept_origin = "converge's " + ladder.name + " ladder, " + ladder.key + " = " + value;
       ladder.configs.push_back(load_run_config(sources));
       refuse_run_only_outputs(ladder.configs.back(), "converge");
     }

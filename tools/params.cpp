@@ -257,10 +257,11 @@ void Params::merge_toml_file(const std::string& path) {
   merge_layer(merged_, origin_, layer, path, true);
 }
 
-void Params::merge_assignment(const std::string& key_equals_value) {
+void Params::merge_assignment(const std::string& key_equals_value, const std::string& origin) {
+  const std::string named = origin.empty() ? "--set " + key_equals_value : origin;
   const auto eq = key_equals_value.find('=');
   if (eq == std::string::npos || eq == 0)
-    throw InputError("--set " + key_equals_value + ": expected KEY=VALUE");
+    throw InputError(named + ": expected KEY=VALUE");
   const std::string key = key_equals_value.substr(0, eq);
   const std::string value = key_equals_value.substr(eq + 1);
   toml::table parsed;
@@ -270,7 +271,7 @@ void Params::merge_assignment(const std::string& key_equals_value) {
     parsed = toml::table{{"v", value}};  // a bare word: a string
   }
   set_path(merged_, key, *parsed.get("v"));
-  origin_[key] = "--set " + key_equals_value;
+  origin_[key] = named;
 }
 
 const toml::node* Params::find(const std::string& key) const {

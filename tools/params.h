@@ -20,7 +20,8 @@ class Params {
   // Layers apply in order: later ones override earlier ones key by key.
   void merge_toml_text(const std::string& text, const std::string& source);  // preset
   void merge_toml_file(const std::string& path);
-  void merge_assignment(const std::string& key_equals_value);                 // --set
+  // --set KEY=VALUE; `origin` names it in messages (default "--set KEY=VALUE").
+  void merge_assignment(const std::string& key_equals_value, const std::string& origin = "");
 
   double number(const std::string& key, double fallback, double lo, double hi,
                 bool lo_open = false);

@@ -464,7 +464,8 @@ int sweep_command(const SweepOptions& options_in) {
   std::vector<RunConfig> configs;
   for (const std::string& value : options.values) {
     RunSources sources = options.run.sources;
-    sources.sets.push_back(options.param + "=" + value);
+    sources.swept = options.param + "=" + value;
+    sources.swept_origin = "--param " + options.param + " --values " + value;
     configs.push_back(load_run_config(sources));
     refuse_run_only_outputs(configs.back(), "sweep");
   }

@@ -124,6 +124,7 @@ void read_thermal(Params& p, SimulationSpec& s, double paper_dt) {
   t.solver = p.choice("thermal.solver", "auto", {"fixed-point", "cg", "direct", "auto"});
   t.tolerance = p.number("thermal.tolerance", 1e-10, 0, 0.1, true);
   t.max_iterations = int(p.integer("thermal.max_iterations", 1000, 1, 100'000'000));
+  t.max_substeps = int(p.integer("thermal.max_substeps", 1000, 1, 100'000'000));
   s.max_staggers = int(p.integer("thermal.max_staggers", 4, 0, 1000));
   double dt = 0;
   const std::string word = p.number_or_word("thermal.dt", dt, 0, kBig, {"pulse", "paper"}, "pulse");
@@ -182,6 +183,7 @@ RunConfig load_run_config(const RunSources& sources) {
   if (!sources.text.empty()) p.merge_toml_text(sources.text, "checkpoint");
   if (!sources.file.empty()) p.merge_toml_file(sources.file);
   for (const std::string& s : sources.sets) p.merge_assignment(s);
+  if (!sources.swept.empty()) p.merge_assignment(sources.swept, sources.swept_origin);
 
   RunConfig c;
   read_packing(p, c.sim.packing);

@@ -26,6 +26,9 @@ struct RunSources {
   std::string preset;               // --preset NAME ("" for none)
   std::vector<std::string> sets;    // --set KEY=VALUE, in order
   std::string text;                 // a complete run file held in a checkpoint ("" for none)
+  // KEY=VALUE applied after the --set list by sweep and converge, and named in messages as
+  // `swept_origin` ("--param K --values V") rather than as a --set the user never typed.
+  std::string swept, swept_origin;
 };
 
 // InputError (exit code 2) for any bad key, type or value, naming file and line.
