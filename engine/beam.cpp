@@ -39,11 +39,6 @@ void validate(const BeamSpec& s, double sample_size) {
 }
 
 // Two unit vectors spanning the disk plane, perpendicular to d.
-void disk_axes(const Vec3& d, Vec3& u, Vec3& v) {
-  const Vec3 helper = std::abs(d.x()) < 0.9 ? Vec3(1, 0, 0) : Vec3(0, 1, 0);
-  u = d.cross(helper).normalized();
-  v = d.cross(u);
-}
 
 // Uniform in the unit disk: r = sqrt(xi), equal area per dr^2 (seeded, one stream per beam).
 std::vector<Eigen::Vector2d> random_disk(std::size_t n, std::uint64_t seed) {
@@ -128,6 +123,12 @@ void tile(std::vector<Eigen::Vector2d>& points, std::size_t begin, std::size_t e
 }
 
 }  // namespace
+
+void disk_axes(const Vec3& d, Vec3& u, Vec3& v) {
+  const Vec3 helper = std::abs(d.x()) < 0.9 ? Vec3(1, 0, 0) : Vec3(0, 1, 0);
+  u = d.cross(helper).normalized();
+  v = d.cross(u);
+}
 
 double beam_profile(const BeamSpec& spec, double d, double beam_radius) {
   if (spec.profile == "flat") return 1.0;

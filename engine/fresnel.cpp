@@ -1,6 +1,7 @@
 #include "engine/fresnel.h"
 
 #include <algorithm>
+#include <Eigen/Geometry>
 #include <cmath>
 
 namespace beampack {
@@ -15,6 +16,22 @@ Reflectances reflectance_components(double cos_i, double n_hat, double mu_hat) {
 double reflectance_polarised(double cos_i, double n_hat, double mu_hat, double gamma) {
   return polarised_reflectance(reflectance_components(cos_i, n_hat, mu_hat), std::cos(gamma),
                                std::sin(gamma));
+}
+
+PolarisedReflection reflect_polarised(const Vec3& d, const Vec3& n, const Vec3& e, double n_hat,
+                                      double mu_hat) {
+  const FresnelFractions f = fresnel_fractions(-d.dot(n), n_hat, mu_hat);
+  const double r_par = f.total ? 1.0 : f.par_num / f.par_den;
+  const double r_perp = f.total ? 1.0 : f.perp_num / f.perp_den;
+  Vec3 s = d.cross(n);
+  const double length = s.norm();
+  s = length > 1e-12 ? Vec3(s / length) : e;  // normal incidence: any s across d, R_par = R_perp
+  const double a_par = e.dot(s.cross(d)), a_perp = e.dot(s);
+  const Vec3 reflected = reflect(d, n);
+  const Vec3 field = r_par * a_par * s.cross(reflected) + r_perp * a_perp * s;
+  const double norm = field.norm();
+  return {r_par * r_par * a_par * a_par + r_perp * r_perp * a_perp * a_perp,
+          norm > 0.0 ? Vec3(field / norm) : s};  // R = 0: nothing goes on; any unit field will do
 }
 
 Reflectances reflectance_components(double cos_i, std::complex<double> n_hat, double mu_hat) {

@@ -58,6 +58,18 @@ inline double polarised_reflectance(const Reflectances& r, double cos_gamma, dou
 }
 double reflectance_polarised(double cos_i, double n_hat, double mu_hat, double gamma);
 
+// A linearly polarised ray (unit field e, perpendicular to the unit direction d) reflected at a
+// surface of outward unit normal n, real index n_hat >= 1: the field splits on s = d x n / |d x n|
+// and p = s x d, so cos(gamma) = e.p in (2.18) and R = R_par (e.p)^2 + R_perp (e.s)^2; the
+// reflected field is r_par (e.p) p' + r_perp (e.s) s with p' = s x d' (the sign convention under
+// which normal and grazing reflection both return -e), normalised. At normal incidence s = e.
+struct PolarisedReflection {
+  double reflectance;
+  Vec3 field;  // unit, perpendicular to the reflected direction
+};
+PolarisedReflection reflect_polarised(const Vec3& d, const Vec3& n, const Vec3& e, double n_hat,
+                                      double mu_hat = 1.0);
+
 // Complex index n + i k (metals), same formulas in complex arithmetic (pbrt's FrComplex idea);
 // an extension beyond the paper. Reduces to the real version for k = 0.
 Reflectances reflectance_components(double cos_i, std::complex<double> n_hat, double mu_hat = 1.0);

@@ -41,10 +41,16 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
   for (const auto& m : spec.materials)
     if (!(m.n_solid.real() > 0.0) || !(m.n_liquid.real() > 0.0) || !(m.mu_hat > 0.0))
       throw InputError("`optics.n_solid`, `optics.n_liquid` and mu_hat must be > 0");
-  const double gamma = spec.polarisation.gamma;
-  if (spec.polarisation.linear && !(gamma >= 0.0 && gamma <= 0.5 * std::numbers::pi))
-    throw InputError("`optics.polarisation` = " + std::to_string(gamma * 180.0 / std::numbers::pi) +
-                     " degrees: the angle to the plane of incidence must be in [0, 90]");
+  const double psi = spec.polarisation.psi;
+  if (spec.polarisation.linear && !(psi >= 0.0 && psi <= std::numbers::pi))
+    throw InputError("`optics.polarisation` = " + std::to_string(psi * 180.0 / std::numbers::pi) +
+                     " degrees: the field's angle in the beam disk must be in [0, 180]");
+  for (const auto& m : spec.materials)
+    if (spec.polarisation.linear && (m.n_solid.imag() != 0.0 || m.n_liquid.imag() != 0.0 ||
+                                     m.n_solid.real() < 1.0 || m.n_liquid.real() < 1.0))
+      throw InputError("`optics.polarisation` with `optics.k_solid`/`k_liquid` > 0 or an index "
+                       "below 1: the reflected light is elliptical there, which is not followed; "
+                       "use optics.polarisation = \"unpolarised\"");
 }
 
 // Unpolarised Fresnel reflectance (2.25) with the particle's current index (solid or liquid).
@@ -53,14 +59,6 @@ double particle_reflectance(const MaterialOptics& m, Phase phase, double cos_i) 
   return n.imag() == 0.0 ? reflectance(cos_i, n.real(), m.mu_hat) : reflectance(cos_i, n, m.mu_hat);
 }
 
-// The same for light polarised linearly at gamma to the plane of incidence (2.18).
-double particle_reflectance(const MaterialOptics& m, Phase phase, double cos_i, double cos_gamma,
-                            double sin_gamma) {
-  const std::complex<double> n = phase == Phase::solid ? m.n_solid : m.n_liquid;
-  const Reflectances r = n.imag() == 0.0 ? reflectance_components(cos_i, n.real(), m.mu_hat)
-                                         : reflectance_components(cos_i, n, m.mu_hat);
-  return polarised_reflectance(r, cos_gamma, sin_gamma);
-}
 
 }  // namespace
 
@@ -111,7 +109,7 @@ Tracer::Tracer(const Particles& particles, OpticsSpec spec)
   if (spec_.bounce_search == BounceSearch::grid)
     grid_ = std::make_unique<SphereGrid>(particles, spec_.grid_cell_factor);
   box_ = particles.bounds();
-  cos_gamma_ = std::cos(spec_.polarisation.gamma), sin_gamma_ = std::sin(spec_.polarisation.gamma);
+  state_.polarised = spec_.polarisation.linear;
 }
 
 Tracer::~Tracer() = default;
@@ -148,6 +146,13 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
                       for (std::size_t k = range.begin(); k != range.end(); ++k)
                         start_ray(first + k, beam.origin[k] + upstream * d, d, energies[k]);
                     });
+  if (s.polarised) {  // the beam's field, at psi from the disk axis u towards v
+    Vec3 u, v;
+    disk_axes(d, u, v);
+    const double psi = spec_.polarisation.psi;
+    std::fill(s.field.begin() + static_cast<std::ptrdiff_t>(first), s.field.end(),
+              Vec3(std::cos(psi) * u + std::sin(psi) * v));
+  }
   for (double e : energies) s.ledger.injected += e;
   s.live_count += count;
 }
@@ -285,9 +290,8 @@ bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
     // One material (the usual case): no per-particle lookup, one cache miss fewer per hit.
     const MaterialOptics& m =
         spec_.materials.size() == 1 ? spec_.materials[0] : spec_.materials[particles_.material[p]];
-    const double R = spec_.polarisation.linear
-                         ? particle_reflectance(m, particles_.phase[p], cos_i, cos_gamma_, sin_gamma_)
-                         : particle_reflectance(m, particles_.phase[p], cos_i);
+    const double R = s.polarised ? reflect_field(r, normal, m, particles_.phase[p])
+                                 : particle_reflectance(m, particles_.phase[p], cos_i);
     const double carried = R * s.energy[r];
     c.events.push_back({r, p, s.energy[r] - carried});  // absorbed + carried == E exactly
     ++c.hits;
@@ -305,6 +309,15 @@ bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
     s.travelled[r] = 0.0;
     s.t_next[r] = -1.0;
   }
+}
+
+// Ray r's reflectance at a hit with its own field, which turns into the reflected ray's field.
+double Tracer::reflect_field(std::uint32_t r, const Vec3& normal, const MaterialOptics& m, Phase phase) {
+  RayState& s = state_;
+  const double n_hat = (phase == Phase::solid ? m.n_solid : m.n_liquid).real();
+  const PolarisedReflection out = reflect_polarised(s.direction[r], normal, s.field[r], n_hat, m.mu_hat);
+  s.field[r] = out.field;
+  return out.reflectance;
 }
 
 void Tracer::count_segment(std::uint32_t r, Chunk& c) const {
@@ -376,12 +389,14 @@ void Tracer::sort_events_by_ray(Chunk& c, std::size_t begin, std::size_t end) {
 }
 
 void RayState::write(StateWriter& out) const {
+  out.value(polarised);  // first: it says whether the field array follows
   for_each_array([&](const auto& v) { out.vector(v); });
   out.value(ledger), out.value(primary_segments), out.value(bounced_segments), out.value(hits);
   out.value(live_count);
 }
 
 void RayState::read(StateReader& in) {
+  polarised = in.value<bool>();
   for_each_array([&](auto& v) { in.vector(v); });
   ledger = in.value<OpticsLedger>(), primary_segments = in.value<std::uint64_t>();
   bounced_segments = in.value<std::uint64_t>(), hits = in.value<std::uint64_t>();

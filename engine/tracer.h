@@ -30,12 +30,13 @@ struct MaterialOptics {
   double mu_hat = 1.0;
 };
 
-// The light's polarisation at a hit: unpolarised (2.22), the default, or linear at gamma to the
-// plane of incidence (2.18). The paper's linear case keeps the same gamma at every hit; a ray's
-// polarisation is not followed through its reflections.
+// The beam's polarisation: unpolarised (2.22), the default, or linear, its electric field at
+// angle psi in the beam's disk from the disk axis u towards v (disk_axes; for the +x beam u = +z,
+// v = -y). Each ray then carries its field through its reflections (fresnel.h reflect_polarised),
+// and gamma of (2.18) at a hit is the angle between that field and the plane of incidence.
 struct Polarisation {
   bool linear = false;
-  double gamma = 0.0;  // rad, in [0, pi/2]; optics.polarisation in degrees
+  double psi = 0.0;  // rad, in [0, pi]; optics.polarisation in degrees
 };
 
 // How bounced rays find their next sphere (same answer bit for bit; docs/bench/optics.md):
@@ -81,6 +82,10 @@ struct RayState {
   std::vector<std::uint32_t> last_particle, next_particle;
   std::vector<std::int32_t> bounces;
   std::vector<std::uint8_t> live;
+  // A linearly polarised beam's rays carry their unit electric field; unpolarised ones have none
+  // (the array is neither allocated nor copied).
+  bool polarised = false;
+  std::vector<Vec3> field;
   OpticsLedger ledger;
   std::uint64_t primary_segments = 0;  // Embree queries from the entry plane
   std::uint64_t bounced_segments = 0;  // queries after a bounce (or a retrace after a removal)
@@ -93,6 +98,7 @@ struct RayState {
   void for_each_array(F&& f) {
     f(origin), f(direction), f(normal), f(energy), f(initial_energy), f(travelled), f(t_next);
     f(path), f(last_particle), f(next_particle), f(bounces), f(live);
+    if (polarised) f(field);
   }
   template <class F>
   void for_each_array(F&& f) const {
@@ -149,6 +155,7 @@ class Tracer {
  private:
   struct Chunk;
   void start_ray(std::size_t r, const Vec3& origin, const Vec3& direction, double energy);
+  double reflect_field(std::uint32_t r, const Vec3& normal, const MaterialOptics& m, Phase phase);
   void open_query(std::uint32_t ray);
   bool close_query(std::uint32_t ray);
   void trace_ids(const std::uint32_t* ids, std::size_t count, bool coherent);
@@ -168,7 +175,6 @@ class Tracer {
   std::unique_ptr<EmbreeScene> scene_;
   std::unique_ptr<SphereGrid> grid_;  // bounced rays (BounceSearch::grid)
   Box box_;  // all particles grown by their radii: leaving it means escaped
-  double cos_gamma_ = 0.0, sin_gamma_ = 0.0;  // of spec_.polarisation.gamma, once
   RayState state_;
   bool record_segments_ = false;
   std::vector<RaySegment> segments_;

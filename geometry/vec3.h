@@ -1,6 +1,7 @@
 #pragma once
 // Points and directions in double precision; the physics never leaves doubles.
 #include <Eigen/Core>
+#include <Eigen/Geometry>  // cross products of Vec3
 #include <limits>
 
 namespace beampack {

@@ -190,8 +190,10 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"run.toml:2", "material.initial_temperature", "900", "< material.vapor_temperature = 700"});
   expect_input_error("file_unused", "[packing]\nfile = \"bed.xyz\"\n", "",
                      {"run.toml:2", "packing.file", "needs packing.source = \"file\""});
-  expect_input_error("polarisation", "", "--preset quick --set optics.polarisation=95",
-                     {"optics.polarisation", "95", "<= 90"});
+  expect_input_error("polarisation", "", "--preset quick --set optics.polarisation=200",
+                     {"optics.polarisation", "200", "<= 180"});
+  expect_input_error("polarisation_metal", "", "--preset quick --set optics.polarisation=30 --set optics.k_solid=4",
+                     {"optics.polarisation", "elliptical"});
   expect_input_error("polarisation_word", "[optics]\npolarisation = \"linear\"\n", "",
                      {"run.toml:2", "optics.polarisation", "\"linear\"", "number in degrees or \"unpolarised\""});
   expect_input_error("overflow", "", "--preset quick --set beam.power=1e308",

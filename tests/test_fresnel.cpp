@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdint>
 #include <numbers>
 
 #include "engine/fresnel.h"
@@ -132,4 +133,66 @@ TEST(Fresnel, SpecularReflectionMirrorsTheNormalComponent) {
   EXPECT_NEAR(r.norm(), 1.0, 1e-15);
   EXPECT_NEAR(r.dot(n), -d.dot(n), 1e-15);
   EXPECT_NEAR((r - r.dot(n) * n - (d - d.dot(n) * n)).norm(), 0.0, 1e-15);
+}
+
+// A linearly polarised ray reflected: closed forms in the plane of incidence xy (d = +x, normal
+// at incidence theta), then a seeded property test over random geometry.
+TEST(Fresnel, PolarisedReflectionSplitsTheFieldOnThePlaneOfIncidence) {
+  const double n_hat = 3.0, theta = 50.0 * std::numbers::pi / 180.0;
+  const Vec3 d(1, 0, 0), n(-std::cos(theta), std::sin(theta), 0);  // plane of incidence: xy
+  const Reflectances r = reflectance_components(std::cos(theta), n_hat);
+  const Vec3 reflected = reflect(d, n);
+  // Field across the plane (s): R_perp, and it stays across the plane, turned over (r_perp < 0).
+  const PolarisedReflection s = reflect_polarised(d, n, Vec3(0, 0, 1), n_hat);
+  EXPECT_NEAR(s.reflectance, r.perpendicular, 1e-15);
+  EXPECT_NEAR((s.field - Vec3(0, 0, -1)).norm(), 0.0, 1e-15);
+  // Field in the plane (p): R_par, and it stays in the plane, across the reflected ray.
+  const PolarisedReflection p = reflect_polarised(d, n, Vec3(0, 1, 0), n_hat);
+  EXPECT_NEAR(p.reflectance, r.parallel, 1e-15);
+  EXPECT_NEAR(p.field.z(), 0.0, 1e-15);
+  EXPECT_NEAR(p.field.dot(reflected), 0.0, 1e-15);
+  EXPECT_NEAR(p.field.norm(), 1.0, 1e-15);
+  // At 45 degrees to the plane: the unpolarised mean.
+  const PolarisedReflection half = reflect_polarised(d, n, Vec3(0, 1, 1).normalized(), n_hat);
+  EXPECT_NEAR(half.reflectance, 0.5 * (r.parallel + r.perpendicular), 1e-15);
+  // Brewster's angle, tan theta = n: p-light is not reflected at all.
+  const double brewster = std::atan(n_hat);
+  const Vec3 nb(-std::cos(brewster), std::sin(brewster), 0);
+  EXPECT_NEAR(reflect_polarised(d, nb, Vec3(0, 1, 0), n_hat).reflectance, 0.0, 1e-15);
+  // Normal incidence: R = ((n - 1) / (n + 1))^2 and the field comes back turned over.
+  const PolarisedReflection normal = reflect_polarised(d, Vec3(-1, 0, 0), Vec3(0, 0.6, 0.8), n_hat);
+  EXPECT_NEAR(normal.reflectance, std::pow((n_hat - 1) / (n_hat + 1), 2), 1e-15);
+  EXPECT_NEAR((normal.field - Vec3(0, -0.6, -0.8)).norm(), 0.0, 1e-15);
+}
+
+TEST(Fresnel, PolarisedReflectionPropertiesOnRandomGeometry) {
+  std::uint64_t state = 20131;
+  auto uniform = [&] {  // splitmix64: a small seeded generator for the test itself
+    state += 0x9E3779B97F4A7C15ull;
+    std::uint64_t z = state;
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+    return double((z ^ (z >> 31)) >> 11) * 0x1.0p-53;
+  };
+  auto unit = [&] {
+    const Vec3 v(uniform() - 0.5, uniform() - 0.5, uniform() - 0.5);
+    return Vec3(v.normalized());
+  };
+  for (int k = 0; k < 2000; ++k) {
+    const Vec3 d = unit();
+    Vec3 n = unit();
+    if (n.dot(d) > 0) n = -n;  // an outside hit
+    const Vec3 e = d.cross(unit()).normalized(), e_across = d.cross(e);
+    const double n_hat = 1.0 + 10.0 * uniform(), cos_i = -d.dot(n);
+    const PolarisedReflection a = reflect_polarised(d, n, e, n_hat);
+    const PolarisedReflection b = reflect_polarised(d, n, e_across, n_hat);
+    const Reflectances r = reflectance_components(cos_i, n_hat);
+    // Two crossed fields carry unpolarised light: their reflectances add to R_par + R_perp.
+    EXPECT_NEAR(a.reflectance + b.reflectance, r.parallel + r.perpendicular, 1e-13) << k;
+    EXPECT_GE(a.reflectance, std::min(r.parallel, r.perpendicular) - 1e-15) << k;
+    EXPECT_LE(a.reflectance, std::max(r.parallel, r.perpendicular) + 1e-15) << k;
+    // The reflected field is a unit vector across the reflected ray.
+    EXPECT_NEAR(a.field.norm(), 1.0, 1e-12) << k;
+    EXPECT_NEAR(a.field.dot(reflect(d, n)), 0.0, 1e-12) << k;
+  }
 }

@@ -73,7 +73,7 @@ void read_optics(Params& p, OpticsSpec& o) {
   o.max_bounces = int(p.integer("optics.max_bounces", 1000, 1, 1'000'000));
   double degrees = 0.0;
   const std::string word =
-      p.number_or_word("optics.polarisation", degrees, 0, 90, {"unpolarised"}, "unpolarised", "degrees", false);
+      p.number_or_word("optics.polarisation", degrees, 0, 180, {"unpolarised"}, "unpolarised", "degrees", false);
   o.polarisation = {word.empty(), degrees * std::numbers::pi / 180.0};
   o.packets = p.flag("optics.packets", true);
 }
