@@ -38,11 +38,14 @@ Reflectances reflectance_components(double cos_i, std::complex<double> n_hat, do
   using C = std::complex<double>;
   cos_i = std::clamp(cos_i, 0.0, 1.0);
   const C n2 = n_hat * n_hat;
-  const C root = std::sqrt((n2 - 1.0) + cos_i * cos_i);  // principal branch: Im >= 0, the decaying wave
+  // Principal branch: Im >= 0, the decaying wave; for n = 1 exactly cos_i itself (as in the real case).
+  const C root = n2 == C(1.0) ? C(cos_i) : std::sqrt((n2 - 1.0) + cos_i * cos_i);
   const C a = n2 / mu_hat * cos_i;
   const C b = root / mu_hat;
-  const double r_par = std::norm((a - root) / (a + root));
-  const double r_perp = std::norm((cos_i - b) / (cos_i + b));
+  // n = 1 at exact grazing makes both fractions 0/0: their limit, as in the real case.
+  const double limit = std::norm((1.0 - mu_hat) / (1.0 + mu_hat));
+  const double r_par = std::abs(a + root) > 0.0 ? std::norm((a - root) / (a + root)) : limit;
+  const double r_perp = std::abs(cos_i + b) > 0.0 ? std::norm((cos_i - b) / (cos_i + b)) : limit;
   return {std::min(r_par, 1.0), std::min(r_perp, 1.0)};
 }
 

@@ -28,8 +28,15 @@ inline FresnelFractions fresnel_fractions(double cos_i, double n_hat, double mu_
   // n^2 - sin^2 written as (n^2 - 1) + cos^2: exact for n = 1 and free of the 1 - cos^2
   // cancellation near grazing incidence.
   const double n2_minus_sin2 = (n2 - 1.0) + cos_i * cos_i;
-  if (n2_minus_sin2 <= 0.0) return {1.0, 1.0, 1.0, 1.0, true};
-  const double root = std::sqrt(n2_minus_sin2);  // n_hat cos(theta_t)
+  if (n2_minus_sin2 <= 0.0) {
+    if (n_hat < 1.0) return {1.0, 1.0, 1.0, 1.0, true};
+    // n = 1 at exact grazing (or cos^2 underflowed): the limit, r_par = (1 - mu) / (1 + mu) =
+    // -r_perp, which is 0 for mu = 1 (no interface reflects nothing), not total reflection.
+    return {1.0 - mu_hat, 1.0 + mu_hat, mu_hat - 1.0, mu_hat + 1.0, false};
+  }
+  // n_hat cos(theta_t); for n = 1 exactly cos_i itself (the square root of cos^2 loses it to
+  // rounding, or to underflow near grazing).
+  const double root = n2 == 1.0 ? cos_i : std::sqrt(n2_minus_sin2);
   const double a = n2 * cos_i, b = mu_hat * root, c = mu_hat * cos_i;
   return {a - b, a + b, c - root, c + root, false};
 }

@@ -196,3 +196,17 @@ TEST(Fresnel, PolarisedReflectionPropertiesOnRandomGeometry) {
     EXPECT_NEAR(a.field.dot(reflect(d, n)), 0.0, 1e-12) << k;
   }
 }
+
+// No interface (n = 1, mu = 1) reflects nothing at any angle, exact grazing and an underflowing
+// cos^2 included (it used to take the total-reflection branch there: R = 1), in the real and the
+// complex formulas (the complex one gave 0/0 = NaN).
+TEST(Fresnel, NoInterfaceReflectsNothingEvenAtGrazing) {
+  for (double c : {0.0, 1e-200, 1e-160, 1e-17, 0.5, 1.0}) {
+    EXPECT_EQ(reflectance(c, 1.0), 0.0) << c;
+    EXPECT_EQ(reflectance(c, std::complex<double>(1.0, 0.0)), 0.0) << c;
+  }
+  // With mu != 1 the grazing limit is ((1 - mu) / (1 + mu))^2 for both components.
+  const double limit = std::pow((1.0 - 2.0) / (1.0 + 2.0), 2);
+  EXPECT_NEAR(reflectance(0.0, 1.0, 2.0), limit, 1e-15);
+  EXPECT_NEAR(reflectance(1e-9, 1.0, 2.0), limit, 1e-8);
+}
