@@ -38,9 +38,13 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
       throw InputError("particle " + std::to_string(i) + " has material " +
                        std::to_string(particles.material[i]) + " but the optics spec defines " +
                        std::to_string(spec.materials.size()) + " material(s)");
+  auto index_ok = [](std::complex<double> n) {
+    return n.real() > 0.0 && std::isfinite(n.real()) && n.imag() >= 0.0 && std::isfinite(n.imag());
+  };
   for (const auto& m : spec.materials)
-    if (!(m.n_solid.real() > 0.0) || !(m.n_liquid.real() > 0.0) || !(m.mu_hat > 0.0))
-      throw InputError("`optics.n_solid`, `optics.n_liquid` and mu_hat must be > 0");
+    if (!index_ok(m.n_solid) || !index_ok(m.n_liquid) || !(m.mu_hat > 0.0 && std::isfinite(m.mu_hat)))
+      throw InputError("`optics.n_solid`, `optics.n_liquid` and mu_hat must be finite and > 0, and "
+                       "`optics.k_solid`, `optics.k_liquid` finite and >= 0 (k < 0 would be a gain medium)");
   const double psi = spec.polarisation.psi;
   if (spec.polarisation.linear && !(psi >= 0.0 && psi <= std::numbers::pi))
     throw InputError("`optics.polarisation` = " + std::to_string(psi * 180.0 / std::numbers::pi) +

@@ -66,6 +66,29 @@ TEST(OpticsBeam, RaysLieOnTheEntryDiskAndFollowTheProfile) {
               std::exp(-2.0 * (dist(edge) - dist(centre)) / rb), 1e-9);
 }
 
+// Every ray's intensity against ray 0's is the profile's ratio at their distances from the axis:
+// exp(-a (d_k - d_0) / r_b) for the exponential (5.1) with a decay other than the paper's, and
+// exp(-2 (d_k^2 - d_0^2) / w^2), w = gaussian_width r_b, for the Gaussian.
+TEST(OpticsBeam, EveryRayFollowsItsProfileShape) {
+  const double D = 1e-3, rb = 0.15 * D;
+  for (const char* profile : {"exponential", "gaussian"}) {
+    BeamSpec spec;
+    spec.profile = profile;
+    spec.decay = 3.5;
+    spec.gaussian_width = 0.6;
+    spec.rays = 500;
+    const Beam beam = make_beam(spec, D);
+    auto shape = [&](std::size_t k) {
+      const double d = std::hypot(beam.origin[k].y() - 0.5 * D, beam.origin[k].z() - 0.5 * D);
+      const double w = 0.6 * rb;
+      return std::string(profile) == "gaussian" ? std::exp(-2.0 * d * d / (w * w)) : std::exp(-3.5 * d / rb);
+    };
+    for (std::size_t k = 1; k < beam.size(); ++k)
+      EXPECT_NEAR(beam.intensity[k] / beam.intensity[0], shape(k) / shape(0), 1e-12 * shape(k) / shape(0))
+          << profile << " ray " << k;
+  }
+}
+
 // Every 16 consecutive rays (a packet) are a compact patch of the disk: the farthest ray of each
 // tile from the tile's centroid, against the radius of a disk holding 16 rays' share of the area.
 // (The Morton order used before failed this: runs straddling a jump of the curve.)
