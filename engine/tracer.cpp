@@ -110,7 +110,8 @@ Tracer::Tracer(const Particles& particles, OpticsSpec spec)
   validate(spec_, particles);
   scene_ = std::make_unique<EmbreeScene>(particles, spec_.scene_update, 4096, 0.1,
                                          spec_.spheres_per_primitive);
-  if (spec_.bounce_search == BounceSearch::grid)
+  // The grid serves bounced rays only: with optics.max_bounces = 1 every ray ends at its first hit.
+  if (spec_.bounce_search == BounceSearch::grid && spec_.max_bounces > 1)
     grid_ = std::make_unique<SphereGrid>(particles, spec_.grid_cell_factor);
   box_ = particles.bounds();
   state_.polarised = spec_.polarisation.linear;
@@ -259,7 +260,7 @@ void Tracer::trace_wave(const std::vector<std::uint32_t>& rays, Chunk& c) {
     if (s.bounces[r] > 0) walkers.push_back(r);
     else scene_->intersect1(q, r);
   }
-  grid_->intersect_many(q, walkers);
+  if (!walkers.empty()) grid_->intersect_many(q, walkers);
   for (std::uint32_t r : rays) close_query(r);
 }
 

@@ -150,6 +150,7 @@ class Tracer {
   void restore(const RayState& state) { state_ = state; }
 
   const EmbreeScene& scene() const { return *scene_; }
+  bool has_grid() const { return grid_ != nullptr; }  // built only when bounced rays can exist
   const Box& box() const { return box_; }
 
  private:
@@ -173,7 +174,7 @@ class Tracer {
   const Particles& particles_;
   OpticsSpec spec_;
   std::unique_ptr<EmbreeScene> scene_;
-  std::unique_ptr<SphereGrid> grid_;  // bounced rays (BounceSearch::grid)
+  std::unique_ptr<SphereGrid> grid_;  // bounced rays (BounceSearch::grid, max_bounces > 1)
   Box box_;  // all particles grown by their radii: leaving it means escaped
   RayState state_;
   bool record_segments_ = false;

@@ -330,3 +330,25 @@ TEST(OpticsTracer, PolarisedRaysKeepTheLedgerDeterminismAndTheirFields) {
 
 }  // namespace
 }  // namespace beampack
+
+namespace beampack {
+namespace {
+
+// With optics.max_bounces = 1 no ray is ever bounced, so the bounce grid is not built (at 1e6
+// spheres it is the largest part of the tracer's set-up); the deposits equal those of the
+// Embree bounce search, which needs no grid either way.
+TEST(OpticsTracer, NoBounceGridWhenNoRayCanBounce) {
+  OpticsSpec one = optics_for(1.4);
+  one.max_bounces = 1;
+  EXPECT_FALSE(Tracer(packing_1e4(), one).has_grid());
+  EXPECT_TRUE(Tracer(packing_1e4(), optics_for(1.4)).has_grid());
+  OpticsSpec embree = one;
+  embree.bounce_search = BounceSearch::embree;
+  const Traced a = trace(packing_1e4(), one, BeamSpec{}), b = trace(packing_1e4(), embree, BeamSpec{});
+  EXPECT_EQ(a.deposits, b.deposits);
+  EXPECT_EQ(a.bounced, 0u);
+  EXPECT_GT(a.ledger.cutoff, 0.0);  // what the first hits reflect ends in the cutoff bin
+}
+
+}  // namespace
+}  // namespace beampack
