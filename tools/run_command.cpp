@@ -175,6 +175,26 @@ void print_table(const Simulation& sim, const RunResult& r) {
 
 }  // namespace
 
+std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e) {
+  const double optics = e.injected > 0 ? std::abs(e.optics_imbalance()) / e.injected : 0.0;
+  const double heat = e.absorbed > 0 ? std::abs(e.heat_imbalance()) / e.absorbed : 0.0;
+  const double heat_limit = std::max(1e-6, 1e4 * spec.thermal.tolerance);
+  std::vector<std::string> out;
+  char text[320];
+  if (!(optics <= 1e-9)) {  // NaN included
+    std::snprintf(text, sizeof text, "the optics ledger is open by %.3g of the injected energy "
+                  "(round-off is ~1e-15): please report this run file", optics);
+    out.emplace_back(text);
+  }
+  if (!(heat <= heat_limit)) {
+    std::snprintf(text, sizeof text, "the heat ledger is open by %.3g of the absorbed energy (more "
+                  "than %.3g, from `thermal.tolerance` = %g): lower the tolerance or use "
+                  "`thermal.solver` = \"direct\"", heat, heat_limit, spec.thermal.tolerance);
+    out.emplace_back(text);
+  }
+  return out;
+}
+
 void prepare_out_dir(const std::string& dir) {
   std::error_code ec;
   fs::create_directories(dir, ec);
@@ -271,21 +291,6 @@ void warn_of_many_steps(const SimulationSpec& spec) {
                spec.dt, spec.packing.sample_size, crossing, steps);
 }
 
-// The ledgers close to round-off (optics) and to the solver's tolerance (heat); a run whose
-// ledger is open says so on stderr instead of leaving it to be read off the table.
-void warn_if_ledger_open(const SimulationSpec& spec, const EnergyLedger& e) {
-  const double optics = e.injected > 0 ? std::abs(e.optics_imbalance()) / e.injected : 0.0;
-  const double heat = e.absorbed > 0 ? std::abs(e.heat_imbalance()) / e.absorbed : 0.0;
-  const double heat_limit = std::max(1e-6, 1e4 * spec.thermal.tolerance);
-  if (optics > 1e-9)
-    std::fprintf(stderr, "beampack: warning: the optics ledger is open by %.3g of the injected "
-                         "energy (round-off is ~1e-15): please report this run file\n", optics);
-  if (heat > heat_limit)
-    std::fprintf(stderr, "beampack: warning: the heat ledger is open by %.3g of the absorbed "
-                         "energy (more than %.3g, from `thermal.tolerance` = %g): lower the "
-                         "tolerance or use `thermal.solver` = \"direct\"\n",
-                 heat, heat_limit, spec.thermal.tolerance);
-}
 
 // Pulses start at step boundaries: a pulses.period shorter than a step delays them.
 void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts) {
@@ -400,7 +405,8 @@ int run_command(const RunOptions& options) {
                    [&](std::ostream& o) { o << summary_json(sim, r, config).dump(2) << '\n'; });
   print_table(sim, r);
   warn_of_late_pulses(config.sim, r.counts);
-  warn_if_ledger_open(config.sim, r.figures.energy);
+  for (const std::string& warning : open_ledger_warnings(config.sim, r.figures.energy))
+    std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
   if (r.interrupted) {
     std::fprintf(stderr,
                  "beampack: interrupted at t = %.6g s after %d pulse(s); outputs in %s hold that state; "

@@ -5,6 +5,7 @@
 #include <atomic>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "tools/run_config.h"
 
@@ -45,6 +46,9 @@ struct RunResult {
 };
 // InputError naming --out when the directory cannot be created or written.
 void prepare_out_dir(const std::string& dir);
+// The ledgers close to round-off (optics: 1e-9 of the injected energy) and to the solver's
+// tolerance (heat: max(1e-6, 1e4 thermal.tolerance) of the absorbed); one message per open one.
+std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e);
 // InputError when a sweep or converge run file asks for output.frames or output.rays.
 void refuse_run_only_outputs(const RunConfig& config, const char* command);
 
