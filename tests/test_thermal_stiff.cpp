@@ -154,6 +154,24 @@ TEST(ThermalStiff, CrankNicolsonIsSubSteppedToKeepTheMaximumPrinciple) {
   }
 }
 
+// The limit holds whichever phase a sub-step reaches: with C_L < C_S it is taken with C_L even
+// while every particle is still solid (one that melts in an early sub-step would otherwise make
+// the later ones too long).
+TEST(ThermalStiff, MonotoneLimitUsesTheSmallerHeatCapacity) {
+  Particles p = test::chain(2, 1e-4);
+  Material m = conductive();
+  m.c_solid = 2000;
+  m.c_liquid = 500;
+  ThermalSpec spec;
+  spec.phi = 0.5;
+  ThermalModel model(p, {m}, spec);
+  const auto contacts = find_contacts(p);
+  model.set_contacts(contacts);
+  const double g = contact_conductances(p, {m}, contacts)[0];
+  const double c_liquid = test::solid_capacity(m, 0.6e-4, spec.time_scaling) * 500.0 / 2000.0;
+  EXPECT_NEAR(model.monotone_step_limit(), c_liquid / (0.5 * g), 1e-12 * c_liquid / g);
+}
+
 // The case that showed it: five spheres in a row, the first at 1034 K, cooled in one long step.
 TEST(ThermalStiff, CrankNicolsonLongStepOnAChainStaysAboveTheColdestParticle) {
   Particles p = test::chain(5, 1e-4);

@@ -191,11 +191,15 @@ Eigen::VectorXd ThermalModel::capacity_with_bands(const Eigen::VectorXd& theta0,
 double ThermalModel::monotone_step_limit() const {
   if (spec_.phi >= 1.0) return std::numeric_limits<double>::infinity();
   const_cast<ThermalModel*>(this)->assemble_if_needed();
+  // With the smaller of C_S and C_L: a particle that melts in an early sub-step must not make the
+  // later ones exceed the limit (a material with C_L < C_S).
   double limit = std::numeric_limits<double>::infinity();
-  const Eigen::VectorXd c = base_capacity();
-  for (Eigen::Index i = 0; i < c.size(); ++i)
-    if (p_.alive[i] && diagonal_[i] > 0)
-      limit = std::min(limit, c[i] / ((1.0 - spec_.phi) * diagonal_[i]));
+  for (std::size_t i = 0; i < p_.size(); ++i) {
+    if (!p_.alive[i] || !(diagonal_[static_cast<Eigen::Index>(i)] > 0)) continue;
+    const Material& m = materials_[p_.material[i]];
+    const double c = m.density * p_.volume(i) * std::min(m.c_solid, m.c_liquid) / spec_.time_scaling;
+    limit = std::min(limit, c / ((1.0 - spec_.phi) * diagonal_[static_cast<Eigen::Index>(i)]));
+  }
   return limit;
 }
 

@@ -82,7 +82,8 @@ class ThermalModel {
   const ThermalLedger& ledger() const { return ledger_; }
   // Largest dt for which a step keeps the discrete maximum principle (no temperature leaves the
   // range of its neighbours', the walls' and its own plus the heat it absorbed):
-  // min_i c_i / ((1 - phi) D_i), D_i the diagonal of L + W, where the explicit part's weight on
+  // min_i c_i / ((1 - phi) D_i), c_i = m_i min(C_S, C_L) / M (either phase the step may reach),
+  // D_i the diagonal of L + W, where the explicit part's weight on
   // theta_i^n, c_i - (1 - phi) dt D_i, is still >= 0. For phi < 1/2 it is also the stability
   // limit; for 1/2 <= phi < 1 the step is stable beyond it but not monotone (Crank-Nicolson's
   // stiff modes flip sign every step: a 5-sphere chain cooled in one 1 us step went to -136 K).
