@@ -38,8 +38,6 @@ void validate(const BeamSpec& s, double sample_size) {
     bad("sample.size", sample_size, "must be > 0 and finite");
 }
 
-// Two unit vectors spanning the disk plane, perpendicular to d.
-
 // Uniform in the unit disk: r = sqrt(xi), equal area per dr^2 (seeded, one stream per beam).
 std::vector<Eigen::Vector2d> random_disk(std::size_t n, std::uint64_t seed) {
   Rng rng = Rng::stream(seed, 0);

@@ -38,11 +38,12 @@ struct Beam {
   std::vector<double> ray_energies(double pulse_duration) const;
 };
 
-// Validates the spec (InputError naming the key) and samples the disk. The disk lies in the plane
-// through the sample centre's upstream face point, perpendicular to the direction.
-// The beam disk's axes: u = d x (x or, for d near +-x, y), normalised; v = d x u.
+// Two unit vectors spanning the beam disk, perpendicular to the unit direction d:
+// u = d x (x, or y for d near +-x), normalised; v = d x u.
 void disk_axes(const Vec3& d, Vec3& u, Vec3& v);
 
+// Validates the spec (InputError naming the key) and samples the disk. The disk lies in the plane
+// through the sample centre's upstream face point, perpendicular to the direction.
 Beam make_beam(const BeamSpec& spec, double sample_size);
 
 // The profile's shape f(d) = I(d) / I_0 at distance d from the axis, beam radius r_b.

@@ -1,7 +1,6 @@
 #include "engine/fresnel.h"
 
 #include <algorithm>
-#include <Eigen/Geometry>
 #include <cmath>
 
 namespace beampack {
@@ -14,8 +13,9 @@ Reflectances reflectance_components(double cos_i, double n_hat, double mu_hat) {
 }
 
 double reflectance_polarised(double cos_i, double n_hat, double mu_hat, double gamma) {
-  return polarised_reflectance(reflectance_components(cos_i, n_hat, mu_hat), std::cos(gamma),
-                               std::sin(gamma));
+  const Reflectances r = reflectance_components(cos_i, n_hat, mu_hat);
+  const double c = std::cos(gamma), s = std::sin(gamma);
+  return r.parallel * c * c + r.perpendicular * s * s;
 }
 
 PolarisedReflection reflect_polarised(const Vec3& d, const Vec3& n, const Vec3& e, double n_hat,

@@ -60,9 +60,6 @@ inline double reflectance(double cos_i, double n_hat, double mu_hat = 1.0) {
 
 // Linear polarisation at angle gamma to the plane of incidence (2.18):
 // R = R_par cos^2(gamma) + R_perp sin^2(gamma).
-inline double polarised_reflectance(const Reflectances& r, double cos_gamma, double sin_gamma) {
-  return r.parallel * cos_gamma * cos_gamma + r.perpendicular * sin_gamma * sin_gamma;
-}
 double reflectance_polarised(double cos_i, double n_hat, double mu_hat, double gamma);
 
 // A linearly polarised ray (unit field e, perpendicular to the unit direction d) reflected at a

@@ -81,8 +81,7 @@ void Simulation::check_thermal_masses(double run_energy) const {
     const std::size_t k = particles_.material[i];
     if (k >= spec_.materials.size()) continue;  // the thermal model reports a missing material
     const Material& m = spec_.materials[k];
-    const double mass_heat =
-        m.density * particles_.volume(i) * std::min(m.c_solid, m.c_liquid) / spec_.thermal.time_scaling;
+    const double mass_heat = least_thermal_mass(m, particles_.volume(i), spec_.thermal.time_scaling);
     if (mass_heat >= std::numeric_limits<double>::min() && std::isfinite(mass_heat) &&
         std::isfinite(run_energy / mass_heat))
       continue;
@@ -91,8 +90,9 @@ void Simulation::check_thermal_masses(double run_energy) const {
     msg << "particle " << i << " (radius " << particles_.radius[i] << " m) has a thermal mass `"
         << key << ".density` x volume x min(`" << key << ".c_solid`, `" << key << ".c_liquid`) / "
         << "`thermal.time_scaling` = " << m.density << " x " << particles_.volume(i) << " x "
-        << std::min(m.c_solid, m.c_liquid) << " / " << spec_.thermal.time_scaling << " = " << mass_heat << " J/K: must be a finite normal number that the run's "
-        << run_energy << " J warms by a finite amount";
+        << std::min(m.c_solid, m.c_liquid) << " / " << spec_.thermal.time_scaling << " = "
+        << mass_heat << " J/K: must be a finite normal number that the run's " << run_energy
+        << " J warms by a finite amount";
     throw InputError(msg.str());
   }
 }

@@ -41,20 +41,21 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
   auto index_ok = [](std::complex<double> n) {
     return n.real() > 0.0 && std::isfinite(n.real()) && n.imag() >= 0.0 && std::isfinite(n.imag());
   };
-  for (const auto& m : spec.materials)
-    if (!index_ok(m.n_solid) || !index_ok(m.n_liquid) || !(m.mu_hat > 0.0 && std::isfinite(m.mu_hat)))
-      throw InputError("`optics.n_solid`, `optics.n_liquid` and mu_hat must be finite and > 0, and "
-                       "`optics.k_solid`, `optics.k_liquid` finite and >= 0 (k < 0 would be a gain medium)");
+  // Linear polarisation is followed only while it stays linear: real indices >= 1.
+  auto keeps_linear = [](std::complex<double> n) { return n.imag() == 0.0 && n.real() >= 1.0; };
   const double psi = spec.polarisation.psi;
   if (spec.polarisation.linear && !(psi >= 0.0 && psi <= std::numbers::pi))
     throw InputError("`optics.polarisation` = " + std::to_string(psi * 180.0 / std::numbers::pi) +
                      " degrees: the field's angle in the beam disk must be in [0, 180]");
-  for (const auto& m : spec.materials)
-    if (spec.polarisation.linear && (m.n_solid.imag() != 0.0 || m.n_liquid.imag() != 0.0 ||
-                                     m.n_solid.real() < 1.0 || m.n_liquid.real() < 1.0))
+  for (const auto& m : spec.materials) {
+    if (!index_ok(m.n_solid) || !index_ok(m.n_liquid) || !(m.mu_hat > 0.0 && std::isfinite(m.mu_hat)))
+      throw InputError("`optics.n_solid`, `optics.n_liquid` and mu_hat must be finite and > 0, and "
+                       "`optics.k_solid`, `optics.k_liquid` finite and >= 0 (k < 0 would be a gain medium)");
+    if (spec.polarisation.linear && !(keeps_linear(m.n_solid) && keeps_linear(m.n_liquid)))
       throw InputError("`optics.polarisation` with `optics.k_solid`/`k_liquid` > 0 or an index "
                        "below 1: the reflected light is elliptical there, which is not followed; "
                        "use optics.polarisation = \"unpolarised\"");
+  }
 }
 
 // Unpolarised Fresnel reflectance (2.25) with the particle's current index (solid or liquid).
@@ -62,7 +63,6 @@ double particle_reflectance(const MaterialOptics& m, Phase phase, double cos_i) 
   const std::complex<double> n = phase == Phase::solid ? m.n_solid : m.n_liquid;
   return n.imag() == 0.0 ? reflectance(cos_i, n.real(), m.mu_hat) : reflectance(cos_i, n, m.mu_hat);
 }
-
 
 }  // namespace
 

@@ -22,4 +22,10 @@ struct Material {
   void validate(const std::string& prefix = "material") const;
 };
 
+// m min(C_S, C_L) / M of a particle of this volume: its least thermal mass in either phase, as the
+// solver sees it with the time scaling M (thermal.time_scaling).
+inline double least_thermal_mass(const Material& m, double volume, double time_scaling) {
+  return m.density * volume * (m.c_solid < m.c_liquid ? m.c_solid : m.c_liquid) / time_scaling;
+}
+
 }  // namespace beampack

@@ -196,8 +196,7 @@ double ThermalModel::monotone_step_limit() const {
   double limit = std::numeric_limits<double>::infinity();
   for (std::size_t i = 0; i < p_.size(); ++i) {
     if (!p_.alive[i] || !(diagonal_[static_cast<Eigen::Index>(i)] > 0)) continue;
-    const Material& m = materials_[p_.material[i]];
-    const double c = m.density * p_.volume(i) * std::min(m.c_solid, m.c_liquid) / spec_.time_scaling;
+    const double c = least_thermal_mass(materials_[p_.material[i]], p_.volume(i), spec_.time_scaling);
     limit = std::min(limit, c / ((1.0 - spec_.phi) * diagonal_[static_cast<Eigen::Index>(i)]));
   }
   return limit;
