@@ -70,10 +70,7 @@ int run_ladder(Ladder& ladder, bool quiet) {
       }
       ladder.rungs.push_back({ladder.values[k], std::move(r)});
     } catch (const std::exception& e) {
-      const bool input = dynamic_cast<const InputError*>(&e) != nullptr;
-      std::fprintf(stderr, "beampack: %s%s %s (left out of convergence.csv)\n", label.c_str(),
-                   input ? "error:" : "run failed:", e.what());
-      code = std::max(code, input ? 2 : 1);
+      code = std::max(code, report_failed_run(label, e, "left out of convergence.csv"));
     }
   }
   // The reference is the finest rung: without it the others have nothing to be compared with.

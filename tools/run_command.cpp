@@ -36,7 +36,6 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-// One progress line on stderr, refreshed at most twice a second once a run passes two seconds.
 // The peak temperature as printed: a particle-free scene has none (not 0 K).
 std::string peak_text(const Figures& f, const char* format) {
   if (f.particles == 0) return "- (no particles)";
@@ -45,6 +44,7 @@ std::string peak_text(const Figures& f, const char* format) {
   return text;
 }
 
+// One progress line on stderr, refreshed at most twice a second once a run passes two seconds.
 class Progress {
  public:
   Progress(bool quiet, std::string label) : quiet_(quiet), label_(std::move(label)) {}
@@ -80,8 +80,8 @@ std::string figure_columns(const Figures& f) {
   const EnergyLedger& e = f.energy;
   std::ostringstream s;
   s << exact(f.vaporized_fraction) << ',' << exact(f.melted_fraction) << ','
-    << (f.particles > 0 ? exact(f.max_temperature) : "") << ',' << exact(e.injected) << ',' << exact(e.absorbed) << ','
-    << exact(e.escaped) << ',' << exact(e.cutoff) << ',' << exact(e.stored) << ','
+    << (f.particles > 0 ? exact(f.max_temperature) : "") << ',' << exact(e.injected) << ','
+    << exact(e.absorbed) << ',' << exact(e.escaped) << ',' << exact(e.cutoff) << ',' << exact(e.stored) << ','
     << exact(e.vaporized) << ',' << exact(e.walls) << ',' << exact(e.in_flight);
   return s.str();
 }
@@ -195,6 +195,13 @@ std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const 
   return out;
 }
 
+int report_failed_run(const std::string& label, const std::exception& e, const char* consequence) {
+  const bool input = dynamic_cast<const InputError*>(&e) != nullptr;
+  std::fprintf(stderr, "beampack: %s%s %s (%s)\n", label.c_str(), input ? "error:" : "run failed:",
+               e.what(), consequence);
+  return input ? 2 : 1;
+}
+
 void prepare_out_dir(const std::string& dir) {
   std::error_code ec;
   fs::create_directories(dir, ec);
@@ -290,7 +297,6 @@ void warn_of_many_steps(const SimulationSpec& spec) {
                "per pulse flight\n",
                spec.dt, spec.packing.sample_size, crossing, steps);
 }
-
 
 // Pulses start at step boundaries: a pulses.period shorter than a step delays them.
 void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts) {
@@ -461,14 +467,13 @@ std::vector<std::string> sweep_values(const SweepOptions& options) {
   return values;
 }
 
-int sweep_command(const SweepOptions& options_in) {
-  SweepOptions options = options_in;
-  options.values = sweep_values(options_in);
+int sweep_command(const SweepOptions& options) {
+  const std::vector<std::string> values = sweep_values(options);
   prepare_out_dir(options.run.out_dir);
   const auto threads = limit_threads(options.run.threads);
   // Resolve every configuration first: a bad value fails before any run starts.
   std::vector<RunConfig> configs;
-  for (const std::string& value : options.values) {
+  for (const std::string& value : values) {
     RunSources sources = options.run.sources;
     sources.swept = options.param + "=" + value;
     sources.swept_origin = "--param " + options.param + " --values " + value;
@@ -481,32 +486,29 @@ int sweep_command(const SweepOptions& options_in) {
   const auto start = Clock::now();
   int code = 0;  // a value that fails leaves its row empty; the others still run and are written
   for (std::size_t k = 0; k < configs.size(); ++k) {
-    const std::string label = "sweep " + options.param + " = " + options.values[k] + ": ";
+    const std::string label = "sweep " + options.param + " = " + values[k] + ": ";
     RunResult r;
     try {
       r = run_scene(configs[k], options.run.quiet, label);
     } catch (const std::exception& e) {
-      const bool input = dynamic_cast<const InputError*>(&e) != nullptr;
-      std::fprintf(stderr, "beampack: %s%s %s (its row in sweep.csv is empty)\n", label.c_str(),
-                   input ? "error:" : "run failed:", e.what());
-      code = std::max(code, input ? 2 : 1);
-      csv += options.values[k] + empty_cells(header) + '\n';
+      code = std::max(code, report_failed_run(label, e, "its row in sweep.csv is empty"));
+      csv += values[k] + empty_cells(header) + '\n';
       continue;
     }
     if (r.interrupted) {
       std::fprintf(stderr, "beampack: sweep interrupted during %s = %s: that value and the rest "
-                           "are not in sweep.csv\n", options.param.c_str(), options.values[k].c_str());
+                           "are not in sweep.csv\n", options.param.c_str(), values[k].c_str());
       break;
     }
     const Figures& f = r.figures;
-    csv += options.values[k] + ',' + figure_columns(f) + ',' + std::to_string(r.counts.steps) + ',' +
+    csv += values[k] + ',' + figure_columns(f) + ',' + std::to_string(r.counts.steps) + ',' +
            exact(r.wall_seconds) + '\n';
     char* end = nullptr;
-    const double x = std::strtod(options.values[k].c_str(), &end);
+    const double x = std::strtod(values[k].c_str(), &end);
     vv.x.push_back(end && *end == 0 ? x : double(k));
     vv.y.push_back(f.vaporized_fraction);
     std::printf("%-24s %s = %-10s v_v = %.4f  melted = %.4f  T_max = %s  (%.2f s)\n",
-                "sweep", options.param.c_str(), options.values[k].c_str(), f.vaporized_fraction,
+                "sweep", options.param.c_str(), values[k].c_str(), f.vaporized_fraction,
                 f.melted_fraction, peak_text(f, "%.0f K").c_str(), r.wall_seconds);
     std::fflush(stdout);
   }

@@ -3,6 +3,7 @@
 #include <tbb/global_control.h>
 
 #include <atomic>
+#include <exception>
 #include <memory>
 #include <string>
 #include <vector>
@@ -49,6 +50,9 @@ void prepare_out_dir(const std::string& dir);
 // The ledgers close to round-off (optics: 1e-9 of the injected energy) and to the solver's
 // tolerance (heat: max(1e-6, 1e4 thermal.tolerance) of the absorbed); one message per open one.
 std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e);
+// A run of a sweep or converge that threw: one line on stderr naming `label`, the error and
+// `consequence`; returns the exit code it calls for (2 bad input, 1 a failed run).
+int report_failed_run(const std::string& label, const std::exception& e, const char* consequence);
 // InputError when a sweep or converge run file asks for output.frames or output.rays.
 void refuse_run_only_outputs(const RunConfig& config, const char* command);
 

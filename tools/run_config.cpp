@@ -14,8 +14,6 @@ namespace {
 
 constexpr double kBig = std::numeric_limits<double>::max();
 
-// Every key is read whatever the source, so `beampack config` lists them all and a preset's
-// keys never count as unused; the ones a source ignores are documented as such.
 // A number as a message shows it (%g-like: 300, 1e-09).
 std::string number_text(double v) {
   std::ostringstream s;
@@ -23,6 +21,8 @@ std::string number_text(double v) {
   return s.str();
 }
 
+// Every key is read whatever the source, so `beampack config` lists them all and a preset's
+// keys never count as unused; the ones a source ignores are documented as such.
 void read_packing(Params& p, PackingSpec& s) {
   // Embree's boxes are floats: far below 1e-12 m their corners underflow and every ray escapes.
   s.sample_size = p.number("sample.size", 1e-3, 1e-12, 1e6);
