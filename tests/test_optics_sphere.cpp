@@ -36,7 +36,7 @@ double cross_section_integral(double R, G g) {
 }
 
 struct SingleSphere {
-  double D = 1e-3, R = 0.12e-3, n_hat = 1.4;
+  double D = 1e-3, R = 0.12e-3, n_hat = 1.4, k = 0.0;  // index n_hat + i k
   Particles particles;
   SingleSphere() { particles.add(Vec3::Constant(0.5 * D), R); }
 };
@@ -44,7 +44,7 @@ struct SingleSphere {
 double traced_absorbed(const SingleSphere& s, const BeamSpec& spec, double& ray_energy,
                        Polarisation polarisation = {}) {
   OpticsSpec optics;
-  optics.materials[0].n_solid = s.n_hat;
+  optics.materials[0].n_solid = {s.n_hat, s.k};
   optics.polarisation = polarisation;
   Tracer tracer(s.particles, optics);
   const Beam beam = make_beam(spec, s.D);
@@ -75,20 +75,17 @@ TEST(OpticsSphere, UniformBeamStratifiedMatchesQuadrature) {
 // takes the complex formulas, and the absorbed power is the quadrature of 1 - R(n + ik).
 TEST(OpticsSphere, MetalSphereMatchesQuadratureOfTheComplexIndex) {
   SingleSphere s;
-  const std::complex<double> silver(0.056, 4.276);
-  OpticsSpec optics;
-  optics.materials[0].n_solid = silver;
-  Tracer tracer(s.particles, optics);
+  s.n_hat = 0.056, s.k = 4.276;
+  const std::complex<double> silver(s.n_hat, s.k);
   BeamSpec spec;
   spec.profile = "flat";
   spec.sampling = "stratified";
   spec.rays = 100000;
-  tracer.launch(make_beam(spec, s.D), 1.0);
-  std::vector<double> deposits;
-  tracer.advance(std::numeric_limits<double>::infinity(), deposits);
+  double e;
+  const double absorbed = traced_absorbed(s, spec, e);
   const double I = spec.power / (kPi * 0.15e-3 * 0.15e-3);
   const double expected = I * cross_section_integral(s.R, [&](double c) { return 1.0 - reflectance(c, silver); });
-  EXPECT_NEAR(deposits[0], expected, 1e-6 * expected);
+  EXPECT_NEAR(absorbed, expected, 1e-6 * expected);
   EXPECT_LT(expected, 0.05 * I * kPi * s.R * s.R);  // a mirror: it absorbs a few percent
 }
 
@@ -149,38 +146,56 @@ TEST(OpticsSphere, UniformBeamRandomWithinThreeStandardErrors) {
 
 // A pencil at offset h = R_A sin 75 deg hits A at 75 deg incidence and reflects at 30 deg from
 // the axis, straight into B, a larger liquid sphere downstream with n_liquid = 1 (R_F = 0: it
-// absorbs whatever reaches it). Hand values: A absorbs (1 - R_F(75 deg)) E, B absorbs R_F E.
-TEST(OpticsSphere, TwoSpheresOnTheAxisShareTheReflectedEnergy) {
+// absorbs whatever reaches it). One pencil of energy 1 per azimuth phi around the axis (the
+// offset is (0, cos phi, sin phi) h); A has index n_solid and the beam the given polarisation.
+constexpr double kPencilIncidence = 75.0 * kPi / 180.0;
+
+struct PencilRun {
+  std::vector<double> deposits;  // A, B
+  std::uint64_t hits;
+  double escaped;
+};
+
+PencilRun trace_pencils(double n_solid, Polarisation polarisation, const std::vector<double>& phis) {
   const double s = 1e-4;  // length unit
   Particles p;
   p.add(Vec3(0, 0, 0), 1.0 * s);
   p.add(Vec3(7.5 * s, 0, 0), 6.0 * s);
   p.phase[1] = Phase::liquid;
   OpticsSpec optics;
-  optics.materials[0].n_solid = 1.4;
+  optics.materials[0].n_solid = n_solid;
   optics.materials[0].n_liquid = 1.0;
+  optics.polarisation = polarisation;
   Tracer tracer(p, optics);
   Beam beam;
   beam.direction = Vec3(1, 0, 0);
   beam.centre = Vec3(-2 * s, 0, 0);
   beam.radius = s;
   beam.ray_area = 1.0;
-  const double theta = 75.0 * kPi / 180.0;
-  const int n = 8;
-  for (int k = 0; k < n; ++k) {  // eight pencils around the axis: same geometry by symmetry
-    const double phi = 2 * kPi * k / n;
-    beam.origin.push_back(beam.centre + std::sin(theta) * s * Vec3(0, std::cos(phi), std::sin(phi)));
+  for (double phi : phis) {
+    beam.origin.push_back(beam.centre + std::sin(kPencilIncidence) * s * Vec3(0, std::cos(phi), std::sin(phi)));
     beam.intensity.push_back(1.0);
   }
-  const std::vector<double> energy(n, 1.0);
-  tracer.launch(beam, energy);
-  std::vector<double> deposits;
-  tracer.advance(std::numeric_limits<double>::infinity(), deposits);
-  const double RF = reflectance(std::cos(theta), 1.4);
-  EXPECT_NEAR(deposits[0], n * (1.0 - RF), 1e-12);
-  EXPECT_NEAR(deposits[1], n * RF, 1e-12);
-  EXPECT_EQ(tracer.hits(), 2u * n);
-  EXPECT_EQ(tracer.ledger().escaped, 0.0);
+  tracer.launch(beam, std::vector<double>(phis.size(), 1.0));
+  PencilRun run;
+  tracer.advance(std::numeric_limits<double>::infinity(), run.deposits);
+  run.hits = tracer.hits();
+  run.escaped = tracer.ledger().escaped;
+  return run;
+}
+
+// Unpolarised, eight pencils evenly around the axis (the same geometry by symmetry). Hand values:
+// A absorbs (1 - R_F(75 deg)) E, B absorbs R_F E.
+TEST(OpticsSphere, TwoSpheresOnTheAxisShareTheReflectedEnergy) {
+  const int n = 8;
+  std::vector<double> phis;
+  for (int k = 0; k < n; ++k) phis.push_back(2 * kPi * k / n);
+  const PencilRun run = trace_pencils(1.4, {}, phis);
+  const double RF = reflectance(std::cos(kPencilIncidence), 1.4);
+  EXPECT_NEAR(run.deposits[0], n * (1.0 - RF), 1e-12);
+  EXPECT_NEAR(run.deposits[1], n * RF, 1e-12);
+  EXPECT_EQ(run.hits, 2u * n);
+  EXPECT_EQ(run.escaped, 0.0);
 }
 
 // The same eight pencils with the field along +z (psi = 0 for a +x beam): the pencil at azimuth
@@ -188,39 +203,21 @@ TEST(OpticsSphere, TwoSpheresOnTheAxisShareTheReflectedEnergy) {
 // and the offset (0, cos phi, sin phi)), so A absorbs 1 - R_par sin^2 phi - R_perp cos^2 phi of it
 // (2.18), and B, liquid with n = 1, the rest.
 TEST(OpticsSphere, PolarisedPencilsSplitTheirFieldOnEachPlaneOfIncidence) {
-  const double s = 1e-4;
-  Particles p;
-  p.add(Vec3(0, 0, 0), 1.0 * s);
-  p.add(Vec3(7.5 * s, 0, 0), 6.0 * s);
-  p.phase[1] = Phase::liquid;
-  OpticsSpec optics;
-  optics.materials[0].n_solid = 3.0;
-  optics.materials[0].n_liquid = 1.0;
-  optics.polarisation = {true, 0.0};
-  Tracer tracer(p, optics);
-  Beam beam;
-  beam.direction = Vec3(1, 0, 0);
-  beam.centre = Vec3(-2 * s, 0, 0);
-  beam.radius = s;
-  beam.ray_area = 1.0;
-  const double theta = 75.0 * kPi / 180.0;
-  const Reflectances r = reflectance_components(std::cos(theta), 3.0);
+  const Reflectances r = reflectance_components(std::cos(kPencilIncidence), 3.0);
   const int n = 8;
+  std::vector<double> phis;
   double expected_a = 0;
   for (int k = 0; k < n; ++k) {
     const double phi = 0.1 + 0.3 * k;  // uneven: over even azimuths sin^2 would average to 1/2
-    beam.origin.push_back(beam.centre + std::sin(theta) * s * Vec3(0, std::cos(phi), std::sin(phi)));
-    beam.intensity.push_back(1.0);
+    phis.push_back(phi);
     const double sin2 = std::sin(phi) * std::sin(phi);
     expected_a += 1.0 - r.parallel * sin2 - r.perpendicular * (1.0 - sin2);
   }
-  tracer.launch(beam, std::vector<double>(n, 1.0));
-  std::vector<double> deposits;
-  tracer.advance(std::numeric_limits<double>::infinity(), deposits);
-  EXPECT_NEAR(deposits[0], expected_a, 1e-12);
-  EXPECT_NEAR(deposits[1], n - expected_a, 1e-12);
+  const PencilRun run = trace_pencils(3.0, {true, 0.0}, phis);
+  EXPECT_NEAR(run.deposits[0], expected_a, 1e-12);
+  EXPECT_NEAR(run.deposits[1], n - expected_a, 1e-12);
   EXPECT_GT(std::abs(expected_a - n * (1.0 - 0.5 * (r.parallel + r.perpendicular))), 1e-3);
-  EXPECT_EQ(tracer.hits(), 2u * n);
+  EXPECT_EQ(run.hits, 2u * n);
 }
 
 // Nearest outside hit from the scene (single rays and packets) equals the brute-force minimum of
