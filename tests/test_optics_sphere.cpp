@@ -56,12 +56,18 @@ double traced_absorbed(const SingleSphere& s, const BeamSpec& spec, double& ray_
   return deposits[0];
 }
 
-TEST(OpticsSphere, UniformBeamStratifiedMatchesQuadrature) {
-  SingleSphere s;  // beam radius 0.15 mm > R = 0.12 mm
+// A uniform (flat) beam of 10^5 stratified rays, wider than the sphere (radius 0.15 mm).
+BeamSpec flat_stratified_beam() {
   BeamSpec spec;
   spec.profile = "flat";
   spec.sampling = "stratified";
   spec.rays = 100000;
+  return spec;
+}
+
+TEST(OpticsSphere, UniformBeamStratifiedMatchesQuadrature) {
+  SingleSphere s;  // beam radius 0.15 mm > R = 0.12 mm
+  const BeamSpec spec = flat_stratified_beam();
   double e;
   const double absorbed = traced_absorbed(s, spec, e);
   const double I = spec.power / (kPi * 0.15e-3 * 0.15e-3);
@@ -77,10 +83,7 @@ TEST(OpticsSphere, MetalSphereMatchesQuadratureOfTheComplexIndex) {
   SingleSphere s;
   s.n_hat = 0.056, s.k = 4.276;
   const std::complex<double> silver(s.n_hat, s.k);
-  BeamSpec spec;
-  spec.profile = "flat";
-  spec.sampling = "stratified";
-  spec.rays = 100000;
+  const BeamSpec spec = flat_stratified_beam();
   double e;
   const double absorbed = traced_absorbed(s, spec, e);
   const double I = spec.power / (kPi * 0.15e-3 * 0.15e-3);
@@ -96,10 +99,7 @@ TEST(OpticsSphere, MetalSphereMatchesQuadratureOfTheComplexIndex) {
 TEST(OpticsSphere, PolarisedBeamOnOneSphereAbsorbsTheUnpolarisedShare) {
   SingleSphere s;
   s.n_hat = 3.0;  // R_par and R_perp far apart
-  BeamSpec spec;
-  spec.profile = "flat";
-  spec.sampling = "stratified";
-  spec.rays = 100000;
+  const BeamSpec spec = flat_stratified_beam();
   double e;
   const double unpolarised = traced_absorbed(s, spec, e);
   for (double psi : {0.0, 0.3, 0.5 * kPi})
