@@ -26,6 +26,8 @@ void validate(const BeamSpec& s, double sample_size) {
   if (s.rays < 1 || s.rays > (std::size_t{1} << 31)) bad("beam.rays", s.rays, "must be in [1, 2^31]");
   if (s.sampling != "random" && s.sampling != "stratified")
     bad("beam.sampling", s.sampling, "must be `random` or `stratified`");
+  if (s.resample && s.sampling != "random")
+    bad("beam.resample", "true", "needs `beam.sampling` = `random` (stratified rays are fixed)");
   if (s.profile != "exponential" && s.profile != "flat" && s.profile != "gaussian")
     bad("beam.profile", s.profile, "must be `exponential`, `flat` or `gaussian`");
   if (!(s.decay >= 0.0) || !std::isfinite(s.decay)) bad("beam.decay", s.decay, "must be >= 0 and finite");
@@ -38,9 +40,9 @@ void validate(const BeamSpec& s, double sample_size) {
     bad("sample.size", sample_size, "must be > 0 and finite");
 }
 
-// Uniform in the unit disk: r = sqrt(xi), equal area per dr^2 (seeded, one stream per beam).
-std::vector<Eigen::Vector2d> random_disk(std::size_t n, std::uint64_t seed) {
-  Rng rng = Rng::stream(seed, 0);
+// Uniform in the unit disk: r = sqrt(xi), equal area per dr^2 (seeded, one stream per pulse).
+std::vector<Eigen::Vector2d> random_disk(std::size_t n, std::uint64_t seed, std::uint64_t stream) {
+  Rng rng = Rng::stream(seed, stream);
   std::vector<Eigen::Vector2d> p(n);
   for (auto& q : p) {
     const double r = std::sqrt(rng.uniform());
@@ -137,7 +139,7 @@ double beam_profile(const BeamSpec& spec, double d, double beam_radius) {
   return std::exp(-spec.decay * d / beam_radius);  // (5.1), d normalised by r_b
 }
 
-Beam make_beam(const BeamSpec& spec, double sample_size) {
+Beam make_beam(const BeamSpec& spec, double sample_size, std::uint64_t pulse) {
   validate(spec, sample_size);
   Beam beam;
   beam.direction = spec.direction;
@@ -145,7 +147,7 @@ Beam make_beam(const BeamSpec& spec, double sample_size) {
   beam.radius = 0.5 * spec.diameter_fraction * sample_size;
   beam.power = spec.power;
   beam.ray_area = std::numbers::pi * beam.radius * beam.radius / static_cast<double>(spec.rays);
-  auto unit = spec.sampling == "random" ? random_disk(spec.rays, spec.seed)
+  auto unit = spec.sampling == "random" ? random_disk(spec.rays, spec.seed, spec.resample ? pulse : 0)
                                         : stratified_disk(spec.rays);
   tile(unit, 0, unit.size());
   Vec3 u, v;

@@ -19,6 +19,9 @@ struct BeamSpec {
   // 1/e^2 radius, the usual laser "beam radius", so the disk holds 86% of the untruncated beam.
   double gaussian_width = 1.0;
   std::uint64_t seed = 1;            // beam.seed (random sampling)
+  // beam.resample: random sampling draws new rays for every pulse (pulse k: stream k of the
+  // seed), so the sampling error averages out over the pulses; false: every pulse is pulse 0's.
+  bool resample = false;
   Vec3 direction{1.0, 0.0, 0.0};     // beam.direction, unit (paper: +x)
 };
 
@@ -42,9 +45,10 @@ struct Beam {
 // u = d x (x, or y for d near +-x), normalised; v = d x u.
 void disk_axes(const Vec3& d, Vec3& u, Vec3& v);
 
-// Validates the spec (InputError naming the key) and samples the disk. The disk lies in the plane
-// through the sample centre's upstream face point, perpendicular to the direction.
-Beam make_beam(const BeamSpec& spec, double sample_size);
+// Validates the spec (InputError naming the key) and samples the disk for pulse `pulse` (its own
+// random stream when spec.resample, else pulse 0's). The disk lies in the plane through the
+// sample centre's upstream face point, perpendicular to the direction.
+Beam make_beam(const BeamSpec& spec, double sample_size, std::uint64_t pulse = 0);
 
 // The profile's shape f(d) = I(d) / I_0 at distance d from the axis, beam radius r_b.
 double beam_profile(const BeamSpec& spec, double d, double beam_radius);

@@ -108,6 +108,8 @@ void Simulation::launch_pulse_if_due() {
   if (!due) return;
   if (launched_ > 0 && on_pulse_end_) on_pulse_end_(launched_ - 1);
   tracer_->compact();
+  if (spec_.beam.resample && launched_ > 0)
+    beam_ = make_beam(spec_.beam, spec_.packing.sample_size, static_cast<std::uint64_t>(launched_));
   tracer_->launch(beam_, spec_.pulses.duration);
   counts_.rays += beam_.size();
   note_pulse_delay(time_ - next_pulse_time_);

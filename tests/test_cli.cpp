@@ -325,6 +325,14 @@ TEST(Cli, ResumeFromACheckpointEndsBitIdentical) {
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_EQ(file_text(whole / "particles.csv"), file_text(part / "particles.csv"));
   EXPECT_EQ(file_text(whole / "history.csv"), file_text(part / "history.csv"));
+  // With new rays every pulse, a resume before the last launch draws the same rays for it.
+  const fs::path whole_r = fresh_dir("ck_whole_resampled"), part_r = fresh_dir("ck_part_resampled");
+  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --set beam.resample=true --quiet --checkpoint-every 4 --out " +
+                whole_r.string()).code, 0);
+  fs::copy_file(whole_r / "checkpoint.bin", part_r / "checkpoint.bin");
+  ASSERT_EQ(run("run --resume " + part_r.string() + " --quiet").code, 0);
+  EXPECT_EQ(file_text(whole_r / "particles.csv"), file_text(part_r / "particles.csv"));
+  EXPECT_NE(file_text(whole_r / "particles.csv"), file_text(whole / "particles.csv"));
   // A resume takes its configuration from the checkpoint only.
   EXPECT_EQ(run("run --resume " + part.string() + " --preset quick").code, 2);
 }

@@ -1,6 +1,7 @@
 // Beam (MODEL.md section 2): normalisation sum I_k A_r = P, profiles, sampling, input errors.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <numbers>
 
@@ -148,6 +149,28 @@ TEST(OpticsBeam, StratifiedSamplingIsDeterministicAndFillsTheDiskEvenly) {
   }
 }
 
+// beam.resample: pulse k draws its rays from stream k of the seed, pulse 0 as without it, and
+// every pulse's power is normalised exactly; without it every pulse is pulse 0's.
+TEST(OpticsBeam, ResampledPulsesDrawNewRaysWithTheSamePower) {
+  BeamSpec fixed;
+  fixed.rays = 500;
+  BeamSpec resampled = fixed;
+  resampled.resample = true;
+  const Beam first = make_beam(fixed, 1e-3);
+  EXPECT_EQ(make_beam(fixed, 1e-3, 3).origin, first.origin);
+  EXPECT_EQ(make_beam(resampled, 1e-3, 0).origin, first.origin);
+  EXPECT_EQ(make_beam(resampled, 1e-3, 3).origin, make_beam(resampled, 1e-3, 3).origin);
+  for (std::uint64_t pulse : {1, 2, 3}) {
+    const Beam b = make_beam(resampled, 1e-3, pulse);
+    std::size_t shared = 0;
+    for (const Vec3& o : b.origin) shared += std::count(first.origin.begin(), first.origin.end(), o);
+    EXPECT_EQ(shared, 0u) << "pulse " << pulse;
+    double power = 0;
+    for (double i : b.intensity) power += i * b.ray_area;
+    EXPECT_NEAR(power, fixed.power, 1e-12 * fixed.power) << "pulse " << pulse;
+  }
+}
+
 TEST(OpticsBeam, AnyUnitDirectionGivesADiskPerpendicularToIt) {
   BeamSpec spec;
   spec.direction = Vec3(1, 2, -2) / 3.0;
@@ -170,6 +193,8 @@ TEST(OpticsBeam, BadInputNamesTheKey) {
   EXPECT_NE(message([](BeamSpec& s) { s.power = -1; }).find("beam.power"), std::string::npos);
   EXPECT_NE(message([](BeamSpec& s) { s.rays = 0; }).find("beam.rays"), std::string::npos);
   EXPECT_NE(message([](BeamSpec& s) { s.sampling = "sobol"; }).find("beam.sampling"), std::string::npos);
+  EXPECT_NE(message([](BeamSpec& s) { s.sampling = "stratified", s.resample = true; }).find("beam.resample"),
+            std::string::npos);
   EXPECT_NE(message([](BeamSpec& s) { s.profile = "tophat"; }).find("beam.profile"), std::string::npos);
   EXPECT_NE(message([](BeamSpec& s) { s.decay = -2; }).find("beam.decay"), std::string::npos);
   EXPECT_NE(message([](BeamSpec& s) { s.diameter_fraction = 0; }).find("beam.diameter_fraction"),

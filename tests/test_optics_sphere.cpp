@@ -42,12 +42,12 @@ struct SingleSphere {
 };
 
 double traced_absorbed(const SingleSphere& s, const BeamSpec& spec, double& ray_energy,
-                       Polarisation polarisation = {}) {
+                       Polarisation polarisation = {}, std::uint64_t pulse = 0) {
   OpticsSpec optics;
   optics.materials[0].n_solid = {s.n_hat, s.k};
   optics.polarisation = polarisation;
   Tracer tracer(s.particles, optics);
-  const Beam beam = make_beam(spec, s.D);
+  const Beam beam = make_beam(spec, s.D, pulse);
   tracer.launch(beam, 1.0);  // tau = 1 s: energies in J equal powers in W
   std::vector<double> deposits;
   tracer.advance(std::numeric_limits<double>::infinity(), deposits);
@@ -121,27 +121,58 @@ TEST(OpticsSphere, PolarisationAngleOutsideItsRangeOrWithAComplexIndexIsRefused)
   }
 }
 
-TEST(OpticsSphere, UniformBeamRandomWithinThreeStandardErrors) {
+// A flat beam of random rays on one sphere (n = 3): the expected absorbed power and the standard
+// deviation of one pulse's, for rays of energy e. Each ray deposits e (1 - R_F) with probability
+// p = R^2 / r_b^2 (uniform in the disk), else 0: var = N (E[x^2] - E[x]^2) with
+// E[x^k] = e^k int (1 - R_F)^k dA / A_b.
+struct RandomBeamOnOneSphere {
   SingleSphere s;
-  s.n_hat = 3.0;
   BeamSpec spec;
-  spec.profile = "flat";
-  spec.sampling = "random";
-  spec.rays = 20000;
-  spec.seed = 7;
+  RandomBeamOnOneSphere(std::size_t rays) {
+    s.n_hat = 3.0;
+    spec.profile = "flat";
+    spec.sampling = "random";
+    spec.rays = rays;
+    spec.seed = 7;
+  }
+  double expected() const {
+    const double I = spec.power / (kPi * 0.15e-3 * 0.15e-3);
+    return I * cross_section_integral(s.R, [&](double c) { return 1.0 - reflectance(c, s.n_hat); });
+  }
+  double sigma(double e) const {
+    auto a = [&](double c) { return 1.0 - reflectance(c, s.n_hat); };
+    const double area = kPi * 0.15e-3 * 0.15e-3;
+    const double m1 = e * cross_section_integral(s.R, a) / area;
+    const double m2 = e * e * cross_section_integral(s.R, [&](double c) { return a(c) * a(c); }) / area;
+    return std::sqrt(static_cast<double>(spec.rays) * (m2 - m1 * m1));
+  }
+};
+
+TEST(OpticsSphere, UniformBeamRandomWithinThreeStandardErrors) {
+  const RandomBeamOnOneSphere b(20000);
   double e;
-  const double absorbed = traced_absorbed(s, spec, e);
-  const double I = spec.power / (kPi * 0.15e-3 * 0.15e-3);
-  auto a = [&](double c) { return 1.0 - reflectance(c, s.n_hat); };
-  const double expected = I * cross_section_integral(s.R, a);
-  // Each ray deposits e (1 - R_F) with probability p = R^2 / r_b^2 (uniform in the disk), else 0:
-  // var = N (E[x^2] - E[x]^2) with E[x^k] = e^k int (1 - R_F)^k dA / A_b.
-  const double area = kPi * 0.15e-3 * 0.15e-3;
-  const double m1 = e * cross_section_integral(s.R, a) / area;
-  const double m2 = e * e * cross_section_integral(s.R, [&](double c) { return a(c) * a(c); }) / area;
-  const double sigma = std::sqrt(spec.rays * (m2 - m1 * m1));
-  EXPECT_NEAR(absorbed, expected, 3.0 * sigma);
-  EXPECT_GT(sigma, 0.0);
+  const double absorbed = traced_absorbed(b.s, b.spec, e);
+  EXPECT_NEAR(absorbed, b.expected(), 3.0 * b.sigma(e));
+  EXPECT_GT(b.sigma(e), 0.0);
+}
+
+// beam.resample: each pulse is a new random draw, so over K pulses the pulses scatter by one
+// pulse's standard deviation and their mean comes within 3 sigma / sqrt(K) of the exact power
+// (without it every pulse repeats pulse 0's error).
+TEST(OpticsSphere, ResampledPulsesAverageTheirSamplingErrorDown) {
+  RandomBeamOnOneSphere b(2000);
+  b.spec.resample = true;
+  const int pulses = 64;
+  double e = 0, sum = 0, sum2 = 0;
+  for (int k = 0; k < pulses; ++k) {
+    const double absorbed = traced_absorbed(b.s, b.spec, e, {}, static_cast<std::uint64_t>(k));
+    sum += absorbed, sum2 += absorbed * absorbed;
+  }
+  const double mean = sum / pulses, spread = std::sqrt((sum2 - pulses * mean * mean) / (pulses - 1));
+  const double sigma = b.sigma(e);
+  EXPECT_NEAR(mean, b.expected(), 3.0 * sigma / std::sqrt(double(pulses)));
+  EXPECT_GT(spread, 0.6 * sigma);  // the spread of a 64-sample deviation is ~0.09 sigma
+  EXPECT_LT(spread, 1.4 * sigma);
 }
 
 // A pencil at offset h = R_A sin 75 deg hits A at 75 deg incidence and reflects at 30 deg from

@@ -50,6 +50,7 @@ void read_beam(Params& p, BeamSpec& b) {
   b.decay = p.number("beam.decay", 2.0, 0, 1e3);
   b.gaussian_width = p.number("beam.gaussian_width", 1.0, 0, 1e3, true);
   b.seed = std::uint64_t(p.integer("beam.seed", 1, 0, std::numeric_limits<std::int64_t>::max()));
+  b.resample = p.flag("beam.resample", false);
   const double dx = p.number("beam.direction_x", 1.0, -1, 1);
   const double dy = p.number("beam.direction_y", 0.0, -1, 1);
   const double dz = p.number("beam.direction_z", 0.0, -1, 1);
