@@ -19,7 +19,9 @@ template <class T>
   throw InputError(out.str());
 }
 
-void validate(const BeamSpec& s, double sample_size) {
+}  // namespace
+
+void validate_beam(const BeamSpec& s, double sample_size) {
   if (!(s.power > 0.0) || !std::isfinite(s.power)) bad("beam.power", s.power, "must be > 0 and finite");
   if (!(s.diameter_fraction > 0.0) || !std::isfinite(s.diameter_fraction))
     bad("beam.diameter_fraction", s.diameter_fraction, "must be > 0 and finite");
@@ -39,6 +41,8 @@ void validate(const BeamSpec& s, double sample_size) {
   if (!(sample_size > 0.0) || !std::isfinite(sample_size))
     bad("sample.size", sample_size, "must be > 0 and finite");
 }
+
+namespace {
 
 // Uniform in the unit disk: r = sqrt(xi), equal area per dr^2 (seeded, one stream per pulse).
 std::vector<Eigen::Vector2d> random_disk(std::size_t n, std::uint64_t seed, std::uint64_t stream) {
@@ -140,7 +144,7 @@ double beam_profile(const BeamSpec& spec, double d, double beam_radius) {
 }
 
 Beam make_beam(const BeamSpec& spec, double sample_size, std::uint64_t pulse) {
-  validate(spec, sample_size);
+  validate_beam(spec, sample_size);
   Beam beam;
   beam.direction = spec.direction;
   beam.centre = Vec3::Constant(0.5 * sample_size) - 0.5 * sample_size * spec.direction;

@@ -45,6 +45,9 @@ struct Beam {
 // u = d x (x, or y for d near +-x), normalised; v = d x u.
 void disk_axes(const Vec3& d, Vec3& u, Vec3& v);
 
+// InputError naming the first key out of its range or against another key.
+void validate_beam(const BeamSpec& spec, double sample_size);
+
 // Validates the spec (InputError naming the key) and samples the disk for pulse `pulse` (its own
 // random stream when spec.resample, else pulse 0's). The disk lies in the plane through the
 // sample centre's upstream face point, perpendicular to the direction.

@@ -43,6 +43,13 @@ std::string write(const fs::path& path, const std::string& text) {
   return path.string();
 }
 
+std::string file_text(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::stringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
 std::vector<std::map<std::string, std::string>> read_csv(const fs::path& path) {
   std::ifstream in(path);
   std::string line;
@@ -171,7 +178,16 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
   expect_input_error("negative", "[sample]\n\nsize = -1e-3\n", "", {"run.toml:3", "sample.size", "must be >= 1e-12 and <= 1e+06"});
   expect_input_error("nan", "[material]\nconductivity = nan\n", "", {"run.toml:2", "material.conductivity", "finite"});
   expect_input_error("missing_file", "[packing]\nsource = \"file\"\nfile = \"/nonexistent/bed.xyz\"\n", "",
-                     {"packing.file", "/nonexistent/bed.xyz", "cannot open"});
+                     {"run.toml:3", "packing.file", "/nonexistent/bed.xyz", "cannot open"});
+  // Checks of one key against another, made by the library after reading: the line is found.
+  expect_input_error("melt_above_vapour", "[material]\nmelt_temperature = 800\n", "",
+                     {"run.toml:2", "material.vapor_temperature", "must be > material.melt_temperature = 800"});
+  expect_input_error("table_for_number", "[material]\nconductivity = {a = 1}\n", "",
+                     {"run.toml:2", "`material.conductivity` = { a = 1 }", "must be a number"});
+  expect_input_error("resample_stratified", "[beam]\nsampling = \"stratified\"\nresample = true\n", "",
+                     {"run.toml:3", "beam.resample", "needs `beam.sampling` = `random`"});
+  expect_input_error("thermal_mass", "", "--preset quick --set material.density=1e-300",
+                     {"--set material.density=1e-300", "thermal mass"});
   expect_input_error("set", "", "--preset quick --set material.conductivity=-3",
                      {"--set material.conductivity=-3", "material.conductivity", "must be >= 0"});
   expect_input_error("syntax", "[beam\nrays = 3\n", "", {"run.toml:1"});
@@ -198,6 +214,36 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"run.toml:2", "optics.polarisation", "\"linear\"", "number in degrees or \"unpolarised\""});
   expect_input_error("overflow", "", "--preset quick --set beam.power=1e308",
                      {"beam.power", "pulses.duration", "overflows"});
+}
+
+// Layers and paths as a user of run files expects them.
+TEST(Cli, RunFileLayersPathsAndArgumentsAreReadAsWritten) {
+  const fs::path dir = fresh_dir("layers");
+  fs::create_directories(dir / "sub");
+  write(dir / "sub" / "one.xyz", "5e-4 5e-4 5e-4\n");
+  const std::string file = write(dir / "sub" / "bed.toml",
+                                 "[packing]\nsource = \"file\"\nfile = \"one.xyz\"\nradius = 1e-4\n");
+  // A relative packing.file is read from the run file's folder, whatever the working directory.
+  const Result from_file = run("run " + file + " --set pulses.count=1 --quiet --out " + (dir / "a").string());
+  ASSERT_EQ(from_file.code, 0) << from_file.output;
+  EXPECT_NE(file_text(dir / "a" / "summary.json").find("\"particles\": 1"), std::string::npos);
+  // A later --set of another source drops the file's packing keys instead of refusing them.
+  const Result other = run("config " + file + " --set packing.source=lattice --set packing.count=8");
+  ASSERT_EQ(other.code, 0) << other.output;
+  EXPECT_NE(other.output.find("file = ''"), std::string::npos) << other.output;
+  // One value per --set and per --values: a run file after them is the run file.
+  const Result after = run("config --set pulses.count=3 " + file);
+  ASSERT_EQ(after.code, 0) << after.output;
+  EXPECT_NE(after.output.find("one.xyz"), std::string::npos) << after.output;
+  // Spaces around `=` in --set, and a UTF-8 byte-order mark at the start of a run file.
+  const std::string bom = write(dir / "bom.toml", "\xEF\xBB\xBF[pulses]\ncount = 4\n");
+  const Result spaced = run("config " + bom + " --set \"beam.rays = 7\"");
+  ASSERT_EQ(spaced.code, 0) << spaced.output;
+  EXPECT_NE(spaced.output.find("rays = 7"), std::string::npos) << spaced.output;
+  EXPECT_NE(spaced.output.find("count = 4"), std::string::npos) << spaced.output;
+  const Result unknown = run("frob");
+  EXPECT_EQ(unknown.code, 2);
+  EXPECT_NE(unknown.output.find("unknown command `frob`"), std::string::npos) << unknown.output;
 }
 
 TEST(Cli, UnwritableOutputDirectoryIsBadInput) {
@@ -306,13 +352,6 @@ namespace {
 const char* kCheckpointScene =
     "--preset quick --set thermal.dt='\"paper\"' --set pulses.count=10 --set packing.count=2000 "
     "--set material.conductivity=100";
-
-std::string file_text(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
 
 }  // namespace
 
@@ -473,11 +512,20 @@ TEST(Cli, AnEmptyBedHasNoPeakTemperatureRatherThanZeroKelvin) {
 TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
   const fs::path out = fresh_dir("sweep_fail");
   const std::string bed = write(out / "bed.xyz", "5e-4 5e-4 5e-4 1e-4\n");
-  const std::string missing = (out / "missing.xyz").string();
+  // Readable, so the values resolve before the first run; its radius fails when it is read.
+  const std::string flawed = write(out / "flawed.xyz", "5e-4 5e-4 5e-4 -1\n");
   const Result r = run("sweep --preset quick --quiet --set packing.source=file --param packing.file --values " +
-                       bed + "," + missing + "," + bed + " --out " + out.string());
+                       bed + "," + flawed + "," + bed + " --out " + out.string());
   EXPECT_EQ(r.code, 2) << r.output;
-  EXPECT_NE(r.output.find("missing.xyz\": cannot open"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("flawed.xyz:1: radius r = -1: must be > 0"), std::string::npos) << r.output;
+  // A missing file is found while the values resolve: nothing runs.
+  const std::string missing = (out / "missing.xyz").string();
+  const Result early = run("sweep --preset quick --quiet --set packing.source=file --param packing.file --values " +
+                           bed + "," + missing + " --out " + (out / "early").string());
+  EXPECT_EQ(early.code, 2) << early.output;
+  EXPECT_NE(early.output.find("--param packing.file --values " + missing + ": `packing.file`"), std::string::npos)
+      << early.output;
+  EXPECT_FALSE(fs::exists(out / "early" / "sweep.csv"));
   const auto rows = read_csv(out / "sweep.csv");
   ASSERT_EQ(rows.size(), 3u);
   EXPECT_EQ(rows[1].at("vaporized_fraction"), "");

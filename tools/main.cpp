@@ -18,7 +18,21 @@ using namespace beampack::tools;
 void add_run_sources(CLI::App* cmd, RunOptions& o) {
   cmd->add_option("run_file", o.sources.file, "run file (TOML)")->check(CLI::ExistingFile);
   cmd->add_option("--preset", o.sources.preset, "start from a named preset (beampack presets)");
-  cmd->add_option("--set", o.sources.sets, "override one key: --set material.conductivity=100");
+  // One value per --set: a run file after it is not taken as a second assignment.
+  cmd->add_option("--set", o.sources.sets, "override one key: --set material.conductivity=100")
+      ->allow_extra_args(false);
+}
+
+// CLI11 answers an unknown first word with "A subcommand is required": name it instead.
+bool unknown_command(const CLI::App& app, int argc, char** argv) {
+  if (argc < 2 || argv[1][0] == '-') return false;
+  std::string names;
+  for (const CLI::App* sub : app.get_subcommands({})) {
+    if (sub->get_name() == argv[1]) return false;
+    names += (names.empty() ? "" : ", ") + sub->get_name();
+  }
+  std::fprintf(stderr, "beampack: error: unknown command `%s` (commands: %s)\n", argv[1], names.c_str());
+  return true;
 }
 
 int list_presets() {
@@ -57,7 +71,7 @@ int main(int argc, char** argv) {
   add_run_sources(sweep_cmd, sweep.run);
   sweep_cmd->add_option("--param", sweep.param, "key to vary")->required();
   // Split by sweep_command itself, which refuses an empty value instead of dropping it.
-  sweep_cmd->add_option("--values", sweep.values, "comma-separated values")->required();
+  sweep_cmd->add_option("--values", sweep.values, "comma-separated values")->required()->allow_extra_args(false);
   sweep_cmd->add_option("--out", sweep.run.out_dir, "output directory")->capture_default_str();
   sweep_cmd->add_option("--threads", sweep.run.threads, "worker threads (0: all cores)")->check(kThreads);
   sweep_cmd->add_flag("--quiet", sweep.run.quiet, "no progress line");
@@ -79,8 +93,9 @@ int main(int argc, char** argv) {
   CLI::App* config_cmd = app.add_subcommand("config", "print a complete run file");
   config_cmd->add_option("--preset", config.sources.preset, "preset to print");
   config_cmd->add_option("run_file", config.sources.file, "run file to resolve")->check(CLI::ExistingFile);
-  config_cmd->add_option("--set", config.sources.sets, "override one key");
+  config_cmd->add_option("--set", config.sources.sets, "override one key")->allow_extra_args(false);
 
+  if (unknown_command(app, argc, argv)) return 2;
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

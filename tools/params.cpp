@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <iterator>
 #include <sstream>
@@ -30,8 +31,19 @@ void set_path(toml::table& root, const std::string& key, const toml::node& value
   value.visit([&](auto&& concrete) { t->insert_or_assign(parts.back(), concrete); });
 }
 
+std::string trimmed(const std::string& s) {
+  const auto first = s.find_first_not_of(" \t"), last = s.find_last_not_of(" \t");
+  return first == std::string::npos ? "" : s.substr(first, last - first + 1);
+}
+
 std::string repr(const toml::node& node) {
   std::ostringstream s;
+  if (const toml::table* t = node.as_table()) {  // inline: `{ a = 1 }`, not a table's lines
+    toml::table copy = *t;
+    copy.is_inline(true);
+    s << copy;
+    return s.str();
+  }
   node.visit([&](auto&& concrete) { s << concrete; });
   return s.str();
 }
@@ -78,12 +90,13 @@ namespace {
 // Walks the layer's own tables (not dotted paths: a quoted key such as "a.b", "" or "x[0]" is
 // one TOML key that a path lookup cannot find; fuzz/ found the null dereference that caused).
 // Such names cannot be run-file keys, whose parts are bare words joined by dots.
-void merge_layer(toml::table& merged, std::map<std::string, std::string>& origin,
-                 const toml::table& layer, const std::string& source, bool with_lines,
+void merge_layer(toml::table& merged, std::map<std::string, KeyOrigin>& origin,
+                 const toml::table& layer, const KeyOrigin& source, bool with_lines,
                  const std::string& prefix = "") {
   for (const auto& [k, node] : layer) {
     const std::string name(k.str());
-    const std::string at = with_lines ? source + ":" + std::to_string(node.source().begin.line) : source;
+    const std::string at =
+        with_lines ? source.at + ":" + std::to_string(node.source().begin.line) : source.at;
     if (name.empty() || name.find_first_of(".[]") != std::string::npos)
       throw InputError(at + ": key \"" + name + "\" (under `" + prefix +
                        "`): run-file key names are bare words, without '.', '[' or ']'");
@@ -93,7 +106,7 @@ void merge_layer(toml::table& merged, std::map<std::string, std::string>& origin
       continue;
     }
     set_path(merged, key, node);
-    origin[key] = at;
+    origin[key] = {at, source.file, source.layer};
   }
 }
 
@@ -235,7 +248,7 @@ toml::table parse_checked(const std::string& text, const std::string& source) {
 
 void Params::merge_toml_text(const std::string& text, const std::string& source) {
   try {
-    merge_layer(merged_, origin_, parse_checked(text, source), source, false);
+    merge_layer(merged_, origin_, parse_checked(text, source), {source, "", ++layers_}, false);
   } catch (const toml::parse_error& e) {
     throw InputError(source + ":" + std::to_string(e.source().begin.line) + ": " +
                      std::string(e.description()));
@@ -245,8 +258,9 @@ void Params::merge_toml_text(const std::string& text, const std::string& source)
 void Params::merge_toml_file(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   if (!in) throw InputError(path + ": cannot open the run file for reading");
-  const std::string text{std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+  std::string text{std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
   if (in.bad()) throw InputError(path + ": read error");
+  if (text.starts_with("\xEF\xBB\xBF")) text.erase(0, 3);  // a UTF-8 byte-order mark (some editors)
   toml::table layer;
   try {
     layer = parse_checked(text, path);
@@ -254,7 +268,7 @@ void Params::merge_toml_file(const std::string& path) {
     throw InputError(path + ":" + std::to_string(e.source().begin.line) + ": " +
                      std::string(e.description()));
   }
-  merge_layer(merged_, origin_, layer, path, true);
+  merge_layer(merged_, origin_, layer, {path, path, ++layers_}, true);
 }
 
 void Params::merge_assignment(const std::string& key_equals_value, const std::string& origin) {
@@ -262,8 +276,8 @@ void Params::merge_assignment(const std::string& key_equals_value, const std::st
   const auto eq = key_equals_value.find('=');
   if (eq == std::string::npos || eq == 0)
     throw InputError(named + ": expected KEY=VALUE");
-  const std::string key = key_equals_value.substr(0, eq);
-  const std::string value = key_equals_value.substr(eq + 1);
+  const std::string key = trimmed(key_equals_value.substr(0, eq));  // --set "k = v" as k=v
+  const std::string value = trimmed(key_equals_value.substr(eq + 1));
   toml::table parsed;
   try {
     parsed = parse_checked("v = " + value, "--set");
@@ -271,7 +285,7 @@ void Params::merge_assignment(const std::string& key_equals_value, const std::st
     parsed = toml::table{{"v", value}};  // a bare word: a string
   }
   set_path(merged_, key, *parsed.get("v"));
-  origin_[key] = named;
+  origin_[key] = {named, "", ++layers_};
 }
 
 const toml::node* Params::find(const std::string& key) const {
@@ -280,9 +294,44 @@ const toml::node* Params::find(const std::string& key) const {
 
 bool Params::has(const std::string& key) const { return find(key) != nullptr; }
 
+// A key's own layer, or for a key given as a table (`conductivity = {a = 1}`) its first entry's.
+const KeyOrigin* Params::origin(const std::string& key) const {
+  if (const auto it = origin_.find(key); it != origin_.end()) return &it->second;
+  const auto below = origin_.lower_bound(key + ".");
+  return below != origin_.end() && below->first.starts_with(key + ".") ? &below->second : nullptr;
+}
+
 std::string Params::where(const std::string& key) const {
-  const auto it = origin_.find(key);
-  return it == origin_.end() ? "" : it->second + ": ";
+  const KeyOrigin* o = origin(key);
+  return o ? o->at + ": " : "";
+}
+
+bool Params::set_later(const std::string& later, const std::string& earlier) const {
+  const KeyOrigin *a = origin(later), *b = origin(earlier);
+  return a && b && a->layer > b->layer;
+}
+
+void Params::forget(const std::string& key) {
+  const auto parts = split_key(key);
+  toml::table* t = &merged_;
+  for (std::size_t k = 0; t && k + 1 < parts.size(); ++k) t = t->get_as<toml::table>(parts[k]);
+  if (t) t->erase(parts.back());
+  origin_.erase(key);
+}
+
+std::string Params::path(const std::string& key) {
+  const std::string v = text(key, "");
+  const KeyOrigin* o = origin(key);
+  if (v.empty() || !o || o->file.empty() || std::filesystem::path(v).is_absolute()) return v;
+  const std::string resolved = (std::filesystem::path(o->file).parent_path() / v).lexically_normal().string();
+  record(key, toml::value<std::string>(resolved));
+  return resolved;
+}
+
+std::map<std::string, std::string> Params::origins() const {
+  std::map<std::string, std::string> at;
+  for (const auto& [key, o] : origin_) at[key] = o.at;
+  return at;
 }
 
 void Params::record(const std::string& key, toml::node&& value) {

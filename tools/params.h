@@ -14,6 +14,13 @@
 
 namespace beampack::tools {
 
+// Which layer set a key: "file:line", "--set KEY=VALUE" or "preset NAME"; the run file's path
+// (run files only); and the layer's rank (later layers override earlier ones).
+struct KeyOrigin {
+  std::string at, file;
+  int layer = 0;
+};
+
 class Params {
  public:
   Params() = default;
@@ -32,6 +39,14 @@ class Params {
                      std::initializer_list<const char*> allowed);
   bool flag(const std::string& key, bool fallback);
   bool has(const std::string& key) const;
+  // A file path: relative to the run file's folder when a run file gave it, else as given.
+  std::string path(const std::string& key);
+  // Whether `later` was set by a later layer than `earlier` (both set).
+  bool set_later(const std::string& later, const std::string& earlier) const;
+  // Drops a key from the layers, as if none had set it.
+  void forget(const std::string& key);
+  // Every key a layer set, with where: RunConfig keeps them to locate errors found later.
+  std::map<std::string, std::string> origins() const;
   // A number, or one of the given words (`thermal.dt = "pulse"`, `pulses.period = "auto"`).
   // Returns the word, or "" and sets value. `unit` names the number's unit in the error message;
   // lo itself is allowed only when lo_open is false.
@@ -50,11 +65,13 @@ class Params {
 
  private:
   const toml::node* find(const std::string& key) const;
+  const KeyOrigin* origin(const std::string& key) const;
   std::string where(const std::string& key) const;  // "run.toml:12: " or "--set: " or ""
   void record(const std::string& key, toml::node&& value);
 
   toml::table merged_;
-  std::map<std::string, std::string> origin_;  // key -> "file:line" of the layer that set it
+  std::map<std::string, KeyOrigin> origin_;  // key -> the layer that set it
+  int layers_ = 0;
   std::set<std::string> used_;
   toml::table resolved_;
 };

@@ -222,7 +222,8 @@ std::unique_ptr<tbb::global_control> limit_threads(int threads) {
 
 RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label) {
   const auto start = Clock::now();
-  Simulation sim(config.sim);
+  const std::unique_ptr<Simulation> owned = start_simulation(config);
+  Simulation& sim = *owned;
   Progress progress(quiet, label);
   while (!sim.done() && !stop_requested().load()) {
     sim.step();
@@ -367,7 +368,8 @@ int run_command(const RunOptions& options) {
   if (options.resume.empty()) remove_earlier_run(out_dir);
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
-  Simulation sim(config.sim);
+  const std::unique_ptr<Simulation> owned = start_simulation(config);
+  Simulation& sim = *owned;
   warn_if_beam_meets_nothing(sim);
   if (saved) sim.read_state(*saved);
   sim.record_ray_paths(config.output.rays);

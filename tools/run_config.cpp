@@ -1,8 +1,9 @@
 #include "tools/run_config.h"
 
 #include <algorithm>
+#include <cctype>
 #include <cmath>
-#include <sstream>
+#include <fstream>
 #include <limits>
 #include <numbers>
 #include <sstream>
@@ -31,7 +32,12 @@ void read_packing(Params& p, PackingSpec& s) {
   s.radius_ratio = p.number("packing.radius_ratio", 0.325, 0, 10, true);
   s.solid_fraction = p.number("packing.solid_fraction", 0.3, 0, 0.5, true);
   s.seed = std::uint64_t(p.integer("packing.seed", 1, 0, std::numeric_limits<std::int64_t>::max()));
-  s.file = p.text("packing.file", "");
+  // A later layer that switches to another source (`--set packing.source=rsa` over a run file
+  // with a file) drops the file keys; within one layer they contradict and are refused below.
+  if (s.source != "file")
+    for (const char* key : {"packing.file", "packing.radius"})
+      if (p.set_later("packing.source", key)) p.forget(key);
+  s.file = p.path("packing.file");
   s.file_radius = p.number("packing.radius", 0.0, 0, kBig);
   if (s.source != "file" && !s.file.empty())  // it would be read by nobody
     p.fail("packing.file", "\"" + s.file + "\"", "needs packing.source = \"file\" (it is \"" + s.source + "\")");
@@ -39,9 +45,11 @@ void read_packing(Params& p, PackingSpec& s) {
     p.fail("packing.radius", number_text(s.file_radius), "applies to packing.source = \"file\" only");
   if (s.source == "file" && s.file.empty())
     p.fail("packing.file", "\"\"", "required with packing.source = \"file\"");
+  if (s.source == "file" && !std::ifstream(s.file))
+    p.fail("packing.file", "\"" + s.file + "\"", "cannot open for reading");
 }
 
-void read_beam(Params& p, BeamSpec& b) {
+void read_beam(Params& p, BeamSpec& b, double sample_size) {
   b.power = p.number("beam.power", 6000, 0, kBig, true);
   b.diameter_fraction = p.number("beam.diameter_fraction", 0.3, 0, 10, true);
   b.rays = std::size_t(p.integer("beam.rays", 1000, 1, 100'000'000));
@@ -61,6 +69,7 @@ void read_beam(Params& p, BeamSpec& b) {
     p.fail("beam.direction_x", v.str(), "the direction must not be zero (length >= 1e-12)");
   }
   b.direction = d.normalized();
+  validate_beam(b, sample_size);
 }
 
 void read_optics(Params& p, OpticsSpec& o) {
@@ -165,6 +174,33 @@ double read_pulses(Params& p, SimulationSpec& s, double radius) {
   return xi * radius / kSpeedOfLight;
 }
 
+// Every key, read in the order the library needs them, and the library's own checks.
+RunConfig read_config(Params& p) {
+  RunConfig c;
+  read_packing(p, c.sim.packing);
+  c.sim.packing.initial_temperature = p.number("material.initial_temperature", 300, 0, kBig, true);
+  read_beam(p, c.sim.beam, c.sim.packing.sample_size);
+  read_optics(p, c.sim.optics);
+  Material m;
+  read_material(p, m);
+  c.sim.materials = {m};
+  if (!(c.sim.packing.initial_temperature < m.vapor_temperature)) {
+    p.fail("material.initial_temperature", number_text(c.sim.packing.initial_temperature),
+           "must be < material.vapor_temperature = " + number_text(m.vapor_temperature) +
+               " (every particle would start as vapour)");
+  }
+  const double paper_dt = read_pulses(p, c.sim, packing_radius(c.sim.packing));
+  read_thermal(p, c.sim, paper_dt);
+  c.sim.thermal.walls = read_walls(p, c.sim.packing.sample_size);
+  c.sim.thermal.validate();
+  c.paper_dt = paper_dt;
+  c.output.frames = p.flag("output.frames", false);
+  c.output.rays = p.flag("output.rays", false);
+  p.check_all_used();
+  c.resolved = p.resolved();
+  c.origins = p.origins();
+  return c;
+}
 
 }  // namespace
 
@@ -185,30 +221,37 @@ RunConfig load_run_config(const RunSources& sources) {
   if (!sources.file.empty()) p.merge_toml_file(sources.file);
   for (const std::string& s : sources.sets) p.merge_assignment(s);
   if (!sources.swept.empty()) p.merge_assignment(sources.swept, sources.swept_origin);
-
-  RunConfig c;
-  read_packing(p, c.sim.packing);
-  c.sim.packing.initial_temperature = p.number("material.initial_temperature", 300, 0, kBig, true);
-  read_beam(p, c.sim.beam);
-  read_optics(p, c.sim.optics);
-  Material m;
-  read_material(p, m);
-  c.sim.materials = {m};
-  if (!(c.sim.packing.initial_temperature < m.vapor_temperature)) {
-    p.fail("material.initial_temperature", number_text(c.sim.packing.initial_temperature),
-           "must be < material.vapor_temperature = " + number_text(m.vapor_temperature) +
-               " (every particle would start as vapour)");
+  try {
+    return read_config(p);
+  } catch (const InputError& e) {  // a library check of several keys: where were they set?
+    throw InputError(locate(e.what(), p.origins()));
   }
-  const double paper_dt = read_pulses(p, c.sim, packing_radius(c.sim.packing));
-  read_thermal(p, c.sim, paper_dt);
-  c.sim.thermal.walls = read_walls(p, c.sim.packing.sample_size);
-  c.sim.thermal.validate();
-  c.paper_dt = paper_dt;
-  c.output.frames = p.flag("output.frames", false);
-  c.output.rays = p.flag("output.rays", false);
-  p.check_all_used();
-  c.resolved = p.resolved();
-  return c;
 }
+
+std::string locate(const std::string& message, const std::map<std::string, std::string>& origins) {
+  auto is_key_char = [](char c) { return std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '.'; };
+  std::size_t first = std::string::npos;
+  std::string at;
+  for (const auto& [key, where] : origins) {
+    if (message.starts_with(where + ":")) return message;
+    for (std::size_t i = message.find(key); i < first; i = message.find(key, i + 1)) {
+      const std::size_t end = i + key.size();
+      if ((i == 0 || !is_key_char(message[i - 1])) && (end == message.size() || !is_key_char(message[end]))) {
+        first = i, at = where;
+        break;
+      }
+    }
+  }
+  return first == std::string::npos ? message : at + ": " + message;
+}
+
+std::unique_ptr<Simulation> start_simulation(const RunConfig& config) {
+  try {
+    return std::make_unique<Simulation>(config.sim);
+  } catch (const InputError& e) {
+    throw InputError(locate(e.what(), config.origins));
+  }
+}
+
 
 }  // namespace beampack::tools

@@ -1,6 +1,8 @@
 #pragma once
 // A run's configuration: defaults, then a preset, then a run file, then --set overrides, read
 // through Params into the library's SimulationSpec.
+#include <map>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -19,6 +21,7 @@ struct RunConfig {
   OutputSpec output;
   toml::table resolved;  // every key with the value used
   double paper_dt = 0;   // xi R / c: the paper's ray time step for this scene
+  std::map<std::string, std::string> origins;  // key -> where a layer set it ("run.toml:7")
 };
 
 struct RunSources {
@@ -33,6 +36,14 @@ struct RunSources {
 
 // InputError (exit code 2) for any bad key, type or value, naming file and line.
 RunConfig load_run_config(const RunSources& sources);
+
+// `message` with the place that set the first key it names ("run.toml:7: ..."), unless it
+// already starts with one: for errors found after the run file was read.
+std::string locate(const std::string& message, const std::map<std::string, std::string>& origins);
+
+// The simulation of a configuration; an InputError from its set-up (the packing file, the
+// thermal masses) names where the key it mentions was set.
+std::unique_ptr<Simulation> start_simulation(const RunConfig& config);
 
 // Named presets: TOML text.
 struct Preset {
