@@ -1,9 +1,12 @@
-// What a run reports beyond its figures: the warning when a ledger is open.
+// What a run reports beyond its figures: the warning when a ledger is open, and the charts.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <limits>
+#include <regex>
 
 #include "tools/run_command.h"
+#include "tools/svg_plot.h"
 
 namespace beampack::tools {
 namespace {
@@ -43,6 +46,38 @@ TEST(RunReport, AnOpenLedgerIsNamedWithItsSize) {
   EnergyLedger nan = closed_ledger();
   nan.walls = std::numeric_limits<double>::quiet_NaN();
   EXPECT_EQ(open_ledger_warnings(SimulationSpec{}, nan).size(), 1u);
+}
+
+// The text of every <text> element whose attributes contain `attribute`, in order: `y="380"`
+// picks the x axis's tick labels, `x="8"` the y axis's.
+std::vector<std::string> svg_texts(const std::string& svg, const std::string& attribute = "") {
+  std::vector<std::string> out;
+  const std::regex text("<text[^>]*" + attribute + "[^>]*>([^<]*)</text>");
+  for (auto it = std::sregex_iterator(svg.begin(), svg.end(), text); it != std::sregex_iterator(); ++it)
+    out.push_back((*it)[1]);
+  return out;
+}
+
+// convergence.svg: log axes label whole decades once each; an error of 0 is a hollow circle on
+// the lower edge, said in a note (it used to be drawn at 1e-6 as if measured, and labels repeated).
+TEST(RunReport, LogChartsLabelEachDecadeOnceAndShowZerosAsZeros) {
+  const Chart chart{"t", "x", "y", true, true, {{"a", {0.5, 2.0, 12.0}, {3e-5, 0.2, 0.0}}}};
+  const std::string svg = render_svg(chart);
+  EXPECT_EQ(svg_texts(svg, "y=\"380\""), (std::vector<std::string>{"1e-1", "1e0", "1e1", "1e2"})) << svg;
+  EXPECT_EQ(svg_texts(svg, "x=\"8\""), (std::vector<std::string>{"1e-5", "1e-4", "1e-3", "1e-2", "1e-1", "1e0"})) << svg;
+  const std::vector<std::string> labels = svg_texts(svg);
+  EXPECT_EQ(std::count(labels.begin(), labels.end(), "hollow: 0"), 1) << svg;
+  EXPECT_NE(svg.find("fill=\"white\" stroke="), std::string::npos) << svg;
+}
+
+// sweep.svg: a swept word (`beam.profile`) is named on the x axis; a single value gets a span
+// around it rather than [v, v + 1].
+TEST(RunReport, SweepChartsNameWordValuesAndSpanASingleValue) {
+  Chart words{"t", "beam.profile", "v_v", false, false, {{"a", {0, 1, 2}, {0.03, 0.02, 0.03}}}, {"flat", "gaussian", "exponential"}};
+  EXPECT_EQ(svg_texts(render_svg(words), "y=\"380\""), (std::vector<std::string>{"flat", "gaussian", "exponential"}));
+  const Chart one{"t", "x", "y", false, false, {{"a", {1, 2}, {0.03, 0.03}}}};
+  const std::string svg = render_svg(one);
+  EXPECT_EQ(svg_texts(svg, "x=\"8\"").back(), "0.04") << svg;  // not 1: the axis spans 0 to 0.047
 }
 
 }  // namespace

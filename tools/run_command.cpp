@@ -417,9 +417,9 @@ int run_command(const RunOptions& options) {
     std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
   if (r.interrupted) {
     std::fprintf(stderr,
-                 "beampack: interrupted at t = %.6g s after %d pulse(s); outputs in %s hold that state; "
-                 "continue with: beampack run --resume %s\n",
-                 r.figures.time, r.figures.pulse, out_dir.c_str(), out_dir.c_str());
+                 "beampack: interrupted at t = %.6g s in pulse %d of %d; outputs in %s hold that state "
+                 "(history.csv: the pulses before it); continue with: beampack run --resume %s\n",
+                 r.figures.time, r.figures.pulse, config.sim.pulses.count, out_dir.c_str(), out_dir.c_str());
     return 1;
   }
   return 0;
@@ -485,6 +485,15 @@ int sweep_command(const SweepOptions& options) {
   const std::string header = options.param + ',' + kFigureColumns + ",steps,wall_seconds";
   std::string csv = header + '\n';
   Series vv{"vaporized fraction", {}, {}};
+  // Numbers on a numeric axis; words (`beam.profile`) as named places 0, 1, 2, ...
+  std::vector<double> xs;
+  for (const std::string& v : values) {
+    char* end = nullptr;
+    xs.push_back(std::strtod(v.c_str(), &end));
+    if (!end || *end != 0) xs.clear();
+    if (xs.empty()) break;
+  }
+  const bool named = xs.empty();
   const auto start = Clock::now();
   int code = 0;  // a value that fails leaves its row empty; the others still run and are written
   for (std::size_t k = 0; k < configs.size(); ++k) {
@@ -505,9 +514,7 @@ int sweep_command(const SweepOptions& options) {
     const Figures& f = r.figures;
     csv += values[k] + ',' + figure_columns(f) + ',' + std::to_string(r.counts.steps) + ',' +
            exact(r.wall_seconds) + '\n';
-    char* end = nullptr;
-    const double x = std::strtod(values[k].c_str(), &end);
-    vv.x.push_back(end && *end == 0 ? x : double(k));
+    vv.x.push_back(named ? double(k) : xs[k]);
     vv.y.push_back(f.vaporized_fraction);
     std::printf("%-24s %s = %-10s v_v = %.4f  melted = %.4f  T_max = %s  (%.2f s)\n",
                 "sweep", options.param.c_str(), values[k].c_str(), f.vaporized_fraction,
@@ -517,7 +524,7 @@ int sweep_command(const SweepOptions& options) {
   const fs::path out(options.run.out_dir);
   write_atomically((out / "sweep.csv").string(), [&](std::ostream& o) { o << csv; });
   Chart chart{"vaporized fraction against " + options.param, options.param, "vaporized fraction",
-              false, false, {vv}};
+              false, false, {vv}, named ? values : std::vector<std::string>{}};
   write_atomically((out / "sweep.svg").string(), [&](std::ostream& o) { o << render_svg(chart); });
   const double total = std::chrono::duration<double>(Clock::now() - start).count();
   std::printf("sweep: %zu runs in %.2f s; %s/sweep.csv, %s/sweep.svg\n", vv.x.size(), total,

@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <cctype>
 #include <cmath>
-#include <fstream>
 #include <limits>
 #include <numbers>
 #include <sstream>
@@ -45,8 +44,6 @@ void read_packing(Params& p, PackingSpec& s) {
     p.fail("packing.radius", number_text(s.file_radius), "applies to packing.source = \"file\" only");
   if (s.source == "file" && s.file.empty())
     p.fail("packing.file", "\"\"", "required with packing.source = \"file\"");
-  if (s.source == "file" && !std::ifstream(s.file))
-    p.fail("packing.file", "\"" + s.file + "\"", "cannot open for reading");
 }
 
 void read_beam(Params& p, BeamSpec& b, double sample_size) {
