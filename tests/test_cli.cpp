@@ -372,6 +372,11 @@ TEST(Cli, ResumeFromACheckpointEndsBitIdentical) {
   ASSERT_EQ(run("run --resume " + part_r.string() + " --quiet").code, 0);
   EXPECT_EQ(file_text(whole_r / "particles.csv"), file_text(part_r / "particles.csv"));
   EXPECT_NE(file_text(whole_r / "particles.csv"), file_text(whole / "particles.csv"));
+  // Its wall time, like its stage times, counts the run before the checkpoint too.
+  const nlohmann::json summary = read_json(part / "summary.json");
+  double stages = 0;
+  for (const auto& [name, stage] : summary["stages"].items()) stages += double(stage["seconds"]);
+  EXPECT_GE(double(summary["wall_seconds"]), stages) << summary.dump();
   // A resume takes its configuration from the checkpoint only.
   EXPECT_EQ(run("run --resume " + part.string() + " --preset quick").code, 2);
 }

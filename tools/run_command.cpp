@@ -36,6 +36,10 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
+double seconds_since(Clock::time_point start) {
+  return std::chrono::duration<double>(Clock::now() - start).count();
+}
+
 // The peak temperature as printed: a particle-free scene has none (not 0 K).
 std::string peak_text(const Figures& f, const char* format) {
   if (f.particles == 0) return "- (no particles)";
@@ -50,7 +54,7 @@ class Progress {
   Progress(bool quiet, std::string label) : quiet_(quiet), label_(std::move(label)) {}
   void update(const Simulation& sim) {
     if (quiet_) return;
-    const double elapsed = std::chrono::duration<double>(Clock::now() - start_).count();
+    const double elapsed = seconds_since(start_);
     if (elapsed < 2.0 || elapsed - last_ < 0.5) return;
     last_ = elapsed;
     const Figures f = sim.figures();
@@ -234,19 +238,21 @@ RunResult run_scene(const RunConfig& config, bool quiet, const std::string& labe
   r.counts = sim.counts();
   r.temperature = sim.particles().temperature;
   r.interrupted = !sim.done();
-  r.wall_seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  r.wall_seconds = seconds_since(start);
   return r;
 }
 
 namespace {
 
-constexpr const char* kCheckpointMagic = "beampack-checkpoint";
+// Format 2 added the wall time before the checkpoint; format 1 ("beampack-checkpoint") lacks it.
+constexpr const char* kCheckpointMagic = "beampack-checkpoint-2";
 
 // What a run accumulates besides the simulation's own state: the history rows and the frames.
 struct RunRecord {
   std::string config_text;
   std::string history = history_header();
   std::vector<std::pair<std::string, double>> frames;
+  double earlier_seconds = 0;  // wall time of the runs this one resumes
 };
 
 std::string toml_text(const toml::table& table) {
@@ -255,9 +261,11 @@ std::string toml_text(const toml::table& table) {
   return s.str();
 }
 
-void write_checkpoint(const fs::path& path, const Simulation& sim, const RunRecord& record) {
+// `wall_seconds`: the run's wall time so far, resumed runs included.
+void write_checkpoint(const fs::path& path, const Simulation& sim, const RunRecord& record, double wall_seconds) {
   StateWriter w;
   w.text(kCheckpointMagic);
+  w.value(wall_seconds);
   w.text(record.config_text);
   w.text(record.history);
   w.value<std::uint64_t>(record.frames.size());
@@ -272,7 +280,11 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   if (!in || !fs::is_regular_file(path)) throw InputError("--resume: cannot read " + path.string());
   std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   StateReader r(std::move(bytes), path.string());
-  if (r.text() != kCheckpointMagic) throw InputError(path.string() + ": not a beampack checkpoint");
+  const std::string magic = r.text();
+  if (magic == "beampack-checkpoint")
+    throw InputError(path.string() + ": a checkpoint of an earlier beampack (format 1); this one reads format 2");
+  if (magic != kCheckpointMagic) throw InputError(path.string() + ": not a beampack checkpoint");
+  record.earlier_seconds = r.value<double>();
   record.config_text = r.text();
   record.history = r.text();
   const auto frames = r.value<std::uint64_t>();
@@ -396,7 +408,8 @@ int run_command(const RunOptions& options) {
     while (!sim.done() && !stop_requested().load()) {
       sim.step();
       // Between steps, never inside one: a resume continues with exactly the next step.
-      if (checkpoint_due && !sim.done()) write_checkpoint(out / "checkpoint.bin", sim, record);
+      if (checkpoint_due && !sim.done())
+        write_checkpoint(out / "checkpoint.bin", sim, record, record.earlier_seconds + seconds_since(start));
       checkpoint_due = false;
       progress.update(sim);
     }
@@ -405,8 +418,8 @@ int run_command(const RunOptions& options) {
   r.figures = sim.figures();
   r.counts = sim.counts();
   r.interrupted = !sim.done();
-  r.wall_seconds = std::chrono::duration<double>(Clock::now() - start).count();
-  if (r.interrupted) write_checkpoint(out / "checkpoint.bin", sim, record);
+  r.wall_seconds = record.earlier_seconds + seconds_since(start);  // like the stage times
+  if (r.interrupted) write_checkpoint(out / "checkpoint.bin", sim, record, r.wall_seconds);
   write_atomically((out / "history.csv").string(), [&](std::ostream& o) { o << record.history; });
   write_particles_csv((out / "particles.csv").string(), sim.particles(), sim.absorbed());
   write_atomically((out / "summary.json").string(),
@@ -526,7 +539,7 @@ int sweep_command(const SweepOptions& options) {
   Chart chart{"vaporized fraction against " + options.param, options.param, "vaporized fraction",
               false, false, {vv}, named ? values : std::vector<std::string>{}};
   write_atomically((out / "sweep.svg").string(), [&](std::ostream& o) { o << render_svg(chart); });
-  const double total = std::chrono::duration<double>(Clock::now() - start).count();
+  const double total = seconds_since(start);
   std::printf("sweep: %zu runs in %.2f s; %s/sweep.csv, %s/sweep.svg\n", vv.x.size(), total,
               options.run.out_dir.c_str(), options.run.out_dir.c_str());
   return stop_requested().load() ? std::max(code, 1) : code;
