@@ -3,6 +3,7 @@
 // K = 100 and K = 1e5, and the cost against N for the exponent.
 #include <benchmark/benchmark.h>
 
+#include <cmath>
 #include <map>
 #include <memory>
 #include <random>
@@ -81,7 +82,48 @@ void thermal_step(benchmark::State& state, std::string solver, double conductivi
   state.SetLabel(report.solver);
 }
 
+// What a beam leaves after a pulse: the packing at 300 K, heat (~10 K worth each) in the
+// particles of the beam's cylinder (0.3 D wide) in the first fifth of the sample, none elsewhere.
+// With skip_resting the step solves only the components the heat reached.
+void thermal_beam_zone(benchmark::State& state, bool skip) {
+  const auto n = static_cast<std::size_t>(state.range(0));
+  const Scene& s = scene(n);
+  Particles particles = s.particles;
+  std::vector<double> absorbed(n, 0.0);
+  for (std::size_t i = 0; i < n; ++i) {
+    particles.temperature[i] = 300.0;
+    const Vec3& c = particles.centre[i];
+    const double off_axis = std::hypot(c.y() - 0.5 * kSize, c.z() - 0.5 * kSize);
+    if (off_axis < 0.15 * kSize && c.x() < 0.2 * kSize) absorbed[i] = s.absorbed[i];
+  }
+  Material m;
+  m.conductivity = 100;
+  m.melt_temperature = 1e4;  // one conduction step, no phase change
+  m.vapor_temperature = 2e4;
+  ThermalSpec spec;
+  spec.skip_resting = skip;
+  ThermalModel model(particles, {m}, spec);
+  model.set_contacts(s.contacts);
+  const ThermalModel::Snapshot start = model.save();
+  StepReport report;
+  for (auto _ : state) {
+    report = model.step(s.dt, absorbed);
+    state.PauseTiming();
+    model.restore(start);
+    state.ResumeTiming();
+  }
+  state.counters["solved_rows"] = static_cast<double>(report.solved_rows);
+  state.SetLabel(report.solver);
+}
+
 [[maybe_unused]] const bool registered = [] {
+  for (bool skip : {true, false})
+    benchmark::RegisterBenchmark(skip ? "thermal/beam_zone/skip_resting/K:100" : "thermal/beam_zone/whole/K:100",
+                                 thermal_beam_zone, skip)
+        ->RangeMultiplier(10)
+        ->Range(10000, 1000000)
+        ->Unit(benchmark::kMillisecond)
+        ->UseRealTime();
   for (double k : {100.0, 1e5})
     for (const char* solver : {"fixed-point", "cg", "direct", "auto"}) {
       const std::string name = std::string("thermal/step/") + solver + "/K:" +

@@ -187,6 +187,8 @@ bool Simulation::step() {
   for (RaySegment& seg : tracer_->take_segments()) ray_paths_.push_back(seg);
   time_ += dt;
   ++counts_.steps;
+  counts_.heat_rows_solved += report.solved_rows;
+  counts_.heat_rows_live += report.live_rows;
   // Numerical hygiene: a NaN or infinity stops the run here, before it reaches any output.
   for (std::size_t i = 0; i < particles_.size(); ++i) {
     const double t = particles_.temperature[i];
@@ -277,7 +279,7 @@ Figures Simulation::figures() const {
 }
 
 namespace {
-constexpr std::uint32_t kStateVersion = 4;  // 4: Counts has the pulse delays
+constexpr std::uint32_t kStateVersion = 5;  // 4: Counts has the pulse delays; 5: the heat rows
 }
 
 void Simulation::write_state(StateWriter& out) const {

@@ -70,6 +70,9 @@ struct Counts {
   // pulses that started more than 1% of T_p late, and the longest delay (s).
   std::uint64_t late_pulses = 0;
   double max_pulse_delay = 0;
+  // Particle rows over the heat steps: solved, and live. Fewer solved than live: components at
+  // rest (no heat, one temperature, walls at it) kept their temperatures without a solve.
+  std::uint64_t heat_rows_solved = 0, heat_rows_live = 0;
 };
 
 class Simulation {

@@ -4,6 +4,7 @@
 
 #include <cstdlib>
 #include <random>
+#include <sstream>
 
 #include "geometry/contact.h"
 #include "geometry/error.h"
@@ -153,6 +154,7 @@ TEST(ThermalSolvers, DirectReusesSymbolicAnalysisWhileGraphUnchanged) {
   AgreeScene s;
   ThermalSpec spec;
   spec.solver = "direct";
+  spec.skip_resting = false;  // the scene is at rest: skipping, nothing would be solved
   ThermalModel model(s.p, {s.m}, spec);
   model.set_contacts(find_contacts(s.p));
   StepReport r = model.step(1e-9, {});
@@ -168,6 +170,87 @@ TEST(ThermalSolvers, DirectReusesSymbolicAnalysisWhileGraphUnchanged) {
   s.p.remove(0);
   model.set_contacts(find_contacts(s.p));  // new pattern
   EXPECT_FALSE(model.step(2e-9, {}).symbolic_reused);
+}
+
+// skip_resting: heat given to the particles near the face x = 0 of a 2000-sphere packing at
+// 300 K (some walls); only the components it reaches, or that a wall at another temperature
+// drives, are solved. Every temperature matches the whole system's solve to the solver
+// tolerance, the others stay at exactly 300 K, and both ledgers close.
+struct RestingScene {
+  Particles p = random_overlap_packing(2000, 1e-3, 0.325, 11);
+  std::vector<double> dh;
+  Material m;
+  explicit RestingScene(double heat) {
+    m.conductivity = 100;
+    std::mt19937_64 rng(5);
+    std::uniform_real_distribution<double> u(0.0, 1.0);
+    for (std::size_t i = 0; i < p.size(); ++i) dh.push_back(p.centre[i].x() < 1e-4 ? heat * u(rng) : 0.0);
+  }
+};
+
+struct RestingRun {
+  std::vector<double> temperature;
+  std::vector<std::uint32_t> vaporized;
+  std::size_t solved = 0, live = 0;  // the most rows a step solved; live particles then
+  bool skipped = false;              // some step left rows out
+  double imbalance = 0;
+};
+
+RestingRun run_resting(double heat, const ThermalSpec& base, bool skip) {
+  RestingScene s(heat);
+  ThermalSpec spec = base;
+  spec.skip_resting = skip;
+  ThermalModel model(s.p, {s.m}, spec);
+  model.set_contacts(find_contacts(s.p));
+  RestingRun r;
+  for (int k = 0; k < 4; ++k) {
+    for (std::size_t i = 0; i < s.dh.size(); ++i)
+      if (!s.p.alive[i]) s.dh[i] = 0;  // the rays would no longer meet it
+    const StepReport report = model.step(2e-10, k < 2 ? s.dh : std::vector<double>{});
+    r.vaporized.insert(r.vaporized.end(), report.vaporized.begin(), report.vaporized.end());
+    if (report.solved_rows >= r.solved) r.solved = report.solved_rows, r.live = report.live_rows;
+    r.skipped |= report.solved_rows < report.live_rows;
+  }
+  r.temperature = s.p.temperature;
+  r.imbalance = std::abs(model.ledger().imbalance()) / model.ledger().absorbed;
+  return r;
+}
+
+TEST(ThermalSkip, RestingComponentsAreSkippedAndTheBusyOnesMatchTheWholeSolve) {
+  for (const char* solver : {"cg", "direct", "auto"})
+    for (double phi : {1.0, 0.5})
+      for (const char* walls : {"", "300", "450"})
+        for (double heat : {5e-13, 1e-10}) {  // up to ~7 K a step; up to ~1400 K: melting, vaporising
+          ThermalSpec spec;
+          spec.solver = solver;
+          spec.phi = phi;
+          spec.tolerance = 1e-13;
+          if (*walls) spec.walls = {Wall{2, 0.0, 2e-5, std::atof(walls), -1}};  // the face z = 0
+          std::ostringstream name;
+          name << solver << " phi " << phi << " wall " << walls << " heat " << heat;
+          const RestingRun whole = run_resting(heat, spec, false), busy = run_resting(heat, spec, true);
+          EXPECT_FALSE(whole.skipped) << name.str();
+          EXPECT_LT(busy.solved, busy.live / 2) << name.str();  // the skip happened
+          EXPECT_GT(busy.solved, 0u) << name.str();
+          EXPECT_EQ(busy.vaporized, whole.vaporized) << name.str();
+          EXPECT_TRUE(heat < 1e-12 || !busy.vaporized.empty()) << name.str();  // the phase rules ran
+          std::size_t untouched = 0;
+          for (std::size_t i = 0; i < whole.temperature.size(); ++i) {
+            EXPECT_NEAR(busy.temperature[i], whole.temperature[i], 1e-8 * whole.temperature[i]) << name.str() << " particle " << i;
+            untouched += busy.temperature[i] == 300.0;
+          }
+          EXPECT_GT(untouched, busy.live / 2) << name.str();
+          EXPECT_LT(busy.imbalance, 1e-9) << name.str();
+          EXPECT_LT(whole.imbalance, 1e-9) << name.str();
+        }
+}
+
+// A wall away from the particles' temperature drives its components: not at rest.
+TEST(ThermalSkip, AWallAtAnotherTemperatureKeepsItsComponentsBusy) {
+  ThermalSpec cold, warm;
+  cold.walls = {Wall{2, 0.0, 2e-5, 300.0, -1}};
+  warm.walls = {Wall{2, 0.0, 2e-5, 450.0, -1}};
+  EXPECT_GT(run_resting(5e-13, warm, true).solved, run_resting(5e-13, cold, true).solved);
 }
 
 TEST(ThermalState, RestoreRedoesAStepExactly) {

@@ -80,45 +80,59 @@ void ThermalModel::set_contacts(const std::vector<Contact>& contacts) {
                        "): indices must be distinct and < " + std::to_string(p_.size()));
   contacts_ = contacts;
   g_ = contact_conductances(p_, materials_, contacts_);
-  if (!same_pattern) ++pattern_version_;
+  if (!same_pattern) all_.pattern_version = ++versions_;
   dirty_ = true;
 }
 
 // Rebuilds L + W when the contacts or the live set changed. K = 0 (no conducting contact)
 // builds no matrix at all: the step is then diagonal.
+namespace {
+
+// Where each column's diagonal entry sits in the matrix's values, and the diagonal itself.
+void find_diagonal(const SparseMatrix& m, std::vector<Eigen::Index>& pos, Eigen::VectorXd& diagonal) {
+  pos.resize(static_cast<std::size_t>(m.cols()));
+  for (Eigen::Index j = 0; j < m.cols(); ++j) {
+    const int* begin = m.innerIndexPtr() + m.outerIndexPtr()[j];
+    const int* end = m.innerIndexPtr() + m.outerIndexPtr()[j + 1];
+    pos[j] = std::lower_bound(begin, end, static_cast<int>(j)) - m.innerIndexPtr();
+    diagonal[j] = m.valuePtr()[pos[j]];
+  }
+}
+
+}  // namespace
+
 void ThermalModel::assemble_if_needed() {
   if (!dirty_) return;
   const auto n = static_cast<Eigen::Index>(p_.size());
-  wall_source_ = Eigen::VectorXd::Zero(n);
-  diagonal_ = Eigen::VectorXd::Zero(n);
+  System& s = all_;
+  s.wall_source = Eigen::VectorXd::Zero(n);
+  s.diagonal = Eigen::VectorXd::Zero(n);
+  s.wall_conductance = Eigen::VectorXd::Zero(n);
+  s.live = p_.alive;
   for (Eigen::Index i = 0; i < n; ++i) {
     if (!p_.alive[i]) continue;
-    wall_source_[i] = walls_.source[i] - walls_.conductance[i] * reference_;  // b relative to it
-    diagonal_[i] = walls_.conductance[i];
+    s.wall_source[i] = walls_.source[i] - walls_.conductance[i] * reference_;  // b relative to it
+    s.diagonal[i] = s.wall_conductance[i] = walls_.conductance[i];
   }
   // Only contacts between live particles conduct: after vaporisations there may be none left.
-  has_conduction_ = false;
-  for (std::size_t e = 0; e < contacts_.size() && !has_conduction_; ++e)
-    has_conduction_ = g_[e] > 0 && p_.alive[contacts_[e].i] && p_.alive[contacts_[e].j];
-  if (has_conduction_) {
-    laplacian_ = conduction_matrix(p_, contacts_, g_, walls_.conductance);
-    diag_pos_.resize(n);
-    for (Eigen::Index j = 0; j < n; ++j) {
-      const int* begin = laplacian_.innerIndexPtr() + laplacian_.outerIndexPtr()[j];
-      const int* end = laplacian_.innerIndexPtr() + laplacian_.outerIndexPtr()[j + 1];
-      diag_pos_[j] = std::lower_bound(begin, end, static_cast<int>(j)) - laplacian_.innerIndexPtr();
-      diagonal_[j] = laplacian_.valuePtr()[diag_pos_[j]];
-    }
-    find_insulated_clusters();
+  s.has_conduction = false;
+  for (std::size_t e = 0; e < contacts_.size() && !s.has_conduction; ++e)
+    s.has_conduction = g_[e] > 0 && p_.alive[contacts_[e].i] && p_.alive[contacts_[e].j];
+  if (s.has_conduction) {
+    s.laplacian = conduction_matrix(p_, contacts_, g_, walls_.conductance);
+    find_diagonal(s.laplacian, s.diag_pos, s.diagonal);
+    find_components();
   } else {
-    laplacian_ = SparseMatrix();
+    s.laplacian = SparseMatrix();
   }
+  ++assembly_;
   dirty_ = false;
 }
 
-// Connected components of the live conducting contacts (union-find); a component with a wall
-// contact is left out: the wall anchors its temperature level, there is no null space.
-void ThermalModel::find_insulated_clusters() {
+// Connected components of the live conducting contacts (union-find), and among them the
+// insulated clusters: a component with a wall contact is left out of those, the wall anchors its
+// temperature level and there is no null space.
+void ThermalModel::find_components() {
   const std::size_t n = p_.size();
   std::vector<std::size_t> root(n);
   std::iota(root.begin(), root.end(), std::size_t{0});
@@ -137,19 +151,82 @@ void ThermalModel::find_insulated_clusters() {
   std::vector<std::uint8_t> walled(n, 0);
   for (std::size_t i = 0; i < n; ++i)
     if (joined[i] && walls_.conductance[i] > 0) walled[find(i)] = 1;
-  cluster_.assign(n, -1);
-  ground_.clear();
+  component_.assign(n, std::numeric_limits<std::uint32_t>::max());
+  all_.cluster.assign(n, -1);
+  all_.ground.clear();
   std::vector<int> id_of_root(n, -1);
   for (std::size_t i = 0; i < n; ++i) {  // i ascending: a cluster's ground is its lowest id
-    if (!joined[i]) continue;
+    if (!p_.alive[i]) continue;
     const std::size_t r = find(i);
-    if (walled[r]) continue;
+    component_[i] = static_cast<std::uint32_t>(r);
+    if (!joined[i] || walled[r]) continue;
     if (id_of_root[r] < 0) {
-      id_of_root[r] = static_cast<int>(ground_.size());
-      ground_.push_back(static_cast<Eigen::Index>(i));
+      id_of_root[r] = static_cast<int>(all_.ground.size());
+      all_.ground.push_back(static_cast<Eigen::Index>(i));
     }
-    cluster_[i] = id_of_root[r];
+    all_.cluster[i] = id_of_root[r];
   }
+}
+
+// skip_resting: a live particle is busy when it received heat, differs in temperature from its
+// component's lowest particle, or its walls' heat flow is not exactly zero; a component is busy
+// when one of its particles is. A component at rest solves exactly to theta^{n+1} = theta^n
+// (L 1 = 0 and no source), so only the busy ones are solved, while they are under 3/4 of the
+// live particles. True when this step solves busy_.
+bool ThermalModel::select_busy(const Eigen::VectorXd& theta0, const Eigen::VectorXd& dh) {
+  if (!spec_.skip_resting || !all_.has_conduction) return false;
+  const std::size_t n = p_.size();
+  std::vector<std::uint8_t> busy(n, 0);  // by component
+  std::size_t live = 0;
+  for (std::size_t i = 0; i < n; ++i) {
+    if (!p_.alive[i]) continue;
+    ++live;
+    const std::uint32_t r = component_[i];
+    if (dh[i] != 0 || theta0[i] != theta0[r] || walls_.conductance[i] * theta0[i] != walls_.source[i])
+      busy[r] = 1;
+  }
+  std::vector<Eigen::Index> rows;
+  for (std::size_t i = 0; i < n; ++i)
+    if (p_.alive[i] && busy[component_[i]]) rows.push_back(static_cast<Eigen::Index>(i));
+  if (4 * rows.size() >= 3 * live) return false;
+  if (rows != busy_.particle || busy_assembly_ != assembly_) build_busy_system(std::move(rows));
+  return true;
+}
+
+// busy_ cut from all_: the rows' columns of L + W (their nonzero entries stay inside the rows'
+// components; explicit zeros of contacts with vaporised particles are dropped) and their clusters.
+void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
+  System& s = busy_;
+  const auto m = static_cast<Eigen::Index>(rows.size());
+  std::vector<Eigen::Index> row_of(p_.size(), -1);
+  for (Eigen::Index k = 0; k < m; ++k) row_of[rows[k]] = k;
+  std::vector<Eigen::Triplet<double>> t;
+  for (Eigen::Index k = 0; k < m; ++k)
+    for (SparseMatrix::InnerIterator it(all_.laplacian, rows[k]); it; ++it)
+      if (row_of[it.row()] >= 0) t.emplace_back(row_of[it.row()], k, it.value());
+  s.laplacian = SparseMatrix(m, m);
+  s.laplacian.setFromTriplets(t.begin(), t.end());
+  s.diagonal.resize(m), s.wall_source.resize(m), s.wall_conductance.resize(m);
+  find_diagonal(s.laplacian, s.diag_pos, s.diagonal);
+  s.cluster.assign(static_cast<std::size_t>(m), -1);
+  s.ground.clear();
+  std::vector<int> id_of(all_.ground.size(), -1);
+  for (Eigen::Index k = 0; k < m; ++k) {
+    s.wall_source[k] = all_.wall_source[rows[k]];
+    s.wall_conductance[k] = all_.wall_conductance[rows[k]];
+    const int c = all_.cluster[rows[k]];
+    if (c < 0) continue;
+    if (id_of[c] < 0) {
+      id_of[c] = static_cast<int>(s.ground.size());
+      s.ground.push_back(row_of[all_.ground[c]]);
+    }
+    s.cluster[k] = id_of[c];
+  }
+  s.live.assign(static_cast<std::size_t>(m), 1);
+  s.has_conduction = true;
+  s.pattern_version = ++versions_;
+  s.particle = std::move(rows);
+  busy_assembly_ = assembly_;
 }
 
 double ThermalModel::thermal_mass(std::size_t i) const {
@@ -195,18 +272,19 @@ double ThermalModel::monotone_step_limit() const {
   // later ones exceed the limit (a material with C_L < C_S).
   double limit = std::numeric_limits<double>::infinity();
   for (std::size_t i = 0; i < p_.size(); ++i) {
-    if (!p_.alive[i] || !(diagonal_[static_cast<Eigen::Index>(i)] > 0)) continue;
+    const double d = all_.diagonal[static_cast<Eigen::Index>(i)];
+    if (!p_.alive[i] || !(d > 0)) continue;
     const double c = least_thermal_mass(materials_[p_.material[i]], p_.volume(i), spec_.time_scaling);
-    limit = std::min(limit, c / ((1.0 - spec_.phi) * diagonal_[static_cast<Eigen::Index>(i)]));
+    limit = std::min(limit, c / ((1.0 - spec_.phi) * d));
   }
   return limit;
 }
 
 // Bound on the iteration matrix of (3.11), || dt phi c^{-1} (L + W) ||_inf (Gershgorin).
-double ThermalModel::contraction_estimate(double dt, const Eigen::VectorXd& c) const {
+double ThermalModel::contraction_estimate(const System& s, double dt, const Eigen::VectorXd& c) const {
   double worst = 0;
-  for (Eigen::Index i = 0; i < c.size(); ++i)
-    if (p_.alive[i]) worst = std::max(worst, (2.0 * diagonal_[i] - walls_.conductance[i]) / c[i]);
+  for (Eigen::Index k = 0; k < c.size(); ++k)
+    if (s.live[k]) worst = std::max(worst, (2.0 * s.diagonal[k] - s.wall_conductance[k]) / c[k]);
   return dt * spec_.phi * worst;
 }
 
@@ -223,30 +301,46 @@ std::string ThermalModel::choose_solver(double contraction) const {
 //   (c + dt phi (L + W)) theta1 = c theta0 + dt (1 - phi) Q(theta0) + dt phi b + dH,
 // Q(theta) = b - (L + W) theta, b the wall sources. Without a conducting contact the system is
 // diagonal and no matrix is built. Solved for t.rel1 from t.rel0 (relative to reference_, which
-// moves b only); t.theta1 follows.
+// moves b only); t.theta1 follows. With busy_ only its rows are solved; the others are at rest.
 void ThermalModel::solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& dh,
                          StepTemperatures& t, StepReport& report) {
-  solve_relative(dt, c, t.rel0, dh, t.rel1, report);
-  t.theta1 = t.rel1.array() + reference_;
-}
-
-void ThermalModel::solve_relative(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
-                                  const Eigen::VectorXd& dh, Eigen::VectorXd& theta1,
-                                  StepReport& report) {
-  const double implicit = dt * spec_.phi, explicit_part = dt * (1.0 - spec_.phi);
-  const Eigen::VectorXd flux_in =
-      has_conduction_ ? Eigen::VectorXd(laplacian_ * theta0) : diagonal_.cwiseProduct(theta0);
-  const Eigen::VectorXd rhs = c.cwiseProduct(theta0) + explicit_part * (wall_source_ - flux_in) +
-                              implicit * wall_source_ + dh;
-  ++report.solves;
-  if (!has_conduction_ || spec_.phi == 0) {
-    theta1 = rhs.cwiseQuotient(c + implicit * diagonal_);
-    report.solver = has_conduction_ ? "explicit" : has_walls_ ? "diagonal" : "none";
+  report.live_rows = static_cast<std::size_t>(std::count(p_.alive.begin(), p_.alive.end(), 1));
+  if (!solve_busy_) {
+    report.solved_rows = report.live_rows;
+    solve_relative(all_, dt, c, t.rel0, dh, t.rel1, report);
+    t.theta1 = t.rel1.array() + reference_;
     return;
   }
-  SparseMatrix a = implicit * laplacian_;
-  for (Eigen::Index i = 0; i < c.size(); ++i) a.valuePtr()[diag_pos_[i]] += c[i];
-  const double rho = contraction_estimate(dt, c);
+  const std::vector<Eigen::Index>& rows = busy_.particle;
+  report.solved_rows = rows.size();
+  t.theta1 = t.theta0;
+  if (rows.empty()) return;  // all at rest
+  auto gather = [&](const Eigen::VectorXd& v) { return Eigen::VectorXd(v(rows)); };
+  Eigen::VectorXd rel1 = gather(t.rel1);
+  solve_relative(busy_, dt, gather(c), gather(t.rel0), gather(dh), rel1, report);
+  for (std::size_t k = 0; k < rows.size(); ++k) {
+    t.rel1[rows[k]] = rel1[static_cast<Eigen::Index>(k)];
+    t.theta1[rows[k]] = rel1[static_cast<Eigen::Index>(k)] + reference_;
+  }
+}
+
+void ThermalModel::solve_relative(const System& s, double dt, const Eigen::VectorXd& c,
+                                  const Eigen::VectorXd& theta0, const Eigen::VectorXd& dh,
+                                  Eigen::VectorXd& theta1, StepReport& report) {
+  const double implicit = dt * spec_.phi, explicit_part = dt * (1.0 - spec_.phi);
+  const Eigen::VectorXd flux_in =
+      s.has_conduction ? Eigen::VectorXd(s.laplacian * theta0) : s.diagonal.cwiseProduct(theta0);
+  const Eigen::VectorXd rhs = c.cwiseProduct(theta0) + explicit_part * (s.wall_source - flux_in) +
+                              implicit * s.wall_source + dh;
+  ++report.solves;
+  if (!s.has_conduction || spec_.phi == 0) {
+    theta1 = rhs.cwiseQuotient(c + implicit * s.diagonal);
+    report.solver = s.has_conduction ? "explicit" : has_walls_ ? "diagonal" : "none";
+    return;
+  }
+  SparseMatrix a = implicit * s.laplacian;
+  for (Eigen::Index i = 0; i < c.size(); ++i) a.valuePtr()[s.diag_pos[i]] += c[i];
+  const double rho = contraction_estimate(s, dt, c);
   report.contraction_estimate = std::max(report.contraction_estimate, rho);
   report.conduction_ran = true;
   report.solver = spec_.solver == "auto" ? choose_solver(rho) : spec_.solver;
@@ -262,7 +356,7 @@ void ThermalModel::solve_relative(double dt, const Eigen::VectorXd& c, const Eig
     }
   }
   if (report.solver == "direct") {
-    solve_direct_grounded(a, c, rhs, theta1, report);
+    solve_direct_grounded(s, a, c, rhs, theta1, report);
   }
   report.iterations += stats.iterations;
 }
@@ -277,27 +371,27 @@ void ThermalModel::solve_relative(double dt, const Eigen::VectorXd& c, const Eig
 // the cluster's energy balance does, 1^T A theta = c^T theta = 1^T rhs (L 1 = 0 without walls).
 // That fixes alpha = (1^T rhs - c^T y) / c^T u: Sherman-Morrison with its ill-conditioned scalar
 // replaced by the conservation law. One factorisation, two solves (all clusters at once).
-void ThermalModel::solve_direct_grounded(SparseMatrix& a, const Eigen::VectorXd& c,
+void ThermalModel::solve_direct_grounded(const System& s, SparseMatrix& a, const Eigen::VectorXd& c,
                                          const Eigen::VectorXd& rhs, Eigen::VectorXd& theta1,
                                          StepReport& report) {
   auto first_solve = [&](Eigen::VectorXd& x) {
-    direct_.solve(a, pattern_version_, rhs, x);
+    direct_.solve(a, s.pattern_version, rhs, x);
     report.symbolic_reused = direct_.symbolic_reused();
     report.factors_reused = direct_.factors_reused();
   };
-  if (ground_.empty()) return first_solve(theta1);
+  if (s.ground.empty()) return first_solve(theta1);
   Eigen::VectorXd e_r = Eigen::VectorXd::Zero(rhs.size());
-  for (Eigen::Index r : ground_) {
-    a.valuePtr()[diag_pos_[r]] *= 2.0;
+  for (Eigen::Index r : s.ground) {
+    a.valuePtr()[s.diag_pos[r]] *= 2.0;
     e_r[r] = 1.0;
   }
   Eigen::VectorXd y, u;
   first_solve(y);
-  direct_.solve(a, pattern_version_, e_r, u);  // same values: the factors are reused
-  const std::size_t clusters = ground_.size();
+  direct_.solve(a, s.pattern_version, e_r, u);  // same values: the factors are reused
+  const std::size_t clusters = s.ground.size();
   std::vector<double> energy(clusters, 0.0), cy(clusters, 0.0), cu(clusters, 0.0);
   for (Eigen::Index i = 0; i < rhs.size(); ++i) {
-    const int k = cluster_[i];
+    const int k = s.cluster[i];
     if (k < 0) continue;
     energy[k] += rhs[i];
     cy[k] += c[i] * y[i];
@@ -305,7 +399,7 @@ void ThermalModel::solve_direct_grounded(SparseMatrix& a, const Eigen::VectorXd&
   }
   theta1 = y;
   for (Eigen::Index i = 0; i < rhs.size(); ++i) {
-    const int k = cluster_[i];
+    const int k = s.cluster[i];
     if (k >= 0) theta1[i] += (energy[k] - cy[k]) / cu[k] * u[i];
   }
   if (!theta1.allFinite()) throw RunError("thermal direct solver: non-finite temperature");
@@ -365,7 +459,7 @@ void ThermalModel::account(double dt, const Eigen::VectorXd& c, const StepTemper
     stored_[i] += de;
     stored += de;
     const double mean = spec_.phi * theta1[i] + (1.0 - spec_.phi) * theta0[i];
-    walls += dt * (walls_.conductance[i] * mean - wall_source_[i]);
+    walls += dt * (walls_.conductance[i] * mean - all_.wall_source[i]);
   }
   ledger_.absorbed += dh.sum();
   ledger_.stored += stored;
@@ -408,6 +502,7 @@ StepReport ThermalModel::step_once(double dt, const Eigen::VectorXd& dh_in) {
   t.theta0 = Eigen::Map<const Eigen::VectorXd>(p_.temperature.data(), n);
   t.rel0 = t.theta0.array() - reference_;
   t.rel1 = t.rel0;  // the iterative solvers' first guess
+  solve_busy_ = select_busy(t.theta0, dh);
   Eigen::VectorXd c = base_capacity();
   solve(dt, c, dh, t, report);  // predictor
   report.phases_ran = phase_work_needed(t.theta0, t.theta1);
@@ -459,6 +554,8 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
     report.solves += sub.solves;
     report.contraction_estimate = std::max(report.contraction_estimate, sub.contraction_estimate);
     report.conduction_ran |= sub.conduction_ran;
+    report.solved_rows = sub.solved_rows;
+    report.live_rows = sub.live_rows;
     report.phases_ran |= sub.phases_ran;
     report.phases_seconds += sub.phases_seconds;
     report.phase_corrected |= sub.phase_corrected;

@@ -26,6 +26,10 @@ struct ThermalSpec {
   // Predictor-corrector passes of the phase step: stop when no new band is crossed.
   int max_phase_corrections = 4;
   std::vector<Wall> walls;
+  // Solve only the conducting components with something to do (a deposit, temperatures that
+  // differ, a wall at another temperature) while they are under 3/4 of the live particles; the
+  // others are at rest, theta^{n+1} = theta^n exactly. false: every step solves every particle.
+  bool skip_resting = true;
 
   void validate() const;
 };
@@ -50,6 +54,8 @@ struct StepReport {
   int substeps = 1;
   double contraction_estimate = 0;  // dt phi max_i (2 sum_j G_ij + W_i) / c_i, see solvers.h
   bool conduction_ran = false;  // false: no contact conducts (K = 0): no matrix, no solve
+  std::size_t solved_rows = 0;  // particles in the last solve (with skip_resting, the busy ones)
+  std::size_t live_rows = 0;    // live particles at the step
   bool phases_ran = false;      // false: no particle at or above theta_m before or after the step
   double phases_seconds = 0;    // wall time of the latent-heat work (section 4), all sub-steps
   bool phase_corrected = false; // a band was crossed and the step re-solved with C_eff
@@ -98,6 +104,26 @@ class ThermalModel {
   void restore(const Snapshot& snapshot);
 
  private:
+  // The linear system (L + W over a set of rows): every particle, row i being particle i, or the
+  // live particles of the busy components, rows in ascending particle order. Components are
+  // closed under conducting contacts, so the rows' system is the whole system restricted to them.
+  struct System {
+    std::vector<Eigen::Index> particle;  // of each row (empty for the whole system)
+    SparseMatrix laplacian;              // L + W with the live mask applied
+    std::vector<Eigen::Index> diag_pos;  // index of (k, k) in laplacian's values
+    Eigen::VectorXd diagonal;            // D_k = sum_j G_kj + W_k (live)
+    Eigen::VectorXd wall_source;         // sum_w g_w (theta_w - reference_) (live), W
+    Eigen::VectorXd wall_conductance;    // sum_w g_w (live), W/K
+    std::vector<std::uint8_t> live;
+    // Insulated clusters (>= 2 live particles joined by conducting contacts, none touching a
+    // wall): cluster id per row (-1: none) and the row grounded in each (solve_direct_grounded).
+    std::vector<int> cluster;
+    std::vector<Eigen::Index> ground;
+    std::uint64_t pattern_version = 0;   // the direct solver keeps its analysis while unchanged
+    bool has_conduction = false;         // some contact with G > 0
+    std::size_t rows() const { return static_cast<std::size_t>(diagonal.size()); }
+  };
+
   // A step's temperatures: absolute (the phase rules) and relative to reference_ (the solve and
   // the ledger: a change below the last digit of a temperature near 300 K keeps its digits there).
   struct StepTemperatures {
@@ -106,17 +132,19 @@ class ThermalModel {
   };
   StepReport step_once(double dt, const Eigen::VectorXd& dh);
   void assemble_if_needed();
-  void find_insulated_clusters();
+  void find_components();
+  bool select_busy(const Eigen::VectorXd& theta0, const Eigen::VectorXd& dh);
+  void build_busy_system(std::vector<Eigen::Index> rows);
   Eigen::VectorXd base_capacity() const;
   Eigen::VectorXd capacity_with_bands(const Eigen::VectorXd& theta0,
                                       const std::vector<std::uint8_t>& bands) const;
   void solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& dh, StepTemperatures& t,
              StepReport& report);
-  void solve_relative(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
+  void solve_relative(const System& s, double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
                       const Eigen::VectorXd& dh, Eigen::VectorXd& theta1, StepReport& report);
-  void solve_direct_grounded(SparseMatrix& a, const Eigen::VectorXd& c, const Eigen::VectorXd& rhs,
-                             Eigen::VectorXd& theta1, StepReport& report);
-  double contraction_estimate(double dt, const Eigen::VectorXd& c) const;
+  void solve_direct_grounded(const System& s, SparseMatrix& a, const Eigen::VectorXd& c,
+                             const Eigen::VectorXd& rhs, Eigen::VectorXd& theta1, StepReport& report);
+  double contraction_estimate(const System& s, double dt, const Eigen::VectorXd& c) const;
   std::string choose_solver(double contraction) const;
   bool phase_work_needed(const Eigen::VectorXd& theta0, const Eigen::VectorXd& theta1) const;
   int correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::VectorXd& c, StepTemperatures& t,
@@ -132,23 +160,21 @@ class ThermalModel {
   bool has_walls_ = false;
   std::vector<Contact> contacts_;
   std::vector<double> g_;            // G_ij per contact
-  bool has_conduction_ = false;      // some contact with G > 0
-  SparseMatrix laplacian_;           // L + W with the live mask applied
-  std::vector<Eigen::Index> diag_pos_;  // index of (i, i) in laplacian_'s values
-  Eigen::VectorXd diagonal_;         // D_i = sum_j G_ij + W_i (live)
-  Eigen::VectorXd wall_source_;      // sum_w g_w (theta_w - reference_) (live), W
+  System all_;                       // every particle
+  System busy_;                      // the busy components' particles (skip_resting)
+  bool solve_busy_ = false;          // this step solves busy_ (the others are at rest)
+  std::uint64_t assembly_ = 0;       // counts assemblies of all_: busy_ is cut from one of them
+  std::uint64_t busy_assembly_ = 0;  // the assembly busy_ was cut from
+  std::uint64_t versions_ = 1;       // pattern versions handed out (all_ and busy_ share the solver)
+  // Connected component of each live particle under conducting contacts: its lowest particle id.
+  std::vector<std::uint32_t> component_;
   // The temperature the solve measures from: the first wall's (0 K without walls). L 1 = 0, so
   // the shift moves only the wall sources, to 0 at a wall of that temperature; a particle held
   // near it by a wall of 1e9 W/K then changes by digits a temperature near 300 K cannot hold,
   // and they still reach the solver and the ledger (before: CG stopped at once, heat imbalance 1).
   double reference_ = 0;
-  bool dirty_ = true;                // laplacian_ values out of date (contacts or live set)
-  std::uint64_t pattern_version_ = 1;
+  bool dirty_ = true;                // all_'s values out of date (contacts or live set)
   DirectSolver direct_;
-  // Insulated clusters (>= 2 live particles joined by conducting contacts, none touching a wall):
-  // cluster id per particle (-1: none) and the particle grounded in each (solve_direct_grounded).
-  std::vector<int> cluster_;
-  std::vector<Eigen::Index> ground_;
   std::vector<double> stored_;       // J per particle since the start
   ThermalLedger ledger_;
 };

@@ -40,6 +40,15 @@ double seconds_since(Clock::time_point start) {
   return std::chrono::duration<double>(Clock::now() - start).count();
 }
 
+// The heat stage's rows left out because their components were at rest, if any.
+std::string resting_note(const Counts& c) {
+  if (c.heat_rows_solved >= c.heat_rows_live) return "";
+  char text[96];
+  std::snprintf(text, sizeof text, "; %.3g%% of particle rows solved, the rest at rest",
+                100.0 * double(c.heat_rows_solved) / double(c.heat_rows_live));
+  return text;
+}
+
 // The peak temperature as printed: a particle-free scene has none (not 0 K).
 std::string peak_text(const Figures& f, const char* format) {
   if (f.particles == 0) return "- (no particles)";
@@ -125,7 +134,8 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
   j["counts"] = {{"particles", r.counts.particles}, {"rays", r.counts.rays},
                  {"segments", r.counts.segments},   {"steps", r.counts.steps},
                  {"rebuilds", r.counts.rebuilds},   {"staggers", r.counts.staggers},
-                 {"late_pulses", r.counts.late_pulses}};
+                 {"late_pulses", r.counts.late_pulses},
+                 {"heat_rows_solved", r.counts.heat_rows_solved}, {"heat_rows_live", r.counts.heat_rows_live}};
   j["max_pulse_delay_s"] = r.counts.max_pulse_delay;
   nlohmann::json stages = nlohmann::json::object();
   const auto stage_times = sim.stages();
@@ -168,8 +178,9 @@ void print_table(const Simulation& sim, const RunResult& r) {
       std::printf("  %-26s %14s  skipped: %s\n", Simulation::kStageNames[k], "-",
                   s.skipped_because.c_str());
     else
-      std::printf("  %-26s %14.4f  (%llu calls)\n", Simulation::kStageNames[k], s.seconds,
-                  static_cast<unsigned long long>(s.calls));
+      std::printf("  %-26s %14.4f  (%llu calls)%s\n", Simulation::kStageNames[k], s.seconds,
+                  static_cast<unsigned long long>(s.calls),
+                  std::string_view(Simulation::kStageNames[k]) == "heat" ? resting_note(r.counts).c_str() : "");
   }
   std::printf("%-28s %14.3f s (%llu steps, %llu rays, %llu segments)\n", "wall time", r.wall_seconds,
               static_cast<unsigned long long>(r.counts.steps),
