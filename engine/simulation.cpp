@@ -228,7 +228,7 @@ void Simulation::remove_vaporized(const std::vector<std::uint32_t>& ids) {
   StageClock clock(stages_[kRebuild]);
   ++counts_.rebuilds;
   tracer_->remove_particles(ids);
-  if (needs_conduction(spec_)) thermal_->set_contacts(find_contacts(particles_));
+  if (needs_conduction(spec_)) thermal_->drop_removed_contacts();
 }
 
 void Simulation::run(const std::atomic<bool>* stop) {
@@ -334,7 +334,7 @@ void Simulation::read_state(StateReader& in) {
   heat.phase = particles_.phase;
   heat.alive = particles_.alive;
   thermal_->restore(heat);
-  if (needs_conduction(spec_)) thermal_->set_contacts(find_contacts(particles_));
+  if (needs_conduction(spec_)) thermal_->drop_removed_contacts();
 }
 
 Counts Simulation::counts() const {

@@ -81,7 +81,16 @@ void ThermalModel::set_contacts(const std::vector<Contact>& contacts) {
   contacts_ = contacts;
   g_ = contact_conductances(p_, materials_, contacts_);
   if (!same_pattern) all_.pattern_version = ++versions_;
-  dirty_ = true;
+  dirty_ = pattern_dirty_ = true;
+}
+
+void ThermalModel::drop_removed_contacts(double min_fraction) {
+  std::vector<Contact> live;
+  live.reserve(contacts_.size());
+  for (const Contact& c : contacts_)
+    if (p_.alive[c.i] && p_.alive[c.j]) live.push_back(c);
+  const double dead = static_cast<double>(contacts_.size() - live.size());
+  if (dead > 0 && dead >= min_fraction * static_cast<double>(contacts_.size())) set_contacts(live);
 }
 
 // Rebuilds L + W when the contacts or the live set changed. K = 0 (no conducting contact)
@@ -105,6 +114,7 @@ void ThermalModel::assemble_if_needed() {
   if (!dirty_) return;
   const auto n = static_cast<Eigen::Index>(p_.size());
   System& s = all_;
+  const std::vector<std::uint8_t> before = s.live;
   s.wall_source = Eigen::VectorXd::Zero(n);
   s.diagonal = Eigen::VectorXd::Zero(n);
   s.wall_conductance = Eigen::VectorXd::Zero(n);
@@ -119,7 +129,11 @@ void ThermalModel::assemble_if_needed() {
   for (std::size_t e = 0; e < contacts_.size() && !s.has_conduction; ++e)
     s.has_conduction = g_[e] > 0 && p_.alive[contacts_[e].i] && p_.alive[contacts_[e].j];
   if (s.has_conduction) {
-    s.laplacian = conduction_matrix(p_, contacts_, g_, walls_.conductance);
+    // Only the live set changed (a vaporisation, a redo of the step): the same pattern, updated.
+    if (pattern_dirty_ || s.laplacian.nonZeros() == 0 || before.size() != p_.alive.size())
+      assemble_all();
+    else
+      update_live_set(before);
     find_diagonal(s.laplacian, s.diag_pos, s.diagonal);
     find_components();
   } else {
@@ -127,6 +141,53 @@ void ThermalModel::assemble_if_needed() {
   }
   ++assembly_;
   dirty_ = false;
+}
+
+// L + W from the contacts, and each off-diagonal's -G as if both ends were live.
+void ThermalModel::assemble_all() {
+  SparseMatrix& m = all_.laplacian;
+  m = conduction_matrix(p_, contacts_, g_, walls_.conductance);
+  contact_values_.assign(static_cast<std::size_t>(m.nonZeros()), 0.0);
+  auto position = [&](std::uint32_t row, std::uint32_t col) {
+    const int* begin = m.innerIndexPtr() + m.outerIndexPtr()[col];
+    const int* end = m.innerIndexPtr() + m.outerIndexPtr()[col + 1];
+    return std::lower_bound(begin, end, static_cast<int>(row)) - m.innerIndexPtr();
+  };
+  for (std::size_t e = 0; e < contacts_.size(); ++e) {
+    contact_values_[static_cast<std::size_t>(position(contacts_[e].i, contacts_[e].j))] = -g_[e];
+    contact_values_[static_cast<std::size_t>(position(contacts_[e].j, contacts_[e].i))] = -g_[e];
+  }
+  pattern_dirty_ = false;
+}
+
+// The columns of the particles whose live flag changed, and of their neighbours, recomputed in
+// place as conduction_matrix builds them: the wall's G first, then each live neighbour's in
+// ascending order (the contacts' order), so the values equal a new assembly bit for bit.
+void ThermalModel::update_live_set(const std::vector<std::uint8_t>& before) {
+  SparseMatrix& m = all_.laplacian;
+  std::vector<Eigen::Index> touched;
+  for (Eigen::Index i = 0; i < m.cols(); ++i) {
+    if (before[i] == p_.alive[i]) continue;
+    for (SparseMatrix::InnerIterator it(m, i); it; ++it) touched.push_back(it.row());
+  }
+  std::sort(touched.begin(), touched.end());
+  touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
+  double* values = m.valuePtr();
+  for (Eigen::Index j : touched) {
+    double diagonal = p_.alive[j] ? walls_.conductance[j] : 0.0;
+    Eigen::Index at = -1;
+    for (Eigen::Index k = m.outerIndexPtr()[j]; k < m.outerIndexPtr()[j + 1]; ++k) {
+      const Eigen::Index r = m.innerIndexPtr()[k];
+      if (r == j) {
+        at = k;
+        continue;
+      }
+      const double v = p_.alive[r] && p_.alive[j] ? contact_values_[static_cast<std::size_t>(k)] : 0.0;
+      values[k] = v;
+      diagonal += -v;
+    }
+    values[at] = diagonal;
+  }
 }
 
 // Connected components of the live conducting contacts (union-find), and among them the

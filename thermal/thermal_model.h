@@ -80,6 +80,12 @@ class ThermalModel {
   // The contact graph to conduct over (find_contacts); call again after vaporisations when
   // convenient: removed particles already conduct nothing, but their zeroed entries cost time.
   void set_contacts(const std::vector<Contact>& contacts);
+  // After vaporisations: drops the contacts of removed particles once they are more than
+  // `min_fraction` of the list (until then the matrix holds them as zeros and keeps its pattern,
+  // so it is updated in place and the direct solver keeps its analysis). The list stays what
+  // find_contacts gives for the live particles (positions never change), without the search.
+  void drop_removed_contacts(double min_fraction = 0.1);
+  const std::vector<Contact>& contacts() const { return contacts_; }
 
   // One step of (3.10) over dt seconds with absorbed[i] joules deposited into particle i
   // (empty: none), phase change and vaporisation included.
@@ -132,6 +138,8 @@ class ThermalModel {
   };
   StepReport step_once(double dt, const Eigen::VectorXd& dh);
   void assemble_if_needed();
+  void assemble_all();
+  void update_live_set(const std::vector<std::uint8_t>& before);
   void find_components();
   bool select_busy(const Eigen::VectorXd& theta0, const Eigen::VectorXd& dh);
   void build_busy_system(std::vector<Eigen::Index> rows);
@@ -174,6 +182,8 @@ class ThermalModel {
   // and they still reach the solver and the ledger (before: CG stopped at once, heat imbalance 1).
   double reference_ = 0;
   bool dirty_ = true;                // all_'s values out of date (contacts or live set)
+  bool pattern_dirty_ = true;        // the contacts changed: all_ is assembled anew
+  std::vector<double> contact_values_;  // -G of each off-diagonal of all_.laplacian, as if live
   DirectSolver direct_;
   std::vector<double> stored_;       // J per particle since the start
   ThermalLedger ledger_;
