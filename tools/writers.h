@@ -26,7 +26,8 @@ void write_rays_vtp(const std::string& path, const std::vector<RaySegment>& segm
 // The .pvd series index over frames (file name relative to the .pvd, time).
 void write_pvd(const std::string& path, const std::vector<std::pair<std::string, double>>& frames);
 
-// "%.17g": doubles that read back bit-identical.
+// The shortest text that reads back as the same double (std::to_chars): 0.064, not
+// 0.064000000000000001.
 std::string exact(double v);
 
 }  // namespace beampack::tools
