@@ -260,7 +260,10 @@ void Tracer::trace_wave(const std::vector<std::uint32_t>& rays, Chunk& c) {
     if (s.bounces[r] > 0) walkers.push_back(r);
     else scene_->intersect1(q, r);
   }
-  if (!walkers.empty()) grid_->intersect_many(q, walkers);
+  if (grid_)
+    grid_->intersect_many(q, walkers);
+  else  // no grid (max_bounces = 1): no bounced ray should get here; Embree answers if one does
+    for (std::uint32_t r : walkers) scene_->intersect1(q, r);
   for (std::uint32_t r : rays) close_query(r);
 }
 

@@ -156,6 +156,30 @@ TEST(OpticsSphere, UniformBeamRandomWithinThreeStandardErrors) {
   EXPECT_GT(b.sigma(e), 0.0);
 }
 
+// A sphere centred on the entry face sticks out of the cube by R: rays start upstream of it
+// (MODEL.md 2), so every ray within R of its axis meets it from outside and deposits
+// (1 - R_F) of its energy, the rest pass (before the start plane was upstream, rays began inside
+// it and missed it).
+TEST(OpticsSphere, ASphereAcrossTheEntryFaceIsMetFromOutside) {
+  SingleSphere s;
+  s.particles = Particles();
+  const Vec3 centre(0.0, 0.5 * s.D, 0.5 * s.D);
+  s.particles.add(centre, s.R);
+  BeamSpec spec = flat_stratified_beam();
+  spec.rays = 4000;
+  double e;
+  const double absorbed = traced_absorbed(s, spec, e);
+  const Beam beam = make_beam(spec, s.D);
+  double expected = 0;
+  for (const Vec3& o : beam.origin) {
+    const Vec3 off = o - centre;
+    const double b = (off - off.dot(beam.direction) * beam.direction).norm();
+    if (b < s.R) expected += e * (1.0 - reflectance(std::sqrt(1.0 - (b / s.R) * (b / s.R)), s.n_hat));
+  }
+  ASSERT_GT(expected, 0.0);
+  EXPECT_NEAR(absorbed, expected, 1e-9 * expected);
+}
+
 // beam.resample: each pulse is a new random draw, so over K pulses the pulses scatter by one
 // pulse's standard deviation and their mean comes within 3 sigma / sqrt(K) of the exact power
 // (without it every pulse repeats pulse 0's error).

@@ -143,5 +143,27 @@ TEST(SimulationStages, ASphereVaporisedFromSolidInOneStepIsRetracedAsLiquid) {
   EXPECT_LT(solid.absorbed()[0], 0.97 * met);
 }
 
+// thermal.dt = "pulse": one step is the pulse's whole flight. A flat beam on one sphere in the
+// middle of the cube: the rays that miss it fly from the start plane (R upstream of the sphere)
+// across its box (2R), those that hit it end there or bounce out within the box: the step lasts
+// between (D/2 + R) / c and (D/2 + 3R) / c.
+TEST(SimulationStages, APulseStepLastsTheRaysFlight) {
+  SimulationSpec spec;
+  spec.packing.sample_size = kD;
+  spec.beam.rays = 2000;
+  spec.beam.sampling = "stratified";
+  spec.beam.profile = "flat";
+  spec.pulses.count = 1;
+  spec.pulses.duration = 1e-15;
+  const double R = 0.12e-3;
+  Particles p;
+  p.add(Vec3::Constant(0.5 * kD), R);
+  Simulation sim(spec, p);
+  sim.run();
+  EXPECT_EQ(sim.counts().steps, 1u);
+  EXPECT_GE(sim.figures().time, (0.5 * kD + R) / kSpeedOfLight * (1 - 1e-12));
+  EXPECT_LE(sim.figures().time, (0.5 * kD + 3 * R) / kSpeedOfLight);
+}
+
 }  // namespace
 }  // namespace beampack

@@ -25,12 +25,13 @@ struct Single {
   Particles p;
   Material m;
   ThermalModel model;
-  explicit Single(double theta0, ThermalSpec spec = {})
+  explicit Single(double theta0, ThermalSpec spec = {}, Material material = {})
       : p([&] {
           Particles q;
           q.add(Vec3::Zero(), kRadius, 0, theta0);
           return q;
         }()),
+        m(material),
         model(p, {m}, spec) {}
 };
 
@@ -105,13 +106,24 @@ TEST(ThermalPhase, LiquidHeatsWithLiquidCapacity) {
   EXPECT_NEAR(s.model.thermal_mass(0), mass_over_m(s.m) * s.m.c_liquid, 1e-24);
 }
 
+// Exactly at theta_m a particle is liquid (MODEL.md 5: "at or above theta_m"): C_L, no band.
+TEST(ThermalPhase, AParticleExactlyAtMeltIsLiquid) {
+  Single s(600.0);
+  ASSERT_EQ(s.m.melt_temperature, 600.0);
+  EXPECT_EQ(s.p.phase[0], Phase::liquid);
+  s.model.step(1e-9, {mass_over_m(s.m) * s.m.c_liquid * 10.0});
+  EXPECT_NEAR(s.p.temperature[0], 610.0, 1e-9);
+}
+
 TEST(ThermalPhase, CoolingThroughMeltSolidifiesWithLiquidPlusSolidifyBand) {
   // A liquid sphere against a cold wall, backward Euler: (c_eff + dt g) theta1 = c_eff theta0 +
   // dt g theta_w with c_eff = m (C_L + dP_LS / dtheta) / M once the predictor crosses theta_m.
   ThermalSpec spec;
   const double g = 1e-3;  // W/K
   spec.walls.push_back({0, 0.0, 0.0, 300.0, g});
-  Single s(610.0, spec);
+  Material solidifying;
+  solidifying.latent_solidify = 3000;  // not latent_melt's 1000: the band must be this one
+  Single s(610.0, spec, solidifying);
   const Material& m = s.m;
   const double dt = 0.5 * mass_over_m(m) * m.c_liquid / g;  // predictor: 610 -> ~506 K
   const StepReport r = s.model.step(dt, {});
@@ -159,6 +171,28 @@ TEST(ThermalPhase, VaporisedParticleCarriesItsEnergyAndLeavesTheGraph) {
   EXPECT_EQ(p.temperature[1], theta1);  // no exchange with the vapour
   EXPECT_FALSE(after.conduction_ran);   // no live contact conducts any more
   EXPECT_THROW(model.step(dt, {1.0, 0.0}), RunError);  // energy into vapour is a driver bug
+}
+
+// A step split into sub-steps (phi = 0 beyond its limit) whose first sub-step vaporises the
+// heated sphere: the heat aimed at it in the later sub-steps leaves with the vapour. Stored is
+// then exactly the neighbour's heat, vaporised the rest.
+TEST(ThermalPhase, HeatForASphereVaporisedInAnEarlierSubStepLeavesWithIt) {
+  ThermalSpec spec;
+  spec.phi = 0;
+  Particles p;
+  p.add(Vec3::Zero(), kRadius, 0, 300.0);
+  p.add(Vec3(1.5 * kRadius, 0, 0), kRadius, 0, 300.0);
+  Material m;
+  m.conductivity = 1e-3;
+  ThermalModel model(p, {m}, spec);
+  model.set_contacts(find_contacts(p));
+  const double dh = 1e3 * mass_over_m(m) * m.c_liquid * 400.0;  // vaporises it in one sub-step
+  const StepReport r = model.step(4.5 * model.monotone_step_limit(), {dh, 0.0});
+  ASSERT_GT(r.substeps, 2);
+  ASSERT_FALSE(p.alive[0]);
+  const double neighbour = mass_over_m(m) * m.c_solid * (p.temperature[1] - 300.0);
+  EXPECT_NEAR(model.ledger().stored, neighbour, 1e-9 * dh);
+  EXPECT_NEAR(model.ledger().vaporized, dh - neighbour, 1e-9 * dh);
 }
 
 TEST(ThermalPhase, NoParticleNearMeltMeansNoPhaseWork) {
