@@ -44,6 +44,14 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
   if (!(spec_.pulses.duration > 0) || !std::isfinite(spec_.pulses.duration))
     throw InputError("`pulses.duration` = " + std::to_string(spec_.pulses.duration) + ": must be > 0");
   beam_ = make_beam(spec_.beam, spec_.packing.sample_size);
+  // With new rays per pulse, the first pulses' draws are checked now, as input.
+  for (int k = 1; spec_.beam.resample && k < std::min(spec_.pulses.count, 64); ++k) {
+    try {
+      make_beam(spec_.beam, spec_.packing.sample_size, static_cast<std::uint64_t>(k));
+    } catch (const InputError& e) {
+      throw InputError("pulse " + std::to_string(k) + "'s rays (`beam.resample`): " + e.what());
+    }
+  }
   // Energies that overflow would turn into NaN at the first hit: refuse them as input.
   double pulse_energy = 0;
   for (double e : beam_.ray_energies(spec_.pulses.duration)) pulse_energy += e;
@@ -108,14 +116,23 @@ void Simulation::launch_pulse_if_due() {
   if (!due) return;
   if (launched_ > 0 && on_pulse_end_) on_pulse_end_(launched_ - 1);
   tracer_->compact();
-  if (spec_.beam.resample && launched_ > 0)
-    beam_ = make_beam(spec_.beam, spec_.packing.sample_size, static_cast<std::uint64_t>(launched_));
+  if (spec_.beam.resample && launched_ > 0) beam_ = resampled_beam(launched_);
   tracer_->launch(beam_, spec_.pulses.duration);
   counts_.rays += beam_.size();
   note_pulse_delay(time_ - next_pulse_time_);
   ++launched_;
   // Pulse k is due at k T_p (MODEL.md section 5), however late the one before it started.
   next_pulse_time_ = launched_ * spec_.pulses.period;
+}
+
+// Pulse k's own rays (beam.resample). A draw whose rays all miss a profile too narrow to
+// sample (the first pulses are checked as input when the run is set up) stops the run.
+Beam Simulation::resampled_beam(int pulse) const {
+  try {
+    return make_beam(spec_.beam, spec_.packing.sample_size, static_cast<std::uint64_t>(pulse));
+  } catch (const InputError& e) {
+    throw RunError("pulse " + std::to_string(pulse) + " (`beam.resample`): " + e.what());
+  }
 }
 
 // A pulse starts at a step boundary: with thermal.dt = "pulse" a step is a whole flight, so a

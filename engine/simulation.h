@@ -117,6 +117,7 @@ class Simulation {
   [[noreturn]] void non_finite(std::size_t particle, double temperature, double deposit) const;
   static Phase optical(Phase phase);
   void note_pulse_delay(double delay);
+  Beam resampled_beam(int pulse) const;
   bool optics_changed(const std::vector<Phase>& seen) const;
   double volume_fraction(Phase phase) const;
   std::string skip_reason(int stage) const;

@@ -186,6 +186,10 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"run.toml:2", "`material.conductivity` = { a = 1 }", "must be a number"});
   expect_input_error("resample_stratified", "[beam]\nsampling = \"stratified\"\nresample = true\n", "",
                      {"run.toml:3", "beam.resample", "needs `beam.sampling` = `random`"});
+  expect_input_error("blank_key", "", "--preset quick --set ' =5'", {"--set  =5", "expected KEY=VALUE"});
+  // Two --set that contradict each other are refused in either order.
+  expect_input_error("file_then_source", "", "--preset quick --set packing.file=x.csv --set packing.source=rsa",
+                     {"--set packing.file=x.csv", "needs packing.source = \"file\""});
   expect_input_error("thermal_mass", "", "--preset quick --set material.density=1e-300",
                      {"--set material.density=1e-300", "thermal mass"});
   expect_input_error("set", "", "--preset quick --set material.conductivity=-3",
@@ -227,6 +231,14 @@ TEST(Cli, RunFileLayersPathsAndArgumentsAreReadAsWritten) {
   const Result from_file = run("run " + file + " --set pulses.count=1 --quiet --out " + (dir / "a").string());
   ASSERT_EQ(from_file.code, 0) << from_file.output;
   EXPECT_NE(file_text(dir / "a" / "summary.json").find("\"particles\": 1"), std::string::npos);
+  // The resolved run file holds the path made absolute: it runs from any folder.
+  const Result printed = run("config " + file);
+  ASSERT_EQ(printed.code, 0) << printed.output;
+  EXPECT_NE(printed.output.find(fs::absolute(dir / "sub" / "one.xyz").lexically_normal().string()), std::string::npos)
+      << printed.output;
+  fs::create_directories(dir / "elsewhere");
+  const std::string full = write(dir / "elsewhere" / "full.toml", printed.output);
+  EXPECT_EQ(run("run " + full + " --set pulses.count=1 --quiet --out " + (dir / "b").string()).code, 0);
   // A later --set of another source drops the file's packing keys instead of refusing them.
   const Result other = run("config " + file + " --set packing.source=lattice --set packing.count=8");
   ASSERT_EQ(other.code, 0) << other.output;

@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <cmath>
 #include <limits>
 #include <regex>
 
@@ -68,6 +69,14 @@ TEST(RunReport, LogChartsLabelEachDecadeOnceAndShowZerosAsZeros) {
   const std::vector<std::string> labels = svg_texts(svg);
   EXPECT_EQ(std::count(labels.begin(), labels.end(), "hollow: 0"), 1) << svg;
   EXPECT_NE(svg.find("fill=\"white\" stroke="), std::string::npos) << svg;
+}
+
+// Values a few ulps apart on a negative axis: the ticks still end (a step below the values' last
+// digit once stalled the loop until memory ran out).
+TEST(RunReport, NearlyEqualNegativeValuesStillGiveAFewTicks) {
+  const double a = -1e6, b = std::nextafter(a, 0.0);
+  const Chart chart{"t", "x", "y", false, false, {{"s", {a, b}, {1.0, 2.0}}}};
+  EXPECT_LT(svg_texts(render_svg(chart), "y=\"380\"").size(), 25u);
 }
 
 // sweep.svg: a swept word (`beam.profile`) is named on the x axis; a single value gets a span

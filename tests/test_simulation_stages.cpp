@@ -6,6 +6,7 @@
 
 #include "engine/beam.h"
 #include "engine/simulation.h"
+#include "geometry/error.h"
 
 namespace beampack {
 namespace {
@@ -163,6 +164,28 @@ TEST(SimulationStages, APulseStepLastsTheRaysFlight) {
   EXPECT_EQ(sim.counts().steps, 1u);
   EXPECT_GE(sim.figures().time, (0.5 * kD + R) / kSpeedOfLight * (1 - 1e-12));
   EXPECT_LE(sim.figures().time, (0.5 * kD + 3 * R) / kSpeedOfLight);
+}
+
+// beam.resample with a profile too narrow for its rays: pulse 0's draw happens to sample it,
+// pulse 2's does not. Refused as input when the run is set up, naming the pulse, not found
+// mid-run (where it ended the run without its outputs).
+TEST(SimulationStages, AResampledPulseThatCannotSampleTheProfileIsRefusedUpFront) {
+  SimulationSpec spec;
+  spec.packing.sample_size = kD;
+  spec.packing.count = 10;
+  spec.beam.rays = 1;
+  spec.beam.decay = 1000;
+  spec.beam.seed = 1;
+  spec.pulses.count = 3;
+  spec.pulses.duration = 1e-15;
+  ASSERT_NO_THROW(make_beam(spec.beam, kD, 0));
+  spec.beam.resample = true;
+  try {
+    Simulation sim(spec);
+    FAIL() << "accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("pulse 2's rays (`beam.resample`)"), std::string::npos) << e.what();
+  }
 }
 
 }  // namespace

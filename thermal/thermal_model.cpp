@@ -638,8 +638,9 @@ void ThermalModel::restore(const Snapshot& s) {
   if (s.temperature.size() != p_.size())
     throw RunError("thermal restore: snapshot of " + std::to_string(s.temperature.size()) +
                    " particles, model has " + std::to_string(p_.size()));
-  // Reassemble only if the live set differs: a redo without vaporisation keeps the matrix.
-  if (p_.alive != s.alive) dirty_ = true;
+  // Reassemble only if the live set differs from the matrix's: a redo without vaporisation keeps
+  // it (compared with the assembled set, not p_.alive, which a checkpoint may have set already).
+  if (all_.live != s.alive) dirty_ = true;
   p_.temperature = s.temperature;
   p_.phase = s.phase;
   p_.alive = s.alive;

@@ -274,9 +274,11 @@ void Params::merge_toml_file(const std::string& path) {
 void Params::merge_assignment(const std::string& key_equals_value, const std::string& origin) {
   const std::string named = origin.empty() ? "--set " + key_equals_value : origin;
   const auto eq = key_equals_value.find('=');
-  if (eq == std::string::npos || eq == 0)
-    throw InputError(named + ": expected KEY=VALUE");
   const std::string key = trimmed(key_equals_value.substr(0, eq));  // --set "k = v" as k=v
+  const auto parts = split_key(key);
+  if (eq == std::string::npos || parts.empty() || key.back() == '.' ||
+      std::any_of(parts.begin(), parts.end(), [](const std::string& part) { return part.empty(); }))
+    throw InputError(named + ": expected KEY=VALUE with KEY like material.conductivity");
   const std::string value = trimmed(key_equals_value.substr(eq + 1));
   toml::table parsed;
   try {
@@ -285,7 +287,7 @@ void Params::merge_assignment(const std::string& key_equals_value, const std::st
     parsed = toml::table{{"v", value}};  // a bare word: a string
   }
   set_path(merged_, key, *parsed.get("v"));
-  origin_[key] = {named, "", ++layers_};
+  origin_[key] = {named, "", ++layers_, true};
 }
 
 const toml::node* Params::find(const std::string& key) const {
@@ -308,7 +310,7 @@ std::string Params::where(const std::string& key) const {
 
 bool Params::set_later(const std::string& later, const std::string& earlier) const {
   const KeyOrigin *a = origin(later), *b = origin(earlier);
-  return a && b && a->layer > b->layer;
+  return a && b && a->layer > b->layer && !b->command_line;
 }
 
 void Params::forget(const std::string& key) {
@@ -322,8 +324,11 @@ void Params::forget(const std::string& key) {
 std::string Params::path(const std::string& key) {
   const std::string v = text(key, "");
   const KeyOrigin* o = origin(key);
-  if (v.empty() || !o || o->file.empty() || std::filesystem::path(v).is_absolute()) return v;
-  const std::string resolved = (std::filesystem::path(o->file).parent_path() / v).lexically_normal().string();
+  if (v.empty() || std::filesystem::path(v).is_absolute()) return v;
+  // Absolute in the resolved run file: `config` output and a checkpoint work from anywhere.
+  const std::filesystem::path folder =
+      o && !o->file.empty() ? std::filesystem::path(o->file).parent_path() : std::filesystem::path();
+  const std::string resolved = std::filesystem::absolute(folder / v).lexically_normal().string();
   record(key, toml::value<std::string>(resolved));
   return resolved;
 }

@@ -19,6 +19,7 @@ namespace beampack::tools {
 struct KeyOrigin {
   std::string at, file;
   int layer = 0;
+  bool command_line = false;  // a --set (or a swept value): what the user asked for in this run
 };
 
 class Params {
@@ -39,9 +40,11 @@ class Params {
                      std::initializer_list<const char*> allowed);
   bool flag(const std::string& key, bool fallback);
   bool has(const std::string& key) const;
-  // A file path: relative to the run file's folder when a run file gave it, else as given.
+  // A file path, made absolute: a relative one from a run file is taken from the run file's
+  // folder, from --set from the working directory.
   std::string path(const std::string& key);
-  // Whether `later` was set by a later layer than `earlier` (both set).
+  // Whether `later` was set by a later layer than `earlier` (both set, `earlier` not from the
+  // command line: two --set that contradict each other are refused, whatever their order).
   bool set_later(const std::string& later, const std::string& earlier) const;
   // Drops a key from the layers, as if none had set it.
   void forget(const std::string& key);

@@ -46,7 +46,7 @@ void read_packing(Params& p, PackingSpec& s) {
     p.fail("packing.file", "\"\"", "required with packing.source = \"file\"");
 }
 
-void read_beam(Params& p, BeamSpec& b, double sample_size) {
+void read_beam(Params& p, BeamSpec& b) {
   b.power = p.number("beam.power", 6000, 0, kBig, true);
   b.diameter_fraction = p.number("beam.diameter_fraction", 0.3, 0, 10, true);
   b.rays = std::size_t(p.integer("beam.rays", 1000, 1, 100'000'000));
@@ -66,7 +66,6 @@ void read_beam(Params& p, BeamSpec& b, double sample_size) {
     p.fail("beam.direction_x", v.str(), "the direction must not be zero (length >= 1e-12)");
   }
   b.direction = d.normalized();
-  validate_beam(b, sample_size);
 }
 
 void read_optics(Params& p, OpticsSpec& o) {
@@ -176,7 +175,7 @@ RunConfig read_config(Params& p) {
   RunConfig c;
   read_packing(p, c.sim.packing);
   c.sim.packing.initial_temperature = p.number("material.initial_temperature", 300, 0, kBig, true);
-  read_beam(p, c.sim.beam, c.sim.packing.sample_size);
+  read_beam(p, c.sim.beam);
   read_optics(p, c.sim.optics);
   Material m;
   read_material(p, m);
@@ -193,7 +192,8 @@ RunConfig read_config(Params& p) {
   c.paper_dt = paper_dt;
   c.output.frames = p.flag("output.frames", false);
   c.output.rays = p.flag("output.rays", false);
-  p.check_all_used();
+  p.check_all_used();  // first: a misspelt key is named before what it would have changed
+  validate_beam(c.sim.beam, c.sim.packing.sample_size);
   c.resolved = p.resolved();
   c.origins = p.origins();
   return c;

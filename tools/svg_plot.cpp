@@ -60,7 +60,12 @@ std::vector<double> ticks(const Axis& a) {
       if (span / step > 7) step = std::pow(10.0, std::floor(std::log10(span / 5))) * m;
   }
   std::vector<double> t;
-  for (double v = std::ceil(a.lo / step - 1e-9) * step; v <= a.hi + 1e-9 * span; v += step) t.push_back(v);
+  const double first = std::ceil(a.lo / step - 1e-9) * step;
+  for (int k = 0; k < 20; ++k) {  // by index: a step below the values' last digit cannot stall
+    const double v = first + k * step;
+    if (v > a.hi + 1e-9 * span) break;
+    if (t.empty() || v > t.back()) t.push_back(v);
+  }
   return t;
 }
 
@@ -72,6 +77,7 @@ std::string render_svg(const Chart& chart) {
     xs.insert(xs.end(), s.x.begin(), s.x.end());
     ys.insert(ys.end(), s.y.begin(), s.y.end());
   }
+  if (!chart.x_categories.empty()) xs = {0.0, double(chart.x_categories.size() - 1)};  // failed ones too
   const Axis ax = fit_axis(xs, chart.log_x), ay = fit_axis(ys, chart.log_y);
   const double w = kWidth - kLeft - kRight, h = kHeight - kTop - kBottom;
   auto px = [&](double x) { return kLeft + w * ax.map(x); };
