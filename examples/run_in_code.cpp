@@ -18,9 +18,9 @@ int main() {
   spec.pulses.count = 5;
   spec.pulses.duration = 1e-13;          // s: E_k = I_k A_r tau
   Simulation sim(spec, std::move(particles));
-  sim.on_pulse_end([&](int pulse) {
+  sim.on_pulse_end([&](int pulse) {  // pulse: 0-based index; printed from 1 as history.csv does
     const Figures f = sim.figures();
-    std::printf("pulse %d: peak %.1f K, vaporised %.4f, absorbed %.3e J of %.3e J\n", pulse,
+    std::printf("pulse %d: peak %.1f K, vaporised %.4f, absorbed %.3e J of %.3e J\n", pulse + 1,
                 f.max_temperature, f.vaporized_fraction, f.energy.absorbed, f.energy.injected);
   });
   sim.run();
