@@ -180,8 +180,8 @@ struct RestingScene {
   Particles p = random_overlap_packing(2000, 1e-3, 0.325, 11);
   std::vector<double> dh;
   Material m;
-  explicit RestingScene(double heat) {
-    m.conductivity = 100;
+  explicit RestingScene(double heat, double conductivity = 100) {
+    m.conductivity = conductivity;
     std::mt19937_64 rng(5);
     std::uniform_real_distribution<double> u(0.0, 1.0);
     for (std::size_t i = 0; i < p.size(); ++i) dh.push_back(p.centre[i].x() < 1e-4 ? heat * u(rng) : 0.0);
@@ -196,8 +196,8 @@ struct RestingRun {
   double imbalance = 0;
 };
 
-RestingRun run_resting(double heat, const ThermalSpec& base, bool skip) {
-  RestingScene s(heat);
+RestingRun run_resting(double heat, const ThermalSpec& base, bool skip, double conductivity = 100) {
+  RestingScene s(heat, conductivity);
   ThermalSpec spec = base;
   spec.skip_resting = skip;
   ThermalModel model(s.p, {s.m}, spec);
@@ -217,6 +217,7 @@ RestingRun run_resting(double heat, const ThermalSpec& base, bool skip) {
 }
 
 TEST(ThermalSkip, RestingComponentsAreSkippedAndTheBusyOnesMatchTheWholeSolve) {
+  for (double k : {100.0, 0.0})  // K = 0: every particle is its own component
   for (const char* solver : {"cg", "direct", "auto"})
     for (double phi : {1.0, 0.5})
       for (const char* walls : {"", "300", "450"})
@@ -227,8 +228,8 @@ TEST(ThermalSkip, RestingComponentsAreSkippedAndTheBusyOnesMatchTheWholeSolve) {
           spec.tolerance = 1e-13;
           if (*walls) spec.walls = {Wall{2, 0.0, 2e-5, std::atof(walls), -1}};  // the face z = 0
           std::ostringstream name;
-          name << solver << " phi " << phi << " wall " << walls << " heat " << heat;
-          const RestingRun whole = run_resting(heat, spec, false), busy = run_resting(heat, spec, true);
+          name << "K " << k << " " << solver << " phi " << phi << " wall " << walls << " heat " << heat;
+          const RestingRun whole = run_resting(heat, spec, false, k), busy = run_resting(heat, spec, true, k);
           EXPECT_FALSE(whole.skipped) << name.str();
           EXPECT_LT(busy.solved, busy.live / 2) << name.str();  // the skip happened
           EXPECT_GT(busy.solved, 0u) << name.str();

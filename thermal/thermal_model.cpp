@@ -235,20 +235,22 @@ void ThermalModel::find_components() {
 // (L 1 = 0 and no source), so only the busy ones are solved, while they are under 3/4 of the
 // live particles. True when this step solves busy_.
 bool ThermalModel::select_busy(const Eigen::VectorXd& theta0, const Eigen::VectorXd& dh) {
-  if (!spec_.skip_resting || !all_.has_conduction) return false;
+  if (!spec_.skip_resting) return false;
   const std::size_t n = p_.size();
+  const bool graph = all_.has_conduction;  // without one, every particle is its own component
+  auto component = [&](std::size_t i) { return graph ? std::size_t{component_[i]} : i; };
   std::vector<std::uint8_t> busy(n, 0);  // by component
   std::size_t live = 0;
   for (std::size_t i = 0; i < n; ++i) {
     if (!p_.alive[i]) continue;
     ++live;
-    const std::uint32_t r = component_[i];
+    const std::size_t r = component(i);
     if (dh[i] != 0 || theta0[i] != theta0[r] || walls_.conductance[i] * theta0[i] != walls_.source[i])
       busy[r] = 1;
   }
   std::vector<Eigen::Index> rows;
   for (std::size_t i = 0; i < n; ++i)
-    if (p_.alive[i] && busy[component_[i]]) rows.push_back(static_cast<Eigen::Index>(i));
+    if (p_.alive[i] && busy[component(i)]) rows.push_back(static_cast<Eigen::Index>(i));
   if (4 * rows.size() >= 3 * live) return false;
   if (rows != busy_.particle || busy_assembly_ != assembly_) build_busy_system(std::move(rows));
   return true;
@@ -261,21 +263,27 @@ void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
   const auto m = static_cast<Eigen::Index>(rows.size());
   std::vector<Eigen::Index> row_of(p_.size(), -1);
   for (Eigen::Index k = 0; k < m; ++k) row_of[rows[k]] = k;
-  std::vector<Eigen::Triplet<double>> t;
-  for (Eigen::Index k = 0; k < m; ++k)
-    for (SparseMatrix::InnerIterator it(all_.laplacian, rows[k]); it; ++it)
-      if (row_of[it.row()] >= 0) t.emplace_back(row_of[it.row()], k, it.value());
-  s.laplacian = SparseMatrix(m, m);
-  s.laplacian.setFromTriplets(t.begin(), t.end());
   s.diagonal.resize(m), s.wall_source.resize(m), s.wall_conductance.resize(m);
-  find_diagonal(s.laplacian, s.diag_pos, s.diagonal);
+  s.has_conduction = all_.has_conduction;
+  if (s.has_conduction) {
+    std::vector<Eigen::Triplet<double>> t;
+    for (Eigen::Index k = 0; k < m; ++k)
+      for (SparseMatrix::InnerIterator it(all_.laplacian, rows[k]); it; ++it)
+        if (row_of[it.row()] >= 0) t.emplace_back(row_of[it.row()], k, it.value());
+    s.laplacian = SparseMatrix(m, m);
+    s.laplacian.setFromTriplets(t.begin(), t.end());
+    find_diagonal(s.laplacian, s.diag_pos, s.diagonal);
+  } else {
+    s.laplacian = SparseMatrix();
+    for (Eigen::Index k = 0; k < m; ++k) s.diagonal[k] = all_.diagonal[rows[k]];  // the walls'
+  }
   s.cluster.assign(static_cast<std::size_t>(m), -1);
   s.ground.clear();
   std::vector<int> id_of(all_.ground.size(), -1);
   for (Eigen::Index k = 0; k < m; ++k) {
     s.wall_source[k] = all_.wall_source[rows[k]];
     s.wall_conductance[k] = all_.wall_conductance[rows[k]];
-    const int c = all_.cluster[rows[k]];
+    const int c = s.has_conduction ? all_.cluster[rows[k]] : -1;
     if (c < 0) continue;
     if (id_of[c] < 0) {
       id_of[c] = static_cast<int>(s.ground.size());
@@ -284,7 +292,6 @@ void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
     s.cluster[k] = id_of[c];
   }
   s.live.assign(static_cast<std::size_t>(m), 1);
-  s.has_conduction = true;
   s.pattern_version = ++versions_;
   s.particle = std::move(rows);
   busy_assembly_ = assembly_;
@@ -298,29 +305,33 @@ double ThermalModel::thermal_mass(std::size_t i) const {
 
 // c_i = m_i C_i / M (section 4.1). A dead particle's row reads c theta = c theta; its c is the
 // mean live one so that it neither dominates nor vanishes from the relative residual of CG.
+// Over the step's rows (every particle, or busy_'s, all live).
 Eigen::VectorXd ThermalModel::base_capacity() const {
-  Eigen::VectorXd c(static_cast<Eigen::Index>(p_.size()));
+  const Eigen::Index n = rows();
+  Eigen::VectorXd c(n);
   double sum = 0;
   std::size_t live = 0;
-  for (std::size_t i = 0; i < p_.size(); ++i) {
+  for (Eigen::Index k = 0; k < n; ++k) {
+    const std::size_t i = particle_of(k);
     if (!p_.alive[i]) continue;
-    c[i] = thermal_mass(i);
-    sum += c[i];
+    c[k] = thermal_mass(i);
+    sum += c[k];
     ++live;
   }
   const double filler = live ? sum / live : 1.0;
-  for (std::size_t i = 0; i < p_.size(); ++i)
-    if (!p_.alive[i]) c[i] = filler;
+  for (Eigen::Index k = 0; k < n; ++k)
+    if (!p_.alive[particle_of(k)]) c[k] = filler;
   return c;
 }
 
 Eigen::VectorXd ThermalModel::capacity_with_bands(const Eigen::VectorXd& theta0,
                                                   const std::vector<std::uint8_t>& bands) const {
   Eigen::VectorXd c = base_capacity();
-  for (std::size_t i = 0; i < p_.size(); ++i) {
-    if (!p_.alive[i] || !bands[i]) continue;
+  for (Eigen::Index k = 0; k < rows(); ++k) {
+    const std::size_t i = particle_of(k);
+    if (!p_.alive[i] || !bands[k]) continue;
     const Material& m = materials_[p_.material[i]];
-    c[i] = m.density * p_.volume(i) * effective_heat_capacity(m, theta0[i], bands[i]) /
+    c[k] = m.density * p_.volume(i) * effective_heat_capacity(m, theta0[k], bands[k]) /
            spec_.time_scaling;
   }
   return c;
@@ -366,23 +377,9 @@ std::string ThermalModel::choose_solver(double contraction) const {
 void ThermalModel::solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& dh,
                          StepTemperatures& t, StepReport& report) {
   report.live_rows = static_cast<std::size_t>(std::count(p_.alive.begin(), p_.alive.end(), 1));
-  if (!solve_busy_) {
-    report.solved_rows = report.live_rows;
-    solve_relative(all_, dt, c, t.rel0, dh, t.rel1, report);
-    t.theta1 = t.rel1.array() + reference_;
-    return;
-  }
-  const std::vector<Eigen::Index>& rows = busy_.particle;
-  report.solved_rows = rows.size();
-  t.theta1 = t.theta0;
-  if (rows.empty()) return;  // all at rest
-  auto gather = [&](const Eigen::VectorXd& v) { return Eigen::VectorXd(v(rows)); };
-  Eigen::VectorXd rel1 = gather(t.rel1);
-  solve_relative(busy_, dt, gather(c), gather(t.rel0), gather(dh), rel1, report);
-  for (std::size_t k = 0; k < rows.size(); ++k) {
-    t.rel1[rows[k]] = rel1[static_cast<Eigen::Index>(k)];
-    t.theta1[rows[k]] = rel1[static_cast<Eigen::Index>(k)] + reference_;
-  }
+  report.solved_rows = solve_busy_ ? busy_.particle.size() : report.live_rows;
+  if (rows() > 0) solve_relative(solve_busy_ ? busy_ : all_, dt, c, t.rel0, dh, t.rel1, report);
+  t.theta1 = t.rel1.array() + reference_;
 }
 
 void ThermalModel::solve_relative(const System& s, double dt, const Eigen::VectorXd& c,
@@ -470,10 +467,11 @@ void ThermalModel::solve_direct_grounded(const System& s, SparseMatrix& a, const
 // predictor; otherwise no band can be crossed (theta_m < theta_v).
 bool ThermalModel::phase_work_needed(const Eigen::VectorXd& theta0,
                                      const Eigen::VectorXd& theta1) const {
-  for (std::size_t i = 0; i < p_.size(); ++i) {
+  for (Eigen::Index k = 0; k < rows(); ++k) {
+    const std::size_t i = particle_of(k);
     if (!p_.alive[i]) continue;
     const double melt = materials_[p_.material[i]].melt_temperature;
-    if (theta0[i] >= melt || theta1[i] >= melt) return true;
+    if (theta0[k] >= melt || theta1[k] >= melt) return true;
   }
   return false;
 }
@@ -486,15 +484,16 @@ int ThermalModel::correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::Ve
                                  StepTemperatures& t, StepReport& report) {
   const Eigen::VectorXd& theta0 = t.theta0;
   const Eigen::VectorXd& theta1 = t.theta1;
-  std::vector<std::uint8_t> bands(p_.size(), 0);
+  std::vector<std::uint8_t> bands(static_cast<std::size_t>(rows()), 0);
   int passes = 0;
   for (;;) {
     bool grew = false;
-    for (std::size_t i = 0; i < p_.size(); ++i) {
+    for (Eigen::Index k = 0; k < rows(); ++k) {
+      const std::size_t i = particle_of(k);
       if (!p_.alive[i]) continue;
-      const std::uint8_t b = crossed_bands(materials_[p_.material[i]], theta0[i], theta1[i]);
-      if (b & ~bands[i]) {
-        bands[i] |= b;
+      const std::uint8_t b = crossed_bands(materials_[p_.material[i]], theta0[k], theta1[k]);
+      if (b & ~bands[k]) {
+        bands[k] |= b;
         grew = true;
       }
     }
@@ -514,13 +513,14 @@ void ThermalModel::account(double dt, const Eigen::VectorXd& c, const StepTemper
   const Eigen::VectorXd& theta0 = t.rel0;
   const Eigen::VectorXd& theta1 = t.rel1;
   double stored = 0, walls = 0;
-  for (std::size_t i = 0; i < p_.size(); ++i) {
+  for (Eigen::Index k = 0; k < rows(); ++k) {
+    const std::size_t i = particle_of(k);
     if (!p_.alive[i]) continue;
-    const double de = c[i] * (theta1[i] - theta0[i]);
+    const double de = c[k] * (theta1[k] - theta0[k]);
     stored_[i] += de;
     stored += de;
-    const double mean = spec_.phi * theta1[i] + (1.0 - spec_.phi) * theta0[i];
-    walls += dt * (walls_.conductance[i] * mean - all_.wall_source[i]);
+    const double mean = spec_.phi * theta1[k] + (1.0 - spec_.phi) * theta0[k];
+    walls += dt * (walls_.conductance[i] * mean - all_.wall_source[static_cast<Eigen::Index>(i)]);
   }
   ledger_.absorbed += dh.sum();
   ledger_.stored += stored;
@@ -530,10 +530,11 @@ void ThermalModel::account(double dt, const Eigen::VectorXd& c, const StepTemper
 // A particle at or above theta_v is vaporised: it leaves the particles, the graph and the masses,
 // taking its stored energy with it; at or above theta_m it is liquid (C_L, liquid index).
 void ThermalModel::update_phases(const Eigen::VectorXd& theta1, StepReport& report) {
-  for (std::size_t i = 0; i < p_.size(); ++i) {
+  for (Eigen::Index k = 0; k < rows(); ++k) {
+    const std::size_t i = particle_of(k);
     if (!p_.alive[i]) continue;
-    p_.temperature[i] = theta1[i];
-    const Phase phase = phase_at(materials_[p_.material[i]], theta1[i]);
+    p_.temperature[i] = theta1[k];
+    const Phase phase = phase_at(materials_[p_.material[i]], theta1[k]);
     if (phase != Phase::vapor) {
       p_.phase[i] = phase;
       continue;
@@ -559,11 +560,19 @@ StepReport ThermalModel::step_once(double dt, const Eigen::VectorXd& dh_in) {
     ledger_.vaporized += dh[i];
     dh[i] = 0;
   }
+  const Eigen::Map<const Eigen::VectorXd> theta(p_.temperature.data(), n);
+  solve_busy_ = select_busy(theta, dh);
+  // From here on the step works on its rows: every particle, or the busy components' only (the
+  // others keep their temperatures, phases and ledger entries exactly).
   StepTemperatures t;
-  t.theta0 = Eigen::Map<const Eigen::VectorXd>(p_.temperature.data(), n);
+  if (solve_busy_) {
+    t.theta0 = theta(busy_.particle);
+    dh = Eigen::VectorXd(dh(busy_.particle));
+  } else {
+    t.theta0 = theta;
+  }
   t.rel0 = t.theta0.array() - reference_;
   t.rel1 = t.rel0;  // the iterative solvers' first guess
-  solve_busy_ = select_busy(t.theta0, dh);
   Eigen::VectorXd c = base_capacity();
   solve(dt, c, dh, t, report);  // predictor
   report.phases_ran = phase_work_needed(t.theta0, t.theta1);

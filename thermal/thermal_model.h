@@ -171,6 +171,13 @@ class ThermalModel {
   System all_;                       // every particle
   System busy_;                      // the busy components' particles (skip_resting)
   bool solve_busy_ = false;          // this step solves busy_ (the others are at rest)
+  // The step's rows: every particle (row i is particle i) or busy_'s particles.
+  Eigen::Index rows() const {
+    return solve_busy_ ? static_cast<Eigen::Index>(busy_.particle.size()) : static_cast<Eigen::Index>(p_.size());
+  }
+  std::size_t particle_of(Eigen::Index row) const {
+    return static_cast<std::size_t>(solve_busy_ ? busy_.particle[static_cast<std::size_t>(row)] : row);
+  }
   std::uint64_t assembly_ = 0;       // counts assemblies of all_: busy_ is cut from one of them
   std::uint64_t busy_assembly_ = 0;  // the assembly busy_ was cut from
   std::uint64_t versions_ = 1;       // pattern versions handed out (all_ and busy_ share the solver)
