@@ -267,7 +267,7 @@ std::string Simulation::skip_reason(int stage) const {
   if (stage == kTrace) return "no ray was live in any step";
   if (stage == kHeat)
     return particles_.size() == 0 ? "no particles" : "no step had a positive length";
-  if (stage == kPhases) return "no particle reached the melting temperature";
+  if (stage == kPhases) return "no particle whose temperature changed was at the melting temperature";
   if (spec_.max_staggers == 0) return "`thermal.max_staggers` = 0";
   return "no phase change altered the optics of a particle the rays met";
 }

@@ -234,7 +234,7 @@ void ThermalModel::find_components() {
 // when one of its particles is. A component at rest solves exactly to theta^{n+1} = theta^n
 // (L 1 = 0 and no source), so only the busy ones are solved, while they are under 3/4 of the
 // live particles. True when this step solves busy_.
-bool ThermalModel::select_busy(const Eigen::VectorXd& theta0, const Eigen::VectorXd& dh) {
+bool ThermalModel::select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Eigen::VectorXd& dh) {
   if (!spec_.skip_resting) return false;
   const std::size_t n = p_.size();
   const bool graph = all_.has_conduction;  // without one, every particle is its own component

@@ -26,9 +26,10 @@ struct ThermalSpec {
   // Predictor-corrector passes of the phase step: stop when no new band is crossed.
   int max_phase_corrections = 4;
   std::vector<Wall> walls;
-  // Solve only the conducting components with something to do (a deposit, temperatures that
-  // differ, a wall at another temperature) while they are under 3/4 of the live particles; the
-  // others are at rest, theta^{n+1} = theta^n exactly. false: every step solves every particle.
+  // Work only on the conducting components with something to do (a deposit, temperatures that
+  // differ, a wall at another temperature; without conducting contacts each particle is its own
+  // component) while they are under 3/4 of the live particles; the others are at rest,
+  // theta^{n+1} = theta^n exactly. false: every step solves every particle.
   bool skip_resting = true;
 
   void validate() const;
@@ -48,15 +49,17 @@ struct ThermalLedger {
 struct StepReport {
   std::vector<std::uint32_t> vaporized;      // particles removed in this step
   std::vector<std::uint32_t> phase_changed;  // live particles now solid <-> liquid (optics change)
-  std::string solver = "none";  // fixed-point | cg | direct | explicit | diagonal | none
+  std::string solver = "none";  // fixed-point | cg | direct | explicit | diagonal | none (or all at rest)
   int iterations = 0;           // summed over solves and sub-steps
   int solves = 0;               // linear solves (predictor + corrector passes, all sub-steps)
   int substeps = 1;
   double contraction_estimate = 0;  // dt phi max_i (2 sum_j G_ij + W_i) / c_i, see solvers.h
-  bool conduction_ran = false;  // false: no contact conducts (K = 0): no matrix, no solve
+  bool conduction_ran = false;  // false: no contact conducts (K = 0) or every component was at rest
   std::size_t solved_rows = 0;  // particles in the last solve (with skip_resting, the busy ones)
   std::size_t live_rows = 0;    // live particles at the step
-  bool phases_ran = false;      // false: no particle at or above theta_m before or after the step
+  // false: no particle the step worked on (with skip_resting: the busy ones; one at rest cannot
+  // cross a band) was at or above theta_m before or after it.
+  bool phases_ran = false;
   double phases_seconds = 0;    // wall time of the latent-heat work (section 4), all sub-steps
   bool phase_corrected = false; // a band was crossed and the step re-solved with C_eff
   bool symbolic_reused = false; // direct: analysis kept from an earlier step
@@ -141,7 +144,7 @@ class ThermalModel {
   void assemble_all();
   void update_live_set(const std::vector<std::uint8_t>& before);
   void find_components();
-  bool select_busy(const Eigen::VectorXd& theta0, const Eigen::VectorXd& dh);
+  bool select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Eigen::VectorXd& dh);
   void build_busy_system(std::vector<Eigen::Index> rows);
   Eigen::VectorXd base_capacity() const;
   Eigen::VectorXd capacity_with_bands(const Eigen::VectorXd& theta0,
