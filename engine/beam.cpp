@@ -126,6 +126,19 @@ void tile(std::vector<Eigen::Vector2d>& points, std::size_t begin, std::size_t e
   tile(points, middle, end);
 }
 
+// Pulse `pulse`'s points in the unit disk (its own stream with beam.resample, else pulse 0's).
+std::vector<Eigen::Vector2d> disk_points(const BeamSpec& spec, std::uint64_t pulse) {
+  return spec.sampling == "random" ? random_disk(spec.rays, spec.seed, spec.resample ? pulse : 0)
+                                   : stratified_disk(spec.rays);
+}
+
+// r_b = d_b / 2 with d_b = beam.diameter_fraction D, and A_r = pi r_b^2 / N_r.
+double radius_of(const BeamSpec& spec, double sample_size) { return 0.5 * spec.diameter_fraction * sample_size; }
+
+double ray_area(const BeamSpec& spec, double radius) {
+  return std::numbers::pi * radius * radius / static_cast<double>(spec.rays);
+}
+
 }  // namespace
 
 void disk_axes(const Vec3& d, Vec3& u, Vec3& v) {
@@ -143,16 +156,24 @@ double beam_profile(const BeamSpec& spec, double d, double beam_radius) {
   return std::exp(-spec.decay * d / beam_radius);  // (5.1), d normalised by r_b
 }
 
+void check_pulse_draw(const BeamSpec& spec, double sample_size, std::uint64_t pulse) {
+  validate_beam(spec, sample_size);
+  const double radius = radius_of(spec, sample_size);
+  std::vector<double> intensity;
+  intensity.reserve(spec.rays);
+  for (const auto& q : disk_points(spec, pulse)) intensity.push_back(beam_profile(spec, radius * q.norm(), radius));
+  normalise(spec, intensity, ray_area(spec, radius), spec.power);
+}
+
 Beam make_beam(const BeamSpec& spec, double sample_size, std::uint64_t pulse) {
   validate_beam(spec, sample_size);
   Beam beam;
   beam.direction = spec.direction;
   beam.centre = Vec3::Constant(0.5 * sample_size) - 0.5 * sample_size * spec.direction;
-  beam.radius = 0.5 * spec.diameter_fraction * sample_size;
+  beam.radius = radius_of(spec, sample_size);
   beam.power = spec.power;
-  beam.ray_area = std::numbers::pi * beam.radius * beam.radius / static_cast<double>(spec.rays);
-  auto unit = spec.sampling == "random" ? random_disk(spec.rays, spec.seed, spec.resample ? pulse : 0)
-                                        : stratified_disk(spec.rays);
+  beam.ray_area = ray_area(spec, beam.radius);
+  auto unit = disk_points(spec, pulse);
   tile(unit, 0, unit.size());
   Vec3 u, v;
   disk_axes(spec.direction, u, v);

@@ -48,6 +48,10 @@ void disk_axes(const Vec3& d, Vec3& u, Vec3& v);
 // InputError naming the first key out of its range or against another key.
 void validate_beam(const BeamSpec& spec, double sample_size);
 
+// make_beam's checks of pulse `pulse`'s draw (the spec, and a profile its rays can sample)
+// without building the beam: no tiles, no origins.
+void check_pulse_draw(const BeamSpec& spec, double sample_size, std::uint64_t pulse);
+
 // Validates the spec (InputError naming the key) and samples the disk for pulse `pulse` (its own
 // random stream when spec.resample, else pulse 0's). The disk lies in the plane through the
 // sample centre's upstream face point, perpendicular to the direction.

@@ -47,7 +47,7 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
   // With new rays per pulse, the first pulses' draws are checked now, as input.
   for (int k = 1; spec_.beam.resample && k < std::min(spec_.pulses.count, 64); ++k) {
     try {
-      make_beam(spec_.beam, spec_.packing.sample_size, static_cast<std::uint64_t>(k));
+      check_pulse_draw(spec_.beam, spec_.packing.sample_size, static_cast<std::uint64_t>(k));
     } catch (const InputError& e) {
       throw InputError("pulse " + std::to_string(k) + "'s rays (`beam.resample`): " + e.what());
     }
