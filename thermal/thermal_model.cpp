@@ -93,23 +93,28 @@ void ThermalModel::drop_removed_contacts(double min_fraction) {
   if (dead > 0 && dead >= min_fraction * static_cast<double>(contacts_.size())) set_contacts(live);
 }
 
-// Rebuilds L + W when the contacts or the live set changed. K = 0 (no conducting contact)
-// builds no matrix at all: the step is then diagonal.
 namespace {
+
+// Where the stored entry (row, col) sits in the matrix's values (columns hold sorted rows).
+Eigen::Index position_of(const SparseMatrix& m, Eigen::Index row, Eigen::Index col) {
+  const int* begin = m.innerIndexPtr() + m.outerIndexPtr()[col];
+  const int* end = m.innerIndexPtr() + m.outerIndexPtr()[col + 1];
+  return std::lower_bound(begin, end, static_cast<int>(row)) - m.innerIndexPtr();
+}
 
 // Where each column's diagonal entry sits in the matrix's values, and the diagonal itself.
 void find_diagonal(const SparseMatrix& m, std::vector<Eigen::Index>& pos, Eigen::VectorXd& diagonal) {
   pos.resize(static_cast<std::size_t>(m.cols()));
   for (Eigen::Index j = 0; j < m.cols(); ++j) {
-    const int* begin = m.innerIndexPtr() + m.outerIndexPtr()[j];
-    const int* end = m.innerIndexPtr() + m.outerIndexPtr()[j + 1];
-    pos[j] = std::lower_bound(begin, end, static_cast<int>(j)) - m.innerIndexPtr();
+    pos[j] = position_of(m, j, j);
     diagonal[j] = m.valuePtr()[pos[j]];
   }
 }
 
 }  // namespace
 
+// Rebuilds L + W when the contacts or the live set changed. K = 0 (no conducting contact)
+// builds no matrix at all: the step is then diagonal.
 void ThermalModel::assemble_if_needed() {
   if (!dirty_) return;
   const auto n = static_cast<Eigen::Index>(p_.size());
@@ -148,14 +153,10 @@ void ThermalModel::assemble_all() {
   SparseMatrix& m = all_.laplacian;
   m = conduction_matrix(p_, contacts_, g_, walls_.conductance);
   contact_values_.assign(static_cast<std::size_t>(m.nonZeros()), 0.0);
-  auto position = [&](std::uint32_t row, std::uint32_t col) {
-    const int* begin = m.innerIndexPtr() + m.outerIndexPtr()[col];
-    const int* end = m.innerIndexPtr() + m.outerIndexPtr()[col + 1];
-    return std::lower_bound(begin, end, static_cast<int>(row)) - m.innerIndexPtr();
-  };
   for (std::size_t e = 0; e < contacts_.size(); ++e) {
-    contact_values_[static_cast<std::size_t>(position(contacts_[e].i, contacts_[e].j))] = -g_[e];
-    contact_values_[static_cast<std::size_t>(position(contacts_[e].j, contacts_[e].i))] = -g_[e];
+    const Contact& c = contacts_[e];
+    contact_values_[static_cast<std::size_t>(position_of(m, c.i, c.j))] = -g_[e];
+    contact_values_[static_cast<std::size_t>(position_of(m, c.j, c.i))] = -g_[e];
   }
   pattern_dirty_ = false;
 }
@@ -376,8 +377,6 @@ std::string ThermalModel::choose_solver(double contraction) const {
 // moves b only); t.theta1 follows. With busy_ only its rows are solved; the others are at rest.
 void ThermalModel::solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& dh,
                          StepTemperatures& t, StepReport& report) {
-  report.live_rows = static_cast<std::size_t>(std::count(p_.alive.begin(), p_.alive.end(), 1));
-  report.solved_rows = solve_busy_ ? busy_.particle.size() : report.live_rows;
   if (rows() > 0) solve_relative(solve_busy_ ? busy_ : all_, dt, c, t.rel0, dh, t.rel1, report);
   t.theta1 = t.rel1.array() + reference_;
 }
@@ -562,6 +561,8 @@ StepReport ThermalModel::step_once(double dt, const Eigen::VectorXd& dh_in) {
   }
   const Eigen::Map<const Eigen::VectorXd> theta(p_.temperature.data(), n);
   solve_busy_ = select_busy(theta, dh);
+  report.live_rows = static_cast<std::size_t>(std::count(p_.alive.begin(), p_.alive.end(), 1));
+  report.solved_rows = solve_busy_ ? busy_.particle.size() : report.live_rows;
   // From here on the step works on its rows: every particle, or the busy components' only (the
   // others keep their temperatures, phases and ledger entries exactly).
   StepTemperatures t;
