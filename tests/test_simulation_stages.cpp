@@ -170,14 +170,11 @@ TEST(SimulationStages, APulseStepLastsTheRaysFlight) {
 // pulse 2's does not. Refused as input when the run is set up, naming the pulse, not found
 // mid-run (where it ended the run without its outputs).
 TEST(SimulationStages, AResampledPulseThatCannotSampleTheProfileIsRefusedUpFront) {
-  SimulationSpec spec;
-  spec.packing.sample_size = kD;
-  spec.packing.count = 10;
+  SimulationSpec spec = quick_spec();
   spec.beam.rays = 1;
   spec.beam.decay = 1000;
   spec.beam.seed = 1;
   spec.pulses.count = 3;
-  spec.pulses.duration = 1e-15;
   ASSERT_NO_THROW(make_beam(spec.beam, kD, 0));
   spec.beam.resample = true;
   try {
