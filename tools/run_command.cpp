@@ -510,14 +510,13 @@ int sweep_command(const SweepOptions& options) {
   std::string csv = header + '\n';
   Series vv{"vaporized fraction", {}, {}};
   // Numbers on a numeric axis; words (`beam.profile`) as named places 0, 1, 2, ...
-  std::vector<double> xs;
-  for (const std::string& v : values) {
+  std::vector<double> xs(values.size());
+  bool named = false;
+  for (std::size_t k = 0; k < values.size(); ++k) {
     char* end = nullptr;
-    xs.push_back(std::strtod(v.c_str(), &end));
-    if (!end || *end != 0) xs.clear();
-    if (xs.empty()) break;
+    xs[k] = std::strtod(values[k].c_str(), &end);
+    named |= *end != 0;
   }
-  const bool named = xs.empty();
   const auto start = Clock::now();
   int code = 0;  // a value that fails leaves its row empty; the others still run and are written
   for (std::size_t k = 0; k < configs.size(); ++k) {
