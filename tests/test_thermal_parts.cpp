@@ -294,6 +294,46 @@ TEST(ThermalGraph, UpdatingTheLiveSetInPlaceEqualsANewAssembly) {
   for (std::size_t i = 0; i < in_place.size(); ++i) ASSERT_EQ(in_place[i], anew[i]) << i;
 }
 
+// Vaporisations split components and a redo joins them back; the model follows both in place,
+// walking only the components concerned. Seeded: 40 random live sets in a row (a tenth of the
+// particles vaporised or brought back each time, above the percolation threshold so a giant
+// component breaks up), each against a model built afresh on the same live set.
+TEST(ThermalGraph, ComponentsFollowVaporisationsAndRedosAsANewSearchFindsThem) {
+  Particles p = random_overlap_packing(1500, 1e-3, 0.45, 7);  // ~3 neighbours each
+  Material m;
+  m.conductivity = 10;
+  ThermalSpec spec;
+  spec.walls = {Wall{2, 0.0, 5e-5, 300.0, -1}};  // the face z = 0: some components are walled
+  const std::vector<Contact> contacts = find_contacts(p);
+  ThermalModel model(p, {m}, spec);
+  model.set_contacts(contacts);
+  std::mt19937_64 rng(2013);
+  std::size_t splits = 0, largest = 0;
+  for (int round = 0; round < 40; ++round) {
+    ThermalModel::Snapshot s = model.save();
+    for (auto& alive : s.alive)
+      if (std::uniform_real_distribution<>(0, 1)(rng) < 0.1) alive = !alive;
+    model.restore(s);
+    Particles fresh_p = p;
+    ThermalModel fresh(fresh_p, {m}, spec);
+    fresh.set_contacts(contacts);
+    std::size_t roots = 0;
+    for (std::size_t i = 0; i < p.size(); ++i) {
+      if (!p.alive[i]) continue;
+      ASSERT_EQ(model.component_of(i), fresh.component_of(i)) << "round " << round << " particle " << i;
+      ASSERT_EQ(model.in_insulated_cluster(i), fresh.in_insulated_cluster(i)) << "round " << round << " particle " << i;
+      roots += model.component_of(i) == i;
+      std::size_t size = 0;
+      if (model.component_of(i) == i)
+        for (std::size_t j = 0; j < p.size(); ++j) size += p.alive[j] && model.component_of(j) == i;
+      largest = std::max(largest, size);
+    }
+    splits += roots;
+  }
+  EXPECT_GT(largest, 200u);  // a giant component was there to break up
+  EXPECT_GT(splits, 40u * 100);
+}
+
 // A wall away from the particles' temperature drives its components: not at rest.
 TEST(ThermalSkip, AWallAtAnotherTemperatureKeepsItsComponentsBusy) {
   ThermalSpec cold, warm;

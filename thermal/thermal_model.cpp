@@ -114,38 +114,62 @@ void find_diagonal(const SparseMatrix& m, std::vector<Eigen::Index>& pos, Eigen:
 }  // namespace
 
 // Rebuilds L + W when the contacts or the live set changed. K = 0 (no conducting contact)
-// builds no matrix at all: the step is then diagonal.
+// builds no matrix at all: the step is then diagonal. When only some particles' live flags
+// changed (a vaporisation, a redo of the step), the work is in proportion to them and to their
+// components, not to the packing.
 void ThermalModel::assemble_if_needed() {
   if (!dirty_) return;
+  System& s = all_;
+  const bool conducts = live_contact_conducts();
+  const bool in_place = !pattern_dirty_ && s.live.size() == p_.alive.size() &&
+                        conducts == s.has_conduction && (!conducts || s.laplacian.nonZeros() > 0);
+  if (in_place) {
+    std::vector<Eigen::Index> changed;
+    for (std::size_t i = 0; i < p_.size(); ++i)
+      if (s.live[i] != p_.alive[i]) changed.push_back(static_cast<Eigen::Index>(i));
+    for (Eigen::Index i : changed) set_wall_terms(i);
+    if (conducts) update_live_set(changed);
+    for (Eigen::Index i : changed) s.live[i] = p_.alive[i];
+  } else {
+    assemble_anew(conducts);
+  }
+  ++assembly_;
+  dirty_ = false;
+}
+
+// Some contact with G > 0 joins two live particles (after vaporisations there may be none left).
+bool ThermalModel::live_contact_conducts() const {
+  for (std::size_t e = 0; e < contacts_.size(); ++e)
+    if (g_[e] > 0 && p_.alive[contacts_[e].i] && p_.alive[contacts_[e].j]) return true;
+  return false;
+}
+
+// Particle i's wall terms in all_ (zero while it is not live); without conduction they are
+// its whole diagonal.
+void ThermalModel::set_wall_terms(Eigen::Index i) {
+  System& s = all_;
+  const bool live = p_.alive[i];
+  s.wall_source[i] = live ? walls_.source[i] - walls_.conductance[i] * reference_ : 0.0;  // b relative to it
+  s.wall_conductance[i] = live ? walls_.conductance[i] : 0.0;
+  if (!s.has_conduction) s.diagonal[i] = s.wall_conductance[i];
+}
+
+void ThermalModel::assemble_anew(bool conducts) {
   const auto n = static_cast<Eigen::Index>(p_.size());
   System& s = all_;
-  const std::vector<std::uint8_t> before = s.live;
   s.wall_source = Eigen::VectorXd::Zero(n);
   s.diagonal = Eigen::VectorXd::Zero(n);
   s.wall_conductance = Eigen::VectorXd::Zero(n);
   s.live = p_.alive;
-  for (Eigen::Index i = 0; i < n; ++i) {
-    if (!p_.alive[i]) continue;
-    s.wall_source[i] = walls_.source[i] - walls_.conductance[i] * reference_;  // b relative to it
-    s.diagonal[i] = s.wall_conductance[i] = walls_.conductance[i];
-  }
-  // Only contacts between live particles conduct: after vaporisations there may be none left.
-  s.has_conduction = false;
-  for (std::size_t e = 0; e < contacts_.size() && !s.has_conduction; ++e)
-    s.has_conduction = g_[e] > 0 && p_.alive[contacts_[e].i] && p_.alive[contacts_[e].j];
-  if (s.has_conduction) {
-    // Only the live set changed (a vaporisation, a redo of the step): the same pattern, updated.
-    if (pattern_dirty_ || s.laplacian.nonZeros() == 0 || before.size() != p_.alive.size())
-      assemble_all();
-    else
-      update_live_set(before);
+  s.has_conduction = conducts;
+  for (Eigen::Index i = 0; i < n; ++i) set_wall_terms(i);
+  if (conducts) {
+    assemble_all();
     find_diagonal(s.laplacian, s.diag_pos, s.diagonal);
     find_components();
   } else {
     s.laplacian = SparseMatrix();
   }
-  ++assembly_;
-  dirty_ = false;
 }
 
 // L + W from the contacts, and each off-diagonal's -G as if both ends were live.
@@ -163,14 +187,13 @@ void ThermalModel::assemble_all() {
 
 // The columns of the particles whose live flag changed, and of their neighbours, recomputed in
 // place as conduction_matrix builds them: the wall's G first, then each live neighbour's in
-// ascending order (the contacts' order), so the values equal a new assembly bit for bit.
-void ThermalModel::update_live_set(const std::vector<std::uint8_t>& before) {
+// ascending order (the contacts' order), so the values equal a new assembly bit for bit. The
+// diagonal and the components of those particles follow.
+void ThermalModel::update_live_set(const std::vector<Eigen::Index>& changed) {
   SparseMatrix& m = all_.laplacian;
   std::vector<Eigen::Index> touched;
-  for (Eigen::Index i = 0; i < m.cols(); ++i) {
-    if (before[i] == p_.alive[i]) continue;
+  for (Eigen::Index i : changed)
     for (SparseMatrix::InnerIterator it(m, i); it; ++it) touched.push_back(it.row());
-  }
   std::sort(touched.begin(), touched.end());
   touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
   double* values = m.valuePtr();
@@ -187,13 +210,14 @@ void ThermalModel::update_live_set(const std::vector<std::uint8_t>& before) {
       values[k] = v;
       diagonal += -v;
     }
-    values[at] = diagonal;
+    values[at] = all_.diagonal[j] = diagonal;
   }
+  update_components(touched);
 }
 
-// Connected components of the live conducting contacts (union-find), and among them the
-// insulated clusters: a component with a wall contact is left out of those, the wall anchors its
-// temperature level and there is no null space.
+// Connected components of the live conducting contacts (union-find): each live particle's
+// component is named by its lowest particle id, which also keeps the component's size and
+// whether a wall touches it.
 void ThermalModel::find_components() {
   const std::size_t n = p_.size();
   std::vector<std::size_t> root(n);
@@ -202,31 +226,99 @@ void ThermalModel::find_components() {
     while (root[i] != i) i = root[i] = root[root[i]];
     return i;
   };
-  std::vector<std::uint8_t> joined(n, 0);
   for (std::size_t e = 0; e < contacts_.size(); ++e) {
     const Contact& k = contacts_[e];
     if (!(g_[e] > 0) || !p_.alive[k.i] || !p_.alive[k.j]) continue;
-    joined[k.i] = joined[k.j] = 1;
     const std::size_t a = find(k.i), b = find(k.j);
     if (a != b) root[std::max(a, b)] = std::min(a, b);
   }
-  std::vector<std::uint8_t> walled(n, 0);
-  for (std::size_t i = 0; i < n; ++i)
-    if (joined[i] && walls_.conductance[i] > 0) walled[find(i)] = 1;
-  component_.assign(n, std::numeric_limits<std::uint32_t>::max());
-  all_.cluster.assign(n, -1);
-  all_.ground.clear();
-  std::vector<int> id_of_root(n, -1);
-  for (std::size_t i = 0; i < n; ++i) {  // i ascending: a cluster's ground is its lowest id
+  component_.assign(n, kNoComponent);
+  component_size_.assign(n, 0);
+  component_walled_.assign(n, 0);
+  visited_.assign(n, 0);
+  cluster_of_root_.assign(n, -1);
+  for (std::size_t i = 0; i < n; ++i) {
     if (!p_.alive[i]) continue;
     const std::size_t r = find(i);
     component_[i] = static_cast<std::uint32_t>(r);
-    if (!joined[i] || walled[r]) continue;
-    if (id_of_root[r] < 0) {
-      id_of_root[r] = static_cast<int>(all_.ground.size());
-      all_.ground.push_back(static_cast<Eigen::Index>(i));
+    ++component_size_[r];
+    component_walled_[r] |= walls_.conductance[i] > 0;
+  }
+}
+
+// The live particles joined to `from` by conducting contacts, `from` included, marked in
+// visited_ with `stamp` (a breadth-first walk over L's pattern).
+void ThermalModel::collect_component(Eigen::Index from, std::uint32_t stamp, std::vector<Eigen::Index>& out) {
+  const SparseMatrix& m = all_.laplacian;
+  std::size_t next = out.size();
+  visited_[from] = stamp;
+  out.push_back(from);
+  for (; next < out.size(); ++next) {
+    const Eigen::Index j = out[next];
+    for (Eigen::Index k = m.outerIndexPtr()[j]; k < m.outerIndexPtr()[j + 1]; ++k) {
+      const Eigen::Index r = m.innerIndexPtr()[k];
+      if (visited_[r] == stamp || !p_.alive[r] || !(contact_values_[static_cast<std::size_t>(k)] < 0)) continue;
+      visited_[r] = stamp;
+      out.push_back(r);
     }
-    all_.cluster[i] = id_of_root[r];
+  }
+}
+
+// After a change of live set, the components of the touched particles (those whose flag
+// changed and their neighbours), walked anew. Nothing else changes: a component that lost
+// particles falls into pieces that each hold a neighbour of a lost one, and one that gained a
+// particle holds that particle.
+void ThermalModel::update_components(const std::vector<Eigen::Index>& touched) {
+  if (stamp_ == std::numeric_limits<std::uint32_t>::max()) {  // the stamps wrap: start again
+    std::fill(visited_.begin(), visited_.end(), 0);
+    stamp_ = 0;
+  }
+  const std::uint32_t stamp = ++stamp_;
+  std::vector<Eigen::Index> members;
+  for (Eigen::Index i : touched) {
+    if (!p_.alive[i]) component_[i] = kNoComponent;
+    if (!p_.alive[i] || visited_[i] == stamp) continue;
+    members.clear();
+    collect_component(i, stamp, members);
+    const Eigen::Index r = *std::min_element(members.begin(), members.end());
+    std::uint8_t walled = 0;
+    for (Eigen::Index j : members) {
+      component_[j] = static_cast<std::uint32_t>(r);
+      walled |= walls_.conductance[j] > 0;
+    }
+    component_size_[r] = static_cast<std::uint32_t>(members.size());
+    component_walled_[r] = walled;
+  }
+}
+
+std::uint32_t ThermalModel::component_of(std::size_t i) {
+  assemble_if_needed();
+  if (!p_.alive[i]) throw RunError("component_of: particle " + std::to_string(i) + " is not live");
+  return all_.has_conduction ? component_[i] : static_cast<std::uint32_t>(i);
+}
+
+bool ThermalModel::in_insulated_cluster(std::size_t i) {
+  const std::uint32_t r = component_of(i);
+  return all_.has_conduction && component_size_[r] >= 2 && !component_walled_[r];
+}
+
+// A system's insulated clusters (>= 2 live particles joined by conducting contacts, no wall
+// touching them): cluster id per row and the row grounded in each, the component's lowest
+// particle (rows ascend, so it is the cluster's first row).
+void ThermalModel::mark_clusters(System& s) {
+  const auto m = static_cast<Eigen::Index>(s.rows());
+  s.cluster.assign(static_cast<std::size_t>(m), -1);
+  s.ground.clear();
+  if (!s.has_conduction) return;
+  for (Eigen::Index k = 0; k < m; ++k) {
+    const std::size_t i = s.particle.empty() ? static_cast<std::size_t>(k) : static_cast<std::size_t>(s.particle[k]);
+    const std::uint32_t r = component_[i];
+    if (r == kNoComponent || component_size_[r] < 2 || component_walled_[r]) continue;
+    if (r == i) {
+      cluster_of_root_[r] = static_cast<int>(s.ground.size());
+      s.ground.push_back(k);
+    }
+    s.cluster[k] = cluster_of_root_[r];
   }
 }
 
@@ -262,7 +354,8 @@ bool ThermalModel::select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, 
 void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
   System& s = busy_;
   const auto m = static_cast<Eigen::Index>(rows.size());
-  std::vector<Eigen::Index> row_of(p_.size(), -1);
+  std::vector<Eigen::Index>& row_of = row_of_;  // -1 outside the rows between calls
+  row_of.resize(p_.size(), -1);
   for (Eigen::Index k = 0; k < m; ++k) row_of[rows[k]] = k;
   s.diagonal.resize(m), s.wall_source.resize(m), s.wall_conductance.resize(m);
   s.has_conduction = all_.has_conduction;
@@ -278,23 +371,15 @@ void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
     s.laplacian = SparseMatrix();
     for (Eigen::Index k = 0; k < m; ++k) s.diagonal[k] = all_.diagonal[rows[k]];  // the walls'
   }
-  s.cluster.assign(static_cast<std::size_t>(m), -1);
-  s.ground.clear();
-  std::vector<int> id_of(all_.ground.size(), -1);
   for (Eigen::Index k = 0; k < m; ++k) {
     s.wall_source[k] = all_.wall_source[rows[k]];
     s.wall_conductance[k] = all_.wall_conductance[rows[k]];
-    const int c = s.has_conduction ? all_.cluster[rows[k]] : -1;
-    if (c < 0) continue;
-    if (id_of[c] < 0) {
-      id_of[c] = static_cast<int>(s.ground.size());
-      s.ground.push_back(row_of[all_.ground[c]]);
-    }
-    s.cluster[k] = id_of[c];
+    row_of[rows[k]] = -1;
   }
   s.live.assign(static_cast<std::size_t>(m), 1);
   s.pattern_version = ++versions_;
   s.particle = std::move(rows);
+  mark_clusters(s);
   busy_assembly_ = assembly_;
 }
 
@@ -377,6 +462,10 @@ std::string ThermalModel::choose_solver(double contraction) const {
 // moves b only); t.theta1 follows. With busy_ only its rows are solved; the others are at rest.
 void ThermalModel::solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& dh,
                          StepTemperatures& t, StepReport& report) {
+  if (!solve_busy_ && clusters_assembly_ != assembly_) {  // the whole system's, when it is solved
+    mark_clusters(all_);
+    clusters_assembly_ = assembly_;
+  }
   if (rows() > 0) solve_relative(solve_busy_ ? busy_ : all_, dt, c, t.rel0, dh, t.rel1, report);
   t.theta1 = t.rel1.array() + reference_;
 }

@@ -3,6 +3,7 @@
 // particles and with walls, the generalised trapezoidal step (3.10)/(3.11), phase change by
 // latent-heat bands (paper, section 4), vaporised particles removed, and an energy ledger.
 #include <cstdint>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -107,6 +108,12 @@ class ThermalModel {
   // Thermal mass m_i C_i / M of particle i in its current phase (no bands).
   double thermal_mass(std::size_t i) const;
 
+  // The conducting component of live particle i (contacts with G > 0 between live particles),
+  // named by its lowest particle id, and whether it is an insulated cluster (>= 2 particles, no
+  // wall touching it: the direct solver grounds one of them). For diagnostics and tests.
+  std::uint32_t component_of(std::size_t i);
+  bool in_insulated_cluster(std::size_t i);
+
   // Saves and restores temperatures, phases, live flags and the ledger (to redo a step for the
   // stagger). The contact list is not part of it: restore before calling set_contacts again.
   Snapshot save() const;
@@ -125,7 +132,8 @@ class ThermalModel {
     Eigen::VectorXd wall_conductance;    // sum_w g_w (live), W/K
     std::vector<std::uint8_t> live;
     // Insulated clusters (>= 2 live particles joined by conducting contacts, none touching a
-    // wall): cluster id per row (-1: none) and the row grounded in each (solve_direct_grounded).
+    // wall): cluster id per row (-1: none) and the row grounded in each (solve_direct_grounded),
+    // marked by mark_clusters.
     std::vector<int> cluster;
     std::vector<Eigen::Index> ground;
     std::uint64_t pattern_version = 0;   // the direct solver keeps its analysis while unchanged
@@ -141,9 +149,15 @@ class ThermalModel {
   };
   StepReport step_once(double dt, const Eigen::VectorXd& dh);
   void assemble_if_needed();
+  bool live_contact_conducts() const;
+  void set_wall_terms(Eigen::Index i);
+  void assemble_anew(bool conducts);
   void assemble_all();
-  void update_live_set(const std::vector<std::uint8_t>& before);
+  void update_live_set(const std::vector<Eigen::Index>& changed);
   void find_components();
+  void collect_component(Eigen::Index from, std::uint32_t stamp, std::vector<Eigen::Index>& out);
+  void update_components(const std::vector<Eigen::Index>& touched);
+  void mark_clusters(System& s);
   bool select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Eigen::VectorXd& dh);
   void build_busy_system(std::vector<Eigen::Index> rows);
   Eigen::VectorXd base_capacity() const;
@@ -184,8 +198,17 @@ class ThermalModel {
   std::uint64_t assembly_ = 0;       // counts assemblies of all_: busy_ is cut from one of them
   std::uint64_t busy_assembly_ = 0;  // the assembly busy_ was cut from
   std::uint64_t versions_ = 1;       // pattern versions handed out (all_ and busy_ share the solver)
-  // Connected component of each live particle under conducting contacts: its lowest particle id.
+  // Connected component of each live particle under conducting contacts: its lowest particle id
+  // (kNoComponent for the others). By that id: the component's size and whether a wall touches it.
+  static constexpr std::uint32_t kNoComponent = std::numeric_limits<std::uint32_t>::max();
   std::vector<std::uint32_t> component_;
+  std::vector<std::uint32_t> component_size_;
+  std::vector<std::uint8_t> component_walled_;
+  std::vector<std::uint32_t> visited_;  // walks over the contacts (update_components): stamps
+  std::uint32_t stamp_ = 0;
+  std::vector<int> cluster_of_root_;    // mark_clusters' scratch, by component id
+  std::vector<Eigen::Index> row_of_;    // build_busy_system's scratch: -1 between calls
+  std::uint64_t clusters_assembly_ = 0; // the assembly all_'s clusters were marked for
   // The temperature the solve measures from: the first wall's (0 K without walls). L 1 = 0, so
   // the shift moves only the wall sources, to 0 at a wall of that temperature; a particle held
   // near it by a wall of 1e9 W/K then changes by digits a temperature near 300 K cannot hold,
