@@ -334,6 +334,65 @@ TEST(ThermalGraph, ComponentsFollowVaporisationsAndRedosAsANewSearchFindsThem) {
   EXPECT_GT(splits, 40u * 100);
 }
 
+// After its first step the model looks only at the components it solved last and at those given
+// heat: it must pick the same rows as a look at every particle, step after step, through heating,
+// cooling without heat, vaporisation, sub-steps and the stagger's redo of a step. The second
+// model is made to look at every particle each step (a snapshot it did not take).
+TEST(ThermalSkip, TheRestlessComponentsAreTheBusyOnesEveryParticleWouldShow) {
+  for (double k : {100.0, 0.0})
+    for (double phi : {1.0, 0.5})
+      for (const char* walls : {"", "450"}) {
+        std::ostringstream name;
+        name << "K " << k << " phi " << phi << " wall " << walls;
+        RestingScene a(1e-10, k), b(1e-10, k);
+        ThermalSpec spec;
+        spec.phi = phi;
+        if (*walls) spec.walls = {Wall{2, 0.0, 2e-5, std::atof(walls), -1}};
+        ThermalModel tracked(a.p, {a.m}, spec), looked(b.p, {b.m}, spec);
+        tracked.set_contacts(find_contacts(a.p));
+        looked.set_contacts(find_contacts(b.p));
+        std::size_t vaporized = 0, skipped = 0;
+        for (int step = 0; step < 12; ++step) {
+          ThermalModel::Snapshot from_elsewhere = looked.save();
+          from_elsewhere.model = 0;
+          looked.restore(from_elsewhere);
+          const bool heat = step % 4 < 2;  // two steps heated, two cooling, ...
+          for (std::size_t i = 0; i < a.dh.size(); ++i)
+            if (!a.p.alive[i]) a.dh[i] = 0;
+          const std::vector<double> dh = heat ? a.dh : std::vector<double>{};
+          const ThermalModel::Snapshot before = tracked.save(), before_b = looked.save();
+          StepReport ra = tracked.step(2e-10, dh), rb = looked.step(2e-10, dh);
+          if (step == 5) {  // the stagger: the step undone and redone
+            tracked.restore(before), looked.restore(before_b);
+            ra = tracked.step(2e-10, dh), rb = looked.step(2e-10, dh);
+          }
+          ASSERT_EQ(ra.solved_rows, rb.solved_rows) << name.str() << " step " << step;
+          ASSERT_EQ(ra.vaporized, rb.vaporized) << name.str() << " step " << step;
+          ASSERT_EQ(a.p.temperature, b.p.temperature) << name.str() << " step " << step;
+          vaporized += ra.vaporized.size();
+          skipped += ra.solved_rows < ra.live_rows;
+        }
+        EXPECT_GT(vaporized, 0u) << name.str();
+        EXPECT_GE(skipped, 10u) << name.str();
+      }
+}
+
+// A snapshot of another model (or from before the last step) may hold components that are not
+// at rest where this model's record says nothing is: after restoring it the model looks again.
+TEST(ThermalSkip, ASnapshotFromElsewhereIsLookedAtWhole) {
+  RestingScene a(5e-13), b(5e-13);
+  ThermalModel warmed(a.p, {a.m}, {}), idle(b.p, {b.m}, {});
+  warmed.set_contacts(find_contacts(a.p));
+  idle.set_contacts(find_contacts(b.p));
+  warmed.step(2e-10, a.dh);       // the heated components now differ inside
+  idle.step(2e-10, {});           // nothing to do: its record holds no component
+  idle.restore(warmed.save());    // the same step count, another model
+  const StepReport ra = warmed.step(2e-10, {}), rb = idle.step(2e-10, {});
+  EXPECT_GT(rb.solved_rows, 0u);
+  EXPECT_EQ(ra.solved_rows, rb.solved_rows);
+  EXPECT_EQ(a.p.temperature, b.p.temperature);
+}
+
 // A wall away from the particles' temperature drives its components: not at rest.
 TEST(ThermalSkip, AWallAtAnotherTemperatureKeepsItsComponentsBusy) {
   ThermalSpec cold, warm;

@@ -1,6 +1,7 @@
 #include "thermal/thermal_model.h"
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -48,6 +49,8 @@ void ThermalSpec::validate() const {
 
 ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials, ThermalSpec spec)
     : p_(particles), materials_(std::move(materials)), spec_(std::move(spec)) {
+  static std::atomic<std::uint64_t> models{0};
+  model_id_ = ++models;
   spec_.validate();
   if (materials_.empty()) input_error("material", "(none)", "at least one material is needed");
   for (std::size_t k = 0; k < materials_.size(); ++k)
@@ -129,6 +132,7 @@ void ThermalModel::assemble_if_needed() {
       if (s.live[i] != p_.alive[i]) changed.push_back(static_cast<Eigen::Index>(i));
     for (Eigen::Index i : changed) set_wall_terms(i);
     if (conducts) update_live_set(changed);
+    else if (restless_known_) restless_.insert(restless_.end(), changed.begin(), changed.end());
     for (Eigen::Index i : changed) s.live[i] = p_.alive[i];
   } else {
     assemble_anew(conducts);
@@ -162,6 +166,7 @@ void ThermalModel::assemble_anew(bool conducts) {
   s.wall_conductance = Eigen::VectorXd::Zero(n);
   s.live = p_.alive;
   s.has_conduction = conducts;
+  restless_known_ = false;  // contacts may have joined components: look at every particle
   for (Eigen::Index i = 0; i < n; ++i) set_wall_terms(i);
   if (conducts) {
     assemble_all();
@@ -213,6 +218,7 @@ void ThermalModel::update_live_set(const std::vector<Eigen::Index>& changed) {
     values[at] = all_.diagonal[j] = diagonal;
   }
   update_components(touched);
+  if (restless_known_) restless_.insert(restless_.end(), touched.begin(), touched.end());
 }
 
 // Connected components of the live conducting contacts (union-find): each live particle's
@@ -246,6 +252,16 @@ void ThermalModel::find_components() {
   }
 }
 
+// A mark for a new walk over the particles (visited_ holds older ones).
+std::uint32_t ThermalModel::next_stamp() {
+  visited_.resize(p_.size(), 0);
+  if (stamp_ == std::numeric_limits<std::uint32_t>::max()) {  // the stamps wrap: start again
+    std::fill(visited_.begin(), visited_.end(), 0);
+    stamp_ = 0;
+  }
+  return ++stamp_;
+}
+
 // The live particles joined to `from` by conducting contacts, `from` included, marked in
 // visited_ with `stamp` (a breadth-first walk over L's pattern).
 void ThermalModel::collect_component(Eigen::Index from, std::uint32_t stamp, std::vector<Eigen::Index>& out) {
@@ -269,11 +285,7 @@ void ThermalModel::collect_component(Eigen::Index from, std::uint32_t stamp, std
 // particles falls into pieces that each hold a neighbour of a lost one, and one that gained a
 // particle holds that particle.
 void ThermalModel::update_components(const std::vector<Eigen::Index>& touched) {
-  if (stamp_ == std::numeric_limits<std::uint32_t>::max()) {  // the stamps wrap: start again
-    std::fill(visited_.begin(), visited_.end(), 0);
-    stamp_ = 0;
-  }
-  const std::uint32_t stamp = ++stamp_;
+  const std::uint32_t stamp = next_stamp();
   std::vector<Eigen::Index> members;
   for (Eigen::Index i : touched) {
     if (!p_.alive[i]) component_[i] = kNoComponent;
@@ -329,24 +341,62 @@ void ThermalModel::mark_clusters(System& s) {
 // live particles. True when this step solves busy_.
 bool ThermalModel::select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Eigen::VectorXd& dh) {
   if (!spec_.skip_resting) return false;
+  const auto live = static_cast<std::size_t>(std::count(p_.alive.begin(), p_.alive.end(), 1));
+  std::vector<Eigen::Index> rows = restless_known_ ? busy_rows_of_restless(theta0, dh) : busy_rows_of_all(theta0, dh);
+  if (4 * rows.size() >= 3 * live) return false;
+  if (rows != busy_.particle || busy_assembly_ != assembly_) build_busy_system(std::move(rows));
+  return true;
+}
+
+namespace {
+bool particle_busy(double dh, double theta, double theta_root, double wall_g, double wall_source) {
+  return dh != 0 || theta != theta_root || wall_g * theta != wall_source;
+}
+}  // namespace
+
+// Every live particle looked at (the first step, or when restless_ is not known).
+std::vector<Eigen::Index> ThermalModel::busy_rows_of_all(const Eigen::Ref<const Eigen::VectorXd>& theta0,
+                                                        const Eigen::VectorXd& dh) const {
   const std::size_t n = p_.size();
   const bool graph = all_.has_conduction;  // without one, every particle is its own component
   auto component = [&](std::size_t i) { return graph ? std::size_t{component_[i]} : i; };
   std::vector<std::uint8_t> busy(n, 0);  // by component
-  std::size_t live = 0;
   for (std::size_t i = 0; i < n; ++i) {
     if (!p_.alive[i]) continue;
-    ++live;
     const std::size_t r = component(i);
-    if (dh[i] != 0 || theta0[i] != theta0[r] || walls_.conductance[i] * theta0[i] != walls_.source[i])
-      busy[r] = 1;
+    if (particle_busy(dh[i], theta0[i], theta0[r], walls_.conductance[i], walls_.source[i])) busy[r] = 1;
   }
   std::vector<Eigen::Index> rows;
   for (std::size_t i = 0; i < n; ++i)
     if (p_.alive[i] && busy[component(i)]) rows.push_back(static_cast<Eigen::Index>(i));
-  if (4 * rows.size() >= 3 * live) return false;
-  if (rows != busy_.particle || busy_assembly_ != assembly_) build_busy_system(std::move(rows));
-  return true;
+  return rows;
+}
+
+// Only the components of restless_ and of the particles given heat: the others are at rest.
+std::vector<Eigen::Index> ThermalModel::busy_rows_of_restless(const Eigen::Ref<const Eigen::VectorXd>& theta0,
+                                                             const Eigen::VectorXd& dh) {
+  std::vector<Eigen::Index> seeds = restless_;
+  for (Eigen::Index i = 0; i < dh.size(); ++i)
+    if (dh[i] != 0) seeds.push_back(i);
+  const std::uint32_t stamp = next_stamp();
+  std::vector<Eigen::Index> rows, members;
+  for (Eigen::Index i : seeds) {
+    if (!p_.alive[i] || visited_[i] == stamp) continue;
+    members.clear();
+    if (all_.has_conduction) {
+      collect_component(i, stamp, members);
+    } else {
+      visited_[i] = stamp;
+      members.push_back(i);
+    }
+    const Eigen::Index r = all_.has_conduction ? Eigen::Index{component_[i]} : i;
+    const bool busy = std::any_of(members.begin(), members.end(), [&](Eigen::Index j) {
+      return particle_busy(dh[j], theta0[j], theta0[r], walls_.conductance[j], walls_.source[j]);
+    });
+    if (busy) rows.insert(rows.end(), members.begin(), members.end());
+  }
+  std::sort(rows.begin(), rows.end());
+  return rows;
 }
 
 // busy_ cut from all_: the rows' columns of L + W (their nonzero entries stay inside the rows'
@@ -706,8 +756,16 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
   const std::vector<Phase> phase_before = p_.phase;
   const int substeps = static_cast<int>(parts);
   StepReport report;
+  std::vector<Eigen::Index> solved;  // rows of every sub-step: the next step's restless_
+  bool whole = false;
   for (int k = 0; k < substeps; ++k) {
     StepReport sub = step_once(dt / substeps, dh / substeps);
+    if (solve_busy_) {
+      solved.insert(solved.end(), busy_.particle.begin(), busy_.particle.end());
+      restless_ = busy_.particle, restless_known_ = true;  // for the next sub-step
+    } else {
+      whole = true;
+    }
     report.vaporized.insert(report.vaporized.end(), sub.vaporized.begin(), sub.vaporized.end());
     report.solver = sub.solver;
     report.iterations += sub.iterations;
@@ -723,6 +781,11 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
     report.factors_reused = sub.factors_reused;
   }
   report.substeps = substeps;
+  std::sort(solved.begin(), solved.end());
+  solved.erase(std::unique(solved.begin(), solved.end()), solved.end());
+  restless_ = std::move(solved);
+  restless_known_ = !whole;
+  ++steps_;
   for (std::size_t i = 0; i < n; ++i)
     if (p_.alive[i] && p_.phase[i] != phase_before[i])
       report.phase_changed.push_back(static_cast<std::uint32_t>(i));
@@ -730,7 +793,7 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
 }
 
 ThermalModel::Snapshot ThermalModel::save() const {
-  return {p_.temperature, p_.phase, p_.alive, stored_, ledger_};
+  return {p_.temperature, p_.phase, p_.alive, stored_, ledger_, model_id_, steps_};
 }
 
 void ThermalModel::restore(const Snapshot& s) {
@@ -740,6 +803,10 @@ void ThermalModel::restore(const Snapshot& s) {
   // Reassemble only if the live set differs from the matrix's: a redo without vaporisation keeps
   // it (compared with the assembled set, not p_.alive, which a checkpoint may have set already).
   if (all_.live != s.alive) dirty_ = true;
+  // restless_ holds every component not at rest in the state before the last step, and in the
+  // state now: any other state is looked at whole.
+  if (s.model != model_id_ || (s.steps != steps_ && s.steps + 1 != steps_)) restless_known_ = false;
+  steps_ = s.steps;
   p_.temperature = s.temperature;
   p_.phase = s.phase;
   p_.alive = s.alive;

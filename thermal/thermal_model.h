@@ -75,6 +75,9 @@ class ThermalModel {
     std::vector<std::uint8_t> alive;
     std::vector<double> stored;
     ThermalLedger ledger;
+    // Which model took it, after how many steps: restoring the state before the model's last
+    // step keeps its record of the components that may not be at rest.
+    std::uint64_t model = 0, steps = 0;
   };
 
   // Validates the spec and materials; sets each live particle's phase from its temperature
@@ -113,6 +116,10 @@ class ThermalModel {
   // wall touching it: the direct solver grounds one of them). For diagnostics and tests.
   std::uint32_t component_of(std::size_t i);
   bool in_insulated_cluster(std::size_t i);
+
+  // Between steps the temperatures, phases and live flags of the particles belong to the model:
+  // set them before constructing it, or through restore(); a change made behind its back can go
+  // unseen by skip_resting.
 
   // Saves and restores temperatures, phases, live flags and the ledger (to redo a step for the
   // stagger). The contact list is not part of it: restore before calling set_contacts again.
@@ -157,8 +164,13 @@ class ThermalModel {
   void find_components();
   void collect_component(Eigen::Index from, std::uint32_t stamp, std::vector<Eigen::Index>& out);
   void update_components(const std::vector<Eigen::Index>& touched);
+  std::uint32_t next_stamp();
   void mark_clusters(System& s);
   bool select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Eigen::VectorXd& dh);
+  std::vector<Eigen::Index> busy_rows_of_all(const Eigen::Ref<const Eigen::VectorXd>& theta0,
+                                             const Eigen::VectorXd& dh) const;
+  std::vector<Eigen::Index> busy_rows_of_restless(const Eigen::Ref<const Eigen::VectorXd>& theta0,
+                                                  const Eigen::VectorXd& dh);
   void build_busy_system(std::vector<Eigen::Index> rows);
   Eigen::VectorXd base_capacity() const;
   Eigen::VectorXd capacity_with_bands(const Eigen::VectorXd& theta0,
@@ -208,6 +220,14 @@ class ThermalModel {
   std::uint32_t stamp_ = 0;
   std::vector<int> cluster_of_root_;    // mark_clusters' scratch, by component id
   std::vector<Eigen::Index> row_of_;    // build_busy_system's scratch: -1 between calls
+  // skip_resting without a scan of every particle: every component not at rest (temperatures
+  // that differ, a wall at another temperature) holds a particle in restless_, the rows solved
+  // in the last step (with its sub-steps). False before the first step, after a new assembly,
+  // a whole solve or a restore from elsewhere: the next step looks at every particle.
+  std::vector<Eigen::Index> restless_;
+  bool restless_known_ = false;
+  std::uint64_t steps_ = 0;             // step() calls (restore sets it back)
+  std::uint64_t model_id_ = 0;          // tells this model's snapshots from others'
   std::uint64_t clusters_assembly_ = 0; // the assembly all_'s clusters were marked for
   // The temperature the solve measures from: the first wall's (0 K without walls). L 1 = 0, so
   // the shift moves only the wall sources, to 0 at a wall of that temperature; a particle held
