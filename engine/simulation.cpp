@@ -156,7 +156,6 @@ bool Simulation::step() {
   launch_pulse_if_due();
   const double budget = spec_.dt > 0 ? kSpeedOfLight * spec_.dt : std::numeric_limits<double>::infinity();
   const RayState rays_before = tracer_->save();
-  const ThermalModel::Snapshot heat_before = thermal_->save();
   std::vector<Phase> optical_phase;  // phases the rays see; empty: the current ones
   StepReport report;
   double dt = 0;
@@ -188,7 +187,7 @@ bool Simulation::step() {
     }
     // Stagger: a phase change that alters the optics of a particle the rays met in this step
     // sends the step back to the trace, with the new indices (bounded number of times).
-    if (!optics_changed(optical_phase.empty() ? heat_before.phase : optical_phase) ||
+    if (!optics_changed(optical_phase) ||
         pass >= spec_.max_staggers)
       break;
     StageClock clock(stages_[kStagger]);
@@ -197,7 +196,7 @@ bool Simulation::step() {
     for (Phase& phase : optical_phase) phase = optical(phase);
     tracer_->restore(rays_before);
     tracer_->take_segments();  // the redone trace records its own
-    thermal_->restore(heat_before);
+    thermal_->undo_step();
     report = StepReport{};
   }
   for (std::size_t i = 0; i < deposits_.size(); ++i) absorbed_[i] += deposits_[i];
@@ -224,10 +223,13 @@ Phase Simulation::optical(Phase phase) { return phase == Phase::vapor ? Phase::l
 
 // Whether a particle the rays met in this step ends it with another index than the trace used:
 // solid <-> liquid, and solid -> vapour (which passed through liquid). `seen` is what the trace
-// used; every particle is compared, so one the redo saw as liquid that ends solid counts too.
+// used (empty: the phases before the step); every particle is compared, so one the redo saw as
+// liquid that ends solid counts too.
 bool Simulation::optics_changed(const std::vector<Phase>& seen) const {
-  for (std::size_t i = 0; i < deposits_.size(); ++i)
-    if (deposits_[i] > 0 && optical(particles_.phase[i]) != seen[i]) return true;
+  for (std::size_t i = 0; i < deposits_.size(); ++i) {
+    if (!(deposits_[i] > 0)) continue;
+    if (optical(particles_.phase[i]) != (seen.empty() ? thermal_->phase_before_step(i) : seen[i])) return true;
+  }
   return false;
 }
 

@@ -654,6 +654,7 @@ void ThermalModel::account(double dt, const Eigen::VectorXd& c, const StepTemper
   for (Eigen::Index k = 0; k < rows(); ++k) {
     const std::size_t i = particle_of(k);
     if (!p_.alive[i]) continue;
+    remember(i);
     const double de = c[k] * (theta1[k] - theta0[k]);
     stored_[i] += de;
     stored += de;
@@ -671,6 +672,7 @@ void ThermalModel::update_phases(const Eigen::VectorXd& theta1, StepReport& repo
   for (Eigen::Index k = 0; k < rows(); ++k) {
     const std::size_t i = particle_of(k);
     if (!p_.alive[i]) continue;
+    remember(i);
     p_.temperature[i] = theta1[k];
     const Phase phase = phase_at(materials_[p_.material[i]], theta1[k]);
     if (phase != Phase::vapor) {
@@ -753,7 +755,12 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
         << ": use thermal.phi = 1 (monotone at any step) or a smaller thermal.dt";
     throw InputError(msg.str());
   }
-  const std::vector<Phase> phase_before = p_.phase;
+  for (const Undo& u : undo_) undo_slot_[u.particle] = -1;
+  undo_.clear();
+  undo_slot_.resize(n, -1);
+  undo_ledger_ = ledger_;
+  undo_steps_ = steps_;
+  undo_ready_ = true;
   const int substeps = static_cast<int>(parts);
   StepReport report;
   std::vector<Eigen::Index> solved;  // rows of every sub-step: the next step's restless_
@@ -786,10 +793,37 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
   restless_ = std::move(solved);
   restless_known_ = !whole;
   ++steps_;
-  for (std::size_t i = 0; i < n; ++i)
-    if (p_.alive[i] && p_.phase[i] != phase_before[i])
-      report.phase_changed.push_back(static_cast<std::uint32_t>(i));
+  for (const Undo& u : undo_)  // every particle whose phase the step set is in undo_
+    if (p_.alive[u.particle] && p_.phase[u.particle] != u.phase)
+      report.phase_changed.push_back(static_cast<std::uint32_t>(u.particle));
+  std::sort(report.phase_changed.begin(), report.phase_changed.end());
   return report;
+}
+
+// Particle i's state before the step's first change to it.
+void ThermalModel::remember(std::size_t i) {
+  if (undo_slot_[i] >= 0) return;
+  undo_slot_[i] = static_cast<std::int32_t>(undo_.size());
+  undo_.push_back({i, p_.temperature[i], stored_[i], p_.phase[i], p_.alive[i]});
+}
+
+void ThermalModel::undo_step() {
+  if (!undo_ready_) throw RunError("thermal undo_step: no step to undo (once per step)");
+  for (const Undo& u : undo_) {
+    const std::size_t i = u.particle;
+    p_.temperature[i] = u.temperature;
+    p_.phase[i] = u.phase;
+    stored_[i] = u.stored;
+    if (p_.alive[i] != u.alive) p_.alive[i] = u.alive, dirty_ = true;
+  }
+  ledger_ = undo_ledger_;
+  steps_ = undo_steps_;  // restless_ (the undone step's rows) holds for the state before it
+  undo_ready_ = false;
+}
+
+Phase ThermalModel::phase_before_step(std::size_t i) const {
+  const std::int32_t slot = i < undo_slot_.size() ? undo_slot_[i] : -1;
+  return slot >= 0 ? undo_[static_cast<std::size_t>(slot)].phase : p_.phase[i];
 }
 
 ThermalModel::Snapshot ThermalModel::save() const {

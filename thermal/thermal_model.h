@@ -121,10 +121,16 @@ class ThermalModel {
   // set them before constructing it, or through restore(); a change made behind its back can go
   // unseen by skip_resting.
 
-  // Saves and restores temperatures, phases, live flags and the ledger (to redo a step for the
-  // stagger). The contact list is not part of it: restore before calling set_contacts again.
+  // Saves and restores temperatures, phases, live flags and the ledger (checkpoints; the stagger
+  // uses undo_step). The contact list is not part of it: restore before calling set_contacts again.
   Snapshot save() const;
   void restore(const Snapshot& snapshot);
+  // The stagger's redo of a step: back to the state before the last step() (temperatures,
+  // phases, live flags, stored energy, ledger), from what that step changed (its rows) instead of
+  // a copy of every particle. Once per step; RunError without a step to undo.
+  void undo_step();
+  // Particle i's phase before the last step() (what the rays of that step saw).
+  Phase phase_before_step(std::size_t i) const;
 
  private:
   // The linear system (L + W over a set of rows): every particle, row i being particle i, or the
@@ -189,6 +195,7 @@ class ThermalModel {
   void account(double dt, const Eigen::VectorXd& c, const StepTemperatures& t,
                const Eigen::VectorXd& dh);
   void update_phases(const Eigen::VectorXd& theta1, StepReport& report);
+  void remember(std::size_t i);
 
   Particles& p_;
   std::vector<Material> materials_;
@@ -228,6 +235,18 @@ class ThermalModel {
   bool restless_known_ = false;
   std::uint64_t steps_ = 0;             // step() calls (restore sets it back)
   std::uint64_t model_id_ = 0;          // tells this model's snapshots from others'
+  // What the last step() changed, for undo_step: each particle's state before its first change.
+  struct Undo {
+    std::size_t particle;
+    double temperature, stored;
+    Phase phase;
+    std::uint8_t alive;
+  };
+  std::vector<Undo> undo_;
+  std::vector<std::int32_t> undo_slot_;  // each particle's entry in undo_, -1: left alone
+  ThermalLedger undo_ledger_;
+  std::uint64_t undo_steps_ = 0;
+  bool undo_ready_ = false;
   std::uint64_t clusters_assembly_ = 0; // the assembly all_'s clusters were marked for
   // The temperature the solve measures from: the first wall's (0 K without walls). L 1 = 0, so
   // the shift moves only the wall sources, to 0 at a wall of that temperature; a particle held
