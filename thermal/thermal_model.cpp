@@ -688,12 +688,11 @@ void ThermalModel::update_phases(const Eigen::VectorXd& theta1, StepReport& repo
   }
 }
 
-StepReport ThermalModel::step_once(double dt, const Eigen::VectorXd& dh_in) {
+StepReport ThermalModel::step_once(double dt, Eigen::VectorXd dh) {
   StepReport report;
   assemble_if_needed();
   const auto n = static_cast<Eigen::Index>(p_.size());
   // Energy aimed at a particle that vaporised in an earlier sub-step leaves with the vapour.
-  Eigen::VectorXd dh = dh_in;
   for (Eigen::Index i = 0; i < n; ++i) {
     if (p_.alive[i] || dh[i] == 0) continue;
     ledger_.absorbed += dh[i];
@@ -766,7 +765,7 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
   std::vector<Eigen::Index> solved;  // rows of every sub-step: the next step's restless_
   bool whole = false;
   for (int k = 0; k < substeps; ++k) {
-    StepReport sub = step_once(dt / substeps, dh / substeps);
+    StepReport sub = substeps == 1 ? step_once(dt, std::move(dh)) : step_once(dt / substeps, dh / substeps);
     if (solve_busy_) {
       solved.insert(solved.end(), busy_.particle.begin(), busy_.particle.end());
       restless_ = busy_.particle, restless_known_ = true;  // for the next sub-step

@@ -160,7 +160,7 @@ class ThermalModel {
     Eigen::VectorXd theta0, theta1;  // K
     Eigen::VectorXd rel0, rel1;      // K - reference_
   };
-  StepReport step_once(double dt, const Eigen::VectorXd& dh);
+  StepReport step_once(double dt, Eigen::VectorXd dh);
   void assemble_if_needed();
   bool live_contact_conducts() const;
   void set_wall_terms(Eigen::Index i);
