@@ -409,14 +409,25 @@ void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
   for (Eigen::Index k = 0; k < m; ++k) row_of[rows[k]] = k;
   s.diagonal.resize(m), s.wall_source.resize(m), s.wall_conductance.resize(m);
   s.has_conduction = all_.has_conduction;
-  if (s.has_conduction) {
-    std::vector<Eigen::Triplet<double>> t;
-    for (Eigen::Index k = 0; k < m; ++k)
-      for (SparseMatrix::InnerIterator it(all_.laplacian, rows[k]); it; ++it)
-        if (row_of[it.row()] >= 0) t.emplace_back(row_of[it.row()], k, it.value());
+  if (s.has_conduction) {  // column by column: rows ascend, so each column's entries stay sorted
+    const SparseMatrix& all = all_.laplacian;
+    Eigen::Index entries = 0;
+    for (Eigen::Index k = 0; k < m; ++k) entries += all.outerIndexPtr()[rows[k] + 1] - all.outerIndexPtr()[rows[k]];
     s.laplacian = SparseMatrix(m, m);
-    s.laplacian.setFromTriplets(t.begin(), t.end());
-    find_diagonal(s.laplacian, s.diag_pos, s.diagonal);
+    s.laplacian.reserve(entries);
+    s.diag_pos.resize(static_cast<std::size_t>(m));
+    Eigen::Index at = 0;
+    for (Eigen::Index k = 0; k < m; ++k) {
+      s.laplacian.startVec(k);
+      for (SparseMatrix::InnerIterator it(all, rows[k]); it; ++it) {
+        const Eigen::Index r = row_of[it.row()];
+        if (r < 0) continue;  // a vaporised neighbour's explicit zero
+        if (r == k) s.diag_pos[k] = at, s.diagonal[k] = it.value();
+        s.laplacian.insertBack(r, k) = it.value();
+        ++at;
+      }
+    }
+    s.laplacian.finalize();
   } else {
     s.laplacian = SparseMatrix();
     for (Eigen::Index k = 0; k < m; ++k) s.diagonal[k] = all_.diagonal[rows[k]];  // the walls'
