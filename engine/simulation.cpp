@@ -161,24 +161,25 @@ bool Simulation::step() {
   double dt = 0;
   for (int pass = 0;; ++pass) {
     // Trace: every live ray advances by at most c dt of path, depositing into dH.
-    std::fill(deposits_.begin(), deposits_.end(), 0.0);
+    for (std::uint32_t i : heated_) deposits_[i] = 0.0;
+    heated_.clear();
     const bool traced = tracer_->has_live_rays();
     if (traced) {
       StageClock clock(stages_[kTrace]);
       if (!optical_phase.empty()) std::swap(particles_.phase, optical_phase);
-      tracer_->advance(budget, deposits_);
+      tracer_->advance(budget, deposits_, &heated_);
       if (!optical_phase.empty()) std::swap(particles_.phase, optical_phase);
     }
     dt = step_length(traced);
     // A step of no length cannot take the heat its trace deposited: it would leave the ledger.
-    if (!(dt > 0) && std::any_of(deposits_.begin(), deposits_.end(), [](double e) { return e > 0; }))
+    if (!(dt > 0) && std::any_of(heated_.begin(), heated_.end(), [&](std::uint32_t i) { return deposits_[i] > 0; }))
       throw RunError("step " + std::to_string(counts_.steps) + ": rays deposited energy in a step of "
                      "length 0 (the rays travelled no path); please report the run file");
     // Heat and phases: the implicit step (3.10) with dH, then the latent-heat bands (section 4).
     if (dt > 0) {
       {
         StageClock clock(stages_[kHeat]);
-        report = thermal_->step(dt, deposits_);
+        report = thermal_->step(dt, deposits_, heated_);
       }
       // The latent-heat work runs inside the thermal step; its time is the phases stage's.
       stages_[kHeat].seconds -= report.phases_seconds;
@@ -199,18 +200,23 @@ bool Simulation::step() {
     thermal_->undo_step();
     report = StepReport{};
   }
-  for (std::size_t i = 0; i < deposits_.size(); ++i) absorbed_[i] += deposits_[i];
+  for (std::uint32_t i : heated_) absorbed_[i] += deposits_[i];
   for (RaySegment& seg : tracer_->take_segments()) ray_paths_.push_back(seg);
   time_ += dt;
   ++counts_.steps;
   counts_.heat_rows_solved += report.solved_rows;
   counts_.heat_rows_live += report.live_rows;
   // Numerical hygiene: a NaN or infinity stops the run here, before it reaches any output.
-  for (std::size_t i = 0; i < particles_.size(); ++i) {
+  // Only the particles the heat step changed can have new temperatures.
+  for (std::uint32_t i : heated_)
+    if (!std::isfinite(deposits_[i])) non_finite(i, particles_.temperature[i], deposits_[i]);
+  double peak = max_temperature_;
+  thermal_->for_each_changed([&](std::size_t i) {
     const double t = particles_.temperature[i];
-    if (!std::isfinite(t) || !std::isfinite(deposits_[i])) non_finite(i, t, deposits_[i]);
-    max_temperature_ = std::max(max_temperature_, t);
-  }
+    if (!std::isfinite(t)) non_finite(i, t, deposits_[i]);
+    peak = std::max(peak, t);
+  });
+  max_temperature_ = peak;
   // Rebuild: vaporised particles leave the scene and the contact graph (paper, Remark 10).
   if (!report.vaporized.empty()) remove_vaporized(report.vaporized);
   if (done() && on_pulse_end_) on_pulse_end_(launched_ - 1);
@@ -226,7 +232,7 @@ Phase Simulation::optical(Phase phase) { return phase == Phase::vapor ? Phase::l
 // used (empty: the phases before the step); every particle is compared, so one the redo saw as
 // liquid that ends solid counts too.
 bool Simulation::optics_changed(const std::vector<Phase>& seen) const {
-  for (std::size_t i = 0; i < deposits_.size(); ++i) {
+  for (std::uint32_t i : heated_) {
     if (!(deposits_[i] > 0)) continue;
     if (optical(particles_.phase[i]) != (seen.empty() ? thermal_->phase_before_step(i) : seen[i])) return true;
   }

@@ -130,6 +130,7 @@ class Simulation {
   std::unique_ptr<ThermalModel> thermal_;
   std::vector<double> absorbed_;   // cumulative J per particle
   std::vector<double> deposits_;   // this step's dH
+  std::vector<std::uint32_t> heated_;  // the particles with a deposit this step (zero elsewhere)
   std::vector<RaySegment> ray_paths_;
   double time_ = 0, next_pulse_time_ = 0, max_temperature_ = 0, total_volume_ = 0;
   int launched_ = 0;

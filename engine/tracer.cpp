@@ -416,7 +416,7 @@ void RayState::read(StateReader& in) {
 
 // Adds a traced chunk to the deposits, the ledger and the counters: ray order inside the chunk,
 // each ray's event order (the chunks come in chunk order).
-void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits) {
+void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits, std::vector<std::uint32_t>* deposited) {
   const IeeeFloatMode ieee;  // the sums must not flush denormals on some threads only
   Totals& t = totals_;
   t.flight = std::max(t.flight, c.flight);
@@ -431,7 +431,9 @@ void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits) {
     } else if (e.bin == kCutoffBin) {
       t.ledger.cutoff += e.energy;
     } else {
-      deposits[e.bin] += e.energy;
+      double& deposit = deposits[e.bin];
+      if (deposited && deposit == 0 && e.energy != 0) deposited->push_back(e.bin);
+      deposit += e.energy;
       t.ledger.absorbed += e.energy;
     }
   }
@@ -441,7 +443,8 @@ void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits) {
   t.ended += c.ended;
 }
 
-std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
+std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
+                            std::vector<std::uint32_t>* deposited) {
   if (!(path_budget >= 0.0))
     throw InputError("advance: path budget " + std::to_string(path_budget) + " must be >= 0");
   if (deposits.size() < particles_.size()) deposits.resize(particles_.size(), 0.0);
@@ -470,7 +473,7 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits) {
                 return k;
               }) &
           tbb::make_filter<std::size_t, void>(tbb::filter_mode::serial_in_order,
-                                              [&](std::size_t k) { add_chunk(chunks[k], deposits); }));
+                                              [&](std::size_t k) { add_chunk(chunks[k], deposits, deposited); }));
   s.ledger = totals_.ledger;
   s.primary_segments += totals_.primary;
   s.bounced_segments += totals_.bounced;

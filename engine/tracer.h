@@ -122,8 +122,10 @@ class Tracer {
 
   // Advances every live ray by at most path_budget of path (c * dt; infinity: to the end),
   // adding absorbed energy to deposits[particle] (resized to the particle count if smaller).
-  // Returns the number of rays still live.
-  std::size_t advance(double path_budget, std::vector<double>& deposits);
+  // With `deposited`, each particle whose deposit this call turns from zero to non-zero is
+  // appended to it. Returns the number of rays still live.
+  std::size_t advance(double path_budget, std::vector<double>& deposits,
+                      std::vector<std::uint32_t>* deposited = nullptr);
 
   // Ray paths for output (rays_NNNN.vtp): while on, every completed segment is kept, in chunk
   // and ray order; take_segments() hands them over and clears the store.
@@ -166,7 +168,7 @@ class Tracer {
   bool step_ray(std::uint32_t ray, double& left, Chunk& chunk);
   void count_segment(std::uint32_t ray, Chunk& chunk) const;
   void run_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
-  void add_chunk(Chunk& chunk, std::vector<double>& deposits);
+  void add_chunk(Chunk& chunk, std::vector<double>& deposits, std::vector<std::uint32_t>* deposited);
   void trace_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
   void trace_in_waves(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
   static void sort_events_by_ray(Chunk& chunk, std::size_t begin, std::size_t end);

@@ -174,6 +174,7 @@ void ThermalModel::assemble_anew(bool conducts) {
     find_components();
   } else {
     s.laplacian = SparseMatrix();
+    pattern_dirty_ = false;  // no conducting contact: nothing to assemble until the live set changes
   }
 }
 
@@ -339,10 +340,10 @@ void ThermalModel::mark_clusters(System& s) {
 // when one of its particles is. A component at rest solves exactly to theta^{n+1} = theta^n
 // (L 1 = 0 and no source), so only the busy ones are solved, while they are under 3/4 of the
 // live particles. True when this step solves busy_.
-bool ThermalModel::select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Eigen::VectorXd& dh) {
+bool ThermalModel::select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat,
+                               std::size_t live) {
   if (!spec_.skip_resting) return false;
-  const auto live = static_cast<std::size_t>(std::count(p_.alive.begin(), p_.alive.end(), 1));
-  std::vector<Eigen::Index> rows = restless_known_ ? busy_rows_of_restless(theta0, dh) : busy_rows_of_all(theta0, dh);
+  std::vector<Eigen::Index> rows = restless_known_ ? busy_rows_of_restless(theta0, heat) : busy_rows_of_all(theta0, heat);
   if (4 * rows.size() >= 3 * live) return false;
   if (rows != busy_.particle || busy_assembly_ != assembly_) build_busy_system(std::move(rows));
   return true;
@@ -356,7 +357,7 @@ bool particle_busy(double dh, double theta, double theta_root, double wall_g, do
 
 // Every live particle looked at (the first step, or when restless_ is not known).
 std::vector<Eigen::Index> ThermalModel::busy_rows_of_all(const Eigen::Ref<const Eigen::VectorXd>& theta0,
-                                                        const Eigen::VectorXd& dh) const {
+                                                        const Heat& heat) const {
   const std::size_t n = p_.size();
   const bool graph = all_.has_conduction;  // without one, every particle is its own component
   auto component = [&](std::size_t i) { return graph ? std::size_t{component_[i]} : i; };
@@ -364,7 +365,7 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_of_all(const Eigen::Ref<const 
   for (std::size_t i = 0; i < n; ++i) {
     if (!p_.alive[i]) continue;
     const std::size_t r = component(i);
-    if (particle_busy(dh[i], theta0[i], theta0[r], walls_.conductance[i], walls_.source[i])) busy[r] = 1;
+    if (particle_busy(heat.at(i), theta0[i], theta0[r], walls_.conductance[i], walls_.source[i])) busy[r] = 1;
   }
   std::vector<Eigen::Index> rows;
   for (std::size_t i = 0; i < n; ++i)
@@ -374,10 +375,10 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_of_all(const Eigen::Ref<const 
 
 // Only the components of restless_ and of the particles given heat: the others are at rest.
 std::vector<Eigen::Index> ThermalModel::busy_rows_of_restless(const Eigen::Ref<const Eigen::VectorXd>& theta0,
-                                                             const Eigen::VectorXd& dh) {
+                                                             const Heat& heat) {
   std::vector<Eigen::Index> seeds = restless_;
-  for (Eigen::Index i = 0; i < dh.size(); ++i)
-    if (dh[i] != 0) seeds.push_back(i);
+  for (std::uint32_t i : heat.particles)
+    if (heat.at(i) != 0) seeds.push_back(i);
   const std::uint32_t stamp = next_stamp();
   std::vector<Eigen::Index> rows, members;
   for (Eigen::Index i : seeds) {
@@ -391,7 +392,7 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_of_restless(const Eigen::Ref<c
     }
     const Eigen::Index r = all_.has_conduction ? Eigen::Index{component_[i]} : i;
     const bool busy = std::any_of(members.begin(), members.end(), [&](Eigen::Index j) {
-      return particle_busy(dh[j], theta0[j], theta0[r], walls_.conductance[j], walls_.source[j]);
+      return particle_busy(heat.at(j), theta0[j], theta0[r], walls_.conductance[j], walls_.source[j]);
     });
     if (busy) rows.insert(rows.end(), members.begin(), members.end());
   }
@@ -699,30 +700,39 @@ void ThermalModel::update_phases(const Eigen::VectorXd& theta1, StepReport& repo
   }
 }
 
-StepReport ThermalModel::step_once(double dt, Eigen::VectorXd dh) {
+// Energy aimed at a particle that vaporised in an earlier sub-step leaves with the vapour.
+void ThermalModel::book_heat_of_vaporised(const Heat& heat) {
+  for (std::uint32_t i : heat.particles) {
+    const double e = heat.at(i);
+    if (p_.alive[i] || e == 0) continue;
+    ledger_.absorbed += e;
+    ledger_.vaporized += e;
+  }
+}
+
+// The heat of the step's rows (none for a particle no longer live).
+Eigen::VectorXd ThermalModel::heat_of_rows(const Heat& heat) const {
+  Eigen::VectorXd dh(rows());
+  for (Eigen::Index k = 0; k < rows(); ++k) {
+    const std::size_t i = particle_of(k);
+    dh[k] = p_.alive[i] ? heat.at(i) : 0.0;
+  }
+  return dh;
+}
+
+StepReport ThermalModel::step_once(double dt, const Heat& heat) {
   StepReport report;
   assemble_if_needed();
-  const auto n = static_cast<Eigen::Index>(p_.size());
-  // Energy aimed at a particle that vaporised in an earlier sub-step leaves with the vapour.
-  for (Eigen::Index i = 0; i < n; ++i) {
-    if (p_.alive[i] || dh[i] == 0) continue;
-    ledger_.absorbed += dh[i];
-    ledger_.vaporized += dh[i];
-    dh[i] = 0;
-  }
-  const Eigen::Map<const Eigen::VectorXd> theta(p_.temperature.data(), n);
-  solve_busy_ = select_busy(theta, dh);
+  book_heat_of_vaporised(heat);
+  const Eigen::Map<const Eigen::VectorXd> theta(p_.temperature.data(), static_cast<Eigen::Index>(p_.size()));
   report.live_rows = static_cast<std::size_t>(std::count(p_.alive.begin(), p_.alive.end(), 1));
+  solve_busy_ = select_busy(theta, heat, report.live_rows);
   report.solved_rows = solve_busy_ ? busy_.particle.size() : report.live_rows;
   // From here on the step works on its rows: every particle, or the busy components' only (the
   // others keep their temperatures, phases and ledger entries exactly).
   StepTemperatures t;
-  if (solve_busy_) {
-    t.theta0 = theta(busy_.particle);
-    dh = Eigen::VectorXd(dh(busy_.particle));
-  } else {
-    t.theta0 = theta;
-  }
+  t.theta0 = solve_busy_ ? Eigen::VectorXd(theta(busy_.particle)) : Eigen::VectorXd(theta);
+  const Eigen::VectorXd dh = heat_of_rows(heat);
   t.rel0 = t.theta0.array() - reference_;
   t.rel1 = t.rel0;  // the iterative solvers' first guess
   Eigen::VectorXd c = base_capacity();
@@ -738,64 +748,30 @@ StepReport ThermalModel::step_once(double dt, Eigen::VectorXd dh) {
 }
 
 StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
+  std::vector<std::uint32_t> given;
+  for (std::size_t i = 0; i < absorbed.size(); ++i)
+    if (absorbed[i] != 0) given.push_back(static_cast<std::uint32_t>(i));
+  return step(dt, absorbed, given);
+}
+
+StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed,
+                              std::span<const std::uint32_t> given) {
   if (!(std::isfinite(dt) && dt > 0)) input_error("thermal.dt", dt, "must be > 0");
-  const std::size_t n = p_.size();
-  if (!absorbed.empty() && absorbed.size() != n)
-    throw InputError("thermal step: " + std::to_string(absorbed.size()) +
-                     " absorbed energies for " + std::to_string(n) + " particles");
-  Eigen::VectorXd dh = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(n));
-  for (std::size_t i = 0; i < absorbed.size(); ++i) {
-    if (!(std::isfinite(absorbed[i]) && absorbed[i] >= 0))
-      throw RunError("thermal step: absorbed energy of particle " + std::to_string(i) + " = " +
-                     std::to_string(absorbed[i]) + ": must be finite and >= 0");
-    if (!p_.alive[i] && absorbed[i] > 0)
-      throw RunError("thermal step: energy deposited into vaporised particle " + std::to_string(i) +
-                     " (the ray scene was not updated after its removal)");
-    dh[static_cast<Eigen::Index>(i)] = absorbed[i];
-  }
-  // phi < 1 is monotone (and for phi < 1/2 stable) only below its step limit: split, or refuse.
-  const double limit = monotone_step_limit();
-  const double parts = dt > limit ? std::ceil(dt / limit) : 1.0;
-  if (parts > spec_.max_substeps) {
-    std::ostringstream msg;
-    msg << "thermal.dt = " << dt << " s with thermal.phi = " << spec_.phi << " exceeds the "
-        << (spec_.phi < 0.5 ? "explicit stability limit " : "limit for a monotone step ") << limit
-        << " s (min_i m_i C_i / (M (1 - phi) sum_j G_ij)) and would need " << parts
-        << " sub-steps > thermal.max_substeps = " << spec_.max_substeps
-        << ": use thermal.phi = 1 (monotone at any step) or a smaller thermal.dt";
-    throw InputError(msg.str());
-  }
-  for (const Undo& u : undo_) undo_slot_[u.particle] = -1;
-  undo_.clear();
-  undo_slot_.resize(n, -1);
-  undo_ledger_ = ledger_;
-  undo_steps_ = steps_;
-  undo_ready_ = true;
-  const int substeps = static_cast<int>(parts);
+  Heat heat = checked_heat(absorbed, given);
+  const int substeps = substep_count(dt);
+  heat.parts = substeps;
+  begin_undo();
   StepReport report;
   std::vector<Eigen::Index> solved;  // rows of every sub-step: the next step's restless_
   bool whole = false;
   for (int k = 0; k < substeps; ++k) {
-    StepReport sub = substeps == 1 ? step_once(dt, std::move(dh)) : step_once(dt / substeps, dh / substeps);
+    add_substep(report, step_once(dt / substeps, heat));
     if (solve_busy_) {
       solved.insert(solved.end(), busy_.particle.begin(), busy_.particle.end());
       restless_ = busy_.particle, restless_known_ = true;  // for the next sub-step
     } else {
       whole = true;
     }
-    report.vaporized.insert(report.vaporized.end(), sub.vaporized.begin(), sub.vaporized.end());
-    report.solver = sub.solver;
-    report.iterations += sub.iterations;
-    report.solves += sub.solves;
-    report.contraction_estimate = std::max(report.contraction_estimate, sub.contraction_estimate);
-    report.conduction_ran |= sub.conduction_ran;
-    report.solved_rows = sub.solved_rows;
-    report.live_rows = sub.live_rows;
-    report.phases_ran |= sub.phases_ran;
-    report.phases_seconds += sub.phases_seconds;
-    report.phase_corrected |= sub.phase_corrected;
-    report.symbolic_reused = sub.symbolic_reused;
-    report.factors_reused = sub.factors_reused;
   }
   report.substeps = substeps;
   std::sort(solved.begin(), solved.end());
@@ -808,6 +784,72 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
       report.phase_changed.push_back(static_cast<std::uint32_t>(u.particle));
   std::sort(report.phase_changed.begin(), report.phase_changed.end());
   return report;
+}
+
+// The deposits as the step reads them: `given` (any order, repeats allowed) lists every particle
+// whose absorbed energy is not zero; each must be finite, >= 0 and into a live particle.
+ThermalModel::Heat ThermalModel::checked_heat(const std::vector<double>& absorbed,
+                                              std::span<const std::uint32_t> given) const {
+  const std::size_t n = p_.size();
+  if (!absorbed.empty() && absorbed.size() != n)
+    throw InputError("thermal step: " + std::to_string(absorbed.size()) +
+                     " absorbed energies for " + std::to_string(n) + " particles");
+  Heat heat{&absorbed, std::vector<std::uint32_t>(given.begin(), given.end()), 1};
+  std::sort(heat.particles.begin(), heat.particles.end());  // sums in particle order
+  heat.particles.erase(std::unique(heat.particles.begin(), heat.particles.end()), heat.particles.end());
+  for (std::uint32_t i : heat.particles) {
+    if (i >= absorbed.size())
+      throw InputError("thermal step: heated particle " + std::to_string(i) + " has no absorbed energy");
+    if (!(std::isfinite(absorbed[i]) && absorbed[i] >= 0))
+      throw RunError("thermal step: absorbed energy of particle " + std::to_string(i) + " = " +
+                     std::to_string(absorbed[i]) + ": must be finite and >= 0");
+    if (!p_.alive[i] && absorbed[i] > 0)
+      throw RunError("thermal step: energy deposited into vaporised particle " + std::to_string(i) +
+                     " (the ray scene was not updated after its removal)");
+  }
+  return heat;
+}
+
+// phi < 1 is monotone (and for phi < 1/2 stable) only below its step limit: split, or refuse.
+int ThermalModel::substep_count(double dt) const {
+  const double limit = monotone_step_limit();
+  const double parts = dt > limit ? std::ceil(dt / limit) : 1.0;
+  if (parts > spec_.max_substeps) {
+    std::ostringstream msg;
+    msg << "thermal.dt = " << dt << " s with thermal.phi = " << spec_.phi << " exceeds the "
+        << (spec_.phi < 0.5 ? "explicit stability limit " : "limit for a monotone step ") << limit
+        << " s (min_i m_i C_i / (M (1 - phi) sum_j G_ij)) and would need " << parts
+        << " sub-steps > thermal.max_substeps = " << spec_.max_substeps
+        << ": use thermal.phi = 1 (monotone at any step) or a smaller thermal.dt";
+    throw InputError(msg.str());
+  }
+  return static_cast<int>(parts);
+}
+
+// undo_step's record starts empty for each step.
+void ThermalModel::begin_undo() {
+  for (const Undo& u : undo_) undo_slot_[u.particle] = -1;
+  undo_.clear();
+  undo_slot_.resize(p_.size(), -1);
+  undo_ledger_ = ledger_;
+  undo_steps_ = steps_;
+  undo_ready_ = true;
+}
+
+void ThermalModel::add_substep(StepReport& report, const StepReport& sub) {
+  report.vaporized.insert(report.vaporized.end(), sub.vaporized.begin(), sub.vaporized.end());
+  report.solver = sub.solver;
+  report.iterations += sub.iterations;
+  report.solves += sub.solves;
+  report.contraction_estimate = std::max(report.contraction_estimate, sub.contraction_estimate);
+  report.conduction_ran |= sub.conduction_ran;
+  report.solved_rows = sub.solved_rows;
+  report.live_rows = sub.live_rows;
+  report.phases_ran |= sub.phases_ran;
+  report.phases_seconds += sub.phases_seconds;
+  report.phase_corrected |= sub.phase_corrected;
+  report.symbolic_reused = sub.symbolic_reused;
+  report.factors_reused = sub.factors_reused;
 }
 
 // Particle i's state before the step's first change to it.

@@ -4,6 +4,7 @@
 // latent-heat bands (paper, section 4), vaporised particles removed, and an energy ledger.
 #include <cstdint>
 #include <limits>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -97,6 +98,10 @@ class ThermalModel {
   // One step of (3.10) over dt seconds with absorbed[i] joules deposited into particle i
   // (empty: none), phase change and vaporisation included.
   StepReport step(double dt, const std::vector<double>& absorbed);
+  // The same, told which particles were heated: absorbed[i] is zero for every particle not in
+  // `heated` (any order, repeats allowed). The step then costs in proportion to the particles
+  // it works on, not to the packing (with skip_resting, after the first step).
+  StepReport step(double dt, const std::vector<double>& absorbed, std::span<const std::uint32_t> heated);
 
   const ThermalLedger& ledger() const { return ledger_; }
   // Largest dt for which a step keeps the discrete maximum principle (no temperature leaves the
@@ -131,6 +136,12 @@ class ThermalModel {
   void undo_step();
   // Particle i's phase before the last step() (what the rays of that step saw).
   Phase phase_before_step(std::size_t i) const;
+  // Calls f(i) for every particle the last step() changed (its rows): the others kept their
+  // temperatures, phases and live flags.
+  template <class F>
+  void for_each_changed(F&& f) const {
+    for (const Undo& u : undo_) f(u.particle);
+  }
 
  private:
   // The linear system (L + W over a set of rows): every particle, row i being particle i, or the
@@ -160,7 +171,20 @@ class ThermalModel {
     Eigen::VectorXd theta0, theta1;  // K
     Eigen::VectorXd rel0, rel1;      // K - reference_
   };
-  StepReport step_once(double dt, Eigen::VectorXd dh);
+  // A step's deposits: absorbed[i] / parts for i in particles (sorted), zero elsewhere.
+  struct Heat {
+    const std::vector<double>* absorbed;
+    std::vector<std::uint32_t> particles;
+    int parts = 1;
+    double at(std::size_t i) const { return absorbed->empty() ? 0.0 : (*absorbed)[i] / parts; }
+  };
+  Heat checked_heat(const std::vector<double>& absorbed, std::span<const std::uint32_t> given) const;
+  int substep_count(double dt) const;
+  void begin_undo();
+  static void add_substep(StepReport& report, const StepReport& sub);
+  StepReport step_once(double dt, const Heat& heat);
+  void book_heat_of_vaporised(const Heat& heat);
+  Eigen::VectorXd heat_of_rows(const Heat& heat) const;
   void assemble_if_needed();
   bool live_contact_conducts() const;
   void set_wall_terms(Eigen::Index i);
@@ -172,11 +196,11 @@ class ThermalModel {
   void update_components(const std::vector<Eigen::Index>& touched);
   std::uint32_t next_stamp();
   void mark_clusters(System& s);
-  bool select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Eigen::VectorXd& dh);
+  bool select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat, std::size_t live);
   std::vector<Eigen::Index> busy_rows_of_all(const Eigen::Ref<const Eigen::VectorXd>& theta0,
-                                             const Eigen::VectorXd& dh) const;
+                                             const Heat& heat) const;
   std::vector<Eigen::Index> busy_rows_of_restless(const Eigen::Ref<const Eigen::VectorXd>& theta0,
-                                                  const Eigen::VectorXd& dh);
+                                                  const Heat& heat);
   void build_busy_system(std::vector<Eigen::Index> rows);
   Eigen::VectorXd base_capacity() const;
   Eigen::VectorXd capacity_with_bands(const Eigen::VectorXd& theta0,
