@@ -149,6 +149,28 @@ TEST(OpticsTracer, BudgetedChunksEqualTheWholePulse) {
   }
 }
 
+// The list of deposited particles (what the simulation clears, sums and hands to the heat step)
+// names each particle with a deposit exactly once, call by call, in budgeted steps.
+TEST(OpticsTracer, TheDepositedListNamesEveryParticleWithADepositOnce) {
+  Tracer tracer(packing_1e4(), optics_for(20.0));
+  tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+  std::vector<double> deposits;
+  std::size_t steps = 0, listed = 0;
+  for (bool live = true; live; ++steps) {
+    std::vector<std::uint32_t> deposited;
+    std::fill(deposits.begin(), deposits.end(), 0.0);
+    live = tracer.advance(3.3e-5, deposits, &deposited) > 0;
+    std::vector<std::uint32_t> nonzero;
+    for (std::size_t i = 0; i < deposits.size(); ++i)
+      if (deposits[i] != 0) nonzero.push_back(static_cast<std::uint32_t>(i));
+    std::sort(deposited.begin(), deposited.end());
+    ASSERT_EQ(deposited, nonzero) << "step " << steps;
+    listed += deposited.size();
+  }
+  EXPECT_GT(steps, 3u);
+  EXPECT_GT(listed, 1000u);
+}
+
 TEST(OpticsTracer, BudgetLimitsThePathOfEveryRay) {
   Tracer tracer(packing_1e4(), optics_for(1.4));
   tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);

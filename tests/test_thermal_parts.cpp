@@ -393,6 +393,29 @@ TEST(ThermalSkip, ASnapshotFromElsewhereIsLookedAtWhole) {
   EXPECT_EQ(a.p.temperature, b.p.temperature);
 }
 
+// The heat step told which particles were heated (in any order, with repeats) equals the one
+// that finds them itself, and refuses a listed particle outside the deposits.
+TEST(ThermalSkip, AListOfTheHeatedParticlesGivesTheSameStep) {
+  RestingScene a(1e-10), b(1e-10);
+  ThermalModel listed(a.p, {a.m}, {}), found(b.p, {b.m}, {});
+  listed.set_contacts(find_contacts(a.p));
+  found.set_contacts(find_contacts(b.p));
+  std::vector<std::uint32_t> heated;
+  for (std::size_t i = a.dh.size(); i-- > 0;)
+    if (a.dh[i] != 0) heated.push_back(static_cast<std::uint32_t>(i)), heated.push_back(static_cast<std::uint32_t>(i));
+  ASSERT_GT(heated.size(), 20u);
+  for (int step = 0; step < 3; ++step) {
+    const StepReport ra = listed.step(2e-10, a.dh, heated), rb = found.step(2e-10, b.dh);
+    EXPECT_EQ(ra.vaporized, rb.vaporized);
+    EXPECT_EQ(ra.solved_rows, rb.solved_rows);
+    EXPECT_EQ(a.p.temperature, b.p.temperature);
+    EXPECT_EQ(listed.ledger().absorbed, found.ledger().absorbed);
+    for (std::uint32_t i : ra.vaporized) a.dh[i] = b.dh[i] = 0;
+  }
+  const std::vector<std::uint32_t> outside{static_cast<std::uint32_t>(a.p.size())};
+  EXPECT_THROW(listed.step(2e-10, a.dh, outside), InputError);
+}
+
 // A wall away from the particles' temperature drives its components: not at rest.
 TEST(ThermalSkip, AWallAtAnotherTemperatureKeepsItsComponentsBusy) {
   ThermalSpec cold, warm;
