@@ -488,6 +488,7 @@ Eigen::VectorXd ThermalModel::capacity_with_bands(const Eigen::VectorXd& theta0,
 double ThermalModel::monotone_step_limit() const {
   if (spec_.phi >= 1.0) return std::numeric_limits<double>::infinity();
   const_cast<ThermalModel*>(this)->assemble_if_needed();
+  if (limit_assembly_ == assembly_) return limit_;  // same live set and matrix: same limit
   // With the smaller of C_S and C_L: a particle that melts in an early sub-step must not make the
   // later ones exceed the limit (a material with C_L < C_S).
   double limit = std::numeric_limits<double>::infinity();
@@ -497,6 +498,7 @@ double ThermalModel::monotone_step_limit() const {
     const double c = least_thermal_mass(materials_[p_.material[i]], p_.volume(i), spec_.time_scaling);
     limit = std::min(limit, c / ((1.0 - spec_.phi) * d));
   }
+  limit_ = limit, limit_assembly_ = assembly_;
   return limit;
 }
 

@@ -272,6 +272,8 @@ class ThermalModel {
   std::uint64_t undo_steps_ = 0;
   bool undo_ready_ = false;
   std::uint64_t clusters_assembly_ = 0; // the assembly all_'s clusters were marked for
+  mutable double limit_ = 0;            // monotone_step_limit of the assembly limit_assembly_
+  mutable std::uint64_t limit_assembly_ = 0;
   // The temperature the solve measures from: the first wall's (0 K without walls). L 1 = 0, so
   // the shift moves only the wall sources, to 0 at a wall of that temperature; a particle held
   // near it by a wall of 1e9 W/K then changes by digits a temperature near 300 K cannot hold,
