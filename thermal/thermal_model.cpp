@@ -895,6 +895,8 @@ void ThermalModel::restore(const Snapshot& s) {
   // state now: any other state is looked at whole.
   if (s.model != model_id_ || (s.steps != steps_ && s.steps + 1 != steps_)) restless_known_ = false;
   steps_ = s.steps;
+  begin_undo();  // nothing to undo: the last step's record no longer describes this state
+  undo_ready_ = false;
   p_.temperature = s.temperature;
   p_.phase = s.phase;
   p_.alive = s.alive;
