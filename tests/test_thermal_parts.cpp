@@ -354,7 +354,7 @@ TEST(ThermalSkip, TheRestlessComponentsAreTheBusyOnesEveryParticleWouldShow) {
         std::size_t vaporized = 0, skipped = 0;
         for (int step = 0; step < 12; ++step) {
           ThermalModel::Snapshot from_elsewhere = looked.save();
-          from_elsewhere.model = 0;
+          from_elsewhere.serial = 0;
           looked.restore(from_elsewhere);
           const bool heat = step % 4 < 2;  // two steps heated, two cooling, ...
           for (std::size_t i = 0; i < a.dh.size(); ++i)
@@ -414,6 +414,84 @@ TEST(ThermalSkip, AListOfTheHeatedParticlesGivesTheSameStep) {
   }
   const std::vector<std::uint32_t> outside{static_cast<std::uint32_t>(a.p.size())};
   EXPECT_THROW(listed.step(2e-10, a.dh, outside), InputError);
+}
+
+// A step whose first sub-step is solved whole (most particles busy) and whose vaporisations
+// leave the later ones busy: the whole solve moved resting chains by rounding, so the later
+// sub-steps must look at every particle, as a model that always looks does (review finding).
+TEST(ThermalSkip, SubStepsAfterAWholeSolveLookAtEveryParticle) {
+  for (const char* solver : {"direct", "auto"}) {
+    auto scene = [] {
+      Particles p;
+      std::mt19937_64 rng(3);
+      std::uniform_real_distribution<double> u(0, 1);
+      for (int k = 0; k < 10; ++k) {  // chains of four at rest, each at its own temperature
+        const double t = 320 + 200 * u(rng);
+        double x = 0;
+        for (int j = 0; j < 4; ++j) {
+          const double r = 1e-4 * (0.8 + 0.4 * u(rng));
+          p.add(Vec3(x + r, k * 1e-2, 0), r, 0, t);
+          x += 2 * r - 1e-5 * (1 + 3 * u(rng));
+        }
+      }
+      for (int k = 0; k < 130; ++k) p.add(Vec3(5e-2, k * 1e-2, 0), 1e-4, 0, 300);  // to vaporise
+      return p;
+    };
+    Particles a = scene(), b = scene();
+    Material m;
+    m.conductivity = 100;
+    ThermalSpec spec;
+    spec.phi = 0.5;
+    spec.solver = solver;
+    ThermalModel tracked(a, {m}, spec), looked(b, {m}, spec);
+    tracked.set_contacts(find_contacts(a));
+    looked.set_contacts(find_contacts(b));
+    std::vector<double> heat(a.size(), 0.0);
+    for (std::size_t i = 40; i < a.size(); ++i) heat[i] = 0.1;
+    const double dt = 3.5 * tracked.monotone_step_limit();  // four sub-steps
+    for (int step = 0; step < 4; ++step) {
+      ThermalModel::Snapshot from_elsewhere = looked.save();
+      from_elsewhere.serial = 0;
+      looked.restore(from_elsewhere);
+      const std::vector<double> dh = step == 1 ? heat : std::vector<double>{};
+      const StepReport ra = tracked.step(dt, dh), rb = looked.step(dt, dh);
+      EXPECT_EQ(ra.substeps, 4);
+      EXPECT_EQ(ra.solved_rows, rb.solved_rows) << solver << " step " << step;
+      EXPECT_EQ(a.temperature, b.temperature) << solver << " step " << step;
+      if (step == 1) {
+        EXPECT_EQ(ra.vaporized.size(), 130u);
+      }
+    }
+  }
+}
+
+// save after a step, undo it, take another step from the same state, restore the snapshot: the
+// restored state's busy components are not those of the step taken since (review finding).
+TEST(ThermalSkip, RestoringTheUndoneBranchLooksAgain) {
+  auto pairs = [] {
+    Particles p;
+    for (int k = 0; k < 10; ++k) p.add(Vec3(k * 1e-3, 0, 0), 1e-4), p.add(Vec3(k * 1e-3 + 1.8e-4, 0, 0), 1e-4);
+    return p;
+  };
+  Particles a = pairs(), b = pairs();
+  Material m;
+  m.conductivity = 100;
+  ThermalModel tracked(a, {m}, {}), fresh(b, {m}, {});
+  tracked.set_contacts(find_contacts(a));
+  fresh.set_contacts(find_contacts(b));
+  std::vector<double> h0(a.size(), 0.0), h4(a.size(), 0.0);
+  h0[0] = h4[4] = 1e-9;
+  tracked.step(1e-9, {});
+  tracked.step(1e-9, h0);  // pair {0, 1} now differs inside
+  const ThermalModel::Snapshot branch = tracked.save();
+  tracked.undo_step();
+  tracked.step(1e-9, h4);  // another branch from the same state: pair {4, 5}
+  tracked.restore(branch);
+  fresh.restore(branch);
+  const StepReport ra = tracked.step(1e-9, {}), rb = fresh.step(1e-9, {});
+  EXPECT_EQ(rb.solved_rows, 2u);  // pair {0, 1}
+  EXPECT_EQ(ra.solved_rows, rb.solved_rows);
+  EXPECT_EQ(a.temperature, b.temperature);
 }
 
 // A wall away from the particles' temperature drives its components: not at rest.
@@ -484,6 +562,21 @@ TEST(ThermalState, UndoingAStepEqualsRestoringItsSnapshot) {
     EXPECT_EQ(a.p.temperature, b.p.temperature);
     EXPECT_EQ(undone.ledger().imbalance(), restored.ledger().imbalance());
   }
+}
+
+// A step refused for its input leaves nothing to undo: undo_step must not take back the step
+// before it (review finding).
+TEST(ThermalState, ARefusedStepLeavesNothingToUndo) {
+  RestingScene a(5e-13);
+  ThermalModel model(a.p, {a.m}, {});
+  model.set_contacts(find_contacts(a.p));
+  model.step(2e-10, a.dh);
+  const std::vector<double> warmed = a.p.temperature;
+  std::vector<double> negative = a.dh;
+  negative[0] = -1;
+  EXPECT_THROW(model.step(2e-10, negative), RunError);
+  EXPECT_THROW(model.undo_step(), RunError);
+  EXPECT_EQ(a.p.temperature, warmed);
 }
 
 TEST(ThermalLong, LongLedgerOnLargePacking) {

@@ -15,6 +15,12 @@ namespace beampack {
 
 namespace {
 
+// A name for a thermal state, unique across models (0: none, e.g. a checkpoint's).
+std::uint64_t new_serial() {
+  static std::atomic<std::uint64_t> serials{0};
+  return ++serials;
+}
+
 // Wall time of work(), in seconds.
 template <class Work>
 double seconds_of(const Work& work) {
@@ -49,8 +55,7 @@ void ThermalSpec::validate() const {
 
 ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials, ThermalSpec spec)
     : p_(particles), materials_(std::move(materials)), spec_(std::move(spec)) {
-  static std::atomic<std::uint64_t> models{0};
-  model_id_ = ++models;
+  serial_ = new_serial();
   spec_.validate();
   if (materials_.empty()) input_error("material", "(none)", "at least one material is needed");
   for (std::size_t k = 0; k < materials_.size(); ++k)
@@ -337,9 +342,10 @@ void ThermalModel::mark_clusters(System& s) {
 
 // skip_resting: a live particle is busy when it received heat, differs in temperature from its
 // component's lowest particle, or its walls' heat flow is not exactly zero; a component is busy
-// when one of its particles is. A component at rest solves exactly to theta^{n+1} = theta^n
-// (L 1 = 0 and no source), so only the busy ones are solved, while they are under 3/4 of the
-// live particles. True when this step solves busy_.
+// when one of its particles is. The exact solution for a component at rest is theta^{n+1} =
+// theta^n (L 1 = 0 and no source), so only the busy ones are solved, while they are under 3/4
+// of the live particles; the others keep their temperatures exactly. True when this step
+// solves busy_.
 bool ThermalModel::select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat,
                                std::size_t live) {
   if (!spec_.skip_resting) return false;
@@ -758,6 +764,7 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
 
 StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed,
                               std::span<const std::uint32_t> given) {
+  undo_ready_ = false;  // a step refused below leaves nothing to undo
   if (!(std::isfinite(dt) && dt > 0)) input_error("thermal.dt", dt, "must be > 0");
   Heat heat = checked_heat(absorbed, given);
   const int substeps = substep_count(dt);
@@ -771,8 +778,9 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed,
     if (solve_busy_) {
       solved.insert(solved.end(), busy_.particle.begin(), busy_.particle.end());
       restless_ = busy_.particle, restless_known_ = true;  // for the next sub-step
-    } else {
+    } else {  // a whole solve may move resting components by rounding: look at every particle
       whole = true;
+      restless_known_ = false;
     }
   }
   report.substeps = substeps;
@@ -780,7 +788,8 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed,
   solved.erase(std::unique(solved.begin(), solved.end()), solved.end());
   restless_ = std::move(solved);
   restless_known_ = !whole;
-  ++steps_;
+  serial_before_step_ = serial_;
+  serial_ = new_serial();
   for (const Undo& u : undo_)  // every particle whose phase the step set is in undo_
     if (p_.alive[u.particle] && p_.phase[u.particle] != u.phase)
       report.phase_changed.push_back(static_cast<std::uint32_t>(u.particle));
@@ -834,7 +843,6 @@ void ThermalModel::begin_undo() {
   undo_.clear();
   undo_slot_.resize(p_.size(), -1);
   undo_ledger_ = ledger_;
-  undo_steps_ = steps_;
   undo_ready_ = true;
 }
 
@@ -871,7 +879,7 @@ void ThermalModel::undo_step() {
     if (p_.alive[i] != u.alive) p_.alive[i] = u.alive, dirty_ = true;
   }
   ledger_ = undo_ledger_;
-  steps_ = undo_steps_;  // restless_ (the undone step's rows) holds for the state before it
+  serial_ = serial_before_step_;  // that state again; restless_ (the step's rows) holds for it
   undo_ready_ = false;
 }
 
@@ -881,7 +889,7 @@ Phase ThermalModel::phase_before_step(std::size_t i) const {
 }
 
 ThermalModel::Snapshot ThermalModel::save() const {
-  return {p_.temperature, p_.phase, p_.alive, stored_, ledger_, model_id_, steps_};
+  return {p_.temperature, p_.phase, p_.alive, stored_, ledger_, serial_};
 }
 
 void ThermalModel::restore(const Snapshot& s) {
@@ -891,10 +899,11 @@ void ThermalModel::restore(const Snapshot& s) {
   // Reassemble only if the live set differs from the matrix's: a redo without vaporisation keeps
   // it (compared with the assembled set, not p_.alive, which a checkpoint may have set already).
   if (all_.live != s.alive) dirty_ = true;
-  // restless_ holds every component not at rest in the state before the last step, and in the
-  // state now: any other state is looked at whole.
-  if (s.model != model_id_ || (s.steps != steps_ && s.steps + 1 != steps_)) restless_known_ = false;
-  steps_ = s.steps;
+  // restless_ holds every component not at rest in the state now and in the state before the
+  // last step (if it solved no sub-step whole): any other state is looked at whole.
+  const bool known_state = s.serial != 0 && (s.serial == serial_ || s.serial == serial_before_step_);
+  if (!known_state) restless_known_ = false;
+  serial_ = known_state ? s.serial : new_serial();
   begin_undo();  // nothing to undo: the last step's record no longer describes this state
   undo_ready_ = false;
   p_.temperature = s.temperature;

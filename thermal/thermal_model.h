@@ -76,9 +76,9 @@ class ThermalModel {
     std::vector<std::uint8_t> alive;
     std::vector<double> stored;
     ThermalLedger ledger;
-    // Which model took it, after how many steps: restoring the state before the model's last
-    // step keeps its record of the components that may not be at rest.
-    std::uint64_t model = 0, steps = 0;
+    // The state's name (unique across models): restoring the state now or the one before the
+    // model's last step keeps its record of the components that may not be at rest.
+    std::uint64_t serial = 0;
   };
 
   // Validates the spec and materials; sets each live particle's phase from its temperature
@@ -99,8 +99,10 @@ class ThermalModel {
   // (empty: none), phase change and vaporisation included.
   StepReport step(double dt, const std::vector<double>& absorbed);
   // The same, told which particles were heated: absorbed[i] is zero for every particle not in
-  // `heated` (any order, repeats allowed). The step then costs in proportion to the particles
-  // it works on, not to the packing (with skip_resting, after the first step).
+  // `heated` (any order, repeats allowed). The step then reads only those deposits and, with
+  // skip_resting after its first step, looks only at the components it solved last and the
+  // heated ones (it still counts the live particles, and after a vaporisation compares the
+  // live flags).
   StepReport step(double dt, const std::vector<double>& absorbed, std::span<const std::uint32_t> heated);
 
   const ThermalLedger& ledger() const { return ledger_; }
@@ -132,7 +134,8 @@ class ThermalModel {
   void restore(const Snapshot& snapshot);
   // The stagger's redo of a step: back to the state before the last step() (temperatures,
   // phases, live flags, stored energy, ledger), from what that step changed (its rows) instead of
-  // a copy of every particle. Once per step; RunError without a step to undo.
+  // a copy of every particle. Once per step; RunError without a step to undo (also after a
+  // step that failed).
   void undo_step();
   // Particle i's phase before the last step() (what the rays of that step saw).
   Phase phase_before_step(std::size_t i) const;
@@ -257,8 +260,8 @@ class ThermalModel {
   // a whole solve or a restore from elsewhere: the next step looks at every particle.
   std::vector<Eigen::Index> restless_;
   bool restless_known_ = false;
-  std::uint64_t steps_ = 0;             // step() calls (restore sets it back)
-  std::uint64_t model_id_ = 0;          // tells this model's snapshots from others'
+  std::uint64_t serial_ = 0;              // the state's name (new_serial), kept in snapshots
+  std::uint64_t serial_before_step_ = 0;  // the name of the state the last step started from
   // What the last step() changed, for undo_step: each particle's state before its first change.
   struct Undo {
     std::size_t particle;
@@ -269,7 +272,6 @@ class ThermalModel {
   std::vector<Undo> undo_;
   std::vector<std::int32_t> undo_slot_;  // each particle's entry in undo_, -1: left alone
   ThermalLedger undo_ledger_;
-  std::uint64_t undo_steps_ = 0;
   bool undo_ready_ = false;
   std::uint64_t clusters_assembly_ = 0; // the assembly all_'s clusters were marked for
   mutable double limit_ = 0;            // monotone_step_limit of the assembly limit_assembly_
