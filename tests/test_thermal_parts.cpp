@@ -377,8 +377,9 @@ TEST(ThermalSkip, TheRestlessComponentsAreTheBusyOnesEveryParticleWouldShow) {
       }
 }
 
-// A snapshot of another model (or from before the last step) may hold components that are not
-// at rest where this model's record says nothing is: after restoring it the model looks again.
+// A snapshot of another model (or of a state other than now or before the last step) may hold
+// components that are not at rest where this model's record says nothing is: after restoring
+// it the model looks again.
 TEST(ThermalSkip, ASnapshotFromElsewhereIsLookedAtWhole) {
   RestingScene a(5e-13), b(5e-13);
   ThermalModel warmed(a.p, {a.m}, {}), idle(b.p, {b.m}, {});
