@@ -155,6 +155,7 @@ bool Simulation::step() {
   if (done()) return false;
   launch_pulse_if_due();
   const double budget = spec_.dt > 0 ? kSpeedOfLight * spec_.dt : std::numeric_limits<double>::infinity();
+  tracer_->compact_if_sparse();  // the stagger's copy of the rays holds the live ones, mostly
   const RayState rays_before = tracer_->save();
   std::vector<Phase> optical_phase;  // phases the rays see; empty: the current ones
   StepReport report;

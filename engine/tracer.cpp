@@ -127,7 +127,7 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   if (energies.size() != beam.size())
     throw InputError("launch: " + std::to_string(energies.size()) + " energies for " +
                      std::to_string(beam.size()) + " rays");
-  if (state_.live_count * 2 < state_.live.size()) compact();
+  compact_if_sparse();
   const Vec3& d = beam.direction;
   // Start plane: upstream of every particle (spheres stick out of the cube by up to R), so the
   // first surface a ray meets is a true outside hit (MODEL.md section 2).
@@ -181,6 +181,10 @@ double Tracer::energy_in_flight() const {
   for (std::size_t r = 0; r < state_.live.size(); ++r)
     if (state_.live[r]) sum += state_.energy[r];
   return sum;
+}
+
+void Tracer::compact_if_sparse() {
+  if (state_.live_count * 2 < state_.live.size()) compact();
 }
 
 void Tracer::compact() {

@@ -147,6 +147,9 @@ class Tracer {
   void remove_particles(std::span<const std::uint32_t> ids);
   // Drops the ended rays from the state (keeps the ledger and counters).
   void compact();
+  // The same once more than half the rays have ended (the live ones keep their order, so
+  // deposits and ledger do not change): bounds what save() copies.
+  void compact_if_sparse();
 
   RayState save() const { return state_; }
   void restore(const RayState& state) { state_ = state; }
