@@ -132,18 +132,36 @@ void ThermalModel::assemble_if_needed() {
   const bool in_place = !pattern_dirty_ && s.live.size() == p_.alive.size() &&
                         conducts == s.has_conduction && (!conducts || s.laplacian.nonZeros() > 0);
   if (in_place) {
-    std::vector<Eigen::Index> changed;
-    for (std::size_t i = 0; i < p_.size(); ++i)
-      if (s.live[i] != p_.alive[i]) changed.push_back(static_cast<Eigen::Index>(i));
+    const std::vector<Eigen::Index> changed = live_flags_changed();
     for (Eigen::Index i : changed) set_wall_terms(i);
     if (conducts) update_live_set(changed);
     else if (restless_known_) restless_.insert(restless_.end(), changed.begin(), changed.end());
-    for (Eigen::Index i : changed) s.live[i] = p_.alive[i];
+    for (Eigen::Index i : changed) {
+      live_count_ += p_.alive[i] ? 1 : -1;
+      s.live[i] = p_.alive[i];
+    }
   } else {
     assemble_anew(conducts);
   }
+  flipped_.clear(), flips_known_ = true;
   ++assembly_;
   dirty_ = false;
+}
+
+// The particles whose live flag differs from all_'s, ascending: from the record of the flags
+// the model flipped itself (vaporisation, undo_step), or, after a restore, from every particle.
+std::vector<Eigen::Index> ThermalModel::live_flags_changed() const {
+  std::vector<Eigen::Index> changed;
+  if (flips_known_) {
+    changed = flipped_;
+    std::sort(changed.begin(), changed.end());
+    changed.erase(std::unique(changed.begin(), changed.end()), changed.end());
+    std::erase_if(changed, [&](Eigen::Index i) { return all_.live[i] == p_.alive[i]; });
+    return changed;
+  }
+  for (std::size_t i = 0; i < p_.size(); ++i)
+    if (all_.live[i] != p_.alive[i]) changed.push_back(static_cast<Eigen::Index>(i));
+  return changed;
 }
 
 // Some contact with G > 0 joins two live particles (after vaporisations there may be none left).
@@ -170,6 +188,7 @@ void ThermalModel::assemble_anew(bool conducts) {
   s.diagonal = Eigen::VectorXd::Zero(n);
   s.wall_conductance = Eigen::VectorXd::Zero(n);
   s.live = p_.alive;
+  live_count_ = static_cast<std::size_t>(std::count(s.live.begin(), s.live.end(), 1));
   s.has_conduction = conducts;
   restless_known_ = false;  // contacts may have joined components: look at every particle
   for (Eigen::Index i = 0; i < n; ++i) set_wall_terms(i);
@@ -700,6 +719,7 @@ void ThermalModel::update_phases(const Eigen::VectorXd& theta1, StepReport& repo
       continue;
     }
     p_.remove(i);
+    flipped_.push_back(static_cast<Eigen::Index>(i));
     ledger_.vaporized += stored_[i];
     ledger_.stored -= stored_[i];
     stored_[i] = 0;
@@ -733,7 +753,7 @@ StepReport ThermalModel::step_once(double dt, const Heat& heat) {
   assemble_if_needed();
   book_heat_of_vaporised(heat);
   const Eigen::Map<const Eigen::VectorXd> theta(p_.temperature.data(), static_cast<Eigen::Index>(p_.size()));
-  report.live_rows = static_cast<std::size_t>(std::count(p_.alive.begin(), p_.alive.end(), 1));
+  report.live_rows = live_count_;
   solve_busy_ = select_busy(theta, heat, report.live_rows);
   report.solved_rows = solve_busy_ ? busy_.particle.size() : report.live_rows;
   // From here on the step works on its rows: every particle, or the busy components' only (the
@@ -876,7 +896,7 @@ void ThermalModel::undo_step() {
     p_.temperature[i] = u.temperature;
     p_.phase[i] = u.phase;
     stored_[i] = u.stored;
-    if (p_.alive[i] != u.alive) p_.alive[i] = u.alive, dirty_ = true;
+    if (p_.alive[i] != u.alive) p_.alive[i] = u.alive, dirty_ = true, flipped_.push_back(static_cast<Eigen::Index>(i));
   }
   ledger_ = undo_ledger_;
   serial_ = serial_before_step_;  // that state again; restless_ (the step's rows) holds for it
@@ -901,6 +921,7 @@ void ThermalModel::restore(const Snapshot& s) {
   if (all_.live != s.alive) dirty_ = true;
   // restless_ holds every component not at rest in the state now and in the state before the
   // last step (if it solved no sub-step whole): any other state is looked at whole.
+  flips_known_ = false;  // any live flag may change below
   const bool known_state = s.serial != 0 && (s.serial == serial_ || s.serial == serial_before_step_);
   if (!known_state) restless_known_ = false;
   serial_ = known_state ? s.serial : new_serial();

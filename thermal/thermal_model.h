@@ -192,6 +192,7 @@ class ThermalModel {
   bool live_contact_conducts() const;
   void set_wall_terms(Eigen::Index i);
   void assemble_anew(bool conducts);
+  std::vector<Eigen::Index> live_flags_changed() const;
   void assemble_all();
   void update_live_set(const std::vector<Eigen::Index>& changed);
   void find_components();
@@ -254,6 +255,10 @@ class ThermalModel {
   std::uint32_t stamp_ = 0;
   std::vector<int> cluster_of_root_;    // mark_clusters' scratch, by component id
   std::vector<Eigen::Index> row_of_;    // build_busy_system's scratch: -1 between calls
+  // The live flags the model flipped since all_ was assembled (flips_known_: no others changed).
+  std::vector<Eigen::Index> flipped_;
+  bool flips_known_ = false;
+  std::size_t live_count_ = 0;          // live particles at the last assembly
   // skip_resting without a scan of every particle: every component not at rest (temperatures
   // that differ, a wall at another temperature) holds a particle in restless_, the rows solved
   // in the last step (with its sub-steps). False before the first step, after a new assembly,
