@@ -308,7 +308,7 @@ TEST(ThermalGraph, ComponentsFollowVaporisationsAndRedosAsANewSearchFindsThem) {
   ThermalModel model(p, {m}, spec);
   model.set_contacts(contacts);
   std::mt19937_64 rng(2013);
-  std::size_t splits = 0, largest = 0;
+  std::size_t components = 0, largest = 0;  // summed over the rounds; the largest seen
   for (int round = 0; round < 40; ++round) {
     ThermalModel::Snapshot s = model.save();
     for (auto& alive : s.alive)
@@ -328,10 +328,10 @@ TEST(ThermalGraph, ComponentsFollowVaporisationsAndRedosAsANewSearchFindsThem) {
         for (std::size_t j = 0; j < p.size(); ++j) size += p.alive[j] && model.component_of(j) == i;
       largest = std::max(largest, size);
     }
-    splits += roots;
+    components += roots;
   }
   EXPECT_GT(largest, 200u);  // a giant component was there to break up
-  EXPECT_GT(splits, 40u * 100);
+  EXPECT_GT(components, 40u * 100);
 }
 
 // After its first step the model looks only at the components it solved last and at those given

@@ -134,8 +134,9 @@ void ThermalModel::assemble_if_needed() {
   if (in_place) {
     const std::vector<Eigen::Index> changed = live_flags_changed();
     for (Eigen::Index i : changed) set_wall_terms(i);
-    if (conducts) update_live_set(changed);
-    else if (restless_known_) restless_.insert(restless_.end(), changed.begin(), changed.end());
+    // Components whose members changed (without conduction: the particles themselves).
+    const std::vector<Eigen::Index> touched = conducts ? update_live_set(changed) : changed;
+    if (restless_known_) restless_.insert(restless_.end(), touched.begin(), touched.end());
     for (Eigen::Index i : changed) {
       live_count_ += p_.alive[i] ? 1 : -1;
       s.live[i] = p_.alive[i];
@@ -218,8 +219,8 @@ void ThermalModel::assemble_all() {
 // The columns of the particles whose live flag changed, and of their neighbours, recomputed in
 // place as conduction_matrix builds them: the wall's G first, then each live neighbour's in
 // ascending order (the contacts' order), so the values equal a new assembly bit for bit. The
-// diagonal and the components of those particles follow.
-void ThermalModel::update_live_set(const std::vector<Eigen::Index>& changed) {
+// diagonal and the components of those particles follow. Returns those particles (ascending).
+std::vector<Eigen::Index> ThermalModel::update_live_set(const std::vector<Eigen::Index>& changed) {
   SparseMatrix& m = all_.laplacian;
   std::vector<Eigen::Index> touched;
   for (Eigen::Index i : changed)
@@ -243,7 +244,7 @@ void ThermalModel::update_live_set(const std::vector<Eigen::Index>& changed) {
     values[at] = all_.diagonal[j] = diagonal;
   }
   update_components(touched);
-  if (restless_known_) restless_.insert(restless_.end(), touched.begin(), touched.end());
+  return touched;
 }
 
 // Connected components of the live conducting contacts (union-find): each live particle's
@@ -336,7 +337,12 @@ std::uint32_t ThermalModel::component_of(std::size_t i) {
 
 bool ThermalModel::in_insulated_cluster(std::size_t i) {
   const std::uint32_t r = component_of(i);
-  return all_.has_conduction && component_size_[r] >= 2 && !component_walled_[r];
+  return all_.has_conduction && insulated(r);
+}
+
+// The component named r is an insulated cluster: >= 2 particles, no wall touching it.
+bool ThermalModel::insulated(std::uint32_t r) const {
+  return r != kNoComponent && component_size_[r] >= 2 && !component_walled_[r];
 }
 
 // A system's insulated clusters (>= 2 live particles joined by conducting contacts, no wall
@@ -350,7 +356,7 @@ void ThermalModel::mark_clusters(System& s) {
   for (Eigen::Index k = 0; k < m; ++k) {
     const std::size_t i = s.particle.empty() ? static_cast<std::size_t>(k) : static_cast<std::size_t>(s.particle[k]);
     const std::uint32_t r = component_[i];
-    if (r == kNoComponent || component_size_[r] < 2 || component_walled_[r]) continue;
+    if (!insulated(r)) continue;
     if (r == i) {
       cluster_of_root_[r] = static_cast<int>(s.ground.size());
       s.ground.push_back(k);
@@ -859,11 +865,16 @@ int ThermalModel::substep_count(double dt) const {
 
 // undo_step's record starts empty for each step.
 void ThermalModel::begin_undo() {
+  clear_undo();
+  undo_ledger_ = ledger_;
+  undo_ready_ = true;
+}
+
+void ThermalModel::clear_undo() {
   for (const Undo& u : undo_) undo_slot_[u.particle] = -1;
   undo_.clear();
   undo_slot_.resize(p_.size(), -1);
-  undo_ledger_ = ledger_;
-  undo_ready_ = true;
+  undo_ready_ = false;
 }
 
 void ThermalModel::add_substep(StepReport& report, const StepReport& sub) {
@@ -925,8 +936,7 @@ void ThermalModel::restore(const Snapshot& s) {
   const bool known_state = s.serial != 0 && (s.serial == serial_ || s.serial == serial_before_step_);
   if (!known_state) restless_known_ = false;
   serial_ = known_state ? s.serial : new_serial();
-  begin_undo();  // nothing to undo: the last step's record no longer describes this state
-  undo_ready_ = false;
+  clear_undo();  // nothing to undo: the last step's record no longer describes this state
   p_.temperature = s.temperature;
   p_.phase = s.phase;
   p_.alive = s.alive;

@@ -184,6 +184,7 @@ class ThermalModel {
   Heat checked_heat(const std::vector<double>& absorbed, std::span<const std::uint32_t> given) const;
   int substep_count(double dt) const;
   void begin_undo();
+  void clear_undo();
   static void add_substep(StepReport& report, const StepReport& sub);
   StepReport step_once(double dt, const Heat& heat);
   void book_heat_of_vaporised(const Heat& heat);
@@ -194,12 +195,13 @@ class ThermalModel {
   void assemble_anew(bool conducts);
   std::vector<Eigen::Index> live_flags_changed() const;
   void assemble_all();
-  void update_live_set(const std::vector<Eigen::Index>& changed);
+  std::vector<Eigen::Index> update_live_set(const std::vector<Eigen::Index>& changed);
   void find_components();
   void collect_component(Eigen::Index from, std::uint32_t stamp, std::vector<Eigen::Index>& out);
   void update_components(const std::vector<Eigen::Index>& touched);
   std::uint32_t next_stamp();
   void mark_clusters(System& s);
+  bool insulated(std::uint32_t root) const;
   bool select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat, std::size_t live);
   std::vector<Eigen::Index> busy_rows_of_all(const Eigen::Ref<const Eigen::VectorXd>& theta0,
                                              const Heat& heat) const;
