@@ -210,6 +210,12 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"run.toml:2", "material.initial_temperature", "900", "< material.vapor_temperature = 700"});
   expect_input_error("file_unused", "[packing]\nfile = \"bed.xyz\"\n", "",
                      {"run.toml:2", "packing.file", "needs packing.source = \"file\""});
+  // Asked for in this run, a count the file overrides is refused. A preset or run file may hold
+  // it (`beampack config` prints every key): ABeamThatMeetsNoParticleIsAnnounced runs a file
+  // packing under the quick preset's packing.count = 200.
+  expect_input_error("count_with_file", "[packing]\nsource = \"file\"\nfile = \"bed.xyz\"\n",
+                     "--set packing.count=500",
+                     {"--set packing.count=500", "packing.count", "500", "the file gives the count"});
   expect_input_error("polarisation", "", "--preset quick --set optics.polarisation=200",
                      {"optics.polarisation", "200", "<= 180"});
   expect_input_error("polarisation_metal", "", "--preset quick --set optics.polarisation=30 --set optics.k_solid=4",
@@ -522,6 +528,17 @@ TEST(Cli, AnEmptyBedHasNoPeakTemperatureRatherThanZeroKelvin) {
   ASSERT_EQ(history.size(), 2u);
   EXPECT_EQ(history.back().at("max_temperature_K"), "");
   EXPECT_EQ(std::stod(history.back().at("injected_J")), double(summary["energy_J"]["injected"]));
+  // No particle: a pulse's flight is 0, so the automatic period and one step per flight leave
+  // time at 0; the run says so. With a period, time advances by it and nothing is said.
+  EXPECT_EQ(history.back().at("time_s"), "0");
+  EXPECT_NE(r.output.find("no step has a length and time stays 0"), std::string::npos) << r.output;
+  const Result timed = run("run --preset quick --set packing.count=0 --set pulses.count=3 "
+                           "--set pulses.period=1e-12 --out " + (out / "timed").string());
+  ASSERT_EQ(timed.code, 0) << timed.output;
+  EXPECT_EQ(timed.output.find("time stays 0"), std::string::npos) << timed.output;
+  const auto timed_history = read_csv(out / "timed" / "history.csv");
+  ASSERT_EQ(timed_history.size(), 3u);
+  EXPECT_NEAR(std::stod(timed_history.back().at("time_s")), 2e-12, 1e-24);
 }
 
 // A sweep value that fails leaves its own row empty and the exit code non-zero; the values

@@ -313,6 +313,11 @@ bool Params::set_later(const std::string& later, const std::string& earlier) con
   return a && b && a->layer > b->layer && !b->command_line;
 }
 
+bool Params::set_on_command_line(const std::string& key) const {
+  const KeyOrigin* o = origin(key);
+  return o && o->command_line;
+}
+
 void Params::forget(const std::string& key) {
   const auto parts = split_key(key);
   toml::table* t = &merged_;

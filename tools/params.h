@@ -46,6 +46,8 @@ class Params {
   // Whether `later` was set by a later layer than `earlier` (both set, `earlier` not from the
   // command line: two --set that contradict each other are refused, whatever their order).
   bool set_later(const std::string& later, const std::string& earlier) const;
+  // Whether --set (or a sweep) gave the key: what the user asked for in this run.
+  bool set_on_command_line(const std::string& key) const;
   // Drops a key from the layers, as if none had set it.
   void forget(const std::string& key);
   // Every key a layer set, with where: RunConfig keeps them to locate errors found later.

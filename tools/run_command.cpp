@@ -356,6 +356,19 @@ void warn_if_beam_meets_nothing(const Simulation& sim) {
                sim.spec().packing.sample_size, lo.x(), hi.x(), lo.y(), hi.y(), lo.z(), hi.z());
 }
 
+// Without particles every ray escapes at once: a pulse's flight is 0, so with the automatic
+// period and one step per flight no step has a length and time stays 0 in history.csv.
+void warn_if_time_stands_still(const Simulation& sim) {
+  const SimulationSpec& spec = sim.spec();
+  const Particles& p = sim.particles();
+  if (spec.dt > 0 || spec.pulses.period > 0 || spec.pulses.count == 0) return;
+  if (p.alive_count() > 0) return;
+  std::fprintf(stderr,
+               "beampack: warning: no particles: every ray escapes at once, so with `pulses.period` = "
+               "\"auto\" and `thermal.dt` = \"pulse\" no step has a length and time stays 0; set "
+               "`pulses.period` (s) or `thermal.dt` (s) for a time axis\n");
+}
+
 // A new run into a directory that holds an earlier one: that run's checkpoint and frames would
 // outlive it (and `--resume` would continue the earlier run over the new outputs), so they go.
 // Only beampack's own names; summary.json, history.csv and particles.csv are rewritten anyway.
@@ -394,6 +407,7 @@ int run_command(const RunOptions& options) {
   const std::unique_ptr<Simulation> owned = start_simulation(config);
   Simulation& sim = *owned;
   warn_if_beam_meets_nothing(sim);
+  warn_if_time_stands_still(sim);
   if (saved) sim.read_state(*saved);
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);

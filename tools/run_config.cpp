@@ -44,6 +44,11 @@ void read_packing(Params& p, PackingSpec& s) {
     p.fail("packing.radius", number_text(s.file_radius), "applies to packing.source = \"file\" only");
   if (s.source == "file" && s.file.empty())
     p.fail("packing.file", "\"\"", "required with packing.source = \"file\"");
+  // A run file may hold it (`beampack config` prints every key); asked for in this run, it
+  // would be ignored without a word.
+  if (s.source == "file" && p.set_on_command_line("packing.count"))
+    p.fail("packing.count", std::to_string(s.count),
+           "applies to generated packings only; with packing.source = \"file\" the file gives the count");
 }
 
 void read_beam(Params& p, BeamSpec& b) {
