@@ -63,6 +63,7 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
   }
   check_thermal_masses(pulse_energy * std::max(spec_.pulses.count, 1));
   tracer_ = std::make_unique<Tracer>(particles_, spec_.optics);
+  tracer_->keep_undo(spec_.max_staggers > 0);  // the stagger's redo takes a step back
   thermal_ = std::make_unique<ThermalModel>(particles_, spec_.materials, spec_.thermal);
   // Leave out what the scene does not need: without conductivity or walls there is no graph.
   if (needs_conduction(spec_)) {
@@ -155,11 +156,11 @@ bool Simulation::step() {
   if (done()) return false;
   launch_pulse_if_due();
   const double budget = spec_.dt > 0 ? kSpeedOfLight * spec_.dt : std::numeric_limits<double>::infinity();
-  tracer_->compact_if_sparse();  // the stagger's copy of the rays holds the live ones, mostly
-  const RayState rays_before = tracer_->save();
+  tracer_->compact_if_sparse();  // ended rays would be scanned by every chunk that runs
   std::vector<Phase> optical_phase;  // phases the rays see; empty: the current ones
   StepReport report;
   double dt = 0;
+  std::size_t chunks_run = 0, chunks_live = 0;  // of the last pass
   for (int pass = 0;; ++pass) {
     // Trace: every live ray advances by at most c dt of path, depositing into dH.
     for (std::uint32_t i : heated_) deposits_[i] = 0.0;
@@ -169,6 +170,7 @@ bool Simulation::step() {
       StageClock clock(stages_[kTrace]);
       if (!optical_phase.empty()) std::swap(particles_.phase, optical_phase);
       tracer_->advance(budget, deposits_, &heated_);
+      chunks_run = tracer_->last_chunks_run(), chunks_live = tracer_->last_chunks_live();
       if (!optical_phase.empty()) std::swap(particles_.phase, optical_phase);
     }
     dt = step_length(traced);
@@ -196,7 +198,7 @@ bool Simulation::step() {
     ++counts_.staggers;
     optical_phase = particles_.phase;  // copied only when the step is redone
     for (Phase& phase : optical_phase) phase = optical(phase);
-    tracer_->restore(rays_before);
+    if (traced) tracer_->undo_advance();
     tracer_->take_segments();  // the redone trace records its own
     thermal_->undo_step();
     report = StepReport{};
@@ -207,6 +209,8 @@ bool Simulation::step() {
   ++counts_.steps;
   counts_.heat_rows_solved += report.solved_rows;
   counts_.heat_rows_live += report.live_rows;
+  counts_.ray_chunks_run += chunks_run;
+  counts_.ray_chunks_live += chunks_live;
   // Numerical hygiene: a NaN or infinity stops the run here, before it reaches any output.
   // Only the particles the heat step changed can have new temperatures.
   for (std::uint32_t i : heated_)
@@ -305,7 +309,7 @@ Figures Simulation::figures() const {
 }
 
 namespace {
-constexpr std::uint32_t kStateVersion = 5;  // 4: Counts has the pulse delays; 5: the heat rows
+constexpr std::uint32_t kStateVersion = 6;  // 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks
 }
 
 void Simulation::write_state(StateWriter& out) const {

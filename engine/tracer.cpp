@@ -9,6 +9,7 @@
 
 #include <algorithm>
 #include <array>
+#include <bitset>
 #include <Eigen/Geometry>
 #include <cmath>
 #include <numbers>
@@ -23,9 +24,16 @@
 namespace beampack {
 namespace {
 
-constexpr std::size_t kChunkRays = 256;  // fixed: the reduction order must not depend on threads
+// Rays are stepped in chunks of kChunkRays, and a chunk whose rays are all in free flight through
+// an advance is left alone: small chunks leave more alone (1e6 spheres, 10^5 rays, the paper's
+// time step: 44% of chunks run with 256 rays, 15% with 64). The chunks an advance runs go to the
+// threads kBatchChunks at a time, so a pulse traced whole pays for few batches. Neither size
+// changes a result: the events are summed in ray order whatever the chunks.
+constexpr std::size_t kChunkRays = 64;
+constexpr std::size_t kBatchChunks = 4;
 constexpr std::size_t kPacket = 16;
-constexpr std::size_t kChunksInFlight = 16;  // chunks traced ahead of the in-order reduction
+constexpr std::size_t kBatchesInFlight = 16;  // batches traced ahead of the in-order reduction
+constexpr double kInf = std::numeric_limits<double>::infinity();
 
 void validate(const OpticsSpec& spec, const Particles& particles) {
   if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
@@ -93,17 +101,35 @@ struct Tracer::Chunk {
   std::vector<std::pair<std::uint32_t, RaySegment>> segments;  // when recording, by ray
   std::uint64_t primary = 0, bounced = 0, hits = 0;
   std::size_t ended = 0;
-  double flight = 0.0;  // the most path a ray of the chunk travelled in this advance
+  double flight = 0.0;  // the most path a ray of the chunk travelled before it ended
+  // The undo record (Tracer::keep_undo): each ray the advance changed, as it was before.
+  std::size_t first = 0;  // the chunk's first ray
+  std::bitset<kChunkRays> remembered;
+  std::vector<std::uint32_t> changed;
+  RayState before;
 
   // Empty, keeping the storage: chunks are reused from one advance to the next.
-  void clear() {
+  void clear(std::size_t first_ray, bool polarised) {
     events.clear();
     segments.clear();
     primary = bounced = hits = 0;
     ended = 0;
     flight = 0.0;
+    first = first_ray;
+    remembered.reset();
+    changed.clear();
+    before.polarised = polarised;
+    before.for_each_array([](auto& v) { v.clear(); });
   }
 };
+
+// Ray r as it was before this advance changed it, kept once per advance when undo is on.
+void Tracer::remember(std::uint32_t r, Chunk& c) const {
+  if (!undo_.on || c.remembered[r - c.first]) return;
+  c.remembered[r - c.first] = true;
+  c.changed.push_back(r);
+  RayState::for_each_member(state_.polarised, [&](auto member) { (c.before.*member).push_back((state_.*member)[r]); });
+}
 
 Tracer::Tracer(const Particles& particles, OpticsSpec spec)
     : particles_(particles), spec_(std::move(spec)) {
@@ -128,6 +154,8 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
     throw InputError("launch: " + std::to_string(energies.size()) + " energies for " +
                      std::to_string(beam.size()) + " rays");
   compact_if_sparse();
+  undo_.held = false;
+  if (state_.live_count == 0) state_.clock = 0.0;  // no ray reads it: each pulse starts at 0
   const Vec3& d = beam.direction;
   // Start plane: upstream of every particle (spheres stick out of the cube by up to R), so the
   // first surface a ray meets is a true outside hit (MODEL.md section 2).
@@ -160,6 +188,7 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   }
   for (double e : energies) s.ledger.injected += e;
   s.live_count += count;
+  refresh_next_events(first / kChunkRays, (s.live.size() + kChunkRays - 1) / kChunkRays);
 }
 
 // Ray r at its launch: on the start plane, no bounce yet, not traced.
@@ -169,7 +198,7 @@ void Tracer::start_ray(std::size_t r, const Vec3& origin, const Vec3& direction,
   s.direction[r] = direction;
   s.normal[r] = Vec3::Zero();
   s.energy[r] = s.initial_energy[r] = energy;
-  s.travelled[r] = s.path[r] = 0.0;
+  s.start_clock[r] = s.clock;
   s.t_next[r] = -1.0;
   s.last_particle[r] = s.next_particle[r] = kNoParticle;
   s.bounces[r] = 0;
@@ -188,6 +217,7 @@ void Tracer::compact_if_sparse() {
 }
 
 void Tracer::compact() {
+  undo_.held = false;
   RayState& s = state_;
   std::vector<std::size_t> keep;
   for (std::size_t r = 0; r < s.live.size(); ++r)
@@ -196,6 +226,32 @@ void Tracer::compact() {
     for (std::size_t w = 0; w < keep.size(); ++w) v[w] = v[keep[w]];
     v.resize(keep.size());
   });
+  refresh_next_events(0, (keep.size() + kChunkRays - 1) / kChunkRays);
+}
+
+void Tracer::restore(const RayState& state) {
+  undo_.held = false;
+  state_ = state;
+  refresh_next_events(0, (state_.live.size() + kChunkRays - 1) / kChunkRays);
+}
+
+// The earliest event of the live rays [begin, end) on the path clock: -infinity when one is still
+// to be traced, +infinity when none is live.
+double Tracer::next_event_of_chunk(std::size_t begin, std::size_t end) const {
+  const RayState& s = state_;
+  double first = kInf;
+  for (std::size_t r = begin; r < end; ++r)
+    if (s.live[r]) first = std::min(first, s.t_next[r] < 0.0 ? -kInf : s.start_clock[r] + s.t_next[r]);
+  return first;
+}
+
+// Chunks [first_chunk, end_chunk) take their next events from their rays (end_chunk: the new
+// chunk count, so the list follows the ray arrays as they grow and shrink).
+void Tracer::refresh_next_events(std::size_t first_chunk, std::size_t end_chunk) {
+  next_event_.resize(end_chunk);
+  const std::size_t n = state_.live.size();
+  for (std::size_t k = first_chunk; k < end_chunk; ++k)
+    next_event_[k] = next_event_of_chunk(k * kChunkRays, std::min(n, (k + 1) * kChunkRays));
 }
 
 namespace {
@@ -245,6 +301,7 @@ void Tracer::trace_packets(std::size_t begin, std::size_t end, Chunk& c) {
   ids.clear();
   for (std::size_t r = begin; r < end; ++r)
     if (s.live[r] && s.t_next[r] < 0.0 && s.bounces[r] == 0) ids.push_back(static_cast<std::uint32_t>(r));
+  for (std::uint32_t r : ids) remember(r, c);
   trace_ids(ids.data(), ids.size(), true);
 }
 
@@ -271,29 +328,25 @@ void Tracer::trace_wave(const std::vector<std::uint32_t>& rays, Chunk& c) {
   for (std::uint32_t r : rays) close_query(r);
 }
 
-// Moves ray r along its known next event, up to `left` of path. A hit deposits (1 - R) E in the
-// particle (3.3) and reflects the ray specularly, d' = d - 2 (d.n) n, carrying R E on. Returns
-// true when the ray needs its next segment traced, false when it is done for this call.
-bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
+// Moves ray r through its events up to the path clock's end_clock. A hit deposits (1 - R) E in
+// the particle (3.3) and reflects the ray specularly, d' = d - 2 (d.n) n, carrying R E on.
+// Returns true when the ray needs its next segment traced, false when it is done for this call.
+bool Tracer::step_ray(std::uint32_t r, double end_clock, Chunk& c) {
   RayState& s = state_;
   for (;;) {
-    if (s.t_next[r] < 0.0) return true;
-    const double to_event = s.t_next[r] - s.travelled[r];
-    if (to_event > left) {  // the budget ends in free flight; the ray resumes here next call
-      s.travelled[r] += left;
-      s.path[r] += left;
-      left = 0.0;
-      return false;
+    if (s.t_next[r] < 0.0) {
+      remember(r, c);
+      return true;
     }
-    left -= to_event;
-    s.path[r] += to_event;
+    const double event = s.start_clock[r] + s.t_next[r];
+    if (event > end_clock) return false;  // in free flight at the end: the ray resumes here
+    remember(r, c);
     const std::uint32_t p = s.next_particle[r];
     if (record_segments_)
       c.segments.push_back({r, {s.origin[r], s.origin[r] + s.t_next[r] * s.direction[r], s.energy[r]}});
     if (p == kNoParticle) {  // left the box: escaped (MODEL.md 3a)
       c.events.push_back({r, kEscapedBin, s.energy[r]});
-      s.live[r] = 0;
-      ++c.ended;
+      end_ray(r, event, c);
       return false;
     }
     const Vec3 point = s.origin[r] + s.t_next[r] * s.direction[r];
@@ -311,16 +364,22 @@ bool Tracer::step_ray(std::uint32_t r, double& left, Chunk& c) {
     s.bounces[r] += 1;
     if (carried < spec_.cutoff * s.initial_energy[r] || s.bounces[r] >= spec_.max_bounces) {
       c.events.push_back({r, kCutoffBin, carried});  // MODEL.md 3b, 3c
-      s.live[r] = 0;  // ended: its path is not updated further (fewer stores per ray)
-      ++c.ended;
+      end_ray(r, event, c);  // its direction and origin are not updated (fewer stores per ray)
       return false;
     }
     s.direction[r] = near_unit(reflect(s.direction[r], normal));
     s.origin[r] = point;
     s.last_particle[r] = p;
-    s.travelled[r] = 0.0;
+    s.start_clock[r] = event;
     s.t_next[r] = -1.0;
   }
+}
+
+// Ray r ends at path clock `at`: its flight in this advance counts towards the step's length.
+void Tracer::end_ray(std::uint32_t r, double at, Chunk& c) {
+  state_.live[r] = 0;
+  ++c.ended;
+  c.flight = std::max(c.flight, at - state_.clock);
 }
 
 // Ray r's reflectance at a hit with its own field, which turns into the reflected ray's field.
@@ -336,17 +395,14 @@ void Tracer::count_segment(std::uint32_t r, Chunk& c) const {
   (state_.bounces[r] == 0 ? c.primary : c.bounced) += 1;
 }
 
-void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double budget) {
-  const IeeeFloatMode ieee;  // whatever thread TBB runs this chunk on (engine/float_mode.h)
-  std::array<double, kChunkRays> before;
-  std::copy(state_.path.begin() + begin, state_.path.begin() + end, before.begin());
-  trace_chunk(c, begin, end, budget);
-  for (std::size_t r = begin; r < end; ++r) c.flight = std::max(c.flight, state_.path[r] - before[r - begin]);
+void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double end_clock) {
+  trace_chunk(c, begin, end, end_clock);
+  next_event_[begin / kChunkRays] = next_event_of_chunk(begin, end);
 }
 
-// Advances rays [begin, end) by the budget each: primaries first in coherent packets, then the
-// bounced segments, one ray at a time (BounceSearch::embree) or in waves (packets, grid).
-void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double budget) {
+// Advances rays [begin, end) to the path clock's end_clock: primaries first in coherent packets,
+// then the bounced segments, one ray at a time (BounceSearch::embree) or in waves (packets, grid).
+void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double end_clock) {
   RayState& s = state_;
   if (spec_.packets) {
     for (std::size_t r = begin; r < end; ++r)
@@ -357,33 +413,30 @@ void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double bu
     for (std::size_t r = begin; r < end; ++r) {
       if (!s.live[r]) continue;
       const auto ray = static_cast<std::uint32_t>(r);
-      double left = budget;
-      while (step_ray(ray, left, c)) {
+      while (step_ray(ray, end_clock, c)) {
         count_segment(ray, c);
         trace_segment(ray);
       }
     }
     return;
   }
-  trace_in_waves(c, begin, end, budget);
+  trace_in_waves(c, begin, end, end_clock);
 }
 
 // Every live ray steps to its next query, then the wave's queries run together (interleaved grid
 // walks, or incoherent packets), until no ray needs another. A ray's events stay in its own
 // order but interleave with other rays'; they are put back in ray order at the end.
-void Tracer::trace_in_waves(Chunk& c, std::size_t begin, std::size_t end, double budget) {
+void Tracer::trace_in_waves(Chunk& c, std::size_t begin, std::size_t end, double end_clock) {
   std::vector<std::uint32_t>& active = c.active;
   std::vector<std::uint32_t>& next = c.next;
   active.clear();
-  std::array<double, kChunkRays> left;
-  left.fill(budget);
   for (std::size_t r = begin; r < end; ++r)
     if (state_.live[r]) active.push_back(static_cast<std::uint32_t>(r));
   int waves = 0;
   for (; !active.empty(); ++waves) {
     next.clear();
     for (std::uint32_t r : active)
-      if (step_ray(r, left[r - begin], c)) next.push_back(r), count_segment(r, c);
+      if (step_ray(r, end_clock, c)) next.push_back(r), count_segment(r, c);
     trace_wave(next, c);
     active.swap(next);
   }
@@ -404,7 +457,7 @@ void RayState::write(StateWriter& out) const {
   out.value(polarised);  // first: it says whether the field array follows
   for_each_array([&](const auto& v) { out.vector(v); });
   out.value(ledger), out.value(primary_segments), out.value(bounced_segments), out.value(hits);
-  out.value(live_count);
+  out.value(live_count), out.value(clock);
 }
 
 void RayState::read(StateReader& in) {
@@ -412,7 +465,7 @@ void RayState::read(StateReader& in) {
   for_each_array([&](auto& v) { in.vector(v); });
   ledger = in.value<OpticsLedger>(), primary_segments = in.value<std::uint64_t>();
   bounced_segments = in.value<std::uint64_t>(), hits = in.value<std::uint64_t>();
-  live_count = in.value<std::size_t>();
+  live_count = in.value<std::size_t>(), clock = in.value<double>();
   for_each_array([&](const auto& v) {
     if (v.size() != origin.size()) throw InputError("checkpoint: ray arrays of unequal length");
   });
@@ -421,7 +474,6 @@ void RayState::read(StateReader& in) {
 // Adds a traced chunk to the deposits, the ledger and the counters: ray order inside the chunk,
 // each ray's event order (the chunks come in chunk order).
 void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits, std::vector<std::uint32_t>* deposited) {
-  const IeeeFloatMode ieee;  // the sums must not flush denormals on some threads only
   Totals& t = totals_;
   t.flight = std::max(t.flight, c.flight);
   if (record_segments_) {  // ray order inside the chunk, whatever order the rays were stepped in
@@ -447,6 +499,9 @@ void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits, std::vector<std:
   t.ended += c.ended;
 }
 
+// Runs the chunks with an event before the advance's end, in parallel, and sums them one by one in
+// chunk order as they finish, so the (serial, deterministic) reduction overlaps the tracing of
+// later chunks. The other chunks are in free flight throughout: nothing of theirs changes.
 std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
                             std::vector<std::uint32_t>* deposited) {
   if (!(path_budget >= 0.0))
@@ -454,40 +509,84 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
   if (deposits.size() < particles_.size()) deposits.resize(particles_.size(), 0.0);
   RayState& s = state_;
   const std::size_t n = s.live.size();
+  const double end_clock = s.clock + path_budget;
+  std::vector<std::uint32_t>& due = due_chunks_;
+  due.clear();
+  std::size_t idle = 0;  // chunks with live rays in free flight throughout: each flies the budget
+  for (std::size_t k = 0; k < next_event_.size(); ++k) {
+    if (next_event_[k] <= end_clock && next_event_[k] < kInf) due.push_back(static_cast<std::uint32_t>(k));
+    else idle += next_event_[k] < kInf;
+  }
+  last_chunks_live_ = due.size() + idle;
+  bool in_flight = idle > 0;
   std::vector<Chunk>& chunks = chunks_;
-  chunks.resize((n + kChunkRays - 1) / kChunkRays);
+  if (chunks.size() < due.size()) chunks.resize(due.size());
   totals_ = Totals{};
   totals_.ledger = s.ledger;  // summed on in the same order as ever: bit-identical ledgers
-  // Chunks are traced in parallel and summed one by one in chunk order as they finish, so the
-  // (serial, deterministic) reduction overlaps the tracing of later chunks.
+  if (undo_.on)
+    undo_ = {true, true, s.ledger, s.primary_segments, s.bounced_segments, s.hits, s.live_count, s.clock};
+  const std::size_t batches = (due.size() + kBatchChunks - 1) / kBatchChunks;
   std::size_t next = 0;
   tbb::parallel_pipeline(
-      kChunksInFlight,
+      kBatchesInFlight,
       tbb::make_filter<void, std::size_t>(tbb::filter_mode::serial_in_order,
                                           [&](tbb::flow_control& control) -> std::size_t {
-                                            if (next == chunks.size()) control.stop();
+                                            if (next == batches) control.stop();
                                             return next++;
                                           }) &
           tbb::make_filter<std::size_t, std::size_t>(
               tbb::filter_mode::parallel,
-              [this, n, path_budget](std::size_t k) {  // by value: no shared stack line
-                Chunk& chunk = chunks_[k];
-                chunk.clear();
-                run_chunk(chunk, k * kChunkRays, std::min(n, (k + 1) * kChunkRays), path_budget);
-                return k;
+              [this, n, end_clock](std::size_t b) {  // by value: no shared stack line
+                const IeeeFloatMode ieee;  // whatever thread TBB runs this batch on (engine/float_mode.h)
+                for (std::size_t j = b * kBatchChunks; j < std::min(due_chunks_.size(), (b + 1) * kBatchChunks); ++j) {
+                  Chunk& chunk = chunks_[j];
+                  const std::size_t begin = due_chunks_[j] * kChunkRays;
+                  chunk.clear(begin, state_.polarised);
+                  run_chunk(chunk, begin, std::min(n, begin + kChunkRays), end_clock);
+                }
+                return b;
               }) &
-          tbb::make_filter<std::size_t, void>(tbb::filter_mode::serial_in_order,
-                                              [&](std::size_t k) { add_chunk(chunks[k], deposits, deposited); }));
+          tbb::make_filter<std::size_t, void>(
+              tbb::filter_mode::serial_in_order, [&](std::size_t b) {
+                const IeeeFloatMode ieee;  // the sums must not flush denormals on some threads only
+                for (std::size_t j = b * kBatchChunks; j < std::min(due.size(), (b + 1) * kBatchChunks); ++j)
+                  add_chunk(chunks[j], deposits, deposited);
+              }));
+  for (std::uint32_t k : due) in_flight |= next_event_[k] < kInf;
   s.ledger = totals_.ledger;
   s.primary_segments += totals_.primary;
   s.bounced_segments += totals_.bounced;
   s.hits += totals_.hits;
   s.live_count -= totals_.ended;
-  last_advance_path_ = totals_.flight;
+  last_advance_path_ = in_flight ? std::max(totals_.flight, path_budget) : totals_.flight;
+  s.clock += std::isfinite(path_budget) ? path_budget : last_advance_path_;
   return s.live_count;
 }
 
+void Tracer::keep_undo(bool on) {
+  undo_.on = on;
+  undo_.held = false;
+}
+
+void Tracer::undo_advance() {
+  if (!undo_.held) return;
+  RayState& s = state_;
+  const std::size_t n = s.live.size();
+  for (std::size_t j = 0; j < due_chunks_.size(); ++j) {
+    const Chunk& c = chunks_[j];
+    for (std::size_t w = 0; w < c.changed.size(); ++w)
+      RayState::for_each_member(s.polarised, [&](auto member) { (s.*member)[c.changed[w]] = (c.before.*member)[w]; });
+    next_event_[due_chunks_[j]] = next_event_of_chunk(c.first, std::min(n, c.first + kChunkRays));
+  }
+  s.ledger = undo_.ledger;
+  s.primary_segments = undo_.primary, s.bounced_segments = undo_.bounced, s.hits = undo_.hits;
+  s.live_count = undo_.live_count;
+  s.clock = undo_.clock;
+  undo_.held = false;
+}
+
 void Tracer::remove_particles(std::span<const std::uint32_t> ids) {
+  undo_.held = false;
   scene_->remove(ids);
   if (grid_) grid_->remove(ids);
   RayState& s = state_;
@@ -495,8 +594,10 @@ void Tracer::remove_particles(std::span<const std::uint32_t> ids) {
   // disappear, so its new next event lies beyond the old one and beyond what it has travelled.
   for (std::size_t r = 0; r < s.live.size(); ++r)
     if (s.live[r] && s.t_next[r] >= 0.0 && s.next_particle[r] != kNoParticle &&
-        scene_->removed(s.next_particle[r]))
+        scene_->removed(s.next_particle[r])) {
       s.t_next[r] = -1.0;
+      next_event_[r / kChunkRays] = -kInf;
+    }
 }
 
 }  // namespace beampack

@@ -73,12 +73,12 @@ struct OpticsLedger {
 
 // The state of every ray, copyable so a driver can redo a time step (MODEL.md section 5 step 4).
 struct RayState {
-  // Per ray (structure of arrays). A ray's current segment starts at origin; it has travelled
-  // `travelled` of it; its next event is at t_next: a hit on `next_particle`, or leaving the box
-  // (kNoParticle). t_next < 0: not yet traced.
+  // Per ray (structure of arrays). A ray's current segment starts at origin, which it passed
+  // when the path clock read start_clock; its next event is t_next along the segment: a hit on
+  // `next_particle`, or leaving the box (kNoParticle). t_next < 0: not yet traced. So a ray in
+  // free flight changes nothing in its state: the clock alone moves on.
   std::vector<Vec3> origin, direction, normal;  // normal: at the next hit
-  std::vector<double> energy, initial_energy, travelled, t_next;
-  std::vector<double> path;  // path travelled since launch: the ray's time of flight times c
+  std::vector<double> energy, initial_energy, start_clock, t_next;
   std::vector<std::uint32_t> last_particle, next_particle;
   std::vector<std::int32_t> bounces;
   std::vector<std::uint8_t> live;
@@ -87,22 +87,30 @@ struct RayState {
   bool polarised = false;
   std::vector<Vec3> field;
   OpticsLedger ledger;
+  // The path clock: c times the time the rays have flown, summed over advances (each adds its
+  // budget, or the pulse's flight). Back to 0 at a launch when no ray is live.
+  double clock = 0.0;
   std::uint64_t primary_segments = 0;  // Embree queries from the entry plane
   std::uint64_t bounced_segments = 0;  // queries after a bounce (or a retrace after a removal)
   std::uint64_t hits = 0;
   std::size_t live_count = 0;
 
-  // Calls f on every per-ray array: compaction and checkpoints go through this one list, so a
-  // field added above is added here and nowhere else.
+  // Calls f on a pointer to every per-ray array member: compaction, checkpoints and the undo
+  // record go through this one list, so a field added above is added here and nowhere else.
+  template <class F>
+  static void for_each_member(bool polarised, F&& f) {
+    f(&RayState::origin), f(&RayState::direction), f(&RayState::normal), f(&RayState::energy);
+    f(&RayState::initial_energy), f(&RayState::start_clock), f(&RayState::t_next);
+    f(&RayState::last_particle), f(&RayState::next_particle), f(&RayState::bounces), f(&RayState::live);
+    if (polarised) f(&RayState::field);
+  }
   template <class F>
   void for_each_array(F&& f) {
-    f(origin), f(direction), f(normal), f(energy), f(initial_energy), f(travelled), f(t_next);
-    f(path), f(last_particle), f(next_particle), f(bounces), f(live);
-    if (polarised) f(field);
+    for_each_member(polarised, [&](auto member) { f(this->*member); });
   }
   template <class F>
   void for_each_array(F&& f) const {
-    const_cast<RayState*>(this)->for_each_array([&](auto& v) { f(std::as_const(v)); });
+    for_each_member(polarised, [&](auto member) { f(this->*member); });
   }
 
   // Checkpoints.
@@ -135,6 +143,10 @@ class Tracer {
   // The most path any ray travelled in the last advance(): with an infinite budget, the flight
   // of the pulse (the step length of thermal.dt = "pulse" is this over c).
   double last_advance_path() const { return last_advance_path_; }
+  // Chunks of rays in the last advance: those with a live ray, and those it ran (the others were
+  // in free flight throughout and cost nothing).
+  std::size_t last_chunks_live() const { return last_chunks_live_; }
+  std::size_t last_chunks_run() const { return due_chunks_.size(); }
   bool has_live_rays() const { return state_.live_count > 0; }
   // Energy the live rays carry, summed in ray order: between advances, ledger().in_flight().
   double energy_in_flight() const;
@@ -152,7 +164,15 @@ class Tracer {
   void compact_if_sparse();
 
   RayState save() const { return state_; }
-  void restore(const RayState& state) { state_ = state; }
+  void restore(const RayState& state);
+
+  // While on, every advance keeps what it changes (the rays of the chunks it ran, the ledger,
+  // counters and clock), and undo_advance() puts them back: the stagger's redo of a step costs
+  // what the step touched, not a copy of every ray. Anything else that changes the rays (launch,
+  // compaction, removal, restore) drops the record.
+  void keep_undo(bool on);
+  // Back to before the last advance, if it was kept and nothing else changed the rays since.
+  void undo_advance();
 
   const EmbreeScene& scene() const { return *scene_; }
   bool has_grid() const { return grid_ != nullptr; }  // built only when bounced rays can exist
@@ -168,12 +188,15 @@ class Tracer {
   void trace_packets(std::size_t begin, std::size_t end, Chunk& chunk);
   void trace_wave(const std::vector<std::uint32_t>& rays, Chunk& chunk);
   void trace_segment(std::uint32_t ray);
-  bool step_ray(std::uint32_t ray, double& left, Chunk& chunk);
+  bool step_ray(std::uint32_t ray, double end_clock, Chunk& chunk);
+  void end_ray(std::uint32_t ray, double at, Chunk& chunk);
   void count_segment(std::uint32_t ray, Chunk& chunk) const;
-  void run_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
+  void run_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double end_clock);
+  void refresh_next_events(std::size_t first_chunk, std::size_t end_chunk);
+  double next_event_of_chunk(std::size_t begin, std::size_t end) const;
   void add_chunk(Chunk& chunk, std::vector<double>& deposits, std::vector<std::uint32_t>* deposited);
-  void trace_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
-  void trace_in_waves(Chunk& chunk, std::size_t begin, std::size_t end, double budget);
+  void trace_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double end_clock);
+  void trace_in_waves(Chunk& chunk, std::size_t begin, std::size_t end, double end_clock);
   static void sort_events_by_ray(Chunk& chunk, std::size_t begin, std::size_t end);
 
   const Particles& particles_;
@@ -185,6 +208,22 @@ class Tracer {
   bool record_segments_ = false;
   std::vector<RaySegment> segments_;
   std::vector<Chunk> chunks_;  // per advance; kept so their event storage is reused
+  // Per chunk of rays: the path clock of the earliest event among its live rays (-infinity: a
+  // ray to trace; +infinity: none live). An advance runs only the chunks with an event before
+  // its end; the others are in free flight, which changes nothing but the clock.
+  std::vector<double> next_event_;
+  std::vector<std::uint32_t> due_chunks_;  // per advance: the chunks it runs
+  // The undo record of the last advance: its totals as they were (each chunk it ran keeps the
+  // rays it changed, chunks_[j] for due_chunks_[j]).
+  struct Undo {
+    bool on = false, held = false;
+    OpticsLedger ledger;
+    std::uint64_t primary = 0, bounced = 0, hits = 0;
+    std::size_t live_count = 0;
+    double clock = 0.0;
+  };
+  Undo undo_;
+  void remember(std::uint32_t ray, Chunk& chunk) const;
   // What add_chunk sums during an advance, folded into state_ at its end: on cache lines of its
   // own, so the serial reduction never invalidates the lines the tracing threads keep reading
   // (RayState's array headers). Measured: sharing them made 2 threads ~40% slower in some runs.
@@ -196,6 +235,7 @@ class Tracer {
   };
   Totals totals_;
   double last_advance_path_ = 0.0;
+  std::size_t last_chunks_live_ = 0;
 };
 
 // Distance from o along unit d to where the ray leaves the box (0 if it never is inside).

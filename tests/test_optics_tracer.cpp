@@ -302,6 +302,125 @@ TEST(OpticsTracer, RemovingThenTracingEqualsAPackingWithout) {
   }
 }
 
+// Every per-ray array, the ledger, the counters and the path clock of two states.
+void expect_same_rays(const RayState& a, const RayState& b, const std::string& where) {
+  ASSERT_EQ(a.polarised, b.polarised) << where;
+  RayState::for_each_member(a.polarised, [&](auto member) { ASSERT_TRUE(a.*member == b.*member) << where; });
+  EXPECT_EQ(a.ledger.injected, b.ledger.injected) << where;
+  EXPECT_EQ(a.ledger.absorbed, b.ledger.absorbed) << where;
+  EXPECT_EQ(a.ledger.escaped, b.ledger.escaped) << where;
+  EXPECT_EQ(a.ledger.cutoff, b.ledger.cutoff) << where;
+  EXPECT_EQ(a.clock, b.clock) << where;
+  EXPECT_EQ(a.live_count, b.live_count) << where;
+  EXPECT_EQ(a.primary_segments, b.primary_segments) << where;
+  EXPECT_EQ(a.bounced_segments, b.bounced_segments) << where;
+  EXPECT_EQ(a.hits, b.hits) << where;
+}
+
+// Particles that live rays will hit after the next advance of `budget`: removing them leaves
+// those rays to be traced again, in chunks that would otherwise be in free flight.
+std::vector<std::uint32_t> hit_later(const RayState& s, double budget, std::size_t count) {
+  std::vector<std::uint32_t> ids;
+  for (std::size_t r = 0; r < s.live.size() && ids.size() < count; ++r)
+    if (s.live[r] && s.t_next[r] >= 0 && s.next_particle[r] != kNoParticle &&
+        s.start_clock[r] + s.t_next[r] > s.clock + budget &&
+        std::find(ids.begin(), ids.end(), s.next_particle[r]) == ids.end())
+      ids.push_back(s.next_particle[r]);
+  return ids;
+}
+
+// An advance runs only the chunks of rays with an event before its end. The list of next events
+// it keeps from advance to advance, through removals mid-pulse, must equal one rebuilt from the
+// rays (restore rebuilds it): a stale entry would leave a chunk in flight past a hit.
+TEST(OpticsTracer, KeptNextEventsEqualOnesRebuiltFromTheRays) {
+  const Particles& p = packing_1e4();
+  Tracer kept(p, optics_for(20.0)), rebuilt(p, optics_for(20.0));
+  const Beam beam = make_beam(BeamSpec{}, kD);
+  kept.launch(beam, 1e-9), rebuilt.launch(beam, 1e-9);
+  std::vector<double> a, b;
+  int step = 0;
+  std::size_t run = 0, live = 0;
+  bool removed = false;  // once the last advance left chunks alone: rays in flight to the victims
+  for (; kept.has_live_rays(); ++step) {
+    if (!removed && step > 0 && kept.last_chunks_run() < kept.last_chunks_live()) {
+      const auto victims = hit_later(kept.save(), 2e-5, 60);
+      ASSERT_GE(victims.size(), 20u);
+      kept.remove_particles(victims), rebuilt.remove_particles(victims);
+      removed = true;
+    }
+    rebuilt.restore(rebuilt.save());
+    std::fill(a.begin(), a.end(), 0.0), std::fill(b.begin(), b.end(), 0.0);
+    ASSERT_EQ(kept.advance(2e-5, a), rebuilt.advance(2e-5, b)) << step;
+    ASSERT_EQ(a, b) << step;
+    ASSERT_EQ(kept.last_advance_path(), rebuilt.last_advance_path()) << step;
+    expect_same_rays(kept.save(), rebuilt.save(), "step " + std::to_string(step));
+    ASSERT_EQ(kept.last_chunks_run(), rebuilt.last_chunks_run()) << step;
+    run += kept.last_chunks_run(), live += kept.last_chunks_live();
+  }
+  EXPECT_TRUE(removed);
+  EXPECT_GT(step, 20);
+  EXPECT_LT(run, live * 3 / 4);  // chunks in free flight are left alone, often
+}
+
+// The path clock: a budgeted advance moves it by the budget while rays are live, a whole one by
+// the flight of the pulse; a launch with no ray live sets it back to 0, so every pulse's flight is
+// measured from 0 (the step length of thermal.dt = "pulse").
+TEST(OpticsTracer, ThePathClockMovesByTheBudgetAndEachPulseStartsAtZero) {
+  Tracer tracer(packing_1e4(), optics_for(1.4));
+  const Beam beam = make_beam(BeamSpec{}, kD);
+  std::vector<double> deposits;
+  tracer.launch(beam, 1e-9);
+  EXPECT_EQ(tracer.save().clock, 0.0);
+  tracer.advance(3e-5, deposits);
+  EXPECT_EQ(tracer.save().clock, 3e-5);
+  EXPECT_EQ(tracer.last_advance_path(), 3e-5);  // live rays flew the whole budget
+  tracer.advance(kAll, deposits);
+  EXPECT_FALSE(tracer.has_live_rays());
+  const double first_flight = 3e-5 + tracer.last_advance_path();
+  EXPECT_DOUBLE_EQ(tracer.save().clock, first_flight);
+  tracer.launch(beam, 1e-9);
+  EXPECT_EQ(tracer.save().clock, 0.0);
+  tracer.advance(kAll, deposits);
+  EXPECT_DOUBLE_EQ(tracer.last_advance_path(), first_flight);  // the same pulse, whole
+}
+
+// The stagger's undo: an advance taken back leaves every ray, the ledger, the counters and the
+// clock as they were, through hits, ends, retraces after a removal and polarised fields; the
+// advance redone equals the first. Anything else that changes the rays drops the record.
+TEST(OpticsTracer, UndoAdvanceTakesBackExactlyTheLastAdvance) {
+  const Particles& p = packing_1e4();
+  const auto victims = most_hit(trace(p, optics_for(20.0), BeamSpec{}).deposits, 40);
+  for (bool polarised : {false, true}) {
+    OpticsSpec spec = optics_for(20.0);
+    spec.polarisation.linear = polarised;
+    Tracer tracer(p, spec);
+    tracer.keep_undo(true);
+    tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+    int step = 0, undone_with_changes = 0;
+    for (; tracer.has_live_rays(); ++step) {
+      const std::string where = (polarised ? "polarised, step " : "step ") + std::to_string(step);
+      if (step == 12) tracer.remove_particles(victims);
+      const RayState before = tracer.save();
+      std::vector<double> first, again;
+      tracer.advance(2e-5, first);
+      const RayState after = tracer.save();
+      tracer.undo_advance();
+      expect_same_rays(tracer.save(), before, where);
+      undone_with_changes += !(after.t_next == before.t_next);
+      tracer.advance(2e-5, again);
+      ASSERT_EQ(first, again) << where;
+      expect_same_rays(tracer.save(), after, where);
+    }
+    EXPECT_GT(step, 20);
+    EXPECT_GT(undone_with_changes, 10);
+    // Launching drops the record: an undo then changes nothing.
+    tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+    const RayState launched = tracer.save();
+    tracer.undo_advance();
+    expect_same_rays(tracer.save(), launched, "after a launch");
+  }
+}
+
 TEST(OpticsTracer, LiquidParticlesUseTheLiquidIndex) {
   // n_liquid = 1, mu = 1: R_F = 0, a liquid particle absorbs all that reaches it.
   Particles p = packing_1e4();

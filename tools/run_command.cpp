@@ -57,6 +57,21 @@ std::string peak_text(const Figures& f, const char* format) {
   return text;
 }
 
+// The trace stage's chunks of rays left alone because all their rays were in free flight, if any.
+std::string free_flight_note(const Counts& c) {
+  if (c.ray_chunks_run >= c.ray_chunks_live) return "";
+  char text[96];
+  std::snprintf(text, sizeof text, "; %.3g%% of ray chunks traced, the rest in free flight",
+                100.0 * double(c.ray_chunks_run) / double(c.ray_chunks_live));
+  return text;
+}
+
+std::string stage_note(std::string_view stage, const Counts& c) {
+  if (stage == "heat") return resting_note(c);
+  if (stage == "trace") return free_flight_note(c);
+  return "";
+}
+
 // One progress line on stderr, refreshed at most twice a second once a run passes two seconds.
 class Progress {
  public:
@@ -135,7 +150,8 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
                  {"segments", r.counts.segments},   {"steps", r.counts.steps},
                  {"rebuilds", r.counts.rebuilds},   {"staggers", r.counts.staggers},
                  {"late_pulses", r.counts.late_pulses},
-                 {"heat_rows_solved", r.counts.heat_rows_solved}, {"heat_rows_live", r.counts.heat_rows_live}};
+                 {"heat_rows_solved", r.counts.heat_rows_solved}, {"heat_rows_live", r.counts.heat_rows_live},
+                 {"ray_chunks_run", r.counts.ray_chunks_run}, {"ray_chunks_live", r.counts.ray_chunks_live}};
   j["max_pulse_delay_s"] = r.counts.max_pulse_delay;
   nlohmann::json stages = nlohmann::json::object();
   const auto stage_times = sim.stages();
@@ -180,7 +196,7 @@ void print_table(const Simulation& sim, const RunResult& r) {
     else
       std::printf("  %-26s %14.4f  (%llu calls)%s\n", Simulation::kStageNames[k], s.seconds,
                   static_cast<unsigned long long>(s.calls),
-                  std::string_view(Simulation::kStageNames[k]) == "heat" ? resting_note(r.counts).c_str() : "");
+                  stage_note(Simulation::kStageNames[k], r.counts).c_str());
   }
   std::printf("%-28s %14.3f s (%llu steps, %llu rays, %llu segments)\n", "wall time", r.wall_seconds,
               static_cast<unsigned long long>(r.counts.steps),
