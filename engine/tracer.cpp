@@ -342,6 +342,12 @@ bool Tracer::step_ray(std::uint32_t r, double end_clock, Chunk& c) {
     if (event > end_clock) return false;  // in free flight at the end: the ray resumes here
     remember(r, c);
     const std::uint32_t p = s.next_particle[r];
+    // Removed since this segment was traced: traced again from its origin. Particles only
+    // disappear, so the new event lies beyond this one, and nothing was missed on the way.
+    if (p != kNoParticle && scene_->removed(p)) {
+      s.t_next[r] = -1.0;
+      return true;
+    }
     if (record_segments_)
       c.segments.push_back({r, {s.origin[r], s.origin[r] + s.t_next[r] * s.direction[r], s.energy[r]}});
     if (p == kNoParticle) {  // left the box: escaped (MODEL.md 3a)
@@ -585,19 +591,12 @@ void Tracer::undo_advance() {
   undo_.held = false;
 }
 
+// Rays already on their way to a removed particle find out when they get there (step_ray): the
+// removal itself does not look at the rays.
 void Tracer::remove_particles(std::span<const std::uint32_t> ids) {
   undo_.held = false;
   scene_->remove(ids);
   if (grid_) grid_->remove(ids);
-  RayState& s = state_;
-  // A ray heading for a removed particle is retraced from its segment origin: particles only
-  // disappear, so its new next event lies beyond the old one and beyond what it has travelled.
-  for (std::size_t r = 0; r < s.live.size(); ++r)
-    if (s.live[r] && s.t_next[r] >= 0.0 && s.next_particle[r] != kNoParticle &&
-        scene_->removed(s.next_particle[r])) {
-      s.t_next[r] = -1.0;
-      next_event_[r / kChunkRays] = -kInf;
-    }
 }
 
 }  // namespace beampack

@@ -155,7 +155,8 @@ class Tracer {
   std::uint64_t bounced_segments() const { return state_.bounced_segments; }
   std::uint64_t hits() const { return state_.hits; }
 
-  // Removed particles are never hit again; rays heading for one are retraced.
+  // Removed particles are never hit again; a ray heading for one is traced again when it gets
+  // there (the removal costs what Embree and the grid pay, not a look at every ray).
   void remove_particles(std::span<const std::uint32_t> ids);
   // Drops the ended rays from the state (keeps the ledger and counters).
   void compact();

@@ -252,6 +252,18 @@ std::vector<std::uint32_t> most_hit(const std::vector<double>& deposits, std::si
   return ids;
 }
 
+// Particles that live rays will hit after the next advance of `budget`: removing them leaves
+// those rays to be traced again, in chunks that would otherwise be in free flight.
+std::vector<std::uint32_t> hit_later(const RayState& s, double budget, std::size_t count) {
+  std::vector<std::uint32_t> ids;
+  for (std::size_t r = 0; r < s.live.size() && ids.size() < count; ++r)
+    if (s.live[r] && s.t_next[r] >= 0 && s.next_particle[r] != kNoParticle &&
+        s.start_clock[r] + s.t_next[r] > s.clock + budget &&
+        std::find(ids.begin(), ids.end(), s.next_particle[r]) == ids.end())
+      ids.push_back(s.next_particle[r]);
+  return ids;
+}
+
 // Mid-pulse removal: from the moment of removal, the removed particles receive nothing.
 TEST(OpticsTracer, RemovedParticleIsNeverHitAgain) {
   const Particles& p = packing_1e4();
@@ -269,6 +281,26 @@ TEST(OpticsTracer, RemovedParticleIsNeverHitAgain) {
     const OpticsLedger& l = tracer.ledger();
     EXPECT_NEAR(l.absorbed + l.escaped + l.cutoff, l.injected, 1e-12 * l.injected);
   }
+}
+
+// A state saved before a removal, restored after it: its rays flying to the removed particles
+// are traced again, so they still receive nothing.
+TEST(OpticsTracer, ARestoredStateNeverHitsParticlesRemovedSinceItWasSaved) {
+  const Particles& p = packing_1e4();
+  Tracer tracer(p, optics_for(20.0));
+  tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+  std::vector<double> deposits;
+  tracer.advance(4e-4, deposits);
+  const RayState saved = tracer.save();
+  const auto victims = hit_later(saved, 0.0, 50);
+  ASSERT_GE(victims.size(), 20u);
+  tracer.remove_particles(victims);
+  tracer.restore(saved);
+  std::vector<double> after(p.size(), 0.0);
+  tracer.advance(kAll, after);
+  for (auto v : victims) EXPECT_EQ(after[v], 0.0) << "particle " << v;
+  const OpticsLedger& l = tracer.ledger();
+  EXPECT_NEAR(l.absorbed + l.escaped + l.cutoff, l.injected, 1e-12 * l.injected);
 }
 
 // Removing before tracing equals tracing a packing built without those particles (the start
@@ -315,18 +347,6 @@ void expect_same_rays(const RayState& a, const RayState& b, const std::string& w
   EXPECT_EQ(a.primary_segments, b.primary_segments) << where;
   EXPECT_EQ(a.bounced_segments, b.bounced_segments) << where;
   EXPECT_EQ(a.hits, b.hits) << where;
-}
-
-// Particles that live rays will hit after the next advance of `budget`: removing them leaves
-// those rays to be traced again, in chunks that would otherwise be in free flight.
-std::vector<std::uint32_t> hit_later(const RayState& s, double budget, std::size_t count) {
-  std::vector<std::uint32_t> ids;
-  for (std::size_t r = 0; r < s.live.size() && ids.size() < count; ++r)
-    if (s.live[r] && s.t_next[r] >= 0 && s.next_particle[r] != kNoParticle &&
-        s.start_clock[r] + s.t_next[r] > s.clock + budget &&
-        std::find(ids.begin(), ids.end(), s.next_particle[r]) == ids.end())
-      ids.push_back(s.next_particle[r]);
-  return ids;
 }
 
 // An advance runs only the chunks of rays with an event before its end. The list of next events
