@@ -14,6 +14,7 @@
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <sstream>
+#include <string_view>
 
 #include "geometry/error.h"
 #include "tools/svg_plot.h"
@@ -40,13 +41,22 @@ double seconds_since(Clock::time_point start) {
   return std::chrono::duration<double>(Clock::now() - start).count();
 }
 
-// The heat stage's rows left out because their components were at rest, if any.
-std::string resting_note(const Counts& c) {
-  if (c.heat_rows_solved >= c.heat_rows_live) return "";
+// "; x% of <what>, <rest>" when a stage left part of its work out, else nothing.
+std::string share_note(std::uint64_t done, std::uint64_t all, const char* what) {
+  if (done >= all) return "";
   char text[96];
-  std::snprintf(text, sizeof text, "; %.3g%% of particle rows solved, the rest at rest",
-                100.0 * double(c.heat_rows_solved) / double(c.heat_rows_live));
+  std::snprintf(text, sizeof text, "; %.3g%% of %s", 100.0 * double(done) / double(all), what);
   return text;
+}
+
+// What the heat stage (components at rest) and the trace stage (chunks of rays in free flight
+// throughout a step) left out, if anything.
+std::string stage_note(std::string_view stage, const Counts& c) {
+  if (stage == "heat")
+    return share_note(c.heat_rows_solved, c.heat_rows_live, "particle rows solved, the rest at rest");
+  if (stage == "trace")
+    return share_note(c.ray_chunks_run, c.ray_chunks_live, "ray chunks traced, the rest in free flight");
+  return "";
 }
 
 // The peak temperature as printed: a particle-free scene has none (not 0 K).
@@ -55,21 +65,6 @@ std::string peak_text(const Figures& f, const char* format) {
   char text[64];
   std::snprintf(text, sizeof text, format, f.max_temperature);
   return text;
-}
-
-// The trace stage's chunks of rays left alone because all their rays were in free flight, if any.
-std::string free_flight_note(const Counts& c) {
-  if (c.ray_chunks_run >= c.ray_chunks_live) return "";
-  char text[96];
-  std::snprintf(text, sizeof text, "; %.3g%% of ray chunks traced, the rest in free flight",
-                100.0 * double(c.ray_chunks_run) / double(c.ray_chunks_live));
-  return text;
-}
-
-std::string stage_note(std::string_view stage, const Counts& c) {
-  if (stage == "heat") return resting_note(c);
-  if (stage == "trace") return free_flight_note(c);
-  return "";
 }
 
 // One progress line on stderr, refreshed at most twice a second once a run passes two seconds.
