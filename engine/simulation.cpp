@@ -157,7 +157,7 @@ bool Simulation::step() {
   launch_pulse_if_due();
   const double budget = spec_.dt > 0 ? kSpeedOfLight * spec_.dt : std::numeric_limits<double>::infinity();
   tracer_->compact_if_sparse();  // ended rays would be scanned by every chunk that runs
-  std::vector<Phase> optical_phase;  // phases the rays see; empty: the current ones
+  PhaseOverride seen;  // where the phases the rays see differ from the particles' (a redo)
   StepReport report;
   double dt = 0;
   std::size_t chunks_run = 0, chunks_live = 0;  // of the last pass
@@ -168,10 +168,10 @@ bool Simulation::step() {
     const bool traced = tracer_->has_live_rays();
     if (traced) {
       StageClock clock(stages_[kTrace]);
-      if (!optical_phase.empty()) std::swap(particles_.phase, optical_phase);
+      swap_phases(seen);
       tracer_->advance(budget, deposits_, &heated_);
       chunks_run = tracer_->last_chunks_run(), chunks_live = tracer_->last_chunks_live();
-      if (!optical_phase.empty()) std::swap(particles_.phase, optical_phase);
+      swap_phases(seen);
     }
     dt = step_length(traced);
     // A step of no length cannot take the heat its trace deposited: it would leave the ledger.
@@ -191,13 +191,10 @@ bool Simulation::step() {
     }
     // Stagger: a phase change that alters the optics of a particle the rays met in this step
     // sends the step back to the trace, with the new indices (bounded number of times).
-    if (!optics_changed(optical_phase) ||
-        pass >= spec_.max_staggers)
-      break;
+    if (!optics_changed(seen) || pass >= spec_.max_staggers) break;
     StageClock clock(stages_[kStagger]);
     ++counts_.staggers;
-    optical_phase = particles_.phase;  // copied only when the step is redone
-    for (Phase& phase : optical_phase) phase = optical(phase);
+    seen = optics_after_step();
     if (traced) tracer_->undo_advance();
     tracer_->take_segments();  // the redone trace records its own
     thermal_->undo_step();
@@ -233,15 +230,37 @@ bool Simulation::step() {
 Phase Simulation::optical(Phase phase) { return phase == Phase::vapor ? Phase::liquid : phase; }
 
 // Whether a particle the rays met in this step ends it with another index than the trace used:
-// solid <-> liquid, and solid -> vapour (which passed through liquid). `seen` is what the trace
-// used (empty: the phases before the step); every particle is compared, so one the redo saw as
-// liquid that ends solid counts too.
-bool Simulation::optics_changed(const std::vector<Phase>& seen) const {
+// solid <-> liquid, and solid -> vapour (which passed through liquid). The trace saw the phases
+// before the step, except where `seen` says otherwise (a redo); so one the redo saw as liquid
+// that ends solid counts too.
+bool Simulation::optics_changed(const PhaseOverride& seen) const {
   for (std::uint32_t i : heated_) {
     if (!(deposits_[i] > 0)) continue;
-    if (optical(particles_.phase[i]) != (seen.empty() ? thermal_->phase_before_step(i) : seen[i])) return true;
+    const auto it = std::lower_bound(seen.begin(), seen.end(), std::pair{i, Phase::solid},
+                                     [](const auto& a, const auto& b) { return a.first < b.first; });
+    const Phase traced_as = it != seen.end() && it->first == i ? it->second : thermal_->phase_before_step(i);
+    if (optical(particles_.phase[i]) != traced_as) return true;
   }
   return false;
+}
+
+// What a redo's rays see: the phases this step ended with (optical), where they differ from those
+// before it. Only the particles the step changed can differ, so a redo costs what the step did.
+Simulation::PhaseOverride Simulation::optics_after_step() const {
+  PhaseOverride after;
+  thermal_->for_each_changed([&](std::size_t i) {
+    const Phase p = optical(particles_.phase[i]);
+    if (p != thermal_->phase_before_step(i)) after.emplace_back(static_cast<std::uint32_t>(i), p);
+  });
+  std::sort(after.begin(), after.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+  after.erase(std::unique(after.begin(), after.end(), [](const auto& a, const auto& b) { return a.first == b.first; }),
+              after.end());
+  return after;
+}
+
+// Puts the phases of `seen` on the particles and theirs into `seen`: twice is no change.
+void Simulation::swap_phases(PhaseOverride& seen) {
+  for (auto& [i, phase] : seen) std::swap(particles_.phase[i], phase);
 }
 
 void Simulation::non_finite(std::size_t particle, double temperature, double deposit) const {

@@ -121,7 +121,11 @@ class Simulation {
   static Phase optical(Phase phase);
   void note_pulse_delay(double delay);
   Beam resampled_beam(int pulse) const;
-  bool optics_changed(const std::vector<Phase>& seen) const;
+  // (particle, phase) pairs sorted by particle: phases the rays see instead of the particles'.
+  using PhaseOverride = std::vector<std::pair<std::uint32_t, Phase>>;
+  bool optics_changed(const PhaseOverride& seen) const;
+  PhaseOverride optics_after_step() const;
+  void swap_phases(PhaseOverride& seen);
   double volume_fraction(Phase phase) const;
   std::string skip_reason(int stage) const;
   void check_thermal_masses(double run_energy) const;
