@@ -236,12 +236,16 @@ void Tracer::restore(const RayState& state) {
 }
 
 // The earliest event of the live rays [begin, end) on the path clock: -infinity when one is still
-// to be traced, +infinity when none is live.
+// to be traced (or its event is not a number: the chunk runs, and the NaN reaches the checks
+// instead of leaving a live ray that never runs), +infinity when none is live.
 double Tracer::next_event_of_chunk(std::size_t begin, std::size_t end) const {
   const RayState& s = state_;
   double first = kInf;
-  for (std::size_t r = begin; r < end; ++r)
-    if (s.live[r]) first = std::min(first, s.t_next[r] < 0.0 ? -kInf : s.start_clock[r] + s.t_next[r]);
+  for (std::size_t r = begin; r < end; ++r) {
+    if (!s.live[r]) continue;
+    const double event = s.start_clock[r] + s.t_next[r];
+    first = std::min(first, s.t_next[r] < 0.0 || std::isnan(event) ? -kInf : event);
+  }
   return first;
 }
 
