@@ -62,7 +62,9 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
     throw InputError(m.str());
   }
   check_thermal_masses(pulse_energy * std::max(spec_.pulses.count, 1));
-  tracer_ = std::make_unique<Tracer>(particles_, spec_.optics);
+  OpticsSpec optics = spec_.optics;
+  optics.chunk_rays = spec_.dt > 0 ? 64 : 256;  // short budgets leave small chunks alone
+  tracer_ = std::make_unique<Tracer>(particles_, optics);
   tracer_->keep_undo(spec_.max_staggers > 0);  // the stagger's redo takes a step back
   thermal_ = std::make_unique<ThermalModel>(particles_, spec_.materials, spec_.thermal);
   // Leave out what the scene does not need: without conductivity or walls there is no graph.

@@ -24,13 +24,12 @@
 namespace beampack {
 namespace {
 
-// Rays are stepped in chunks of kChunkRays, and a chunk whose rays are all in free flight through
-// an advance is left alone: small chunks leave more alone (1e6 spheres, 10^5 rays, the paper's
-// time step: 44% of chunks run with 256 rays, 15% with 64). The chunks an advance runs go to the
-// threads kBatchChunks at a time, so a pulse traced whole pays for few batches. Neither size
-// changes a result: the events are summed in ray order whatever the chunks.
-constexpr std::size_t kChunkRays = 64;
-constexpr std::size_t kBatchChunks = 4;
+// Rays are stepped in chunks of OpticsSpec::chunk_rays (at most kMaxChunkRays), and a chunk whose
+// rays are all in free flight through an advance is left alone. The chunks an advance runs go to
+// the threads kBatchRays rays at a time. No size changes a result: the events are summed in ray
+// order whatever the chunks.
+constexpr std::size_t kMaxChunkRays = 256;
+constexpr std::size_t kBatchRays = 256;
 constexpr std::size_t kPacket = 16;
 constexpr std::size_t kBatchesInFlight = 16;  // batches traced ahead of the in-order reduction
 constexpr double kInf = std::numeric_limits<double>::infinity();
@@ -38,6 +37,9 @@ constexpr double kInf = std::numeric_limits<double>::infinity();
 void validate(const OpticsSpec& spec, const Particles& particles) {
   if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
     throw InputError("`optics.cutoff` = " + std::to_string(spec.cutoff) + ": must be in [0, 1)");
+  if (spec.chunk_rays < 1 || spec.chunk_rays > kMaxChunkRays)
+    throw InputError("optics chunk_rays = " + std::to_string(spec.chunk_rays) + ": must be in [1, " +
+                     std::to_string(kMaxChunkRays) + "]");
   if (spec.max_bounces < 1)
     throw InputError("`optics.max_bounces` = " + std::to_string(spec.max_bounces) +
                      ": must be >= 1");
@@ -104,7 +106,7 @@ struct Tracer::Chunk {
   double flight = 0.0;  // the most path a ray of the chunk travelled before it ended
   // The undo record (Tracer::keep_undo): each ray the advance changed, as it was before.
   std::size_t first = 0;  // the chunk's first ray
-  std::bitset<kChunkRays> remembered;
+  std::bitset<kMaxChunkRays> remembered;
   std::vector<std::uint32_t> changed;
   RayState before;
 
@@ -134,6 +136,7 @@ void Tracer::remember(std::uint32_t r, Chunk& c) const {
 Tracer::Tracer(const Particles& particles, OpticsSpec spec)
     : particles_(particles), spec_(std::move(spec)) {
   validate(spec_, particles);
+  chunk_rays_ = spec_.chunk_rays;
   scene_ = std::make_unique<EmbreeScene>(particles, spec_.scene_update, 4096, 0.1,
                                          spec_.spheres_per_primitive);
   // The grid serves bounced rays only: with optics.max_bounces = 1 every ray ends at its first hit.
@@ -188,7 +191,7 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   }
   for (double e : energies) s.ledger.injected += e;
   s.live_count += count;
-  refresh_next_events(first / kChunkRays, (s.live.size() + kChunkRays - 1) / kChunkRays);
+  refresh_next_events(first / chunk_rays_, (s.live.size() + chunk_rays_ - 1) / chunk_rays_);
 }
 
 // Ray r at its launch: on the start plane, no bounce yet, not traced.
@@ -226,13 +229,13 @@ void Tracer::compact() {
     for (std::size_t w = 0; w < keep.size(); ++w) v[w] = v[keep[w]];
     v.resize(keep.size());
   });
-  refresh_next_events(0, (keep.size() + kChunkRays - 1) / kChunkRays);
+  refresh_next_events(0, (keep.size() + chunk_rays_ - 1) / chunk_rays_);
 }
 
 void Tracer::restore(const RayState& state) {
   undo_.held = false;
   state_ = state;
-  refresh_next_events(0, (state_.live.size() + kChunkRays - 1) / kChunkRays);
+  refresh_next_events(0, (state_.live.size() + chunk_rays_ - 1) / chunk_rays_);
 }
 
 // The earliest event of the live rays [begin, end) on the path clock: -infinity when one is still
@@ -255,7 +258,7 @@ void Tracer::refresh_next_events(std::size_t first_chunk, std::size_t end_chunk)
   next_event_.resize(end_chunk);
   const std::size_t n = state_.live.size();
   for (std::size_t k = first_chunk; k < end_chunk; ++k)
-    next_event_[k] = next_event_of_chunk(k * kChunkRays, std::min(n, (k + 1) * kChunkRays));
+    next_event_[k] = next_event_of_chunk(k * chunk_rays_, std::min(n, (k + 1) * chunk_rays_));
 }
 
 namespace {
@@ -407,7 +410,7 @@ void Tracer::count_segment(std::uint32_t r, Chunk& c) const {
 
 void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double end_clock) {
   trace_chunk(c, begin, end, end_clock);
-  next_event_[begin / kChunkRays] = next_event_of_chunk(begin, end);
+  next_event_[begin / chunk_rays_] = next_event_of_chunk(begin, end);
 }
 
 // Advances rays [begin, end) to the path clock's end_clock: primaries first in coherent packets,
@@ -455,7 +458,7 @@ void Tracer::trace_in_waves(Chunk& c, std::size_t begin, std::size_t end, double
 
 // Stable counting sort of the chunk's events by ray: O(events), no comparisons.
 void Tracer::sort_events_by_ray(Chunk& c, std::size_t begin, std::size_t end) {
-  std::array<std::uint32_t, kChunkRays + 1> start{};
+  std::array<std::uint32_t, kMaxChunkRays + 1> start{};
   for (const Event& e : c.events) ++start[e.ray - begin + 1];
   for (std::size_t k = 0; k + 1 < end - begin + 1; ++k) start[k + 1] += start[k];
   c.sorted.resize(c.events.size());
@@ -535,7 +538,8 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
   totals_.ledger = s.ledger;  // summed on in the same order as ever: bit-identical ledgers
   if (undo_.on)
     undo_ = {true, true, s.ledger, s.primary_segments, s.bounced_segments, s.hits, s.live_count, s.clock};
-  const std::size_t batches = (due.size() + kBatchChunks - 1) / kBatchChunks;
+  const std::size_t per_batch = std::max<std::size_t>(1, kBatchRays / chunk_rays_);
+  const std::size_t batches = (due.size() + per_batch - 1) / per_batch;
   std::size_t next = 0;
   tbb::parallel_pipeline(
       kBatchesInFlight,
@@ -546,20 +550,20 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
                                           }) &
           tbb::make_filter<std::size_t, std::size_t>(
               tbb::filter_mode::parallel,
-              [this, n, end_clock](std::size_t b) {  // by value: no shared stack line
+              [this, n, end_clock, per_batch](std::size_t b) {  // by value: no shared stack line
                 const IeeeFloatMode ieee;  // whatever thread TBB runs this batch on (engine/float_mode.h)
-                for (std::size_t j = b * kBatchChunks; j < std::min(due_chunks_.size(), (b + 1) * kBatchChunks); ++j) {
+                for (std::size_t j = b * per_batch; j < std::min(due_chunks_.size(), (b + 1) * per_batch); ++j) {
                   Chunk& chunk = chunks_[j];
-                  const std::size_t begin = due_chunks_[j] * kChunkRays;
+                  const std::size_t begin = due_chunks_[j] * chunk_rays_;
                   chunk.clear(begin, state_.polarised);
-                  run_chunk(chunk, begin, std::min(n, begin + kChunkRays), end_clock);
+                  run_chunk(chunk, begin, std::min(n, begin + chunk_rays_), end_clock);
                 }
                 return b;
               }) &
           tbb::make_filter<std::size_t, void>(
               tbb::filter_mode::serial_in_order, [&](std::size_t b) {
                 const IeeeFloatMode ieee;  // the sums must not flush denormals on some threads only
-                for (std::size_t j = b * kBatchChunks; j < std::min(due.size(), (b + 1) * kBatchChunks); ++j)
+                for (std::size_t j = b * per_batch; j < std::min(due.size(), (b + 1) * per_batch); ++j)
                   add_chunk(chunks[j], deposits, deposited);
               }));
   for (std::uint32_t k : due) in_flight |= next_event_[k] < kInf;
@@ -586,7 +590,7 @@ void Tracer::undo_advance() {
     const Chunk& c = chunks_[j];
     for (std::size_t w = 0; w < c.changed.size(); ++w)
       RayState::for_each_member(s.polarised, [&](auto member) { (s.*member)[c.changed[w]] = (c.before.*member)[w]; });
-    next_event_[due_chunks_[j]] = next_event_of_chunk(c.first, std::min(n, c.first + kChunkRays));
+    next_event_[due_chunks_[j]] = next_event_of_chunk(c.first, std::min(n, c.first + chunk_rays_));
   }
   s.ledger = undo_.ledger;
   s.primary_segments = undo_.primary, s.bounced_segments = undo_.bounced, s.hits = undo_.hits;

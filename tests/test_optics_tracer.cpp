@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <limits>
+#include <memory>
 #include <numeric>
 
 #include "engine/beam.h"
@@ -29,8 +30,9 @@ struct Traced {
 
 OpticsSpec optics_for(double n_hat, bool packets = true,
                       SceneUpdate update = OpticsSpec{}.scene_update,
-                      BounceSearch bounce = OpticsSpec{}.bounce_search) {
+                      BounceSearch bounce = OpticsSpec{}.bounce_search, std::size_t chunk_rays = 256) {
   OpticsSpec spec;
+  spec.chunk_rays = chunk_rays;
   spec.materials[0].n_solid = n_hat;
   spec.packets = packets;
   spec.bounce_search = bounce;
@@ -354,7 +356,8 @@ void expect_same_rays(const RayState& a, const RayState& b, const std::string& w
 // rays (restore rebuilds it): a stale entry would leave a chunk in flight past a hit.
 TEST(OpticsTracer, KeptNextEventsEqualOnesRebuiltFromTheRays) {
   const Particles& p = packing_1e4();
-  Tracer kept(p, optics_for(20.0)), rebuilt(p, optics_for(20.0));
+  const OpticsSpec spec = optics_for(20.0, true, OpticsSpec{}.scene_update, OpticsSpec{}.bounce_search, 64);
+  Tracer kept(p, spec), rebuilt(p, spec);
   const Beam beam = make_beam(BeamSpec{}, kD);
   kept.launch(beam, 1e-9), rebuilt.launch(beam, 1e-9);
   std::vector<double> a, b;
@@ -396,6 +399,31 @@ TEST(OpticsTracer, KeptNextEventsEqualOnesRebuiltFromTheRays) {
   EXPECT_LT(run, live * 3 / 4);  // chunks in free flight are left alone, often
 }
 
+// Chunk size is a matter of speed only: in budgeted steps (chunks left alone) and whole, with
+// grid or Embree bounces, every step's deposits, every ray, the ledger and the counters are the
+// same for chunks of 7, 64 and 256 rays.
+TEST(OpticsTracer, ChunkSizeChangesNoResult) {
+  const Beam beam = make_beam(BeamSpec{}, kD);
+  for (BounceSearch bounce : {BounceSearch::grid, BounceSearch::embree})
+    for (double budget : {2e-5, kAll}) {
+      std::vector<std::unique_ptr<Tracer>> tracers;
+      for (std::size_t rays : {256u, 64u, 7u}) {
+        tracers.push_back(std::make_unique<Tracer>(
+            packing_1e4(), optics_for(20.0, true, OpticsSpec{}.scene_update, bounce, rays)));
+        tracers.back()->launch(beam, 1e-9);
+      }
+      for (int step = 0; tracers[0]->has_live_rays(); ++step) {
+        std::vector<std::vector<double>> deposits(tracers.size());
+        for (std::size_t t = 0; t < tracers.size(); ++t) tracers[t]->advance(budget, deposits[t]);
+        for (std::size_t t = 1; t < tracers.size(); ++t) {
+          ASSERT_EQ(deposits[t], deposits[0]) << "step " << step << ", tracer " << t;
+          expect_same_rays(tracers[t]->save(), tracers[0]->save(), "step " + std::to_string(step));
+          ASSERT_EQ(tracers[t]->last_advance_path(), tracers[0]->last_advance_path()) << step;
+        }
+      }
+    }
+}
+
 // The path clock: a budgeted advance moves it by the budget while rays are live, a whole one by
 // the flight of the pulse; a launch with no ray live sets it back to 0, so every pulse's flight is
 // measured from 0 (the step length of thermal.dt = "pulse").
@@ -425,7 +453,7 @@ TEST(OpticsTracer, UndoAdvanceTakesBackExactlyTheLastAdvance) {
   const Particles& p = packing_1e4();
   const auto victims = most_hit(trace(p, optics_for(20.0), BeamSpec{}).deposits, 40);
   for (bool polarised : {false, true}) {
-    OpticsSpec spec = optics_for(20.0);
+    OpticsSpec spec = optics_for(20.0, true, OpticsSpec{}.scene_update, OpticsSpec{}.bounce_search, 64);
     spec.polarisation.linear = polarised;
     Tracer tracer(p, spec);
     tracer.keep_undo(true);
