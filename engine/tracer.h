@@ -2,10 +2,14 @@
 // Rays through the packing: Fresnel bounces, absorbed energy per particle, an energy ledger
 // (MODEL.md sections 3 and 5, paper (3.3)).
 //
-// Determinism: rays are processed in fixed-size chunks; each chunk records its events (energy into
-// a particle, escaped, cut off) per ray in the ray's order, and the chunks are summed in chunk
-// order, one at a time, as they finish. Every search finds the same nearest hit in double. Deposits and ledger are
-// therefore bit-identical for any thread count, packets or single rays, Embree or grid.
+// Determinism: rays are processed in chunks of consecutive rays; each chunk records its events
+// (energy into a particle, escaped, cut off) per ray in the ray's order, and the chunks are summed
+// in chunk order, one at a time, as they finish: every sum runs in ray order. Every search finds
+// the same nearest hit in double. Deposits and ledger are therefore bit-identical for any thread
+// count, chunk size, packets or single rays, Embree or grid.
+//
+// Cost: a ray in free flight changes nothing (its state holds the path clock at its segment's
+// origin), and an advance runs only the chunks with an event before its end.
 //
 // Particles in phase vapor must be removed (remove_particles); liquid ones use n_liquid.
 #include <complex>
