@@ -530,14 +530,16 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
     if (next_event_[k] <= end_clock && next_event_[k] < kInf) due.push_back(static_cast<std::uint32_t>(k));
     else idle += next_event_[k] < kInf;
   }
-  last_chunks_live_ = due.size() + idle;
   bool in_flight = idle > 0;
   std::vector<Chunk>& chunks = chunks_;
   if (chunks.size() < due.size()) chunks.resize(due.size());
   totals_ = Totals{};
   totals_.ledger = s.ledger;  // summed on in the same order as ever: bit-identical ledgers
   if (undo_.on)
-    undo_ = {true, true, s.ledger, s.primary_segments, s.bounced_segments, s.hits, s.live_count, s.clock};
+    undo_ = {true,         true,         s.ledger,           s.primary_segments, s.bounced_segments, s.hits,
+             s.live_count, s.clock,      last_advance_path_, last_chunks_live_,  last_chunks_run_};
+  last_chunks_live_ = due.size() + idle;
+  last_chunks_run_ = due.size();
   const std::size_t per_batch = std::max<std::size_t>(1, kBatchRays / chunk_rays_);
   const std::size_t batches = (due.size() + per_batch - 1) / per_batch;
   std::size_t next = 0;
@@ -596,6 +598,8 @@ void Tracer::undo_advance() {
   s.primary_segments = undo_.primary, s.bounced_segments = undo_.bounced, s.hits = undo_.hits;
   s.live_count = undo_.live_count;
   s.clock = undo_.clock;
+  last_advance_path_ = undo_.last_advance_path;
+  last_chunks_live_ = undo_.last_chunks_live, last_chunks_run_ = undo_.last_chunks_run;
   undo_.held = false;
 }
 

@@ -156,7 +156,7 @@ class Tracer {
   // Chunks of rays in the last advance: those with a live ray, and those it ran (the others were
   // in free flight throughout and cost nothing).
   std::size_t last_chunks_live() const { return last_chunks_live_; }
-  std::size_t last_chunks_run() const { return due_chunks_.size(); }
+  std::size_t last_chunks_run() const { return last_chunks_run_; }
   bool has_live_rays() const { return state_.live_count > 0; }
   // Energy the live rays carry, summed in ray order: between advances, ledger().in_flight().
   double energy_in_flight() const;
@@ -182,7 +182,8 @@ class Tracer {
   // what the step touched, not a copy of every ray. Anything else that changes the rays (launch,
   // compaction, removal, restore) drops the record.
   void keep_undo(bool on);
-  // Back to before the last advance, if it was kept and nothing else changed the rays since.
+  // Back to before the last advance, if it was kept and nothing else changed the rays since
+  // (last_advance_path and the chunk counts are the advance's before it again).
   void undo_advance();
 
   const EmbreeScene& scene() const { return *scene_; }
@@ -233,6 +234,8 @@ class Tracer {
     std::uint64_t primary = 0, bounced = 0, hits = 0;
     std::size_t live_count = 0;
     double clock = 0.0;
+    double last_advance_path = 0.0;  // of the advance before
+    std::size_t last_chunks_live = 0, last_chunks_run = 0;
   };
   Undo undo_;
   void remember(std::uint32_t ray, Chunk& chunk) const;
@@ -247,7 +250,7 @@ class Tracer {
   };
   Totals totals_;
   double last_advance_path_ = 0.0;
-  std::size_t last_chunks_live_ = 0;
+  std::size_t last_chunks_live_ = 0, last_chunks_run_ = 0;
 };
 
 // Distance from o along unit d to where the ray leaves the box (0 if it never is inside).

@@ -463,15 +463,22 @@ TEST(OpticsTracer, UndoAdvanceTakesBackExactlyTheLastAdvance) {
       const std::string where = (polarised ? "polarised, step " : "step ") + std::to_string(step);
       if (step == 12) tracer.remove_particles(victims);
       const RayState before = tracer.save();
+      const double path_before = tracer.last_advance_path();
+      const std::size_t run_before = tracer.last_chunks_run(), live_before = tracer.last_chunks_live();
       std::vector<double> first, again;
       tracer.advance(2e-5, first);
       const RayState after = tracer.save();
+      const double path_after = tracer.last_advance_path();
       tracer.undo_advance();
       expect_same_rays(tracer.save(), before, where);
+      EXPECT_EQ(tracer.last_advance_path(), path_before) << where;
+      EXPECT_EQ(tracer.last_chunks_run(), run_before) << where;
+      EXPECT_EQ(tracer.last_chunks_live(), live_before) << where;
       undone_with_changes += !(after.t_next == before.t_next);
       tracer.advance(2e-5, again);
       ASSERT_EQ(first, again) << where;
       expect_same_rays(tracer.save(), after, where);
+      EXPECT_EQ(tracer.last_advance_path(), path_after) << where;
     }
     EXPECT_GT(step, 20);
     EXPECT_GT(undone_with_changes, 10);
