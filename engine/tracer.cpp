@@ -136,7 +136,6 @@ void Tracer::remember(std::uint32_t r, Chunk& c) const {
 Tracer::Tracer(const Particles& particles, OpticsSpec spec)
     : particles_(particles), spec_(std::move(spec)) {
   validate(spec_, particles);
-  chunk_rays_ = spec_.chunk_rays;
   scene_ = std::make_unique<EmbreeScene>(particles, spec_.scene_update, 4096, 0.1,
                                          spec_.spheres_per_primitive);
   // The grid serves bounced rays only: with optics.max_bounces = 1 every ray ends at its first hit.
@@ -191,7 +190,7 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   }
   for (double e : energies) s.ledger.injected += e;
   s.live_count += count;
-  refresh_next_events(first / chunk_rays_, (s.live.size() + chunk_rays_ - 1) / chunk_rays_);
+  refresh_next_events(first / spec_.chunk_rays);
 }
 
 // Ray r at its launch: on the start plane, no bounce yet, not traced.
@@ -229,13 +228,13 @@ void Tracer::compact() {
     for (std::size_t w = 0; w < keep.size(); ++w) v[w] = v[keep[w]];
     v.resize(keep.size());
   });
-  refresh_next_events(0, (keep.size() + chunk_rays_ - 1) / chunk_rays_);
+  refresh_next_events(0);
 }
 
 void Tracer::restore(const RayState& state) {
   undo_.held = false;
   state_ = state;
-  refresh_next_events(0, (state_.live.size() + chunk_rays_ - 1) / chunk_rays_);
+  refresh_next_events(0);
 }
 
 // The earliest event of the live rays [begin, end) on the path clock: -infinity when one is still
@@ -252,13 +251,18 @@ double Tracer::next_event_of_chunk(std::size_t begin, std::size_t end) const {
   return first;
 }
 
-// Chunks [first_chunk, end_chunk) take their next events from their rays (end_chunk: the new
-// chunk count, so the list follows the ray arrays as they grow and shrink).
-void Tracer::refresh_next_events(std::size_t first_chunk, std::size_t end_chunk) {
-  next_event_.resize(end_chunk);
-  const std::size_t n = state_.live.size();
-  for (std::size_t k = first_chunk; k < end_chunk; ++k)
-    next_event_[k] = next_event_of_chunk(k * chunk_rays_, std::min(n, (k + 1) * chunk_rays_));
+// Chunk k's next event, from its rays.
+void Tracer::update_next_event(std::size_t k) {
+  const std::size_t begin = k * spec_.chunk_rays;
+  next_event_[k] = next_event_of_chunk(begin, std::min(state_.live.size(), begin + spec_.chunk_rays));
+}
+
+// The chunks from first_chunk on take their next events from their rays; the list follows the
+// ray arrays as they grow and shrink.
+void Tracer::refresh_next_events(std::size_t first_chunk) {
+  const std::size_t chunks = (state_.live.size() + spec_.chunk_rays - 1) / spec_.chunk_rays;
+  next_event_.resize(chunks);
+  for (std::size_t k = first_chunk; k < chunks; ++k) update_next_event(k);
 }
 
 namespace {
@@ -410,7 +414,7 @@ void Tracer::count_segment(std::uint32_t r, Chunk& c) const {
 
 void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double end_clock) {
   trace_chunk(c, begin, end, end_clock);
-  next_event_[begin / chunk_rays_] = next_event_of_chunk(begin, end);
+  update_next_event(begin / spec_.chunk_rays);
 }
 
 // Advances rays [begin, end) to the path clock's end_clock: primaries first in coherent packets,
@@ -540,7 +544,7 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
              s.live_count, s.clock,      last_advance_path_, last_chunks_live_,  last_chunks_run_};
   last_chunks_live_ = due.size() + idle;
   last_chunks_run_ = due.size();
-  const std::size_t per_batch = std::max<std::size_t>(1, kBatchRays / chunk_rays_);
+  const std::size_t per_batch = std::max<std::size_t>(1, kBatchRays / spec_.chunk_rays);
   const std::size_t batches = (due.size() + per_batch - 1) / per_batch;
   std::size_t next = 0;
   tbb::parallel_pipeline(
@@ -556,9 +560,9 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
                 const IeeeFloatMode ieee;  // whatever thread TBB runs this batch on (engine/float_mode.h)
                 for (std::size_t j = b * per_batch; j < std::min(due_chunks_.size(), (b + 1) * per_batch); ++j) {
                   Chunk& chunk = chunks_[j];
-                  const std::size_t begin = due_chunks_[j] * chunk_rays_;
+                  const std::size_t begin = due_chunks_[j] * spec_.chunk_rays;
                   chunk.clear(begin, state_.polarised);
-                  run_chunk(chunk, begin, std::min(n, begin + chunk_rays_), end_clock);
+                  run_chunk(chunk, begin, std::min(n, begin + spec_.chunk_rays), end_clock);
                 }
                 return b;
               }) &
@@ -587,12 +591,11 @@ void Tracer::keep_undo(bool on) {
 void Tracer::undo_advance() {
   if (!undo_.held) return;
   RayState& s = state_;
-  const std::size_t n = s.live.size();
   for (std::size_t j = 0; j < due_chunks_.size(); ++j) {
     const Chunk& c = chunks_[j];
     for (std::size_t w = 0; w < c.changed.size(); ++w)
       RayState::for_each_member(s.polarised, [&](auto member) { (s.*member)[c.changed[w]] = (c.before.*member)[w]; });
-    next_event_[due_chunks_[j]] = next_event_of_chunk(c.first, std::min(n, c.first + chunk_rays_));
+    update_next_event(due_chunks_[j]);
   }
   s.ledger = undo_.ledger;
   s.primary_segments = undo_.primary, s.bounced_segments = undo_.bounced, s.hits = undo_.hits;

@@ -171,7 +171,7 @@ class Tracer {
   // Drops the ended rays from the state (keeps the ledger and counters).
   void compact();
   // The same once more than half the rays have ended (the live ones keep their order, so
-  // deposits and ledger do not change): bounds what save() copies.
+  // deposits and ledger do not change): bounds the ended rays a running chunk steps over.
   void compact_if_sparse();
 
   RayState save() const { return state_; }
@@ -204,7 +204,8 @@ class Tracer {
   void end_ray(std::uint32_t ray, double at, Chunk& chunk);
   void count_segment(std::uint32_t ray, Chunk& chunk) const;
   void run_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double end_clock);
-  void refresh_next_events(std::size_t first_chunk, std::size_t end_chunk);
+  void refresh_next_events(std::size_t first_chunk);
+  void update_next_event(std::size_t chunk);
   double next_event_of_chunk(std::size_t begin, std::size_t end) const;
   void add_chunk(Chunk& chunk, std::vector<double>& deposits, std::vector<std::uint32_t>* deposited);
   void trace_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double end_clock);
@@ -213,7 +214,6 @@ class Tracer {
 
   const Particles& particles_;
   OpticsSpec spec_;
-  std::size_t chunk_rays_ = 256;  // spec_.chunk_rays
   std::unique_ptr<EmbreeScene> scene_;
   std::unique_ptr<SphereGrid> grid_;  // bounced rays (BounceSearch::grid, max_bounces > 1)
   Box box_;  // all particles grown by their radii: leaving it means escaped

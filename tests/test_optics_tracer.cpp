@@ -173,8 +173,8 @@ TEST(OpticsTracer, TheDepositedListNamesEveryParticleWithADepositOnce) {
   EXPECT_GT(listed, 1000u);
 }
 
-// Dropping the ended rays between budgeted steps (what the simulation does before it saves the
-// rays for the stagger) changes no deposit, no ledger entry and no flight length.
+// Dropping the ended rays between budgeted steps (what the simulation does before each step)
+// changes no deposit, no ledger entry and no flight length.
 TEST(OpticsTracer, CompactingBetweenStepsChangesNothing) {
   Tracer kept(packing_1e4(), optics_for(20.0)), compacted(packing_1e4(), optics_for(20.0));
   const Beam beam = make_beam(BeamSpec{}, kD);
