@@ -6,6 +6,9 @@
 //       or incoherent packets for bounces, single rays only, a plain rtcIntersect1 loop over
 //       Embree's built-in spheres, brute force (small N).
 //   trace/primary/<variant>/<N>/<rays>: the first segment of every ray only (max_bounces = 1).
+//   trace/paired/<case>[_reused]/<N>/<rays>: this tracer and the built-in loop pulse by pulse,
+//       alternately, and the median ratio of their times; _reused: first hits reused from the
+//       pulse before. Elsewhere the tracer traces every pulse's primaries (reuse_primaries off).
 //   trace/scene_mode, trace/cluster, trace/grid_cell: design choices; trace/grid_batch: the grid
 //       walk alone, one ray at a time or interleaved.
 //   scene_update/<mode>/<pattern>/<N>: removing 1% of the spheres, random or under the beam.
@@ -17,6 +20,7 @@
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstdlib>
 #include <limits>
@@ -76,13 +80,11 @@ void set_counters(benchmark::State& state, double primary, double bounced) {
 
 // ---- this tracer ----------------------------------------------------------------------------
 
-void run_tracer(benchmark::State& state, bool packets, double n_hat, int max_bounces,
-                SceneUpdate scene_update = OpticsSpec{}.scene_update,
-                unsigned per_prim = OpticsSpec{}.spheres_per_primitive,
-                BounceSearch bounce = OpticsSpec{}.bounce_search,
-                double cell_factor = OpticsSpec{}.grid_cell_factor) {
-  const Particles& p = packing(spheres_of(state));
-  const Beam& beam = paper_beam(rays_of(state));
+OpticsSpec tracer_spec(bool packets, double n_hat, int max_bounces,
+                       SceneUpdate scene_update = OpticsSpec{}.scene_update,
+                       unsigned per_prim = OpticsSpec{}.spheres_per_primitive,
+                       BounceSearch bounce = OpticsSpec{}.bounce_search,
+                       double cell_factor = OpticsSpec{}.grid_cell_factor) {
   OpticsSpec spec;
   spec.grid_cell_factor = cell_factor;
   spec.bounce_search = bounce;
@@ -91,18 +93,44 @@ void run_tracer(benchmark::State& state, bool packets, double n_hat, int max_bou
   spec.materials[0].n_solid = n_hat;
   spec.packets = packets;
   spec.max_bounces = max_bounces;
-  Tracer tracer(p, spec);
-  std::vector<double> deposits(p.size(), 0.0);
-  double primary = 0, bounced = 0;
-  for (auto _ : state) {
+  spec.reuse_primaries = false;  // every pulse traces its primaries: the tracing speed itself
+  return spec;
+}
+
+// One whole pulse at a time through this tracer: what the simulation does in pulse mode.
+struct TracerPulses {
+  Tracer tracer;
+  const Beam& beam;
+  std::vector<double> deposits;
+  TracerPulses(const Particles& p, const OpticsSpec& spec, const Beam& beam)
+      : tracer(p, spec), beam(beam), deposits(p.size(), 0.0) {}
+  // Returns the primary and bounced segments of the pulse.
+  std::pair<double, double> pulse() {
     const auto p0 = tracer.primary_segments(), b0 = tracer.bounced_segments();
     tracer.compact();  // as the simulation does before each pulse: ended rays are dropped
     tracer.launch(beam, 1e-9);
     tracer.advance(std::numeric_limits<double>::infinity(), deposits);
-    primary += static_cast<double>(tracer.primary_segments() - p0);
-    bounced += static_cast<double>(tracer.bounced_segments() - b0);
+    return {static_cast<double>(tracer.primary_segments() - p0),
+            static_cast<double>(tracer.bounced_segments() - b0)};
+  }
+};
+
+void run_tracer(benchmark::State& state, const OpticsSpec& spec) {
+  TracerPulses run(packing(spheres_of(state)), spec, paper_beam(rays_of(state)));
+  double primary = 0, bounced = 0;
+  for (auto _ : state) {
+    const auto [p, b] = run.pulse();
+    primary += p, bounced += b;
   }
   set_counters(state, primary, bounced);
+}
+
+void run_tracer(benchmark::State& state, bool packets, double n_hat, int max_bounces,
+                SceneUpdate scene_update = OpticsSpec{}.scene_update,
+                unsigned per_prim = OpticsSpec{}.spheres_per_primitive,
+                BounceSearch bounce = OpticsSpec{}.bounce_search,
+                double cell_factor = OpticsSpec{}.grid_cell_factor) {
+  run_tracer(state, tracer_spec(packets, n_hat, max_bounces, scene_update, per_prim, bounce, cell_factor));
 }
 
 // ---- baseline: Embree's built-in spheres, rtcIntersect1, same outside-hit rule ----------------
@@ -195,36 +223,99 @@ Tally trace_builtin_ray(const BuiltinScene& s, const Particles& p, Vec3 o, Vec3 
   }
 }
 
-// Every ray of the beam once per iteration, in chunks of 256 rays over TBB; trace_ray(k) traces
-// ray k and returns its tally.
+// Every ray of the beam once, in chunks of 256 rays over TBB; trace_ray(k) traces ray k and
+// returns its tally. Returns the primary and bounced segments.
+template <class TraceRay>
+std::pair<double, double> trace_all_rays(std::size_t rays, const TraceRay& trace_ray) {
+  std::vector<Tally> chunks((rays + 255) / 256);
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, chunks.size(), 1), [&](auto range) {
+    for (std::size_t c = range.begin(); c != range.end(); ++c)
+      for (std::size_t k = c * 256; k < std::min(rays, (c + 1) * 256); ++k) {
+        const Tally t = trace_ray(k);
+        chunks[c].primary += t.primary;
+        chunks[c].bounced += t.bounced;
+      }
+  });
+  double primary = 0, bounced = 0;
+  for (const Tally& t : chunks) primary += t.primary, bounced += t.bounced;
+  return {primary, bounced};
+}
+
 template <class TraceRay>
 void run_rays(benchmark::State& state, const Beam& beam, const TraceRay& trace_ray) {
   double primary = 0, bounced = 0;
   for (auto _ : state) {
-    std::vector<Tally> chunks((beam.size() + 255) / 256);
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, chunks.size(), 1), [&](auto range) {
-      for (std::size_t c = range.begin(); c != range.end(); ++c)
-        for (std::size_t k = c * 256; k < std::min(beam.size(), (c + 1) * 256); ++k) {
-          const Tally t = trace_ray(k);
-          chunks[c].primary += t.primary;
-          chunks[c].bounced += t.bounced;
-        }
-    });
-    for (const Tally& t : chunks) primary += t.primary, bounced += t.bounced;
+    const auto [p, b] = trace_all_rays(beam.size(), trace_ray);
+    primary += p, bounced += b;
   }
   set_counters(state, primary, bounced);
 }
 
-void run_builtin(benchmark::State& state, double n_hat, int max_bounces) {
-  const Particles& p = packing(spheres_of(state));
-  const BuiltinScene scene(p);
-  const Beam& beam = paper_beam(rays_of(state));
-  const auto energy = beam.ray_energies(1e-9);
-  const double upstream = -2.0 * p.max_radius();
-  run_rays(state, beam, [&](std::size_t k) {
+// One pulse at a time through the plain rtcIntersect1 loop over Embree's built-in spheres.
+struct BuiltinPulses {
+  const Particles& p;
+  const BuiltinScene scene;
+  const Beam& beam;
+  const std::vector<double> energy;
+  const double upstream;  // the start plane, upstream of every sphere
+  double n_hat;
+  int max_bounces;
+  BuiltinPulses(const Particles& p, const Beam& beam, double n_hat, int max_bounces)
+      : p(p), scene(p), beam(beam), energy(beam.ray_energies(1e-9)), upstream(-2.0 * p.max_radius()),
+        n_hat(n_hat), max_bounces(max_bounces) {}
+  Tally ray(std::size_t k) const {
     return trace_builtin_ray(scene, p, beam.origin[k] + upstream * beam.direction, beam.direction,
                              energy[k], n_hat, max_bounces);
-  });
+  }
+  std::pair<double, double> pulse() const {
+    return trace_all_rays(beam.size(), [this](std::size_t k) { return ray(k); });
+  }
+};
+
+void run_builtin(benchmark::State& state, double n_hat, int max_bounces) {
+  const BuiltinPulses run(packing(spheres_of(state)), paper_beam(rays_of(state)), n_hat, max_bounces);
+  run_rays(state, run.beam, [&](std::size_t k) { return run.ray(k); });
+}
+
+// ---- paired: this tracer against the built-in loop, pulse by pulse ---------------------------
+// trace/paired/<primary|n14|n200>/<N>/<rays>: each iteration traces one pulse with each, in
+// alternating order, and `ratio` is the median of the pairs' time ratios (built-in / tracer).
+// A shared machine's speed drifts by tens of percent over seconds; the two halves of a pair see
+// the same machine, so the ratio holds still where the separate rows' medians do not.
+
+template <class Pulse>
+double seconds_of(Pulse&& pulse) {
+  const auto start = std::chrono::steady_clock::now();
+  benchmark::DoNotOptimize(pulse());
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
+double median(std::vector<double> v) {
+  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+  return v[v.size() / 2];
+}
+
+void run_paired(benchmark::State& state, double n_hat, int max_bounces, bool reuse_primaries = false) {
+  const Particles& p = packing(spheres_of(state));
+  const Beam& beam = paper_beam(rays_of(state));
+  OpticsSpec spec = tracer_spec(true, n_hat, max_bounces);
+  spec.reuse_primaries = reuse_primaries;
+  TracerPulses tracer(p, spec, beam);
+  const BuiltinPulses builtin(p, beam, n_hat, max_bounces);
+  tracer.pulse(), builtin.pulse();  // warm: first-touch pages, caches (and the first hits to reuse)
+  std::vector<double> ratio, t_tracer, t_builtin;
+  for (auto _ : state) {
+    const bool tracer_first = ratio.size() % 2 == 0;
+    double a = 0, b = 0;
+    if (tracer_first) a = seconds_of([&] { return tracer.pulse(); });
+    b = seconds_of([&] { return builtin.pulse(); });
+    if (!tracer_first) a = seconds_of([&] { return tracer.pulse(); });
+    t_tracer.push_back(a), t_builtin.push_back(b), ratio.push_back(b / a);
+  }
+  state.counters["ratio"] = median(ratio);
+  state.counters["ratio_min"] = *std::min_element(ratio.begin(), ratio.end());
+  state.counters["tracer_ms"] = 1e3 * median(t_tracer);
+  state.counters["builtin_ms"] = 1e3 * median(t_builtin);
 }
 
 // ---- baseline: brute force over every sphere ------------------------------------------------
@@ -361,6 +452,14 @@ void sizes_fixed_rays(benchmark::internal::Benchmark* b) {
 void large(benchmark::internal::Benchmark* b) {
   for (long n : {100000L, 1000000L}) b->Args({n, static_cast<long>(kRays)});
   b->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+}
+
+// The paired rows: 1e5 and 1e6 spheres, 10^4 rays and the paper's resolution.
+void paired_sizes(benchmark::internal::Benchmark* b) {
+  for (long n : {100000L, 1000000L})
+    for (long rays : {static_cast<long>(kRays), static_cast<long>(paper_resolution_rays(n))})
+      b->Args({n, rays});
+  b->Unit(benchmark::kMillisecond)->UseRealTime();
 }
 
 // 1e7 spheres (about 3 GB with the scene and the grid): the top of the size ladder, a few
@@ -515,6 +614,19 @@ void register_all() {
                                               BounceSearch::grid, f);
                                  })
         ->Apply(large);
+  // Primaries traced every pulse (the tracing speed), and reused from the pulse before (what a
+  // run with a repeated beam pays: OpticsSpec::reuse_primaries).
+  for (bool reuse : {false, true}) {
+    const std::string tag = reuse ? "_reused" : "";
+    benchmark::RegisterBenchmark(("trace/paired/primary" + tag).c_str(),
+                                 [reuse](benchmark::State& s) { run_paired(s, 1.4, 1, reuse); })
+        ->Apply(paired_sizes)->Iterations(41);
+    for (double n_hat : {1.4, 20.0})
+      benchmark::RegisterBenchmark(
+          ("trace/paired/n" + std::to_string(static_cast<int>(std::lround(n_hat * 10))) + tag).c_str(),
+          [n_hat, reuse](benchmark::State& s) { run_paired(s, n_hat, 1000, reuse); })
+          ->Apply(paired_sizes)->Iterations(9);
+  }
   benchmark::RegisterBenchmark("trace/primary/tracer_packets",
                                [](benchmark::State& s) { run_tracer(s, true, 1.4, 1); })->Apply(sizes);
   benchmark::RegisterBenchmark("trace/primary/tracer_single", [](benchmark::State& s) {

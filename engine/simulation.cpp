@@ -16,15 +16,18 @@ enum Stage { kTrace, kHeat, kPhases, kStagger, kRebuild };
 
 class StageClock {
  public:
-  explicit StageClock(StageTime& stage) : stage_(stage), start_(std::chrono::steady_clock::now()) {}
+  // counts_call = false: the time is the stage's, the call is not one of its steps (a launch).
+  explicit StageClock(StageTime& stage, bool counts_call = true)
+      : stage_(stage), counts_call_(counts_call), start_(std::chrono::steady_clock::now()) {}
   ~StageClock() {
     stage_.seconds +=
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
-    ++stage_.calls;
+    stage_.calls += counts_call_;
   }
 
  private:
   StageTime& stage_;
+  bool counts_call_;
   std::chrono::steady_clock::time_point start_;
 };
 
@@ -64,6 +67,8 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
   check_thermal_masses(pulse_energy * std::max(spec_.pulses.count, 1));
   OpticsSpec optics = spec_.optics;
   optics.chunk_rays = spec_.dt > 0 ? 64 : 256;  // short budgets leave small chunks alone
+  // The same rays every pulse: their first hits are reused (not with one pulse, or new rays each).
+  optics.reuse_primaries = spec_.optics.reuse_primaries && spec_.pulses.count > 1 && !spec_.beam.resample;
   tracer_ = std::make_unique<Tracer>(particles_, optics);
   tracer_->keep_undo(spec_.max_staggers > 0);  // the stagger's redo takes a step back
   thermal_ = std::make_unique<ThermalModel>(particles_, spec_.materials, spec_.thermal);
@@ -120,7 +125,10 @@ void Simulation::launch_pulse_if_due() {
   if (launched_ > 0 && on_pulse_end_) on_pulse_end_(launched_ - 1);
   tracer_->compact();
   if (spec_.beam.resample && launched_ > 0) beam_ = resampled_beam(launched_);
-  tracer_->launch(beam_, spec_.pulses.duration);
+  {
+    StageClock clock(stages_[kTrace], false);  // a launch traces the rays' first hits
+    tracer_->launch(beam_, spec_.pulses.duration);
+  }
   counts_.rays += beam_.size();
   note_pulse_delay(time_ - next_pulse_time_);
   ++launched_;
@@ -330,7 +338,8 @@ Figures Simulation::figures() const {
 }
 
 namespace {
-constexpr std::uint32_t kStateVersion = 6;  // 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks
+// 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks; 7: reused first hits
+constexpr std::uint32_t kStateVersion = 7;
 }
 
 void Simulation::write_state(StateWriter& out) const {
@@ -391,6 +400,7 @@ void Simulation::read_state(StateReader& in) {
 Counts Simulation::counts() const {
   Counts c = counts_;
   c.segments = tracer_->primary_segments() + tracer_->bounced_segments();
+  c.primaries_reused = tracer_->reused_primaries();
   return c;
 }
 

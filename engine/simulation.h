@@ -65,7 +65,9 @@ struct Figures {
 };
 
 struct Counts {
+  // segments: those traced; primaries_reused: first hits taken from the pulse before instead.
   std::uint64_t particles = 0, rays = 0, segments = 0, steps = 0, rebuilds = 0, staggers = 0;
+  std::uint64_t primaries_reused = 0;
   // With pulses.period: pulse k is due at k T_p but starts at the first step boundary after it;
   // pulses that started more than 1% of T_p late, and the longest delay (s).
   std::uint64_t late_pulses = 0;

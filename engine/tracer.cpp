@@ -172,15 +172,32 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
     upstream -= 1e-6 * (box_.upper - box_.lower).norm();
   }
   // Appended in the beam's order (already tiled); every array grown once, then filled in
-  // parallel (each ray on its own), the injected energy summed in ray order.
+  // parallel (each ray on its own) with the rays and their first hits, the injected energy
+  // summed in ray order.
   RayState& s = state_;
   const std::size_t first = s.live.size(), count = beam.size();
   s.for_each_array([&](auto& v) { v.resize(first + count); });
-  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, count, 4096),
-                    [&](const tbb::blocked_range<std::size_t>& range) {
-                      for (std::size_t k = range.begin(); k != range.end(); ++k)
-                        start_ray(first + k, beam.origin[k] + upstream * d, d, energies[k]);
-                    });
+  FirstHits& f = first_hits_;
+  if (spec_.reuse_primaries && f.t.size() != count) {  // another beam: nothing to reuse
+    f.origin.assign(count, Vec3::Constant(std::numeric_limits<double>::quiet_NaN()));
+    f.direction = f.normal = f.origin;
+    f.t.assign(count, 0.0);
+    f.particle.assign(count, kNoParticle);
+  }
+  const std::size_t blocks = (count + kBatchRays - 1) / kBatchRays;
+  std::vector<std::size_t> traced(blocks);
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, blocks, 1), [&](const tbb::blocked_range<std::size_t>& range) {
+    const IeeeFloatMode ieee;  // the queries' double tests, on whatever thread
+    for (std::size_t b = range.begin(); b != range.end(); ++b) {
+      const std::size_t end = std::min(count, (b + 1) * kBatchRays);
+      for (std::size_t k = b * kBatchRays; k < end; ++k)
+        start_ray(first + k, beam.origin[k] + upstream * d, d, energies[k]);
+      traced[b] = find_first_hits(first, b * kBatchRays, end);
+    }
+  });
+  const std::size_t queries = std::accumulate(traced.begin(), traced.end(), std::size_t{0});
+  s.primary_segments += queries;
+  s.reused_primaries += count - queries;
   if (s.polarised) {  // the beam's field, at psi from the disk axis u towards v
     Vec3 u, v;
     disk_axes(d, u, v);
@@ -205,6 +222,51 @@ void Tracer::start_ray(std::size_t r, const Vec3& origin, const Vec3& direction,
   s.last_particle[r] = s.next_particle[r] = kNoParticle;
   s.bounces[r] = 0;
   s.live[r] = 1;
+}
+
+// The first hits of the launched rays [first + begin, first + end) (ray first + k is the beam's
+// ray k): reused from the beam's last launch where they can be, the others traced in coherent
+// packets (or one by one without packets). Returns how many were traced.
+std::size_t Tracer::find_first_hits(std::size_t first, std::size_t begin, std::size_t end) {
+  std::array<std::uint32_t, kBatchRays> ids;
+  std::size_t m = 0;
+  for (std::size_t k = begin; k < end; ++k) {
+    const auto r = static_cast<std::uint32_t>(first + k);
+    if (!reuse_first_hit(k, r)) ids[m++] = r;
+  }
+  if (spec_.packets) {
+    trace_ids(ids.data(), m, true);
+  } else {
+    for (std::size_t j = 0; j < m; ++j) trace_segment(ids[j]);
+  }
+  if (spec_.reuse_primaries)
+    for (std::size_t j = 0; j < m; ++j) keep_first_hit(ids[j] - first, ids[j]);
+  return m;
+}
+
+// Beam ray k, launched as ray r, takes the first hit it had at the beam's last launch: same
+// origin, same direction, and the sphere it met not removed since (particles only disappear, so
+// the nearest of the remaining ones is still that one). False: r must be traced.
+bool Tracer::reuse_first_hit(std::size_t k, std::uint32_t r) {
+  if (!spec_.reuse_primaries) return false;
+  const FirstHits& f = first_hits_;
+  RayState& s = state_;
+  const std::uint32_t p = f.particle[k];
+  if (f.origin[k] != s.origin[r] || f.direction[k] != s.direction[r] || (p != kNoParticle && scene_->removed(p)))
+    return false;
+  s.t_next[r] = f.t[k];
+  s.next_particle[r] = p;
+  s.normal[r] = f.normal[k];
+  return true;
+}
+
+// Ray r, just traced from its launch point, is beam ray k's first hit from now on.
+void Tracer::keep_first_hit(std::size_t k, std::uint32_t r) {
+  FirstHits& f = first_hits_;
+  const RayState& s = state_;
+  f.origin[k] = s.origin[r], f.direction[k] = s.direction[r], f.normal[k] = s.normal[r];
+  f.t[k] = s.t_next[r];
+  f.particle[k] = s.next_particle[r];
 }
 
 double Tracer::energy_in_flight() const {
@@ -305,7 +367,8 @@ void Tracer::trace_ids(const std::uint32_t* ids, std::size_t count, bool coheren
       __builtin_prefetch(&particles_.phase[state_.next_particle[ids[k]]]);
 }
 
-// Primary rays not yet traced, in coherent packets.
+// Primary rays to trace again (the particle they were heading for was removed; a launch traced
+// them first), in coherent packets.
 void Tracer::trace_packets(std::size_t begin, std::size_t end, Chunk& c) {
   const RayState& s = state_;
   std::vector<std::uint32_t>& ids = c.ids;
@@ -417,8 +480,8 @@ void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double end_
   update_next_event(begin / spec_.chunk_rays);
 }
 
-// Advances rays [begin, end) to the path clock's end_clock: primaries first in coherent packets,
-// then the bounced segments, one ray at a time (BounceSearch::embree) or in waves (packets, grid).
+// Advances rays [begin, end) to the path clock's end_clock: primaries to trace again first, in
+// coherent packets, then the bounced segments, one ray at a time (BounceSearch::embree) or in waves (packets, grid).
 void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double end_clock) {
   RayState& s = state_;
   if (spec_.packets) {
@@ -474,7 +537,7 @@ void RayState::write(StateWriter& out) const {
   out.value(polarised);  // first: it says whether the field array follows
   for_each_array([&](const auto& v) { out.vector(v); });
   out.value(ledger), out.value(primary_segments), out.value(bounced_segments), out.value(hits);
-  out.value(live_count), out.value(clock);
+  out.value(reused_primaries), out.value(live_count), out.value(clock);
 }
 
 void RayState::read(StateReader& in) {
@@ -482,7 +545,7 @@ void RayState::read(StateReader& in) {
   for_each_array([&](auto& v) { in.vector(v); });
   ledger = in.value<OpticsLedger>(), primary_segments = in.value<std::uint64_t>();
   bounced_segments = in.value<std::uint64_t>(), hits = in.value<std::uint64_t>();
-  live_count = in.value<std::size_t>(), clock = in.value<double>();
+  reused_primaries = in.value<std::uint64_t>(), live_count = in.value<std::size_t>(), clock = in.value<double>();
   for_each_array([&](const auto& v) {
     if (v.size() != origin.size()) throw InputError("checkpoint: ray arrays of unequal length");
   });

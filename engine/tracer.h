@@ -70,6 +70,12 @@ struct OpticsSpec {
   // ones (waves of more rays). The simulation takes 64 for a fixed thermal.dt, 256 otherwise.
   // Results do not depend on it.
   std::size_t chunk_rays = 256;
+  // A launch finds its rays' first hits at once (in coherent packets). A ray the beam launched
+  // before too, from the same point in the same direction, meets the sphere it met then, if that
+  // is still there: particles only disappear, so it stays the nearest. Those hits are reused,
+  // not traced: a repeated beam's primaries cost a copy. Same results either way; off for a beam
+  // that changes every pulse (beam.resample), where it would only keep a copy of each pulse.
+  bool reuse_primaries = true;
 };
 
 // Every joule is in exactly one bin once no ray is live: injected = absorbed + escaped + cutoff.
@@ -103,6 +109,7 @@ struct RayState {
   std::uint64_t primary_segments = 0;  // Embree queries from the entry plane
   std::uint64_t bounced_segments = 0;  // queries after a bounce (or a retrace after a removal)
   std::uint64_t hits = 0;
+  std::uint64_t reused_primaries = 0;  // first hits taken from an earlier launch (not traced)
   std::size_t live_count = 0;
 
   // Calls f on a pointer to every per-ray array member: compaction, checkpoints and the undo
@@ -135,6 +142,7 @@ class Tracer {
 
   // Adds the beam's rays (energy E_k = I_k A_r tau each) to the live rays, starting on a plane
   // upstream of every particle, in the beam's (tiled) order: 16 consecutive rays are a packet.
+  // Finds their first hits (OpticsSpec::reuse_primaries), so their chunks' next events are known.
   void launch(const Beam& beam, double pulse_duration);
   void launch(const Beam& beam, std::span<const double> energies);
 
@@ -164,6 +172,7 @@ class Tracer {
   std::uint64_t primary_segments() const { return state_.primary_segments; }
   std::uint64_t bounced_segments() const { return state_.bounced_segments; }
   std::uint64_t hits() const { return state_.hits; }
+  std::uint64_t reused_primaries() const { return state_.reused_primaries; }
 
   // Removed particles are never hit again; a ray heading for one is traced again when it gets
   // there (the removal costs what Embree and the grid pay, not a look at every ray).
@@ -193,6 +202,9 @@ class Tracer {
  private:
   struct Chunk;
   void start_ray(std::size_t r, const Vec3& origin, const Vec3& direction, double energy);
+  std::size_t find_first_hits(std::size_t first, std::size_t begin, std::size_t end);
+  bool reuse_first_hit(std::size_t k, std::uint32_t ray);
+  void keep_first_hit(std::size_t k, std::uint32_t ray);
   double reflect_field(std::uint32_t r, const Vec3& normal, const MaterialOptics& m, Phase phase);
   void open_query(std::uint32_t ray);
   bool close_query(std::uint32_t ray);
@@ -226,6 +238,14 @@ class Tracer {
   // its end; the others are in free flight, which changes nothing but the clock.
   std::vector<double> next_event_;
   std::vector<std::uint32_t> due_chunks_;  // per advance: the chunks it runs
+  // The first hit of every ray of the last beam launched, by the ray's place in the beam
+  // (OpticsSpec::reuse_primaries): where it started, its direction, and what its query found.
+  struct FirstHits {
+    std::vector<Vec3> origin, direction, normal;
+    std::vector<double> t;
+    std::vector<std::uint32_t> particle;
+  };
+  FirstHits first_hits_;
   // The undo record of the last advance: its totals as they were (each chunk it ran keeps the
   // rays it changed, chunks_[j] for due_chunks_[j]).
   struct Undo {

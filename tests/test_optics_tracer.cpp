@@ -336,8 +336,8 @@ TEST(OpticsTracer, RemovingThenTracingEqualsAPackingWithout) {
   }
 }
 
-// Every per-ray array, the ledger, the counters and the path clock of two states.
-void expect_same_rays(const RayState& a, const RayState& b, const std::string& where) {
+// Every per-ray array, the ledger and the path clock of two states.
+void expect_same_rays_but_counters(const RayState& a, const RayState& b, const std::string& where) {
   ASSERT_EQ(a.polarised, b.polarised) << where;
   RayState::for_each_member(a.polarised, [&](auto member) { ASSERT_TRUE(a.*member == b.*member) << where; });
   EXPECT_EQ(a.ledger.injected, b.ledger.injected) << where;
@@ -346,6 +346,12 @@ void expect_same_rays(const RayState& a, const RayState& b, const std::string& w
   EXPECT_EQ(a.ledger.cutoff, b.ledger.cutoff) << where;
   EXPECT_EQ(a.clock, b.clock) << where;
   EXPECT_EQ(a.live_count, b.live_count) << where;
+}
+
+// The same, and the same counters.
+void expect_same_rays(const RayState& a, const RayState& b, const std::string& where) {
+  expect_same_rays_but_counters(a, b, where);
+  EXPECT_EQ(a.reused_primaries, b.reused_primaries) << where;
   EXPECT_EQ(a.primary_segments, b.primary_segments) << where;
   EXPECT_EQ(a.bounced_segments, b.bounced_segments) << where;
   EXPECT_EQ(a.hits, b.hits) << where;
@@ -397,6 +403,65 @@ TEST(OpticsTracer, KeptNextEventsEqualOnesRebuiltFromTheRays) {
   EXPECT_TRUE(removed && relaunched);
   EXPECT_GT(step, 20);
   EXPECT_LT(run, live * 3 / 4);  // chunks in free flight are left alone, often
+}
+
+// The first hits of rays [first, first + count) as a launch left them: the particle each meets.
+std::vector<std::uint32_t> first_hits(const RayState& s, std::size_t first, std::size_t count) {
+  return {s.next_particle.begin() + static_cast<std::ptrdiff_t>(first),
+          s.next_particle.begin() + static_cast<std::ptrdiff_t>(first + count)};
+}
+
+// A repeated beam's first hits are reused (OpticsSpec::reuse_primaries): pulses one after another
+// and overlapping, with particles removed that the primaries hit, between pulses and during one,
+// give every step the same deposits and rays as a tracer that traces each pulse's primaries. A
+// launch traces again exactly the rays whose sphere is gone, and a different beam whole.
+TEST(OpticsTracer, ReusedFirstHitsEqualTracedOnes) {
+  const Particles& p = packing_1e4();
+  OpticsSpec on = optics_for(20.0), off = on;
+  off.reuse_primaries = false;
+  Tracer reuse(p, on), traced(p, off);
+  const Beam beam = make_beam(BeamSpec{}, kD);
+  BeamSpec other_spec;
+  other_spec.seed = 7;
+  const Beam other = make_beam(other_spec, kD);  // as many rays, elsewhere
+  ASSERT_EQ(other.size(), beam.size());
+  std::vector<std::uint8_t> gone(p.size(), 0);
+  std::vector<std::uint32_t> last_hits;  // beam ray k's first hit at the beam's last launch
+  std::vector<double> a, b;
+  for (int pulse = 0; pulse < 7; ++pulse) {
+    const Beam& rays = pulse == 5 ? other : beam;
+    const std::size_t reused_before = reuse.reused_primaries();
+    reuse.launch(rays, 1e-9), traced.launch(rays, 1e-9);
+    const std::size_t first = reuse.save().live.size() - rays.size();  // after any compaction
+    // Reused: every ray of a beam launched before whose sphere is still there.
+    std::size_t expected = 0;
+    if (pulse > 0 && pulse != 5 && pulse != 6)
+      for (std::uint32_t q : last_hits) expected += q == kNoParticle || !gone[q];
+    EXPECT_EQ(reuse.reused_primaries() - reused_before, expected) << "pulse " << pulse;
+    if (&rays == &beam) last_hits = first_hits(reuse.save(), first, rays.size());
+    // Pulses 1 and 3 overlap the next one: it is launched after a few steps.
+    const int steps = pulse == 1 || pulse == 3 ? 3 : 1000000;
+    for (int step = 0; step < steps && reuse.has_live_rays(); ++step) {
+      std::fill(a.begin(), a.end(), 0.0), std::fill(b.begin(), b.end(), 0.0);
+      ASSERT_EQ(reuse.advance(1e-4, a), traced.advance(1e-4, b));
+      ASSERT_EQ(a, b) << "pulse " << pulse << ", step " << step;
+      expect_same_rays_but_counters(reuse.save(), traced.save(), "pulse " + std::to_string(pulse));
+      // Removed while the pulse is in flight (pulse 2) and after it (pulses 0 and 4): every
+      // tenth particle the beam's primaries hit.
+      if ((pulse == 2 && step == 1) || (pulse % 4 == 0 && !reuse.has_live_rays())) {
+        std::vector<std::uint32_t> victims;
+        for (std::size_t k = pulse; k < last_hits.size(); k += 10)
+          if (last_hits[k] != kNoParticle && !gone[last_hits[k]]) victims.push_back(last_hits[k]), gone[last_hits[k]] = 1;
+        std::sort(victims.begin(), victims.end());
+        victims.erase(std::unique(victims.begin(), victims.end()), victims.end());
+        ASSERT_GE(victims.size(), 10u);
+        reuse.remove_particles(victims), traced.remove_particles(victims);
+      }
+    }
+  }
+  EXPECT_EQ(reuse.ledger().absorbed, traced.ledger().absorbed);
+  EXPECT_EQ(reuse.hits(), traced.hits());
+  EXPECT_EQ(traced.reused_primaries(), 0u);
 }
 
 // Chunk size is a matter of speed only: in budgeted steps (chunks left alone) and whole, with

@@ -122,6 +122,32 @@ TEST(SimulationStages, ShortStepsLeaveChunksOfRaysInFreeFlightAlone) {
   }
 }
 
+// Pulses of the same rays reuse their first hits from the pulse before, except where the sphere
+// hit has vaporised since: the run (melting, vaporising, staggered, with fixed steps and one step
+// per flight) is bit for bit the one that traces every pulse's primaries.
+TEST(SimulationStages, RepeatedPulsesReuseFirstHitsAndChangeNothing) {
+  for (double dt : {2e-15, 0.0}) {
+    SimulationSpec spec = quick_spec();
+    spec.dt = dt;
+    Simulation reuse(spec);
+    spec.optics.reuse_primaries = false;
+    Simulation traced(spec);
+    reuse.run(), traced.run();
+    ASSERT_GT(reuse.counts().rebuilds, 0u) << dt;  // spheres the rays met vaporised
+    EXPECT_GT(reuse.counts().staggers, 0u) << dt;
+    EXPECT_EQ(reuse.absorbed(), traced.absorbed()) << dt;
+    EXPECT_EQ(reuse.particles().temperature, traced.particles().temperature) << dt;
+    EXPECT_EQ(reuse.particles().phase, traced.particles().phase) << dt;
+    EXPECT_EQ(reuse.figures().energy.escaped, traced.figures().energy.escaped) << dt;
+    EXPECT_EQ(reuse.figures().time, traced.figures().time) << dt;
+    // Pulses 1-4 reuse all but the rays whose sphere vaporised: most of 4 x 200.
+    EXPECT_GT(reuse.counts().primaries_reused, 400u) << dt;
+    EXPECT_LT(reuse.counts().primaries_reused, 800u) << dt;
+    EXPECT_EQ(traced.counts().primaries_reused, 0u) << dt;
+    EXPECT_EQ(reuse.counts().segments + reuse.counts().primaries_reused, traced.counts().segments) << dt;
+  }
+}
+
 TEST(SimulationStages, BeforeTheFirstStepNothingHasRunYet) {
   Simulation sim(quick_spec());
   expect_skipped(sim, "trace", "no step taken yet");

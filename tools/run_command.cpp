@@ -142,7 +142,8 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
                    {"cutoff", e.cutoff},     {"stored", e.stored},     {"vaporized", e.vaporized},
                    {"walls", e.walls}};
   j["counts"] = {{"particles", r.counts.particles}, {"rays", r.counts.rays},
-                 {"segments", r.counts.segments},   {"steps", r.counts.steps},
+                 {"segments", r.counts.segments},   {"primaries_reused", r.counts.primaries_reused},
+                 {"steps", r.counts.steps},
                  {"rebuilds", r.counts.rebuilds},   {"staggers", r.counts.staggers},
                  {"late_pulses", r.counts.late_pulses},
                  {"heat_rows_solved", r.counts.heat_rows_solved}, {"heat_rows_live", r.counts.heat_rows_live},
@@ -193,10 +194,14 @@ void print_table(const Simulation& sim, const RunResult& r) {
                   static_cast<unsigned long long>(s.calls),
                   stage_note(Simulation::kStageNames[k], r.counts).c_str());
   }
-  std::printf("%-28s %14.3f s (%llu steps, %llu rays, %llu segments)\n", "wall time", r.wall_seconds,
+  std::printf("%-28s %14.3f s (%llu steps, %llu rays, %llu segments traced", "wall time", r.wall_seconds,
               static_cast<unsigned long long>(r.counts.steps),
               static_cast<unsigned long long>(r.counts.rays),
               static_cast<unsigned long long>(r.counts.segments));
+  if (r.counts.primaries_reused > 0)
+    std::printf(", %llu first hits reused from the pulse before",
+                static_cast<unsigned long long>(r.counts.primaries_reused));
+  std::printf(")\n");
 }
 
 }  // namespace
