@@ -157,7 +157,7 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
                      std::to_string(beam.size()) + " rays");
   compact_if_sparse();
   undo_.held = false;
-  if (state_.live_count == 0) state_.clock = 0.0;  // no ray reads it: each pulse starts at 0
+  const bool moved_live_rays = rebase_clock();  // each pulse starts at 0 on the path clock
   const Vec3& d = beam.direction;
   // Start plane: upstream of every particle (spheres stick out of the cube by up to R), so the
   // first surface a ray meets is a true outside hit (MODEL.md section 2).
@@ -207,7 +207,21 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   }
   for (double e : energies) s.ledger.injected += e;
   s.live_count += count;
-  refresh_next_events(first / spec_.chunk_rays);
+  refresh_next_events(moved_live_rays ? 0 : first / spec_.chunk_rays);
+}
+
+// The path clock back to 0, and the live rays' segment clocks with it: each keeps its path to its
+// next event, to the round-off of that path (not of the clock). Without this, pulses overlapping
+// without end would grow the clock, and every event comparison would lose eps x clock. True when
+// live rays were moved (their chunks' next events are then stale).
+bool Tracer::rebase_clock() {
+  RayState& s = state_;
+  const double shift = s.clock;
+  s.clock = 0.0;
+  if (shift == 0.0 || s.live_count == 0) return false;
+  for (std::size_t r = 0; r < s.live.size(); ++r)
+    if (s.live[r]) s.start_clock[r] -= shift;
+  return true;
 }
 
 // Ray r at its launch: on the start plane, no bounce yet, not traced.

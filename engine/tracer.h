@@ -104,7 +104,7 @@ struct RayState {
   std::vector<Vec3> field;
   OpticsLedger ledger;
   // The path clock: c times the time the rays have flown, summed over advances (each adds its
-  // budget, or the pulse's flight). Back to 0 at a launch when no ray is live.
+  // budget, or the pulse's flight). Back to 0 at every launch; live rays' start_clock move with it.
   double clock = 0.0;
   std::uint64_t primary_segments = 0;  // Embree queries from the entry plane
   std::uint64_t bounced_segments = 0;  // queries after a bounce (or a retrace after a removal)
@@ -202,6 +202,7 @@ class Tracer {
  private:
   struct Chunk;
   void start_ray(std::size_t r, const Vec3& origin, const Vec3& direction, double energy);
+  bool rebase_clock();
   std::size_t find_first_hits(std::size_t first, std::size_t begin, std::size_t end);
   bool reuse_first_hit(std::size_t k, std::uint32_t ray);
   void keep_first_hit(std::size_t k, std::uint32_t ray);
