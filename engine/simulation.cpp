@@ -352,6 +352,7 @@ void Simulation::write_state(StateWriter& out) const {
   out.value(counts_);
   for (const StageTime& s : stages_) out.value(s.seconds), out.value(s.calls);
   tracer_->save().write(out);
+  tracer_->write_first_hits(out);
   const ThermalModel::Snapshot heat = thermal_->save();
   out.vector(heat.stored);
   out.value(heat.ledger);
@@ -373,6 +374,7 @@ void Simulation::read_state(StateReader& in) {
   for (StageTime& s : stages_) s.seconds = in.value<double>(), s.calls = in.value<std::uint64_t>();
   RayState rays;
   rays.read(in);
+  tracer_->read_first_hits(in);
   ThermalModel::Snapshot heat;
   in.vector(heat.stored);
   heat.ledger = in.value<ThermalLedger>();

@@ -65,7 +65,7 @@ struct Figures {
 };
 
 struct Counts {
-  // segments: those traced; primaries_reused: first hits taken from the pulse before instead.
+  // segments: those traced; primaries_reused: first hits taken from an earlier pulse instead.
   std::uint64_t particles = 0, rays = 0, segments = 0, steps = 0, rebuilds = 0, staggers = 0;
   std::uint64_t primaries_reused = 0;
   // With pulses.period: pulse k is due at k T_p but starts at the first step boundary after it;

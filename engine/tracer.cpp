@@ -98,8 +98,8 @@ struct Event {
 struct Tracer::Chunk {
   std::vector<Event> events;
   std::vector<Event> sorted;  // scratch of sort_events_by_ray
-  // Scratch lists of ray ids (packets, waves), kept with the chunk so no pulse allocates them.
-  std::vector<std::uint32_t> ids, active, next, walkers;
+  // Scratch lists of ray ids (waves), kept with the chunk so no pulse allocates them.
+  std::vector<std::uint32_t> active, next, walkers;
   std::vector<std::pair<std::uint32_t, RaySegment>> segments;  // when recording, by ray
   std::uint64_t primary = 0, bounced = 0, hits = 0;
   std::size_t ended = 0;
@@ -178,9 +178,10 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   const std::size_t first = s.live.size(), count = beam.size();
   s.for_each_array([&](auto& v) { v.resize(first + count); });
   FirstHits& f = first_hits_;
-  if (spec_.reuse_primaries && f.t.size() != count) {  // another beam: nothing to reuse
+  if (spec_.reuse_primaries && (f.t.size() != count || f.direction != d || f.upstream != upstream)) {
+    f.direction = d, f.upstream = upstream;  // another beam: nothing to reuse
     f.origin.assign(count, Vec3::Constant(std::numeric_limits<double>::quiet_NaN()));
-    f.direction = f.normal = f.origin;
+    f.normal.assign(count, Vec3::Zero());
     f.t.assign(count, 0.0);
     f.particle.assign(count, kNoParticle);
   }
@@ -192,7 +193,7 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
       const std::size_t end = std::min(count, (b + 1) * kBatchRays);
       for (std::size_t k = b * kBatchRays; k < end; ++k)
         start_ray(first + k, beam.origin[k] + upstream * d, d, energies[k]);
-      traced[b] = find_first_hits(first, b * kBatchRays, end);
+      traced[b] = find_first_hits(beam, first, b * kBatchRays, end);
     }
   });
   const std::size_t queries = std::accumulate(traced.begin(), traced.end(), std::size_t{0});
@@ -241,12 +242,12 @@ void Tracer::start_ray(std::size_t r, const Vec3& origin, const Vec3& direction,
 // The first hits of the launched rays [first + begin, first + end) (ray first + k is the beam's
 // ray k): reused from the beam's last launch where they can be, the others traced in coherent
 // packets (or one by one without packets). Returns how many were traced.
-std::size_t Tracer::find_first_hits(std::size_t first, std::size_t begin, std::size_t end) {
+std::size_t Tracer::find_first_hits(const Beam& beam, std::size_t first, std::size_t begin, std::size_t end) {
   std::array<std::uint32_t, kBatchRays> ids;
   std::size_t m = 0;
   for (std::size_t k = begin; k < end; ++k) {
     const auto r = static_cast<std::uint32_t>(first + k);
-    if (!reuse_first_hit(k, r)) ids[m++] = r;
+    if (!reuse_first_hit(beam, k, r)) ids[m++] = r;
   }
   if (spec_.packets) {
     trace_ids(ids.data(), m, true);
@@ -254,20 +255,20 @@ std::size_t Tracer::find_first_hits(std::size_t first, std::size_t begin, std::s
     for (std::size_t j = 0; j < m; ++j) trace_segment(ids[j]);
   }
   if (spec_.reuse_primaries)
-    for (std::size_t j = 0; j < m; ++j) keep_first_hit(ids[j] - first, ids[j]);
+    for (std::size_t j = 0; j < m; ++j) keep_first_hit(beam, ids[j] - first, ids[j]);
   return m;
 }
 
-// Beam ray k, launched as ray r, takes the first hit it had at the beam's last launch: same
-// origin, same direction, and the sphere it met not removed since (particles only disappear, so
-// the nearest of the remaining ones is still that one). False: r must be traced.
-bool Tracer::reuse_first_hit(std::size_t k, std::uint32_t r) {
+// Beam ray k, launched as ray r, takes the first hit it had when it was last traced: the same
+// point on the beam's disk (the launch checked the direction and the start plane), and the
+// sphere it met not removed since (particles only disappear, so the nearest of the remaining
+// ones is still that one). False: r must be traced.
+bool Tracer::reuse_first_hit(const Beam& beam, std::size_t k, std::uint32_t r) {
   if (!spec_.reuse_primaries) return false;
   const FirstHits& f = first_hits_;
   RayState& s = state_;
   const std::uint32_t p = f.particle[k];
-  if (f.origin[k] != s.origin[r] || f.direction[k] != s.direction[r] || (p != kNoParticle && scene_->removed(p)))
-    return false;
+  if (f.origin[k] != beam.origin[k] || (p != kNoParticle && scene_->removed(p))) return false;
   s.t_next[r] = f.t[k];
   s.next_particle[r] = p;
   s.normal[r] = f.normal[k];
@@ -275,10 +276,10 @@ bool Tracer::reuse_first_hit(std::size_t k, std::uint32_t r) {
 }
 
 // Ray r, just traced from its launch point, is beam ray k's first hit from now on.
-void Tracer::keep_first_hit(std::size_t k, std::uint32_t r) {
+void Tracer::keep_first_hit(const Beam& beam, std::size_t k, std::uint32_t r) {
   FirstHits& f = first_hits_;
   const RayState& s = state_;
-  f.origin[k] = s.origin[r], f.direction[k] = s.direction[r], f.normal[k] = s.normal[r];
+  f.origin[k] = beam.origin[k], f.normal[k] = s.normal[r];
   f.t[k] = s.t_next[r];
   f.particle[k] = s.next_particle[r];
 }
@@ -381,20 +382,10 @@ void Tracer::trace_ids(const std::uint32_t* ids, std::size_t count, bool coheren
       __builtin_prefetch(&particles_.phase[state_.next_particle[ids[k]]]);
 }
 
-// Primary rays to trace again (the particle they were heading for was removed; a launch traced
-// them first), in coherent packets.
-void Tracer::trace_packets(std::size_t begin, std::size_t end, Chunk& c) {
-  const RayState& s = state_;
-  std::vector<std::uint32_t>& ids = c.ids;
-  ids.clear();
-  for (std::size_t r = begin; r < end; ++r)
-    if (s.live[r] && s.t_next[r] < 0.0 && s.bounces[r] == 0) ids.push_back(static_cast<std::uint32_t>(r));
-  for (std::uint32_t r : ids) remember(r, c);
-  trace_ids(ids.data(), ids.size(), true);
-}
 
 // One wave of queries: the next nearest hit of every listed ray. Bounced rays walk the grid,
-// interleaved; primaries (traced here only without packets) go to Embree one by one.
+// interleaved; primaries (here only when the sphere their launch found was removed on the way)
+// go to Embree one by one.
 void Tracer::trace_wave(const std::vector<std::uint32_t>& rays, Chunk& c) {
   if (spec_.bounce_search == BounceSearch::packets) {
     trace_ids(rays.data(), rays.size(), false);
@@ -494,15 +485,10 @@ void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double end_
   update_next_event(begin / spec_.chunk_rays);
 }
 
-// Advances rays [begin, end) to the path clock's end_clock: primaries to trace again first, in
-// coherent packets, then the bounced segments, one ray at a time (BounceSearch::embree) or in waves (packets, grid).
+// Advances rays [begin, end) to the path clock's end_clock (their launch traced their first
+// segments): the next segments one ray at a time (BounceSearch::embree) or in waves (packets, grid).
 void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double end_clock) {
-  RayState& s = state_;
-  if (spec_.packets) {
-    for (std::size_t r = begin; r < end; ++r)
-      c.primary += s.live[r] && s.t_next[r] < 0.0 && s.bounces[r] == 0;
-    trace_packets(begin, end, c);
-  }
+  const RayState& s = state_;
   if (spec_.bounce_search == BounceSearch::embree) {
     for (std::size_t r = begin; r < end; ++r) {
       if (!s.live[r]) continue;
@@ -563,6 +549,28 @@ void RayState::read(StateReader& in) {
   for_each_array([&](const auto& v) {
     if (v.size() != origin.size()) throw InputError("checkpoint: ray arrays of unequal length");
   });
+}
+
+void Tracer::write_first_hits(StateWriter& out) const {
+  const FirstHits& f = first_hits_;
+  for (int a = 0; a < 3; ++a) out.value(f.direction[a]);
+  out.value(f.upstream);
+  out.vector(f.origin), out.vector(f.normal), out.vector(f.t), out.vector(f.particle);
+}
+
+void Tracer::read_first_hits(StateReader& in) {
+  FirstHits f;
+  for (int a = 0; a < 3; ++a) f.direction[a] = in.value<double>();
+  f.upstream = in.value<double>();
+  in.vector(f.origin), in.vector(f.normal), in.vector(f.t), in.vector(f.particle);
+  const std::size_t n = f.origin.size();
+  if (f.normal.size() != n || f.t.size() != n || f.particle.size() != n)
+    throw InputError("checkpoint: first-hit arrays of unequal length");
+  for (std::uint32_t p : f.particle)
+    if (p != kNoParticle && p >= particles_.size())
+      throw InputError("checkpoint: a first hit on particle " + std::to_string(p) + " of " +
+                       std::to_string(particles_.size()));
+  first_hits_ = std::move(f);
 }
 
 // Adds a traced chunk to the deposits, the ledger and the counters: ray order inside the chunk,

@@ -185,6 +185,10 @@ class Tracer {
 
   RayState save() const { return state_; }
   void restore(const RayState& state);
+  // Checkpoints: the first hits kept for reuse, so a resumed run traces (and counts) what the
+  // uninterrupted one would. restore() leaves them alone: they stay true whatever the rays.
+  void write_first_hits(StateWriter& out) const;
+  void read_first_hits(StateReader& in);
 
   // While on, every advance keeps what it changes (the rays of the chunks it ran, the ledger,
   // counters and clock), and undo_advance() puts them back: the stagger's redo of a step costs
@@ -203,14 +207,13 @@ class Tracer {
   struct Chunk;
   void start_ray(std::size_t r, const Vec3& origin, const Vec3& direction, double energy);
   bool rebase_clock();
-  std::size_t find_first_hits(std::size_t first, std::size_t begin, std::size_t end);
-  bool reuse_first_hit(std::size_t k, std::uint32_t ray);
-  void keep_first_hit(std::size_t k, std::uint32_t ray);
+  std::size_t find_first_hits(const Beam& beam, std::size_t first, std::size_t begin, std::size_t end);
+  bool reuse_first_hit(const Beam& beam, std::size_t k, std::uint32_t ray);
+  void keep_first_hit(const Beam& beam, std::size_t k, std::uint32_t ray);
   double reflect_field(std::uint32_t r, const Vec3& normal, const MaterialOptics& m, Phase phase);
   void open_query(std::uint32_t ray);
   bool close_query(std::uint32_t ray);
   void trace_ids(const std::uint32_t* ids, std::size_t count, bool coherent);
-  void trace_packets(std::size_t begin, std::size_t end, Chunk& chunk);
   void trace_wave(const std::vector<std::uint32_t>& rays, Chunk& chunk);
   void trace_segment(std::uint32_t ray);
   bool step_ray(std::uint32_t ray, double end_clock, Chunk& chunk);
@@ -239,10 +242,13 @@ class Tracer {
   // its end; the others are in free flight, which changes nothing but the clock.
   std::vector<double> next_event_;
   std::vector<std::uint32_t> due_chunks_;  // per advance: the chunks it runs
-  // The first hit of every ray of the last beam launched, by the ray's place in the beam
-  // (OpticsSpec::reuse_primaries): where it started, its direction, and what its query found.
+  // The first hit of every ray of the last beam launched, by the ray's place k in the beam
+  // (OpticsSpec::reuse_primaries): the beam's direction and start plane, ray k's point on the
+  // beam's disk, and what its query found.
   struct FirstHits {
-    std::vector<Vec3> origin, direction, normal;
+    Vec3 direction = Vec3::Zero();
+    double upstream = 0.0;
+    std::vector<Vec3> origin, normal;
     std::vector<double> t;
     std::vector<std::uint32_t> particle;
   };

@@ -375,8 +375,9 @@ const char* kCheckpointScene =
 
 TEST(Cli, ResumeFromACheckpointEndsBitIdentical) {
   const fs::path whole = fresh_dir("ck_whole"), part = fresh_dir("ck_part");
-  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --checkpoint-every 3 --out " + whole.string()).code, 0);
-  // The last checkpoint of the whole run (after pulse 9 of 10) resumed in another directory.
+  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --checkpoint-every 4 --out " + whole.string()).code, 0);
+  // The last checkpoint of the whole run resumed in another directory: written after the step
+  // that ended pulse 8 of 10 and launched pulse 9, so the resumed run launches pulse 10.
   fs::copy_file(whole / "checkpoint.bin", part / "checkpoint.bin");
   const Result r = run("run --resume " + part.string() + " --quiet");
   ASSERT_EQ(r.code, 0) << r.output;
@@ -392,6 +393,11 @@ TEST(Cli, ResumeFromACheckpointEndsBitIdentical) {
   EXPECT_NE(file_text(whole_r / "particles.csv"), file_text(whole / "particles.csv"));
   // Its wall time, like its stage times, counts the run before the checkpoint too.
   const nlohmann::json summary = read_json(part / "summary.json");
+  // And it traces what the whole run traced: the first hits kept for reuse are in the checkpoint.
+  const nlohmann::json whole_summary = read_json(whole / "summary.json");
+  EXPECT_GT(int(summary["counts"]["primaries_reused"]), 0);
+  for (const char* count : {"segments", "primaries_reused", "rays", "steps"})
+    EXPECT_EQ(summary["counts"][count], whole_summary["counts"][count]) << count;
   double stages = 0;
   for (const auto& [name, stage] : summary["stages"].items()) stages += double(stage["seconds"]);
   EXPECT_GE(double(summary["wall_seconds"]), stages) << summary.dump();

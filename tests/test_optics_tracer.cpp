@@ -464,6 +464,35 @@ TEST(OpticsTracer, ReusedFirstHitsEqualTracedOnes) {
   EXPECT_EQ(traced.reused_primaries(), 0u);
 }
 
+// A reused first hit needs the same ray: the same point on the beam's disk, start plane and
+// direction. Beams with the same disk points and direction but another start plane (the beam's
+// centre moved: the rays' first hits lie at other distances), or the same start plane (the centre
+// far upstream puts it at the packing's own face) but directions 1 mrad apart, share no hit; a
+// beam launched again reuses its own.
+TEST(OpticsTracer, AFirstHitIsReusedOnlyForTheSameRay) {
+  const Particles& p = packing_1e4();
+  OpticsSpec on = optics_for(1.4), off = on;
+  off.reuse_primaries = false;
+  const Beam near = make_beam(BeamSpec{}, kD);
+  Beam along = near;
+  along.centre -= 10.0 * along.direction;
+  Beam tilted = along;
+  tilted.direction = Vec3(1.0, 1e-3, 0.0).normalized();
+  Tracer reuse(p, on), traced(p, off);
+  std::vector<double> a, b;
+  const Beam* beams[] = {&near, &along, &tilted, &tilted};
+  const std::size_t expected[] = {0, 0, 0, tilted.size()};  // the second tilted launch reuses all
+  for (int launch = 0; launch < 4; ++launch) {
+    std::fill(a.begin(), a.end(), 0.0), std::fill(b.begin(), b.end(), 0.0);
+    const std::uint64_t before = reuse.reused_primaries();
+    reuse.launch(*beams[launch], 1e-9), traced.launch(*beams[launch], 1e-9);
+    EXPECT_EQ(reuse.reused_primaries() - before, expected[launch]) << "launch " << launch;
+    expect_same_rays_but_counters(reuse.save(), traced.save(), "launch " + std::to_string(launch));
+    reuse.advance(kAll, a), traced.advance(kAll, b);
+    ASSERT_EQ(a, b) << "launch " << launch;
+  }
+}
+
 // Chunk size is a matter of speed only: in budgeted steps (chunks left alone) and whole, with
 // grid or Embree bounces, every step's deposits, every ray, the ledger and the counters are the
 // same for chunks of 7, 64 and 256 rays.

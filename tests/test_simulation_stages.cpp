@@ -122,7 +122,7 @@ TEST(SimulationStages, ShortStepsLeaveChunksOfRaysInFreeFlightAlone) {
   }
 }
 
-// Pulses of the same rays reuse their first hits from the pulse before, except where the sphere
+// Pulses of the same rays reuse their first hits from earlier pulses, except where the sphere
 // hit has vaporised since: the run (melting, vaporising, staggered, with fixed steps and one step
 // per flight) is bit for bit the one that traces every pulse's primaries.
 TEST(SimulationStages, RepeatedPulsesReuseFirstHitsAndChangeNothing) {
