@@ -123,10 +123,10 @@ void Simulation::launch_pulse_if_due() {
                                            : !tracer_->has_live_rays();
   if (!due) return;
   if (launched_ > 0 && on_pulse_end_) on_pulse_end_(launched_ - 1);
-  tracer_->compact();
   if (spec_.beam.resample && launched_ > 0) beam_ = resampled_beam(launched_);
   {
     StageClock clock(stages_[kTrace], false);  // a launch traces the rays' first hits
+    tracer_->compact();
     tracer_->launch(beam_, spec_.pulses.duration);
   }
   counts_.rays += beam_.size();

@@ -91,8 +91,9 @@ struct OpticsLedger {
 struct RayState {
   // Per ray (structure of arrays). A ray's current segment starts at origin, which it passed
   // when the path clock read start_clock; its next event is t_next along the segment: a hit on
-  // `next_particle`, or leaving the box (kNoParticle). t_next < 0: not yet traced. So a ray in
-  // free flight changes nothing in its state: the clock alone moves on.
+  // `next_particle`, or leaving the box (kNoParticle). t_next < 0: to be traced (after a hit, or
+  // when the particle ahead was removed; a launch traces the first segment). So a ray in free
+  // flight changes nothing in its state: the clock alone moves on.
   std::vector<Vec3> origin, direction, normal;  // normal: at the next hit
   std::vector<double> energy, initial_energy, start_clock, t_next;
   std::vector<std::uint32_t> last_particle, next_particle;
