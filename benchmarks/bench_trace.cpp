@@ -125,14 +125,6 @@ void run_tracer(benchmark::State& state, const OpticsSpec& spec) {
   set_counters(state, primary, bounced);
 }
 
-void run_tracer(benchmark::State& state, bool packets, double n_hat, int max_bounces,
-                SceneUpdate scene_update = OpticsSpec{}.scene_update,
-                unsigned per_prim = OpticsSpec{}.spheres_per_primitive,
-                BounceSearch bounce = OpticsSpec{}.bounce_search,
-                double cell_factor = OpticsSpec{}.grid_cell_factor) {
-  run_tracer(state, tracer_spec(packets, n_hat, max_bounces, scene_update, per_prim, bounce, cell_factor));
-}
-
 // ---- baseline: Embree's built-in spheres, rtcIntersect1, same outside-hit rule ----------------
 
 struct SkipContext {
@@ -550,7 +542,7 @@ void register_all() {
   for (double n_hat : {1.4, 20.0}) {
     const std::string large = "/n" + std::to_string(static_cast<int>(std::lround(n_hat * 10)));
     benchmark::RegisterBenchmark(("trace/workload/tracer_packets" + large).c_str(),
-                                 [=](benchmark::State& s) { run_tracer(s, true, n_hat, 1000); })
+                                 [=](benchmark::State& s) { run_tracer(s, tracer_spec(true, n_hat, 1000)); })
         ->Apply(huge);
     benchmark::RegisterBenchmark(("trace/workload/builtin_sphere" + large).c_str(),
                                  [=](benchmark::State& s) { run_builtin(s, n_hat, 1000); })
@@ -559,24 +551,24 @@ void register_all() {
   for (double n_hat : {1.4, 20.0}) {
     const std::string tag = "/n" + std::to_string(static_cast<int>(std::lround(n_hat * 10)));
     benchmark::RegisterBenchmark(("trace/workload/tracer_packets" + tag).c_str(),
-                                 [=](benchmark::State& s) { run_tracer(s, true, n_hat, 1000); })
+                                 [=](benchmark::State& s) { run_tracer(s, tracer_spec(true, n_hat, 1000)); })
         ->Apply(sizes);
     benchmark::RegisterBenchmark(("trace/workload/tracer_packets_embree_bounces" + tag).c_str(),
                                  [=](benchmark::State& s) {
-                                   run_tracer(s, true, n_hat, 1000, OpticsSpec{}.scene_update, 1,
-                                              BounceSearch::embree);
+                                   run_tracer(s, tracer_spec(true, n_hat, 1000, OpticsSpec{}.scene_update, 1,
+                                                             BounceSearch::embree));
                                  })
         ->Apply(sizes_fixed_rays);
     benchmark::RegisterBenchmark(("trace/workload/tracer_packets_packet_bounces" + tag).c_str(),
                                  [=](benchmark::State& s) {
-                                   run_tracer(s, true, n_hat, 1000, OpticsSpec{}.scene_update, 1,
-                                              BounceSearch::packets);
+                                   run_tracer(s, tracer_spec(true, n_hat, 1000, OpticsSpec{}.scene_update, 1,
+                                                             BounceSearch::packets));
                                  })
         ->Apply(sizes_fixed_rays);
     benchmark::RegisterBenchmark(("trace/workload/tracer_single" + tag).c_str(),
                                  [=](benchmark::State& s) {
-                                   run_tracer(s, false, n_hat, 1000, OpticsSpec{}.scene_update, 1,
-                                              BounceSearch::embree);
+                                   run_tracer(s, tracer_spec(false, n_hat, 1000, OpticsSpec{}.scene_update, 1,
+                                                             BounceSearch::embree));
                                  })
         ->Apply(sizes_fixed_rays);
     benchmark::RegisterBenchmark(("trace/workload/builtin_sphere" + tag).c_str(),
@@ -592,26 +584,26 @@ void register_all() {
                                    std::pair{"refit", SceneUpdate::refit},
                                    std::pair{"bricks", SceneUpdate::bricks}})
     benchmark::RegisterBenchmark(("trace/scene_mode/" + std::string(name) + "/n200").c_str(),
-                                 [mode = mode](benchmark::State& s) { run_tracer(s, true, 20.0, 1000, mode); })
+                                 [mode = mode](benchmark::State& s) { run_tracer(s, tracer_spec(true, 20.0, 1000, mode)); })
         ->Apply(large);
   // Embree primitive = a cluster of K consecutive (Morton) spheres: fewer callbacks, looser boxes.
   for (unsigned k : {1u, 2u, 4u, 8u}) {
     benchmark::RegisterBenchmark(("trace/cluster/k" + std::to_string(k) + "/n200").c_str(),
                                  [k](benchmark::State& s) {
-                                   run_tracer(s, true, 20.0, 1000, SceneUpdate::deferred, k);
+                                   run_tracer(s, tracer_spec(true, 20.0, 1000, SceneUpdate::deferred, k));
                                  })
         ->Apply(large);
     benchmark::RegisterBenchmark(("trace/cluster/k" + std::to_string(k) + "/primary").c_str(),
                                  [k](benchmark::State& s) {
-                                   run_tracer(s, true, 20.0, 1, SceneUpdate::deferred, k);
+                                   run_tracer(s, tracer_spec(true, 20.0, 1, SceneUpdate::deferred, k));
                                  })
         ->Apply(large);
   }
   for (double f : {1.5, 2.0, 3.0, 4.0})
     benchmark::RegisterBenchmark(("trace/grid_cell/" + std::to_string(f).substr(0, 3) + "R/n200").c_str(),
                                  [f](benchmark::State& s) {
-                                   run_tracer(s, true, 20.0, 1000, OpticsSpec{}.scene_update, 1,
-                                              BounceSearch::grid, f);
+                                   run_tracer(s, tracer_spec(true, 20.0, 1000, OpticsSpec{}.scene_update, 1,
+                                                             BounceSearch::grid, f));
                                  })
         ->Apply(large);
   // Primaries traced every pulse (the tracing speed), and reused from the pulse before (what a
@@ -628,9 +620,9 @@ void register_all() {
           ->Apply(paired_sizes)->Iterations(9);
   }
   benchmark::RegisterBenchmark("trace/primary/tracer_packets",
-                               [](benchmark::State& s) { run_tracer(s, true, 1.4, 1); })->Apply(sizes);
+                               [](benchmark::State& s) { run_tracer(s, tracer_spec(true, 1.4, 1)); })->Apply(sizes);
   benchmark::RegisterBenchmark("trace/primary/tracer_single", [](benchmark::State& s) {
-    run_tracer(s, false, 1.4, 1, OpticsSpec{}.scene_update, 1, BounceSearch::embree);
+    run_tracer(s, tracer_spec(false, 1.4, 1, OpticsSpec{}.scene_update, 1, BounceSearch::embree));
   })->Apply(sizes);
   benchmark::RegisterBenchmark("trace/primary/builtin_sphere",
                                [](benchmark::State& s) { run_builtin(s, 1.4, 1); })->Apply(sizes);

@@ -239,6 +239,13 @@ bool Simulation::step() {
 // it, as liquid (it leaves the scene from the next step, the paper's Remark 10).
 Phase Simulation::optical(Phase phase) { return phase == Phase::vapor ? Phase::liquid : phase; }
 
+namespace {
+// PhaseOverride entries ordered by particle.
+bool by_particle(const std::pair<std::uint32_t, Phase>& a, const std::pair<std::uint32_t, Phase>& b) {
+  return a.first < b.first;
+}
+}  // namespace
+
 // Whether a particle the rays met in this step ends it with another index than the trace used:
 // solid <-> liquid, and solid -> vapour (which passed through liquid). The trace saw the phases
 // before the step, except where `seen` says otherwise (a redo); so one the redo saw as liquid
@@ -246,8 +253,7 @@ Phase Simulation::optical(Phase phase) { return phase == Phase::vapor ? Phase::l
 bool Simulation::optics_changed(const PhaseOverride& seen) const {
   for (std::uint32_t i : heated_) {
     if (!(deposits_[i] > 0)) continue;
-    const auto it = std::lower_bound(seen.begin(), seen.end(), std::pair{i, Phase::solid},
-                                     [](const auto& a, const auto& b) { return a.first < b.first; });
+    const auto it = std::lower_bound(seen.begin(), seen.end(), std::pair{i, Phase::solid}, by_particle);
     const Phase traced_as = it != seen.end() && it->first == i ? it->second : thermal_->phase_before_step(i);
     if (optical(particles_.phase[i]) != traced_as) return true;
   }
@@ -262,7 +268,7 @@ Simulation::PhaseOverride Simulation::optics_after_step() const {
     const Phase p = optical(particles_.phase[i]);
     if (p != thermal_->phase_before_step(i)) after.emplace_back(static_cast<std::uint32_t>(i), p);
   });
-  std::sort(after.begin(), after.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+  std::sort(after.begin(), after.end(), by_particle);
   after.erase(std::unique(after.begin(), after.end(), [](const auto& a, const auto& b) { return a.first == b.first; }),
               after.end());
   return after;

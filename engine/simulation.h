@@ -75,8 +75,9 @@ struct Counts {
   // Particle rows over the heat steps: solved, and live. Fewer solved than live: components at
   // rest (no heat, one temperature, walls at it) kept their temperatures without a solve.
   std::uint64_t heat_rows_solved = 0, heat_rows_live = 0;
-  // Chunks of rays (64 each with a fixed thermal.dt, else 256) with a live ray, over the traces: run, and live. Fewer run than
-  // live: chunks whose rays were all in free flight through a step, left alone.
+  // Chunks of rays (64 each with a fixed thermal.dt, else 256) with a live ray, over the traces:
+  // run, and live. Fewer run than live: chunks whose rays were all in free flight through a step,
+  // left alone.
   std::uint64_t ray_chunks_run = 0, ray_chunks_live = 0;
 };
 

@@ -382,7 +382,6 @@ void Tracer::trace_ids(const std::uint32_t* ids, std::size_t count, bool coheren
       __builtin_prefetch(&particles_.phase[state_.next_particle[ids[k]]]);
 }
 
-
 // One wave of queries: the next nearest hit of every listed ray. Bounced rays walk the grid,
 // interleaved; primaries (here only when the sphere their launch found was removed on the way)
 // go to Embree one by one.

@@ -71,8 +71,8 @@ struct OpticsSpec {
   // Results do not depend on it.
   std::size_t chunk_rays = 256;
   // A launch finds its rays' first hits at once (in coherent packets). A ray the beam launched
-  // before too, from the same point in the same direction, meets the sphere it met then, if that
-  // is still there: particles only disappear, so it stays the nearest. Those hits are reused,
+  // before too, from the same point on the same start plane in the same direction, meets the
+  // sphere it met then, if that is still there: particles only disappear, so it stays the nearest. Those hits are reused,
   // not traced: a repeated beam's primaries cost a copy. Same results either way; off for a beam
   // that changes every pulse (beam.resample), where it would only keep a copy of each pulse.
   bool reuse_primaries = true;
