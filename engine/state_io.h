@@ -20,8 +20,8 @@ class StateWriter {
     static_assert(std::is_trivially_copyable_v<T>);
     bytes(&v, sizeof v);
   }
-  template <class T>
-  void vector(const std::vector<T>& v) {
+  template <class T, class A>
+  void vector(const std::vector<T, A>& v) {
     value<std::uint64_t>(v.size());
     if (!v.empty()) bytes(v.data(), v.size() * sizeof(T));
   }
@@ -48,8 +48,8 @@ class StateReader {
     bytes(&v, sizeof v);
     return v;
   }
-  template <class T>
-  void vector(std::vector<T>& v) {
+  template <class T, class A>
+  void vector(std::vector<T, A>& v) {
     const auto n = value<std::uint64_t>();
     if (n > (data_.size() - pos_) / std::max<std::size_t>(sizeof(T), 1)) damaged();
     v.resize(n);

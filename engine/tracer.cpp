@@ -6,6 +6,7 @@
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_pipeline.h>
 #include <tbb/partitioner.h>
+#include <tbb/task_group.h>
 
 #include <algorithm>
 #include <array>
@@ -126,8 +127,8 @@ struct Tracer::Chunk {
 };
 
 // Ray r as it was before this advance changed it, kept once per advance when undo is on.
-void Tracer::remember(std::uint32_t r, Chunk& c) const {
-  if (!undo_.on || c.remembered[r - c.first]) return;
+void Tracer::keep_before(std::uint32_t r, Chunk& c) const {
+  if (c.remembered[r - c.first]) return;
   c.remembered[r - c.first] = true;
   c.changed.push_back(r);
   RayState::for_each_member(state_.polarised, [&](auto member) { (c.before.*member).push_back((state_.*member)[r]); });
@@ -187,6 +188,21 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   }
   const std::size_t blocks = (count + kBatchRays - 1) / kBatchRays;
   std::vector<std::size_t> traced(blocks);
+  // The new chunks' next events while their rays are in cache, when no chunk straddles two
+  // blocks (or the launch's first ray); otherwise afterwards.
+  const std::size_t chunk = spec_.chunk_rays;
+  const bool chunks_in_blocks = first % chunk == 0 && kBatchRays % chunk == 0;
+  next_event_.resize((first + count + chunk - 1) / chunk);
+  // The injected energy, summed in ray order beside the blocks (into a local: the ledger shares a
+  // cache line with the array headers the blocks read).
+  double injected = s.ledger.injected;
+  tbb::task_group summing;
+  summing.run([&] {
+    const IeeeFloatMode ieee;
+    double sum = injected;  // in a register, stored once
+    for (double e : energies) sum += e;
+    injected = sum;
+  });
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, blocks, 1), [&](const tbb::blocked_range<std::size_t>& range) {
     const IeeeFloatMode ieee;  // the queries' double tests, on whatever thread
     for (std::size_t b = range.begin(); b != range.end(); ++b) {
@@ -194,8 +210,12 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
       for (std::size_t k = b * kBatchRays; k < end; ++k)
         start_ray(first + k, beam.origin[k] + upstream * d, d, energies[k]);
       traced[b] = find_first_hits(beam, first, b * kBatchRays, end);
+      if (chunks_in_blocks)
+        for (std::size_t j = (first + b * kBatchRays) / chunk; j * chunk < first + end; ++j) update_next_event(j);
     }
   });
+  summing.wait();
+  s.ledger.injected = injected;
   const std::size_t queries = std::accumulate(traced.begin(), traced.end(), std::size_t{0});
   s.primary_segments += queries;
   s.reused_primaries += count - queries;
@@ -206,9 +226,9 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
     std::fill(s.field.begin() + static_cast<std::ptrdiff_t>(first), s.field.end(),
               Vec3(std::cos(psi) * u + std::sin(psi) * v));
   }
-  for (double e : energies) s.ledger.injected += e;
   s.live_count += count;
-  refresh_next_events(moved_live_rays ? 0 : first / spec_.chunk_rays);
+  if (!chunks_in_blocks) refresh_next_events(moved_live_rays ? 0 : first / chunk);
+  else if (moved_live_rays) refresh_next_events(0, first / chunk);
 }
 
 // The path clock back to 0, and the live rays' segment clocks with it: each keeps its path to its
@@ -299,8 +319,9 @@ void Tracer::compact() {
   undo_.held = false;
   RayState& s = state_;
   std::vector<std::size_t> keep;
-  for (std::size_t r = 0; r < s.live.size(); ++r)
-    if (s.live[r]) keep.push_back(r);
+  if (s.live_count > 0)  // else every ray ended: nothing to look at
+    for (std::size_t r = 0; r < s.live.size(); ++r)
+      if (s.live[r]) keep.push_back(r);
   s.for_each_array([&](auto& v) {
     for (std::size_t w = 0; w < keep.size(); ++w) v[w] = v[keep[w]];
     v.resize(keep.size());
@@ -336,10 +357,10 @@ void Tracer::update_next_event(std::size_t k) {
 
 // The chunks from first_chunk on take their next events from their rays; the list follows the
 // ray arrays as they grow and shrink.
-void Tracer::refresh_next_events(std::size_t first_chunk) {
+void Tracer::refresh_next_events(std::size_t first_chunk, std::size_t end_chunk) {
   const std::size_t chunks = (state_.live.size() + spec_.chunk_rays - 1) / spec_.chunk_rays;
   next_event_.resize(chunks);
-  for (std::size_t k = first_chunk; k < chunks; ++k) update_next_event(k);
+  for (std::size_t k = first_chunk; k < std::min(chunks, end_chunk); ++k) update_next_event(k);
 }
 
 namespace {
@@ -548,6 +569,10 @@ void RayState::read(StateReader& in) {
   for_each_array([&](const auto& v) {
     if (v.size() != origin.size()) throw InputError("checkpoint: ray arrays of unequal length");
   });
+  const auto live_rays = static_cast<std::size_t>(std::count_if(live.begin(), live.end(), [](auto l) { return l != 0; }));
+  if (live_rays != live_count)
+    throw InputError("checkpoint: live_count = " + std::to_string(live_count) + " but " +
+                     std::to_string(live_rays) + " rays are live");
 }
 
 void Tracer::write_first_hits(StateWriter& out) const {

@@ -17,6 +17,7 @@
 #include <limits>
 #include <memory>
 #include <span>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -88,21 +89,44 @@ struct OpticsLedger {
 };
 
 // The state of every ray, copyable so a driver can redo a time step (MODEL.md section 5 step 4).
+// A ray array: growing it leaves the new elements unwritten (a launch writes every field of every
+// ray it adds), so a launch does not first zero its whole pulse of rays on one thread.
+template <class T>
+struct Unfilled : std::allocator<T> {
+  template <class U>
+  struct rebind {
+    using other = Unfilled<U>;
+  };
+  Unfilled() = default;
+  template <class U>
+  Unfilled(const Unfilled<U>&) noexcept {}
+  template <class U>
+  void construct(U* p) noexcept(std::is_nothrow_default_constructible_v<U>) {
+    ::new (static_cast<void*>(p)) U;
+  }
+  template <class U, class... Args>
+  void construct(U* p, Args&&... args) {
+    ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
+  }
+};
+template <class T>
+using RayArray = std::vector<T, Unfilled<T>>;
+
 struct RayState {
   // Per ray (structure of arrays). A ray's current segment starts at origin, which it passed
   // when the path clock read start_clock; its next event is t_next along the segment: a hit on
   // `next_particle`, or leaving the box (kNoParticle). t_next < 0: to be traced (after a hit, or
   // when the particle ahead was removed; a launch traces the first segment). So a ray in free
   // flight changes nothing in its state: the clock alone moves on.
-  std::vector<Vec3> origin, direction, normal;  // normal: at the next hit
-  std::vector<double> energy, initial_energy, start_clock, t_next;
-  std::vector<std::uint32_t> last_particle, next_particle;
-  std::vector<std::int32_t> bounces;
-  std::vector<std::uint8_t> live;
+  RayArray<Vec3> origin, direction, normal;  // normal: at the next hit
+  RayArray<double> energy, initial_energy, start_clock, t_next;
+  RayArray<std::uint32_t> last_particle, next_particle;
+  RayArray<std::int32_t> bounces;
+  RayArray<std::uint8_t> live;
   // A linearly polarised beam's rays carry their unit electric field; unpolarised ones have none
   // (the array is neither allocated nor copied).
   bool polarised = false;
-  std::vector<Vec3> field;
+  RayArray<Vec3> field;
   OpticsLedger ledger;
   // The path clock: c times the time the rays have flown, summed over advances (each adds its
   // budget, or the pulse's flight). Back to 0 at every launch; live rays' start_clock move with it.
@@ -221,7 +245,7 @@ class Tracer {
   void end_ray(std::uint32_t ray, double at, Chunk& chunk);
   void count_segment(std::uint32_t ray, Chunk& chunk) const;
   void run_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double end_clock);
-  void refresh_next_events(std::size_t first_chunk);
+  void refresh_next_events(std::size_t first_chunk, std::size_t end_chunk = SIZE_MAX);
   void update_next_event(std::size_t chunk);
   double next_event_of_chunk(std::size_t begin, std::size_t end) const;
   void add_chunk(Chunk& chunk, std::vector<double>& deposits, std::vector<std::uint32_t>* deposited);
@@ -266,7 +290,12 @@ class Tracer {
     std::size_t last_chunks_live = 0, last_chunks_run = 0;
   };
   Undo undo_;
-  void remember(std::uint32_t ray, Chunk& chunk) const;
+  // Keeps ray's state for undo_advance (when on) before an advance first changes it: the check
+  // inline, since every step makes it; the copy out of line.
+  void remember(std::uint32_t ray, Chunk& chunk) const {
+    if (undo_.on) keep_before(ray, chunk);
+  }
+  void keep_before(std::uint32_t ray, Chunk& chunk) const;
   // What add_chunk sums during an advance, folded into state_ at its end: on cache lines of its
   // own, so the serial reduction never invalidates the lines the tracing threads keep reading
   // (RayState's array headers). Measured: sharing them made 2 threads ~40% slower in some runs.

@@ -522,6 +522,37 @@ TEST(OpticsTracer, ChunkSizeChangesNoResult) {
 // launch sets the clock back to 0 and moves the live rays' segment clocks with it, so the clock
 // never exceeds what the rays flew since the last launch (without it, it grows with every pulse
 // and event comparisons lose eps x clock). Each live ray keeps its path to its next event.
+// A launch computes its own chunks' next events block by block when no chunk straddles a block
+// (chunks of one ray: always; of 16: with 1024 rays, unless a compaction leaves a part chunk);
+// the live rays it moves back on the clock keep theirs right too. Against a tracer that rebuilds
+// every next event from the rays before each step.
+TEST(OpticsTracer, ALaunchIntoWholeChunksKeepsEveryChunksNextEvent) {
+  BeamSpec beam_spec;
+  beam_spec.rays = 1024;
+  const Beam beam = make_beam(beam_spec, kD);
+  for (std::size_t chunk : {std::size_t{16}, std::size_t{1}}) {
+    const OpticsSpec spec = optics_for(20.0, true, OpticsSpec{}.scene_update, OpticsSpec{}.bounce_search, chunk);
+    Tracer kept(packing_1e4(), spec), rebuilt(packing_1e4(), spec);
+    std::vector<double> a, b;
+    int launches = 0;
+    for (int step = 0; kept.has_live_rays() || launches == 0; ++step) {
+      if (step % 3 == 0 && launches < 3) {  // every third step: a pulse into the live ones
+        const bool live = kept.has_live_rays();
+        ASSERT_TRUE(live || launches == 0) << "the pulses must overlap";
+        kept.launch(beam, 1e-9), rebuilt.launch(beam, 1e-9);
+        ++launches;
+      }
+      rebuilt.restore(rebuilt.save());
+      std::fill(a.begin(), a.end(), 0.0), std::fill(b.begin(), b.end(), 0.0);
+      ASSERT_EQ(kept.advance(2e-5, a), rebuilt.advance(2e-5, b)) << chunk << " " << step;
+      ASSERT_EQ(a, b) << chunk << " " << step;
+      ASSERT_EQ(kept.last_chunks_run(), rebuilt.last_chunks_run()) << chunk << " " << step;
+      expect_same_rays(kept.save(), rebuilt.save(), "step " + std::to_string(step));
+    }
+    EXPECT_EQ(launches, 3);
+  }
+}
+
 TEST(OpticsTracer, OverlappingPulsesKeepTheClockToOnePulse) {
   Tracer tracer(packing_1e4(), optics_for(20.0));
   const Beam beam = make_beam(BeamSpec{}, kD);
@@ -712,6 +743,40 @@ TEST(OpticsTracer, NoBounceGridWhenNoRayCanBounce) {
   EXPECT_EQ(a.deposits, b.deposits);
   EXPECT_EQ(a.bounced, 0u);
   EXPECT_GT(a.ledger.cutoff, 0.0);  // what the first hits reflect ends in the cutoff bin
+}
+
+}  // namespace
+}  // namespace beampack
+
+namespace beampack {
+namespace {
+
+// A checkpoint whose live-ray count disagrees with its rays' live flags is refused by name: the
+// tracer trusts the count (a compaction with none live drops every ray without looking).
+TEST(OpticsTracer, CheckpointWithAWrongLiveCountIsRefused) {
+  Tracer tracer(packing_1e4(), optics_for(1.4));
+  tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+  std::vector<double> deposits;
+  tracer.advance(3e-5, deposits);
+  RayState state = tracer.save();
+  ASSERT_GT(state.live_count, 0u);
+  const auto round_trip = [](const RayState& s) {
+    StateWriter out;
+    s.write(out);
+    StateReader in(out.finish(), "test");
+    RayState read;
+    read.read(in);
+    return read;
+  };
+  EXPECT_EQ(round_trip(state).live_count, state.live_count);
+  state.live_count -= 1;
+  try {
+    round_trip(state);
+    FAIL() << "a wrong live_count was accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("live_count = " + std::to_string(state.live_count)), std::string::npos)
+        << e.what();
+  }
 }
 
 }  // namespace
