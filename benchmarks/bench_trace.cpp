@@ -101,14 +101,15 @@ OpticsSpec tracer_spec(bool packets, double n_hat, int max_bounces,
 struct TracerPulses {
   Tracer tracer;
   const Beam& beam;
+  const std::vector<double> energy;  // per ray, as the built-in loop has them
   std::vector<double> deposits;
   TracerPulses(const Particles& p, const OpticsSpec& spec, const Beam& beam)
-      : tracer(p, spec), beam(beam), deposits(p.size(), 0.0) {}
+      : tracer(p, spec), beam(beam), energy(beam.ray_energies(1e-9)), deposits(p.size(), 0.0) {}
   // Returns the primary and bounced segments of the pulse.
   std::pair<double, double> pulse() {
     const auto p0 = tracer.primary_segments(), b0 = tracer.bounced_segments();
     tracer.compact();  // as the simulation does before each pulse: ended rays are dropped
-    tracer.launch(beam, 1e-9);
+    tracer.launch(beam, energy);
     tracer.advance(std::numeric_limits<double>::infinity(), deposits);
     return {static_cast<double>(tracer.primary_segments() - p0),
             static_cast<double>(tracer.bounced_segments() - b0)};

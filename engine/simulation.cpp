@@ -47,6 +47,7 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
   if (!(spec_.pulses.duration > 0) || !std::isfinite(spec_.pulses.duration))
     throw InputError("`pulses.duration` = " + std::to_string(spec_.pulses.duration) + ": must be > 0");
   beam_ = make_beam(spec_.beam, spec_.packing.sample_size);
+  ray_energy_ = beam_.ray_energies(spec_.pulses.duration);
   // With new rays per pulse, the first pulses' draws are checked now, as input.
   for (int k = 1; spec_.beam.resample && k < std::min(spec_.pulses.count, 64); ++k) {
     try {
@@ -57,7 +58,7 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
   }
   // Energies that overflow would turn into NaN at the first hit: refuse them as input.
   double pulse_energy = 0;
-  for (double e : beam_.ray_energies(spec_.pulses.duration)) pulse_energy += e;
+  for (double e : ray_energy_) pulse_energy += e;
   if (!std::isfinite(pulse_energy) || !std::isfinite(pulse_energy * spec_.pulses.count)) {
     std::ostringstream m;
     m << "`beam.power` = " << spec_.beam.power << " with `pulses.duration` = "
@@ -123,11 +124,14 @@ void Simulation::launch_pulse_if_due() {
                                            : !tracer_->has_live_rays();
   if (!due) return;
   if (launched_ > 0 && on_pulse_end_) on_pulse_end_(launched_ - 1);
-  if (spec_.beam.resample && launched_ > 0) beam_ = resampled_beam(launched_);
+  if (spec_.beam.resample && launched_ > 0) {
+    beam_ = resampled_beam(launched_);
+    ray_energy_ = beam_.ray_energies(spec_.pulses.duration);
+  }
   {
     StageClock clock(stages_[kTrace], false);  // a launch traces the rays' first hits
     tracer_->compact();
-    tracer_->launch(beam_, spec_.pulses.duration);
+    tracer_->launch(beam_, ray_energy_);
   }
   counts_.rays += beam_.size();
   note_pulse_delay(time_ - next_pulse_time_);

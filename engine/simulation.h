@@ -136,6 +136,7 @@ class Simulation {
   SimulationSpec spec_;
   Particles particles_;
   Beam beam_;
+  std::vector<double> ray_energy_;  // E_k of beam_'s rays in a pulse (computed with the beam)
   std::unique_ptr<Tracer> tracer_;
   std::unique_ptr<ThermalModel> thermal_;
   std::vector<double> absorbed_;   // cumulative J per particle
