@@ -470,6 +470,8 @@ void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, i
   QueryContext ctx = make_context(query, impl_->slack, coherent);
   alignas(64) RTCRayHit16 rh;
   alignas(64) int valid[16];
+  // The lanes' own values first, then the fields every lane shares, field by field (stores the
+  // compiler can make whole vectors of).
   for (int i = 0; i < 16; ++i) {
     valid[i] = i < count ? -1 : 0;
     const std::uint32_t id = i < count ? ids[i] : ids[0];
@@ -482,17 +484,17 @@ void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, i
     rh.ray.dir_x[i] = static_cast<float>(d.x());
     rh.ray.dir_y[i] = static_cast<float>(d.y());
     rh.ray.dir_z[i] = static_cast<float>(d.z());
-    rh.ray.tnear[i] = 0.0f;
     rh.ray.tfar[i] = query.t_hit[id] < kInf
                          ? culling_distance(query.t_hit[id], impl_->slack)
                          : std::numeric_limits<float>::infinity();
-    rh.ray.time[i] = 0.0f;
-    rh.ray.mask[i] = 0xFFFFFFFFu;
     rh.ray.id[i] = id;
-    rh.ray.flags[i] = 0;
-    rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
-    rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
   }
+  std::fill(std::begin(rh.ray.tnear), std::end(rh.ray.tnear), 0.0f);
+  std::fill(std::begin(rh.ray.time), std::end(rh.ray.time), 0.0f);
+  std::fill(std::begin(rh.ray.mask), std::end(rh.ray.mask), 0xFFFFFFFFu);
+  std::fill(std::begin(rh.ray.flags), std::end(rh.ray.flags), 0u);
+  std::fill(std::begin(rh.hit.geomID), std::end(rh.hit.geomID), RTC_INVALID_GEOMETRY_ID);
+  std::fill(std::begin(rh.hit.instID[0]), std::end(rh.hit.instID[0]), RTC_INVALID_GEOMETRY_ID);
   rtcIntersect16(valid, impl_->scene, &ctx.base, &rh);
 }
 
