@@ -209,8 +209,7 @@ bool Simulation::step() {
     StageClock clock(stages_[kStagger]);
     ++counts_.staggers;
     seen = optics_after_step();
-    if (traced) tracer_->undo_advance();
-    tracer_->take_segments();  // the redone trace records its own
+    if (traced) tracer_->undo_advance();  // its recorded segments too: the redo records its own
     thermal_->undo_step();
     report = StepReport{};
   }

@@ -653,7 +653,8 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
   totals_.ledger = s.ledger;  // summed on in the same order as ever: bit-identical ledgers
   if (undo_.on)
     undo_ = {true,         true,         s.ledger,           s.primary_segments, s.bounced_segments, s.hits,
-             s.live_count, s.clock,      last_advance_path_, last_chunks_live_,  last_chunks_run_};
+             s.live_count, s.clock,      last_advance_path_, last_chunks_live_,  last_chunks_run_,
+             segments_.size()};
   last_chunks_live_ = due.size() + idle;
   last_chunks_run_ = due.size();
   // Chunks per pipeline item: kBatchRays rays at least, and about kItemsPerThread items per thread
@@ -721,6 +722,7 @@ void Tracer::undo_advance() {
   s.clock = undo_.clock;
   last_advance_path_ = undo_.last_advance_path;
   last_chunks_live_ = undo_.last_chunks_live, last_chunks_run_ = undo_.last_chunks_run;
+  segments_.resize(std::min(segments_.size(), undo_.segments));  // the undone advance's segments
   undo_.held = false;
 }
 

@@ -216,7 +216,7 @@ class Tracer {
   void read_first_hits(StateReader& in);
 
   // While on, every advance keeps what it changes (the rays of the chunks it ran, the ledger,
-  // counters and clock), and undo_advance() puts them back: the stagger's redo of a step costs
+  // counters, clock and recorded segments), and undo_advance() puts them back: the stagger's redo of a step costs
   // what the step touched, not a copy of every ray. Anything else that changes the rays (launch,
   // compaction, removal, restore) drops the record.
   void keep_undo(bool on);
@@ -288,6 +288,7 @@ class Tracer {
     double clock = 0.0;
     double last_advance_path = 0.0;  // of the advance before
     std::size_t last_chunks_live = 0, last_chunks_run = 0;
+    std::size_t segments = 0;  // recorded segments before it
   };
   Undo undo_;
   // Keeps ray's state for undo_advance (when on) before an advance first changes it: the check

@@ -621,13 +621,16 @@ TEST(OpticsTracer, UndoAdvanceTakesBackExactlyTheLastAdvance) {
   for (bool polarised : {false, true}) {
     OpticsSpec spec = optics_for(20.0, true, OpticsSpec{}.scene_update, OpticsSpec{}.bounce_search, 64);
     spec.polarisation.linear = polarised;
-    Tracer tracer(p, spec);
+    Tracer tracer(p, spec), plain(p, spec);  // plain: each step once, no undo
     tracer.keep_undo(true);
-    tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+    tracer.record_segments(true), plain.record_segments(true);
+    tracer.launch(make_beam(BeamSpec{}, kD), 1e-9), plain.launch(make_beam(BeamSpec{}, kD), 1e-9);
     int step = 0, undone_with_changes = 0;
+    std::vector<double> plain_deposits;
     for (; tracer.has_live_rays(); ++step) {
       const std::string where = (polarised ? "polarised, step " : "step ") + std::to_string(step);
-      if (step == 12) tracer.remove_particles(victims);
+      if (step == 12) tracer.remove_particles(victims), plain.remove_particles(victims);
+      plain.advance(2e-5, plain_deposits);
       const RayState before = tracer.save();
       const double path_before = tracer.last_advance_path();
       const std::size_t run_before = tracer.last_chunks_run(), live_before = tracer.last_chunks_live();
@@ -648,6 +651,12 @@ TEST(OpticsTracer, UndoAdvanceTakesBackExactlyTheLastAdvance) {
     }
     EXPECT_GT(step, 20);
     EXPECT_GT(undone_with_changes, 10);
+    // The undone advances' recorded segments went with them.
+    const std::vector<RaySegment> redone = tracer.take_segments(), once = plain.take_segments();
+    ASSERT_EQ(redone.size(), once.size());
+    ASSERT_GT(once.size(), 1000u);
+    for (std::size_t k = 0; k < once.size(); ++k)
+      ASSERT_TRUE(redone[k].from == once[k].from && redone[k].to == once[k].to && redone[k].energy == once[k].energy) << k;
     // Launching drops the record: an undo then changes nothing.
     tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
     const RayState launched = tracer.save();
