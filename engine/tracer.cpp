@@ -206,17 +206,24 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
     for (double e : energies) sum += e;
     injected = sum;
   });
-  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, blocks, 1), [&](const tbb::blocked_range<std::size_t>& range) {
-    const IeeeFloatMode ieee;  // the queries' double tests, on whatever thread
-    for (std::size_t b = range.begin(); b != range.end(); ++b) {
-      const std::size_t end = std::min(count, (b + 1) * kBatchRays);
-      for (std::size_t k = b * kBatchRays; k < end; ++k)
-        start_ray(first + k, beam.origin[k] + upstream * d, d, energies[k]);
-      traced[b] = find_first_hits(beam, first, b * kBatchRays, end);
-      if (chunks_in_blocks)
-        for (std::size_t j = (first + b * kBatchRays) / chunk; j * chunk < first + end; ++j) update_next_event(j);
-    }
-  });
+  try {
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, blocks, 1), [&](const tbb::blocked_range<std::size_t>& range) {
+      const IeeeFloatMode ieee;  // the queries' double tests, on whatever thread
+      for (std::size_t b = range.begin(); b != range.end(); ++b) {
+        const std::size_t end = std::min(count, (b + 1) * kBatchRays);
+        for (std::size_t k = b * kBatchRays; k < end; ++k)
+          start_ray(first + k, beam.origin[k] + upstream * d, d, energies[k]);
+        traced[b] = find_first_hits(beam, first, b * kBatchRays, end);
+        if (chunks_in_blocks)
+          for (std::size_t j = (first + b * kBatchRays) / chunk; j * chunk < first + end; ++j) update_next_event(j);
+      }
+    });
+  } catch (...) {  // (an Embree error, memory): the tracer as it was before the new rays
+    summing.wait();
+    s.for_each_array([&](auto& v) { v.resize(first); });
+    refresh_next_events(0);
+    throw;
+  }
   summing.wait();
   s.ledger.injected = injected;
   const std::size_t queries = std::accumulate(traced.begin(), traced.end(), std::size_t{0});
@@ -333,6 +340,7 @@ void Tracer::compact() {
 }
 
 void Tracer::restore(const RayState& state) {
+  state.check_live_count("restore");
   undo_.held = false;
   state_ = state;
   refresh_next_events(0);
@@ -572,9 +580,14 @@ void RayState::read(StateReader& in) {
   for_each_array([&](const auto& v) {
     if (v.size() != origin.size()) throw InputError("checkpoint: ray arrays of unequal length");
   });
+  check_live_count("checkpoint");
+}
+
+// The tracer trusts live_count (a compaction with none live drops every ray without looking).
+void RayState::check_live_count(const std::string& source) const {
   const auto live_rays = static_cast<std::size_t>(std::count_if(live.begin(), live.end(), [](auto l) { return l != 0; }));
   if (live_rays != live_count)
-    throw InputError("checkpoint: live_count = " + std::to_string(live_count) + " but " +
+    throw InputError(source + ": live_count = " + std::to_string(live_count) + " but " +
                      std::to_string(live_rays) + " rays are live");
 }
 

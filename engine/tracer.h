@@ -14,9 +14,11 @@
 // Particles in phase vapor must be removed (remove_particles); liquid ones use n_liquid.
 #include <complex>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 #include <memory>
 #include <span>
+#include <string>
 #include <type_traits>
 #include <utility>
 #include <vector>
@@ -103,6 +105,9 @@ struct Unfilled : std::allocator<T> {
   template <class U>
   void construct(U* p) noexcept(std::is_nothrow_default_constructible_v<U>) {
     ::new (static_cast<void*>(p)) U;
+#if defined(__SANITIZE_ADDRESS__)  // sanitizer builds: a field a launch forgot reads as NaN / ~0
+    std::memset(static_cast<void*>(p), 0xFF, sizeof(U));
+#endif
   }
   template <class U, class... Args>
   void construct(U* p, Args&&... args) {
@@ -158,6 +163,8 @@ struct RayState {
   // Checkpoints.
   void write(StateWriter& out) const;
   void read(StateReader& in);
+  // InputError naming `source` when live_count is not the number of live flags.
+  void check_live_count(const std::string& source) const;
 };
 
 class Tracer {

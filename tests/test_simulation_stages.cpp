@@ -148,6 +148,33 @@ TEST(SimulationStages, RepeatedPulsesReuseFirstHitsAndChangeNothing) {
   }
 }
 
+// With beam.resample each pulse's rays carry the energies of that pulse's own draw (the
+// simulation keeps them with the beam): the rays a step launched start with exactly those.
+TEST(SimulationStages, ResampledPulsesCarryTheirOwnRayEnergies) {
+  SimulationSpec spec = quick_spec();
+  spec.beam.resample = true;
+  spec.pulses.count = 3;
+  Simulation sim(spec);
+  const std::vector<double> first = sim.beam().ray_energies(spec.pulses.duration);
+  std::uint64_t rays = 0;
+  int launches = 0, redrawn = 0;
+  for (bool more = true; more;) {
+    more = sim.step();
+    if (sim.counts().rays == rays) continue;  // no launch this step
+    rays = sim.counts().rays;
+    ++launches;
+    const std::vector<double> expected = sim.beam().ray_energies(spec.pulses.duration);
+    const RayState s = sim.tracer().save();
+    ASSERT_GE(s.initial_energy.size(), expected.size());
+    const std::vector<double> started(s.initial_energy.end() - static_cast<std::ptrdiff_t>(expected.size()),
+                                      s.initial_energy.end());
+    EXPECT_EQ(started, expected) << "pulse " << launches - 1;
+    redrawn += expected != first;
+  }
+  EXPECT_EQ(launches, 3);
+  EXPECT_EQ(redrawn, 2);  // pulses 1 and 2 drew rays of their own
+}
+
 TEST(SimulationStages, BeforeTheFirstStepNothingHasRunYet) {
   Simulation sim(quick_spec());
   expect_skipped(sim, "trace", "no step taken yet");
