@@ -105,7 +105,7 @@ struct Unfilled : std::allocator<T> {
   template <class U>
   void construct(U* p) noexcept(std::is_nothrow_default_constructible_v<U>) {
     ::new (static_cast<void*>(p)) U;
-#if defined(__SANITIZE_ADDRESS__)  // sanitizer builds: a field a launch forgot reads as NaN / ~0
+#if defined(BEAMPACK_POISON_GROWN_ARRAYS)  // sanitizer builds: a forgotten field reads as NaN / ~0
     std::memset(static_cast<void*>(p), 0xFF, sizeof(U));
 #endif
   }
