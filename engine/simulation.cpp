@@ -46,8 +46,7 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
   if (spec_.pulses.count < 0) throw InputError("`pulses.count` must be >= 0");
   if (!(spec_.pulses.duration > 0) || !std::isfinite(spec_.pulses.duration))
     throw InputError("`pulses.duration` = " + std::to_string(spec_.pulses.duration) + ": must be > 0");
-  beam_ = make_beam(spec_.beam, spec_.packing.sample_size);
-  ray_energy_ = beam_.ray_energies(spec_.pulses.duration);
+  use_beam(make_beam(spec_.beam, spec_.packing.sample_size));
   // With new rays per pulse, the first pulses' draws are checked now, as input.
   for (int k = 1; spec_.beam.resample && k < std::min(spec_.pulses.count, 64); ++k) {
     try {
@@ -124,10 +123,7 @@ void Simulation::launch_pulse_if_due() {
                                            : !tracer_->has_live_rays();
   if (!due) return;
   if (launched_ > 0 && on_pulse_end_) on_pulse_end_(launched_ - 1);
-  if (spec_.beam.resample && launched_ > 0) {
-    beam_ = resampled_beam(launched_);
-    ray_energy_ = beam_.ray_energies(spec_.pulses.duration);
-  }
+  if (spec_.beam.resample && launched_ > 0) use_beam(resampled_beam(launched_));
   {
     StageClock clock(stages_[kTrace], false);  // a launch traces the rays' first hits
     tracer_->compact();
@@ -138,6 +134,12 @@ void Simulation::launch_pulse_if_due() {
   ++launched_;
   // Pulse k is due at k T_p (MODEL.md section 5), however late the one before it started.
   next_pulse_time_ = launched_ * spec_.pulses.period;
+}
+
+// The beam of the pulses from now on, with its rays' energies in a pulse.
+void Simulation::use_beam(Beam beam) {
+  beam_ = std::move(beam);
+  ray_energy_ = beam_.ray_energies(spec_.pulses.duration);
 }
 
 // Pulse k's own rays (beam.resample). A draw whose rays all miss a profile too narrow to

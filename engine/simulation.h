@@ -118,6 +118,7 @@ class Simulation {
 
  private:
   void launch_pulse_if_due();
+  void use_beam(Beam beam);
   double step_length(bool traced) const;
   void remove_vaporized(const std::vector<std::uint32_t>& ids);
   [[noreturn]] void non_finite(std::size_t particle, double temperature, double deposit) const;

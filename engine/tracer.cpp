@@ -162,40 +162,18 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   compact_if_sparse();
   undo_.held = false;
   const bool moved_live_rays = rebase_clock();  // each pulse starts at 0 on the path clock
-  const Vec3& d = beam.direction;
-  // Start plane: upstream of every particle (spheres stick out of the cube by up to R), so the
-  // first surface a ray meets is a true outside hit (MODEL.md section 2).
-  double upstream = 0.0;
-  if (!box_.empty()) {
-    for (int corner = 0; corner < 8; ++corner) {
-      const Vec3 p((corner & 1) ? box_.upper.x() : box_.lower.x(),
-                   (corner & 2) ? box_.upper.y() : box_.lower.y(),
-                   (corner & 4) ? box_.upper.z() : box_.lower.z());
-      upstream = std::min(upstream, (p - beam.centre).dot(d));
-    }
-    upstream -= 1e-6 * (box_.upper - box_.lower).norm();
-  }
   // Appended in the beam's order (already tiled); every array grown once, then filled in
-  // parallel (each ray on its own) with the rays and their first hits, the injected energy
-  // summed in ray order.
+  // parallel (each ray on its own) with the rays and their first hits.
   RayState& s = state_;
-  const std::size_t first = s.live.size(), count = beam.size();
-  s.for_each_array([&](auto& v) { v.resize(first + count); });
-  FirstHits& f = first_hits_;
-  if (spec_.reuse_primaries && (f.t.size() != count || f.direction != d || f.upstream != upstream)) {
-    f.direction = d, f.upstream = upstream;  // another beam: nothing to reuse
-    f.origin.assign(count, Vec3::Constant(std::numeric_limits<double>::quiet_NaN()));
-    f.normal.assign(count, Vec3::Zero());
-    f.t.assign(count, 0.0);
-    f.particle.assign(count, kNoParticle);
-  }
-  const std::size_t blocks = (count + kBatchRays - 1) / kBatchRays;
-  std::vector<std::size_t> traced(blocks);
+  const Launch l{beam, energies, start_plane(beam), beam_field(beam.direction), s.live.size()};
+  const std::size_t count = beam.size(), blocks = (count + kBatchRays - 1) / kBatchRays;
+  s.for_each_array([&](auto& v) { v.resize(l.first + count); });
+  reset_first_hits_for(beam.direction, l.upstream, count);
   // The new chunks' next events while their rays are in cache, when no chunk straddles two
   // blocks (or the launch's first ray); otherwise afterwards.
   const std::size_t chunk = spec_.chunk_rays;
-  const bool chunks_in_blocks = first % chunk == 0 && kBatchRays % chunk == 0;
-  next_event_.resize((first + count + chunk - 1) / chunk);
+  const bool chunks_in_blocks = l.first % chunk == 0 && kBatchRays % chunk == 0;
+  next_event_.resize((l.first + count + chunk - 1) / chunk);
   // The injected energy, summed in ray order beside the blocks (into a local: the ledger shares a
   // cache line with the array headers the blocks read).
   double injected = s.ledger.injected;
@@ -206,21 +184,21 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
     for (double e : energies) sum += e;
     injected = sum;
   });
+  std::vector<std::size_t> traced(blocks);
   try {
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, blocks, 1), [&](const tbb::blocked_range<std::size_t>& range) {
       const IeeeFloatMode ieee;  // the queries' double tests, on whatever thread
       for (std::size_t b = range.begin(); b != range.end(); ++b) {
         const std::size_t end = std::min(count, (b + 1) * kBatchRays);
-        for (std::size_t k = b * kBatchRays; k < end; ++k)
-          start_ray(first + k, beam.origin[k] + upstream * d, d, energies[k]);
-        traced[b] = find_first_hits(beam, first, b * kBatchRays, end);
+        traced[b] = start_rays(l, b * kBatchRays, end);
         if (chunks_in_blocks)
-          for (std::size_t j = (first + b * kBatchRays) / chunk; j * chunk < first + end; ++j) update_next_event(j);
+          for (std::size_t j = (l.first + b * kBatchRays) / chunk; j * chunk < l.first + end; ++j)
+            update_next_event(j);
       }
     });
   } catch (...) {  // (an Embree error, memory): the tracer as it was before the new rays
     summing.wait();
-    s.for_each_array([&](auto& v) { v.resize(first); });
+    s.for_each_array([&](auto& v) { v.resize(l.first); });
     refresh_next_events(0);
     throw;
   }
@@ -229,16 +207,56 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   const std::size_t queries = std::accumulate(traced.begin(), traced.end(), std::size_t{0});
   s.primary_segments += queries;
   s.reused_primaries += count - queries;
-  if (s.polarised) {  // the beam's field, at psi from the disk axis u towards v
-    Vec3 u, v;
-    disk_axes(d, u, v);
-    const double psi = spec_.polarisation.psi;
-    std::fill(s.field.begin() + static_cast<std::ptrdiff_t>(first), s.field.end(),
-              Vec3(std::cos(psi) * u + std::sin(psi) * v));
-  }
   s.live_count += count;
-  if (!chunks_in_blocks) refresh_next_events(moved_live_rays ? 0 : first / chunk);
-  else if (moved_live_rays) refresh_next_events(0, first / chunk);
+  if (!chunks_in_blocks) refresh_next_events(moved_live_rays ? 0 : l.first / chunk);
+  else if (moved_live_rays) refresh_next_events(0, l.first / chunk);
+}
+
+// Start plane: upstream of every particle (spheres stick out of the cube by up to R), so the
+// first surface a ray meets is a true outside hit (MODEL.md section 2). Its distance along the
+// beam from the beam's centre.
+double Tracer::start_plane(const Beam& beam) const {
+  if (box_.empty()) return 0.0;
+  double upstream = 0.0;
+  for (int corner = 0; corner < 8; ++corner) {
+    const Vec3 p((corner & 1) ? box_.upper.x() : box_.lower.x(),
+                 (corner & 2) ? box_.upper.y() : box_.lower.y(),
+                 (corner & 4) ? box_.upper.z() : box_.lower.z());
+    upstream = std::min(upstream, (p - beam.centre).dot(beam.direction));
+  }
+  return upstream - 1e-6 * (box_.upper - box_.lower).norm();
+}
+
+// A polarised beam's field, at psi from the disk axis u towards v (zero when unpolarised).
+Vec3 Tracer::beam_field(const Vec3& direction) const {
+  if (!state_.polarised) return Vec3::Zero();
+  Vec3 u, v;
+  disk_axes(direction, u, v);
+  return std::cos(spec_.polarisation.psi) * u + std::sin(spec_.polarisation.psi) * v;
+}
+
+// The kept first hits are this beam's (its direction, start plane and ray count): those of
+// another beam are dropped, there is nothing to reuse.
+void Tracer::reset_first_hits_for(const Vec3& direction, double upstream, std::size_t count) {
+  FirstHits& f = first_hits_;
+  if (!spec_.reuse_primaries || (f.t.size() == count && f.direction == direction && f.upstream == upstream))
+    return;
+  f.direction = direction, f.upstream = upstream;
+  f.origin.assign(count, Vec3::Constant(std::numeric_limits<double>::quiet_NaN()));
+  f.normal.assign(count, Vec3::Zero());
+  f.t.assign(count, 0.0);
+  f.particle.assign(count, kNoParticle);
+}
+
+// Beam rays [begin, end) of launch l, as rays l.first + k: on the start plane with their energies
+// (and the beam's field), and their first hits. Returns how many were traced (the others reused).
+std::size_t Tracer::start_rays(const Launch& l, std::size_t begin, std::size_t end) {
+  const Vec3& d = l.beam.direction;
+  for (std::size_t k = begin; k < end; ++k) {
+    start_ray(l.first + k, l.beam.origin[k] + l.upstream * d, d, l.energies[k]);
+    if (state_.polarised) state_.field[l.first + k] = l.field;
+  }
+  return find_first_hits(l.beam, l.first, begin, end);
 }
 
 // The path clock back to 0, and the live rays' segment clocks with it: each keeps its path to its

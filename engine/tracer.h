@@ -75,9 +75,10 @@ struct OpticsSpec {
   std::size_t chunk_rays = 256;
   // A launch finds its rays' first hits at once (in coherent packets). A ray the beam launched
   // before too, from the same point on the same start plane in the same direction, meets the
-  // sphere it met then, if that is still there: particles only disappear, so it stays the nearest. Those hits are reused,
-  // not traced: a repeated beam's primaries cost a copy. Same results either way; off for a beam
-  // that changes every pulse (beam.resample), where it would only keep a copy of each pulse.
+  // sphere it met then, if that is still there: particles only disappear, so it stays the
+  // nearest. Those hits are reused, not traced: a repeated beam's primaries cost a copy. Same
+  // results either way; off for a beam that changes every pulse (beam.resample), where it would
+  // only keep a copy of each pulse.
   bool reuse_primaries = true;
 };
 
@@ -90,7 +91,6 @@ struct OpticsLedger {
   double in_flight() const { return injected - absorbed - escaped - cutoff; }
 };
 
-// The state of every ray, copyable so a driver can redo a time step (MODEL.md section 5 step 4).
 // A ray array: growing it leaves the new elements unwritten (a launch writes every field of every
 // ray it adds), so a launch does not first zero its whole pulse of rays on one thread.
 template <class T>
@@ -109,14 +109,12 @@ struct Unfilled : std::allocator<T> {
     std::memset(static_cast<void*>(p), 0xFF, sizeof(U));
 #endif
   }
-  template <class U, class... Args>
-  void construct(U* p, Args&&... args) {
-    ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
-  }
+  // Copies and other constructions: std::allocator_traits' own (placement new).
 };
 template <class T>
 using RayArray = std::vector<T, Unfilled<T>>;
 
+// The state of every ray, copyable so a driver can redo a time step (MODEL.md section 5 step 4).
 struct RayState {
   // Per ray (structure of arrays). A ray's current segment starts at origin, which it passed
   // when the path clock read start_clock; its next event is t_next along the segment: a hit on
@@ -223,9 +221,9 @@ class Tracer {
   void read_first_hits(StateReader& in);
 
   // While on, every advance keeps what it changes (the rays of the chunks it ran, the ledger,
-  // counters, clock and recorded segments), and undo_advance() puts them back: the stagger's redo of a step costs
-  // what the step touched, not a copy of every ray. Anything else that changes the rays (launch,
-  // compaction, removal, restore) drops the record.
+  // counters, clock and recorded segments), and undo_advance() puts them back: the stagger's
+  // redo of a step costs what the step touched, not a copy of every ray. Anything else that
+  // changes the rays (launch, compaction, removal, restore) drops the record.
   void keep_undo(bool on);
   // Back to before the last advance, if it was kept and nothing else changed the rays since
   // (last_advance_path and the chunk counts are the advance's before it again).
@@ -237,6 +235,18 @@ class Tracer {
 
  private:
   struct Chunk;
+  // A launch under way: its beam and energies, start plane, the beam's field and the first new ray.
+  struct Launch {
+    const Beam& beam;
+    std::span<const double> energies;
+    double upstream;
+    Vec3 field;
+    std::size_t first;
+  };
+  double start_plane(const Beam& beam) const;
+  Vec3 beam_field(const Vec3& direction) const;
+  void reset_first_hits_for(const Vec3& direction, double upstream, std::size_t count);
+  std::size_t start_rays(const Launch& launch, std::size_t begin, std::size_t end);
   void start_ray(std::size_t r, const Vec3& origin, const Vec3& direction, double energy);
   bool rebase_clock();
   std::size_t find_first_hits(const Beam& beam, std::size_t first, std::size_t begin, std::size_t end);

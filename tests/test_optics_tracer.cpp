@@ -530,10 +530,6 @@ TEST(OpticsTracer, ChunkSizeChangesNoResult) {
     }
 }
 
-// Pulses that overlap without end (each launched while the one before is in flight): every
-// launch sets the clock back to 0 and moves the live rays' segment clocks with it, so the clock
-// never exceeds what the rays flew since the last launch (without it, it grows with every pulse
-// and event comparisons lose eps x clock). Each live ray keeps its path to its next event.
 // A launch computes its own chunks' next events block by block when no chunk straddles a block
 // (chunks of one ray: always; of 16: with 1024 rays, unless a compaction leaves a part chunk);
 // the live rays it moves back on the clock keep theirs right too. Against a tracer that rebuilds
@@ -565,6 +561,10 @@ TEST(OpticsTracer, ALaunchIntoWholeChunksKeepsEveryChunksNextEvent) {
   }
 }
 
+// Pulses that overlap without end (each launched while the one before is in flight): every
+// launch sets the clock back to 0 and moves the live rays' segment clocks with it, so the clock
+// never exceeds what the rays flew since the last launch (without it, it grows with every pulse
+// and event comparisons lose eps x clock). Each live ray keeps its path to its next event.
 TEST(OpticsTracer, OverlappingPulsesKeepTheClockToOnePulse) {
   Tracer tracer(packing_1e4(), optics_for(20.0));
   const Beam beam = make_beam(BeamSpec{}, kD);
