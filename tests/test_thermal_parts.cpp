@@ -150,6 +150,36 @@ TEST(ThermalSolvers, AllThreeAgree) {
   EXPECT_LT(spread, 1e-8);
 }
 
+// A deposit far below tolerance * c theta (temperatures count from 0 K) still reaches the
+// temperatures, with every solver: two touching spheres at 300 K, one heated by d = 1e-5 K,
+// one backward-Euler step with x = dt G / c. Exact: the heated one rises d (1 + x) / (1 + 2x),
+// the other d x / (1 + 2x). Before the iterative solvers solved for the step's change, CG
+// stopped at once (the heat was lost) and the fixed-point iteration after its first update.
+TEST(ThermalSolvers, ADepositBelowToleranceTimesTemperatureIsNotLost) {
+  for (const char* solver : {"fixed-point", "cg", "direct", "auto"}) {
+    Particles p;
+    p.add(Vec3(0, 0, 0), 1e-4, 0, 300.0);
+    p.add(Vec3(1.5e-4, 0, 0), 1e-4, 0, 300.0);
+    Material m;
+    m.conductivity = 100;
+    ThermalSpec spec;
+    spec.solver = solver;
+    spec.tolerance = 1e-6;
+    ThermalModel model(p, {m}, spec);
+    const std::vector<Contact> contacts = find_contacts(p);
+    ASSERT_EQ(contacts.size(), 1u);
+    model.set_contacts(contacts);
+    const double c = model.thermal_mass(0), g = contact_conductances(p, {m}, contacts)[0];
+    const double x = std::string(solver) == "fixed-point" ? 0.2 : 1.0;  // auto: CG (rho = 2)
+    const double d = 1e-5;
+    const StepReport r = model.step(x * c / g, {d * c, 0.0});
+    EXPECT_EQ(r.solver, std::string(solver) == "auto" ? "cg" : solver);
+    EXPECT_NEAR(p.temperature[0] - 300.0, d * (1 + x) / (1 + 2 * x), 1e-5 * d) << solver;
+    EXPECT_NEAR(p.temperature[1] - 300.0, d * x / (1 + 2 * x), 1e-5 * d) << solver;
+    EXPECT_NEAR(model.ledger().imbalance(), 0.0, 1e-5 * model.ledger().absorbed) << solver;
+  }
+}
+
 TEST(ThermalSolvers, DirectReusesSymbolicAnalysisWhileGraphUnchanged) {
   AgreeScene s;
   ThermalSpec spec;
@@ -578,6 +608,49 @@ TEST(ThermalState, ARefusedStepLeavesNothingToUndo) {
   EXPECT_THROW(model.step(2e-10, negative), RunError);
   EXPECT_THROW(model.undo_step(), RunError);
   EXPECT_EQ(a.p.temperature, warmed);
+}
+
+// A step whose solver fails leaves the model as it was before the step, and nothing to undo;
+// a step after it is the step a model that never saw the failure takes. The failure comes in the
+// second of three sub-steps (phi = 1/4): the first melts the heated sphere, and its liquid
+// capacity, a twentieth of the solid's, makes the fixed-point iteration contract twenty times
+// more slowly (the liquid sub-step needs more than the 10 iterations allowed, the solid one fewer).
+TEST(ThermalState, AStepWhoseSolverFailsChangesNothing) {
+  auto pair = [] {
+    Particles p;
+    p.add(Vec3(0, 0, 0), 1e-4, 0, 590.0);
+    p.add(Vec3(1.5e-4, 0, 0), 1e-4, 0, 300.0);
+    return p;
+  };
+  Material m;
+  m.conductivity = 100;
+  m.c_liquid = 0.05 * m.c_solid;
+  m.vapor_temperature = 1e5;
+  ThermalSpec spec;
+  spec.solver = "fixed-point";
+  spec.phi = 0.25;
+  spec.max_iterations = 10;
+  Particles p = pair(), q = pair();
+  ThermalModel model(p, {m}, spec), reference(q, {m}, spec);
+  model.set_contacts(find_contacts(p)), reference.set_contacts(find_contacts(q));
+  const double limit = model.monotone_step_limit(), c = model.thermal_mass(0);
+  model.step(0.1 * limit, {}), reference.step(0.1 * limit, {});
+  const std::vector<double> before = p.temperature;
+  const ThermalLedger ledger = model.ledger();
+  try {
+    model.step(2.5 * limit, {200.0 * c, 0.0});
+    FAIL() << "the step did not fail";
+  } catch (const RunError& e) {
+    EXPECT_NE(std::string(e.what()).find("did not converge"), std::string::npos) << e.what();
+  }
+  EXPECT_EQ(p.temperature, before);
+  EXPECT_EQ(p.phase[0], Phase::solid);
+  EXPECT_EQ(model.ledger().absorbed, ledger.absorbed);
+  EXPECT_EQ(model.ledger().stored, ledger.stored);
+  EXPECT_THROW(model.undo_step(), RunError);
+  model.step(0.1 * limit, {1e-3 * c, 0.0}), reference.step(0.1 * limit, {1e-3 * c, 0.0});
+  EXPECT_EQ(p.temperature, q.temperature);
+  EXPECT_EQ(model.ledger().stored, reference.ledger().stored);
 }
 
 TEST(ThermalLong, LongLedgerOnLargePacking) {

@@ -3,6 +3,7 @@
 #include <Eigen/IterativeLinearSolvers>
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <sstream>
 
 #include "geometry/error.h"
@@ -37,9 +38,10 @@ SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
   for (int k = 1; k <= max_iterations; ++k) {
     const Eigen::VectorXd update = (rhs - a * theta).cwiseQuotient(c);
     theta += update;
-    const double scale = std::max(1.0, theta.cwiseAbs().maxCoeff());
     const double abs_u = update.cwiseAbs().maxCoeff();
-    const double u = abs_u / scale;
+    const double u = abs_u == 0 ? 0.0
+                                : abs_u / std::max(theta.cwiseAbs().maxCoeff(),
+                                                   std::numeric_limits<double>::min());
     // Growth is judged on the absolute update: when theta itself grows geometrically the update
     // relative to it stays near 1 and would look like stagnation.
     const double ratio = k > 1 && previous_abs > 0 ? abs_u / previous_abs : 0.0;

@@ -20,13 +20,14 @@ struct SolveStats {
 // theta^{K+1} = theta^n + [dt phi Q(theta^K) + dt (1 - phi) Q(theta^n) + dH] / c. It contracts only
 // while the spectral radius of dt phi c^{-1} (L + W) is below 1, so it watches the size of its
 // updates and throws RunError on divergence, stagnation or the iteration cap: it never returns an
-// unconverged field. Converged when max|update| <= tolerance * max(1, max|theta|).
+// unconverged field. Converged when max|update| <= tolerance * max|theta| (the thermal model
+// solves for a step's change, so the tolerance is relative to what the step changes).
 SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
                              const Eigen::VectorXd& rhs, Eigen::VectorXd& theta, double tolerance,
                              int max_iterations, double contraction_estimate);
 
 // Conjugate gradients with the diagonal (Jacobi) preconditioner, started from theta.
-// Converged when |rhs - A theta| <= tolerance |rhs|; RunError otherwise.
+// Converged when |rhs - A theta| <= tolerance |rhs| (theta = 0 when rhs = 0); RunError otherwise.
 SolveStats cg_solve(const SparseMatrix& a, const Eigen::VectorXd& rhs, Eigen::VectorXd& theta,
                     double tolerance, int max_iterations);
 

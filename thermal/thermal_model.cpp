@@ -554,7 +554,8 @@ std::string ThermalModel::choose_solver(double contraction) const {
 //   (c + dt phi (L + W)) theta1 = c theta0 + dt (1 - phi) Q(theta0) + dt phi b + dH,
 // Q(theta) = b - (L + W) theta, b the wall sources. Without a conducting contact the system is
 // diagonal and no matrix is built. Solved for t.rel1 from t.rel0 (relative to reference_, which
-// moves b only); t.theta1 follows. With busy_ only its rows are solved; the others are at rest.
+// moves b only; the iterative solvers start from t.rel1); t.theta1 follows. With busy_ only its
+// rows are solved; the others are at rest.
 void ThermalModel::solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& dh,
                          StepTemperatures& t, StepReport& report) {
   if (!solve_busy_ && clusters_assembly_ != assembly_) {  // the whole system's, when it is solved
@@ -571,12 +572,15 @@ void ThermalModel::solve_relative(const System& s, double dt, const Eigen::Vecto
   const double implicit = dt * spec_.phi, explicit_part = dt * (1.0 - spec_.phi);
   const Eigen::VectorXd flux_in =
       s.has_conduction ? Eigen::VectorXd(s.laplacian * theta0) : s.diagonal.cwiseProduct(theta0);
-  const Eigen::VectorXd rhs = c.cwiseProduct(theta0) + explicit_part * (s.wall_source - flux_in) +
-                              implicit * s.wall_source + dh;
+  auto rhs = [&] {
+    return Eigen::VectorXd(c.cwiseProduct(theta0) + explicit_part * (s.wall_source - flux_in) +
+                           implicit * s.wall_source + dh);
+  };
   ++report.solves;
   if (!s.has_conduction || spec_.phi == 0) {
-    theta1 = rhs.cwiseQuotient(c + implicit * s.diagonal);
+    theta1 = rhs().cwiseQuotient(c + implicit * s.diagonal);
     report.solver = s.has_conduction ? "explicit" : has_walls_ ? "diagonal" : "none";
+    report.conduction_ran = s.has_conduction;
     return;
   }
   SparseMatrix a = implicit * s.laplacian;
@@ -585,21 +589,39 @@ void ThermalModel::solve_relative(const System& s, double dt, const Eigen::Vecto
   report.contraction_estimate = std::max(report.contraction_estimate, rho);
   report.conduction_ran = true;
   report.solver = spec_.solver == "auto" ? choose_solver(rho) : spec_.solver;
+  if (report.solver != "direct" &&
+      solve_change(a, c, dt * (s.wall_source - flux_in) + dh, rho, theta0, theta1, report))
+    return;
+  // The factorisation solves for theta1 itself: at a stiff step dt (L + W) theta0 is far larger
+  // than the change, and its rounding would enter the clusters' energy balance.
+  solve_direct_grounded(s, a, c, rhs(), theta1, report);
+}
+
+// The iterative solvers solve for the step's change, A (theta1 - theta0) = dt Q(theta0) + dH (the
+// drive), so that their tolerances measure what the step changes. Against the temperatures
+// themselves (from 0 K without walls) a deposit below tolerance * c theta stopped CG before its
+// first iteration, and the step lost that heat. False when CG failed under "auto": the caller
+// then factorises (auto promised a stable answer).
+bool ThermalModel::solve_change(const SparseMatrix& a, const Eigen::VectorXd& c,
+                                const Eigen::VectorXd& drive, double rho,
+                                const Eigen::VectorXd& theta0, Eigen::VectorXd& theta1,
+                                StepReport& report) const {
+  Eigen::VectorXd change = theta1 - theta0;  // the first guess: 0, or the corrector's last pass
   SolveStats stats;
   if (report.solver == "fixed-point") {
-    stats = fixed_point_solve(a, c, rhs, theta1, spec_.tolerance, spec_.max_iterations, rho);
-  } else if (report.solver == "cg") {
+    stats = fixed_point_solve(a, c, drive, change, spec_.tolerance, spec_.max_iterations, rho);
+  } else {
     try {
-      stats = cg_solve(a, rhs, theta1, spec_.tolerance, spec_.max_iterations);
+      stats = cg_solve(a, drive, change, spec_.tolerance, spec_.max_iterations);
     } catch (const RunError&) {
       if (spec_.solver != "auto") throw;
-      report.solver = "direct";  // auto promised a stable answer: fall back to the factorisation
+      report.solver = "direct";
+      return false;
     }
   }
-  if (report.solver == "direct") {
-    solve_direct_grounded(s, a, c, rhs, theta1, report);
-  }
+  theta1 = theta0 + change;
   report.iterations += stats.iterations;
+  return true;
 }
 
 // Stiff steps (dt phi G >> c, e.g. K = 1e9 or a long cooling step): on an insulated cluster
@@ -768,7 +790,7 @@ StepReport ThermalModel::step_once(double dt, const Heat& heat) {
   t.theta0 = solve_busy_ ? Eigen::VectorXd(theta(busy_.particle)) : Eigen::VectorXd(theta);
   const Eigen::VectorXd dh = heat_of_rows(heat);
   t.rel0 = t.theta0.array() - reference_;
-  t.rel1 = t.rel0;  // the iterative solvers' first guess
+  t.rel1 = t.rel0;  // the iterative solvers' first guess: no change
   Eigen::VectorXd c = base_capacity();
   solve(dt, c, dh, t, report);  // predictor
   report.phases_ran = phase_work_needed(t.theta0, t.theta1);
@@ -799,15 +821,22 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed,
   StepReport report;
   std::vector<Eigen::Index> solved;  // rows of every sub-step: the next step's restless_
   bool whole = false;
-  for (int k = 0; k < substeps; ++k) {
-    add_substep(report, step_once(dt / substeps, heat));
-    if (solve_busy_) {
-      solved.insert(solved.end(), busy_.particle.begin(), busy_.particle.end());
-      restless_ = busy_.particle, restless_known_ = true;  // for the next sub-step
-    } else {  // a whole solve may move resting components by rounding: look at every particle
-      whole = true;
-      restless_known_ = false;
+  try {
+    for (int k = 0; k < substeps; ++k) {
+      add_substep(report, step_once(dt / substeps, heat));
+      if (solve_busy_) {
+        solved.insert(solved.end(), busy_.particle.begin(), busy_.particle.end());
+        restless_ = busy_.particle, restless_known_ = true;  // for the next sub-step
+      } else {  // a whole solve may move resting components by rounding: look at every particle
+        whole = true;
+        restless_known_ = false;
+      }
     }
+  } catch (...) {  // a solver that failed (diverged, stagnated): the step changes nothing
+    put_back_changed();
+    restless_known_ = false;
+    undo_ready_ = false;
+    throw;
   }
   report.substeps = substeps;
   std::sort(solved.begin(), solved.end());
@@ -902,6 +931,13 @@ void ThermalModel::remember(std::size_t i) {
 
 void ThermalModel::undo_step() {
   if (!undo_ready_) throw RunError("thermal undo_step: no step to undo (once per step)");
+  put_back_changed();
+  serial_ = serial_before_step_;  // that state again; restless_ (the step's rows) holds for it
+  undo_ready_ = false;
+}
+
+// The particles the step changed, and the ledger, as they were before it.
+void ThermalModel::put_back_changed() {
   for (const Undo& u : undo_) {
     const std::size_t i = u.particle;
     p_.temperature[i] = u.temperature;
@@ -910,8 +946,6 @@ void ThermalModel::undo_step() {
     if (p_.alive[i] != u.alive) p_.alive[i] = u.alive, dirty_ = true, flipped_.push_back(static_cast<Eigen::Index>(i));
   }
   ledger_ = undo_ledger_;
-  serial_ = serial_before_step_;  // that state again; restless_ (the step's rows) holds for it
-  undo_ready_ = false;
 }
 
 Phase ThermalModel::phase_before_step(std::size_t i) const {

@@ -135,7 +135,7 @@ class ThermalModel {
   // The stagger's redo of a step: back to the state before the last step() (temperatures,
   // phases, live flags, stored energy, ledger), from what that step changed (its rows) instead of
   // a copy of every particle. Once per step; RunError without a step to undo (also after a
-  // step that failed).
+  // step that failed: a step that throws leaves the model as it was before it).
   void undo_step();
   // Particle i's phase before the last step() (what the rays of that step saw).
   Phase phase_before_step(std::size_t i) const;
@@ -184,6 +184,7 @@ class ThermalModel {
   Heat checked_heat(const std::vector<double>& absorbed, std::span<const std::uint32_t> given) const;
   int substep_count(double dt) const;
   void begin_undo();
+  void put_back_changed();
   void clear_undo();
   static void add_substep(StepReport& report, const StepReport& sub);
   StepReport step_once(double dt, const Heat& heat);
@@ -215,6 +216,9 @@ class ThermalModel {
              StepReport& report);
   void solve_relative(const System& s, double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
                       const Eigen::VectorXd& dh, Eigen::VectorXd& theta1, StepReport& report);
+  bool solve_change(const SparseMatrix& a, const Eigen::VectorXd& c, const Eigen::VectorXd& drive,
+                    double rho, const Eigen::VectorXd& theta0, Eigen::VectorXd& theta1,
+                    StepReport& report) const;
   void solve_direct_grounded(const System& s, SparseMatrix& a, const Eigen::VectorXd& c,
                              const Eigen::VectorXd& rhs, Eigen::VectorXd& theta1, StepReport& report);
   double contraction_estimate(const System& s, double dt, const Eigen::VectorXd& c) const;
