@@ -4,6 +4,7 @@
 #include <charconv>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <numbers>
 #include <sstream>
@@ -183,6 +184,10 @@ bool is_header(const std::vector<std::string_view>& cols) {
 }  // namespace
 
 Particles read_packing_file(const std::string& path, double default_radius) {
+  // Checked before opening: a FIFO would block the open, a device would be read without end.
+  std::error_code ec;
+  require(!std::filesystem::exists(path, ec) || std::filesystem::is_regular_file(path, ec),
+          "packing.file = \"" + path + "\": not a regular file (a directory, FIFO or device)");
   std::ifstream in(path);
   require(in.good(), "packing.file = \"" + path + "\": cannot open for reading");
   const std::size_t need = default_radius > 0 ? 3 : 4;

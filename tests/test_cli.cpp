@@ -224,6 +224,33 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"run.toml:2", "optics.polarisation", "\"linear\"", "number in degrees or \"unpolarised\""});
   expect_input_error("overflow", "", "--preset quick --set beam.power=1e308",
                      {"beam.power", "pulses.duration", "overflows"});
+  // Found by an adversarial review (twelfth session): each ran, hung or fell back before.
+  expect_input_error("index_huge", "", "--preset quick --set optics.n_solid=1e155",
+                     {"optics.n_solid", "1e+155", "<= 1e+06"});  // NaN deposits, exit 1
+  expect_input_error("preset_empty", "", "--preset ''", {"--preset", "must name a preset"});  // defaults
+  expect_input_error("dt_absurd", "", "--preset quick --set thermal.dt=1e-300",
+                     {"thermal.dt", "1e-300", "sample.size / c / 1e9"});  // never finished
+  expect_input_error("seed_range", "", "--preset quick --set beam.seed=18446744073709551615",
+                     {"beam.seed", "<= 9223372036854775807"});
+  expect_input_error("beyond_double", "", "--preset quick --set material.conductivity=1e400",
+                     {"material.conductivity", "range of a double"});
+}
+
+// A FIFO or a device given as the run file or the packing file is refused before it is opened:
+// opening a FIFO blocks (no signal ended it), and /dev/zero was read until memory ran out.
+TEST(Cli, SpecialFilesAsInputsAreRefusedBeforeTheyAreRead) {
+  const fs::path dir = fresh_dir("special_files");
+  const fs::path fifo = dir / "fifo";
+  ASSERT_EQ(std::system(("mkfifo " + fifo.string()).c_str()), 0);
+  const std::string out = " --quiet --out " + (dir / "out").string();
+  const std::string file_packing = "--preset quick --set packing.source=file --set packing.file=";
+  for (const std::string& args : {"run " + fifo.string() + out, "run /dev/zero" + out,
+                                  "run " + file_packing + fifo.string() + out,
+                                  "run " + file_packing + "/dev/zero" + out}) {
+    const auto [code, text] = run(args, "timeout -s KILL 20");
+    EXPECT_EQ(code, 2) << args << ": " << text;
+    EXPECT_NE(text.find("not a regular file"), std::string::npos) << args << ": " << text;
+  }
 }
 
 // Layers and paths as a user of run files expects them.
@@ -613,8 +640,8 @@ TEST(Cli, ConvergeRefusesBadOutputFirstAndKeepsNoInterruptedRung) {
   EXPECT_TRUE(read_csv(out / "convergence.csv").empty()) << text;
 }
 
-// A new run into the directory of an earlier one removes that run's checkpoint and frames: they
-// would outlive it, and --resume would continue the earlier run over the new outputs.
+// A new run into the directory of an earlier one removes that run's results, checkpoint and
+// frames: they would outlive it, and --resume would continue the earlier run over the new outputs.
 TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   const fs::path out = fresh_dir("earlier_run");
   const Result first = run("run --preset quick --quiet --set output.frames=true --checkpoint-every 1 --out " +
@@ -632,6 +659,14 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   EXPECT_TRUE(fs::exists(mine));
   EXPECT_EQ(int(read_json(out / "summary.json")["pulses"]), 2);
   EXPECT_EQ(run("run --resume " + out.string() + " --quiet").code, 2);  // nothing left to resume
+  // A run that fails leaves no results, rather than the earlier run's as if they were its own.
+  const Result failed = run("run --preset zohdi2013 --quiet --set thermal.solver=fixed-point "
+                            "--set material.conductivity=1e6 --out " + out.string());
+  ASSERT_EQ(failed.code, 1) << failed.output;
+  EXPECT_FALSE(fs::exists(out / "summary.json")) << failed.output;
+  EXPECT_FALSE(fs::exists(out / "history.csv"));
+  EXPECT_FALSE(fs::exists(out / "particles.csv"));
+  EXPECT_TRUE(fs::exists(mine));
 }
 
 // The stability grid (minutes) stops at Ctrl-C after the cell it is in, and says how far it got.

@@ -15,9 +15,14 @@ namespace {
 
 using namespace beampack::tools;
 
+// An empty --preset would read as none given: the built-in defaults, silently.
+const CLI::Validator kNamed(
+    [](const std::string& s) { return s.empty() ? std::string("must name a preset (beampack presets)") : ""; },
+    "NAME");
+
 void add_run_sources(CLI::App* cmd, RunOptions& o) {
   cmd->add_option("run_file", o.sources.file, "run file (TOML)")->check(CLI::ExistingFile);
-  cmd->add_option("--preset", o.sources.preset, "start from a named preset (beampack presets)");
+  cmd->add_option("--preset", o.sources.preset, "start from a named preset (beampack presets)")->check(kNamed);
   // One value per --set: a run file after it is not taken as a second assignment.
   cmd->add_option("--set", o.sources.sets, "override one key: --set material.conductivity=100")
       ->allow_extra_args(false);
@@ -91,7 +96,7 @@ int main(int argc, char** argv) {
   app.add_subcommand("presets", "list the named presets");
   RunOptions config;
   CLI::App* config_cmd = app.add_subcommand("config", "print a complete run file");
-  config_cmd->add_option("--preset", config.sources.preset, "preset to print");
+  config_cmd->add_option("--preset", config.sources.preset, "preset to print")->check(kNamed);
   config_cmd->add_option("run_file", config.sources.file, "run file to resolve")->check(CLI::ExistingFile);
   config_cmd->add_option("--set", config.sources.sets, "override one key")->allow_extra_args(false);
 

@@ -1,8 +1,10 @@
 #include "tools/params.h"
 
 #include <algorithm>
+#include <cerrno>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
@@ -256,6 +258,15 @@ void Params::merge_toml_text(const std::string& text, const std::string& source)
 }
 
 void Params::merge_toml_file(const std::string& path) {
+  // Checked before opening: a FIFO would block the open, a device would be read without end.
+  std::error_code ec;
+  const bool regular = std::filesystem::is_regular_file(path, ec);
+  if (std::filesystem::exists(path, ec) && !regular)
+    throw InputError(path + ": the run file is not a regular file (a directory, FIFO or device)");
+  constexpr std::uintmax_t kMaxRunFile = 16u << 20;
+  if (const std::uintmax_t bytes = regular ? std::filesystem::file_size(path, ec) : 0; !ec && bytes > kMaxRunFile)
+    throw InputError(path + ": the run file is " + std::to_string(bytes) +
+                     " bytes: must be <= 16 MiB (a run file is a few kB; is this the packing file?)");
   std::ifstream in(path, std::ios::binary);
   if (!in) throw InputError(path + ": cannot open the run file for reading");
   std::string text{std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
@@ -353,6 +364,18 @@ void Params::fail(const std::string& key, const std::string& value, const std::s
   throw InputError(where(key) + "`" + key + "` = " + value + ": " + limit);
 }
 
+namespace {
+// A number too large for a double reaches the reader as text (the TOML parser refuses it).
+bool out_of_double_range(const toml::node& node) {
+  if (!node.is_string()) return false;
+  const std::string& text = node.as_string()->get();
+  char* end = nullptr;
+  errno = 0;
+  const double v = std::strtod(text.c_str(), &end);
+  return !text.empty() && *end == 0 && errno == ERANGE && !std::isfinite(v);
+}
+}  // namespace
+
 double Params::number(const std::string& key, double fallback, double lo, double hi, bool lo_open) {
   double v = fallback;
   if (const toml::node* node = find(key)) {
@@ -360,6 +383,8 @@ double Params::number(const std::string& key, double fallback, double lo, double
       v = double(node->as_integer()->get());
     else if (node->is_floating_point())
       v = node->as_floating_point()->get();
+    else if (out_of_double_range(*node))
+      fail(key, repr(*node), "must be a finite number (|x| <= 1.8e308, the range of a double)");
     else
       fail(key, repr(*node), "must be a number");
     if (!std::isfinite(v)) fail(key, repr(*node), "must be finite");
@@ -378,7 +403,8 @@ std::int64_t Params::integer(const std::string& key, std::int64_t fallback, std:
                              std::int64_t hi) {
   std::int64_t v = fallback;
   if (const toml::node* node = find(key)) {
-    if (!node->is_integer()) fail(key, repr(*node), "must be an integer");
+    if (!node->is_integer())
+      fail(key, repr(*node), "must be an integer >= " + std::to_string(lo) + " and <= " + std::to_string(hi));
     v = node->as_integer()->get();
   }
   if (v < lo || v > hi)

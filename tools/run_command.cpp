@@ -303,8 +303,9 @@ void write_checkpoint(const fs::path& path, const Simulation& sim, const RunReco
 }
 
 StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
+  if (!fs::is_regular_file(path)) throw InputError("--resume: cannot read " + path.string());
   std::ifstream in(path, std::ios::binary);
-  if (!in || !fs::is_regular_file(path)) throw InputError("--resume: cannot read " + path.string());
+  if (!in) throw InputError("--resume: cannot read " + path.string());
   std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   StateReader r(std::move(bytes), path.string());
   const std::string magic = r.text();
@@ -385,11 +386,13 @@ void warn_if_time_stands_still(const Simulation& sim) {
                "`pulses.period` (s) or `thermal.dt` (s) for a time axis\n");
 }
 
-// A new run into a directory that holds an earlier one: that run's checkpoint and frames would
-// outlive it (and `--resume` would continue the earlier run over the new outputs), so they go.
-// Only beampack's own names; summary.json, history.csv and particles.csv are rewritten anyway.
+// A new run into a directory that holds an earlier one: that run's results, checkpoint and
+// frames would outlive it (a new run that fails would leave them looking like its own, and
+// `--resume` would continue the earlier run over the new outputs), so they go. Only beampack's
+// own names.
 void remove_earlier_run(const fs::path& dir) {
-  const std::regex ours(R"((particles|rays)_\d{4}\.vtp|particles\.pvd|checkpoint\.bin)");
+  const std::regex ours(R"((particles|rays)_\d{4}\.vtp|particles\.pvd|checkpoint\.bin|)"
+                        R"(summary\.json|history\.csv|particles\.csv)");
   std::vector<fs::path> earlier;
   for (const fs::directory_entry& e : fs::directory_iterator(dir))
     if (e.is_regular_file() && std::regex_match(e.path().filename().string(), ours))
@@ -397,7 +400,7 @@ void remove_earlier_run(const fs::path& dir) {
   for (const fs::path& f : earlier) fs::remove(f);
   if (!earlier.empty())
     std::fprintf(stderr, "beampack: note: removed %zu files of an earlier run from %s "
-                         "(checkpoint.bin, frames)\n", earlier.size(), dir.c_str());
+                         "(results, checkpoint.bin, frames)\n", earlier.size(), dir.c_str());
 }
 
 int run_command(const RunOptions& options) {

@@ -74,10 +74,12 @@ void read_beam(Params& p, BeamSpec& b) {
 }
 
 void read_optics(Params& p, OpticsSpec& o) {
+  // An index of 1e6 is a mirror to 1e-6 already; far beyond, the Fresnel terms overflow.
+  constexpr double kIndex = 1e6;
   MaterialOptics m;
-  m.n_solid = {p.number("optics.n_solid", 1.4, 0, kBig, true), p.number("optics.k_solid", 0.0, 0, kBig)};
-  m.n_liquid = {p.number("optics.n_liquid", 1.0, 0, kBig, true), p.number("optics.k_liquid", 0.0, 0, kBig)};
-  m.mu_hat = p.number("optics.mu_hat", 1.0, 0, kBig, true);
+  m.n_solid = {p.number("optics.n_solid", 1.4, 0, kIndex, true), p.number("optics.k_solid", 0.0, 0, kIndex)};
+  m.n_liquid = {p.number("optics.n_liquid", 1.0, 0, kIndex, true), p.number("optics.k_liquid", 0.0, 0, kIndex)};
+  m.mu_hat = p.number("optics.mu_hat", 1.0, 1e-100, 1e100);
   o.materials = {m};
   o.cutoff = p.number("optics.cutoff", 1e-10, 0, 1);
   if (o.cutoff == 1.0) p.fail("optics.cutoff", "1", "must be < 1 (a ray would end before its first hit)");
@@ -146,6 +148,14 @@ void read_thermal(Params& p, SimulationSpec& s, double paper_dt) {
     throw InputError(m.str());
   }
   s.dt = word == "pulse" ? 0.0 : word == "paper" ? paper_dt : dt;
+  // More steps than this per light crossing of the sample would never finish (a typo of the
+  // exponent, most likely); the paper's dt takes thousands.
+  constexpr double kMaxStepsPerCrossing = 1e9;
+  const double crossing = s.packing.sample_size / kSpeedOfLight;
+  if (s.dt > 0 && crossing / s.dt > kMaxStepsPerCrossing)
+    p.fail("thermal.dt", word == "paper" ? "\"paper\" (xi R / c = " + number_text(s.dt) + " s)" : number_text(s.dt),
+           "must be >= sample.size / c / 1e9 = " + number_text(crossing / kMaxStepsPerCrossing) +
+               " s (light crosses the sample in " + number_text(crossing) + " s)");
   t.validate();
 }
 
