@@ -180,6 +180,22 @@ TEST(ThermalSolvers, ADepositBelowToleranceTimesTemperatureIsNotLost) {
   }
 }
 
+// Heating alone never lowers a temperature, however small the deposit against the temperature:
+// the diagonal step (K = 0) adds the change to theta0 (rises below 2e-14 K here, under the
+// spacing of doubles at 300 K). (c theta0 + dH) / c rounded some of them below theta0.
+TEST(ThermalSolvers, HeatingNeverRoundsATemperatureBelowItsStart) {
+  std::mt19937_64 rng(9);
+  std::uniform_real_distribution<double> u(0.0, 2e-14), radius(1e-5, 2e-5);
+  Particles p;
+  for (int k = 0; k < 2000; ++k) p.add(Vec3(1e-4 * k, 0, 0), radius(rng), 0, 300.0);
+  ThermalModel model(p, {Material{}}, ThermalSpec{});
+  std::vector<double> dh(p.size());
+  for (std::size_t i = 0; i < p.size(); ++i) dh[i] = u(rng) * model.thermal_mass(i);  // < 2e-14 K
+  const StepReport r = model.step(1e-12, dh);
+  EXPECT_EQ(r.solver, "none");
+  for (std::size_t i = 0; i < p.size(); ++i) ASSERT_GE(p.temperature[i], 300.0) << i;
+}
+
 TEST(ThermalSolvers, DirectReusesSymbolicAnalysisWhileGraphUnchanged) {
   AgreeScene s;
   ThermalSpec spec;

@@ -572,13 +572,10 @@ void ThermalModel::solve_relative(const System& s, double dt, const Eigen::Vecto
   const double implicit = dt * spec_.phi, explicit_part = dt * (1.0 - spec_.phi);
   const Eigen::VectorXd flux_in =
       s.has_conduction ? Eigen::VectorXd(s.laplacian * theta0) : s.diagonal.cwiseProduct(theta0);
-  auto rhs = [&] {
-    return Eigen::VectorXd(c.cwiseProduct(theta0) + explicit_part * (s.wall_source - flux_in) +
-                           implicit * s.wall_source + dh);
-  };
+  const Eigen::VectorXd drive = dt * (s.wall_source - flux_in) + dh;
   ++report.solves;
-  if (!s.has_conduction || spec_.phi == 0) {
-    theta1 = rhs().cwiseQuotient(c + implicit * s.diagonal);
+  if (!s.has_conduction || spec_.phi == 0) {  // the change, so heating never rounds theta below theta0
+    theta1 = theta0 + drive.cwiseQuotient(c + implicit * s.diagonal);
     report.solver = s.has_conduction ? "explicit" : has_walls_ ? "diagonal" : "none";
     report.conduction_ran = s.has_conduction;
     return;
@@ -589,12 +586,12 @@ void ThermalModel::solve_relative(const System& s, double dt, const Eigen::Vecto
   report.contraction_estimate = std::max(report.contraction_estimate, rho);
   report.conduction_ran = true;
   report.solver = spec_.solver == "auto" ? choose_solver(rho) : spec_.solver;
-  if (report.solver != "direct" &&
-      solve_change(a, c, dt * (s.wall_source - flux_in) + dh, rho, theta0, theta1, report))
-    return;
+  if (report.solver != "direct" && solve_change(a, c, drive, rho, theta0, theta1, report)) return;
   // The factorisation solves for theta1 itself: at a stiff step dt (L + W) theta0 is far larger
   // than the change, and its rounding would enter the clusters' energy balance.
-  solve_direct_grounded(s, a, c, rhs(), theta1, report);
+  const Eigen::VectorXd rhs = c.cwiseProduct(theta0) + explicit_part * (s.wall_source - flux_in) +
+                              implicit * s.wall_source + dh;
+  solve_direct_grounded(s, a, c, rhs, theta1, report);
 }
 
 // The iterative solvers solve for the step's change, A (theta1 - theta0) = dt Q(theta0) + dH (the

@@ -211,7 +211,7 @@ std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const 
   const double heat = e.absorbed > 0 ? std::abs(e.heat_imbalance()) / e.absorbed : 0.0;
   const double heat_limit = std::max(1e-6, 1e4 * spec.thermal.tolerance);
   std::vector<std::string> out;
-  char text[320];
+  char text[640];
   if (!(optics <= 1e-9)) {  // NaN included
     std::snprintf(text, sizeof text, "the optics ledger is open by %.3g of the injected energy "
                   "(round-off is ~1e-15): please report this run file", optics);
@@ -220,7 +220,10 @@ std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const 
   if (!(heat <= heat_limit)) {
     std::snprintf(text, sizeof text, "the heat ledger is open by %.3g of the absorbed energy (more "
                   "than %.3g, from `thermal.tolerance` = %g): lower the tolerance or use "
-                  "`thermal.solver` = \"direct\"", heat, heat_limit, spec.thermal.tolerance);
+                  "`thermal.solver` = \"direct\"; or, if a step's temperature rises are below "
+                  "~1e-13 of the temperatures (a faint beam, large particles, `thermal.time_scaling` "
+                  "near 1), doubles cannot hold them: raise `thermal.time_scaling` or the energy of "
+                  "a step", heat, heat_limit, spec.thermal.tolerance);
     out.emplace_back(text);
   }
   return out;
