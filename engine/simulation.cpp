@@ -77,6 +77,7 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
     StageClock clock(stages_[kRebuild]);
     thermal_->set_contacts(find_contacts(particles_));
   }
+  check_step_limit();
   absorbed_.assign(particles_.size(), 0.0);
   deposits_.assign(particles_.size(), 0.0);
   for (std::size_t i = 0; i < particles_.size(); ++i) {
@@ -110,6 +111,35 @@ void Simulation::check_thermal_masses(double run_energy) const {
         << mass_heat << " J/K: must be a finite normal number that the run's " << run_energy
         << " J warms by a finite amount";
     throw InputError(msg.str());
+  }
+}
+
+// phi < 1 splits a step longer than its limit into sub-steps, up to thermal.max_substeps. The
+// limit only grows during a run (vaporised particles take their contacts along; capacities are
+// the lesser phase's), so steps the user fixed are checked here, as input: a fixed dt, and with
+// one step per pulse flight the wait for the next pulse, up to pulses.period.
+void Simulation::check_step_limit() const {
+  const ThermalSpec& t = spec_.thermal;
+  if (t.phi >= 1.0) return;
+  const double limit = thermal_->monotone_step_limit();
+  auto refuse_beyond = [&](double step, const std::string& what) {
+    if (!(step / limit > t.max_substeps)) return;
+    std::ostringstream msg;
+    msg << what << " with `thermal.phi` = " << t.phi << " exceeds the limit of a "
+        << (t.phi < 0.5 ? "stable" : "monotone") << " step, " << limit << " s, and would need "
+        << std::ceil(step / limit) << " sub-steps > `thermal.max_substeps` = " << t.max_substeps
+        << ": use thermal.phi = 1 (monotone at any step)"
+        << (spec_.dt > 0 ? " or a smaller thermal.dt" : ", a fixed thermal.dt or a shorter period");
+    throw InputError(msg.str());
+  };
+  std::ostringstream what;
+  if (spec_.dt > 0) {
+    what << "`thermal.dt` = " << spec_.dt << " s";
+    refuse_beyond(spec_.dt, what.str());
+  } else if (spec_.pulses.period > 0) {
+    what << "`pulses.period` = " << spec_.pulses.period << " s (with `thermal.dt` = \"pulse\" the "
+         << "wait for the next pulse is one step)";
+    refuse_beyond(spec_.pulses.period, what.str());
   }
 }
 
@@ -149,6 +179,18 @@ Beam Simulation::resampled_beam(int pulse) const {
     return make_beam(spec_.beam, spec_.packing.sample_size, static_cast<std::uint64_t>(pulse));
   } catch (const InputError& e) {
     throw RunError("pulse " + std::to_string(pulse) + " (`beam.resample`): " + e.what());
+  }
+}
+
+// The thermal step (3.10). With one step per pulse flight a step's length is the rays' (or the
+// wait for the next pulse), which the user did not write as thermal.dt: a refusal says so.
+StepReport Simulation::heat_step(double dt) {
+  try {
+    return thermal_->step(dt, deposits_, heated_);
+  } catch (const InputError& e) {
+    if (spec_.dt > 0) throw;
+    throw InputError(std::string("`thermal.dt` = \"pulse\" (step ") + std::to_string(counts_.steps) +
+                     " lasts the rays' flight, or the wait for the next pulse): " + e.what());
   }
 }
 
@@ -198,7 +240,7 @@ bool Simulation::step() {
     if (dt > 0) {
       {
         StageClock clock(stages_[kHeat]);
-        report = thermal_->step(dt, deposits_, heated_);
+        report = heat_step(dt);
       }
       // The latent-heat work runs inside the thermal step; its time is the phases stage's.
       stages_[kHeat].seconds -= report.phases_seconds;

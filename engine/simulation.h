@@ -133,6 +133,8 @@ class Simulation {
   double volume_fraction(Phase phase) const;
   std::string skip_reason(int stage) const;
   void check_thermal_masses(double run_energy) const;
+  void check_step_limit() const;
+  StepReport heat_step(double dt);
 
   SimulationSpec spec_;
   Particles particles_;

@@ -879,7 +879,7 @@ int ThermalModel::substep_count(double dt) const {
   const double parts = dt > limit ? std::ceil(dt / limit) : 1.0;
   if (parts > spec_.max_substeps) {
     std::ostringstream msg;
-    msg << "thermal.dt = " << dt << " s with thermal.phi = " << spec_.phi << " exceeds the "
+    msg << "a step of " << dt << " s with thermal.phi = " << spec_.phi << " exceeds the "
         << (spec_.phi < 0.5 ? "explicit stability limit " : "limit for a monotone step ") << limit
         << " s (min_i m_i C_i / (M (1 - phi) sum_j G_ij)) and would need " << parts
         << " sub-steps > thermal.max_substeps = " << spec_.max_substeps
