@@ -420,7 +420,8 @@ void Simulation::read_state(StateReader& in) {
   if (p.size() != particles_.size() || p.centre.size() != p.size())
     throw InputError("checkpoint: its packing has " + std::to_string(p.size()) +
                      " particles, the run file's has " + std::to_string(particles_.size()));
-  in.vector(absorbed_);
+  std::vector<double> absorbed;
+  in.vector(absorbed);
   time_ = in.value<double>(), next_pulse_time_ = in.value<double>();
   max_temperature_ = in.value<double>(), launched_ = in.value<int>();
   counts_ = in.value<Counts>();
@@ -436,6 +437,14 @@ void Simulation::read_state(StateReader& in) {
   // references to particles_.
   if (p.centre != particles_.centre || p.radius != particles_.radius)
     throw InputError("checkpoint: its packing differs from the run file's (other seed or file?)");
+  // A checksum guards the bytes, not a writer's mistake: every per-particle array must fit.
+  const std::size_t n = p.size();
+  for (std::size_t size : {p.material.size(), p.temperature.size(), p.phase.size(), p.alive.size(),
+                           absorbed.size(), heat.stored.size()})
+    if (size != n)
+      throw InputError("checkpoint: a per-particle array holds " + std::to_string(size) +
+                       " values for " + std::to_string(n) + " particles");
+  absorbed_ = std::move(absorbed);
   std::copy(p.material.begin(), p.material.end(), particles_.material.begin());
   std::copy(p.temperature.begin(), p.temperature.end(), particles_.temperature.begin());
   std::copy(p.phase.begin(), p.phase.end(), particles_.phase.begin());

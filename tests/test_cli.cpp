@@ -234,6 +234,10 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"beam.seed", "<= 9223372036854775807"});
   expect_input_error("beyond_double", "", "--preset quick --set material.conductivity=1e400",
                      {"material.conductivity", "range of a double"});
+  expect_input_error("wall_conductance", "", "--preset quick --set thermal.walls=z- --set thermal.wall_conductance=-0.5",
+                     {"thermal.wall_conductance", "-0.5", "or -1"});
+  expect_input_error("walls_without_conduction", "", "--preset quick --set thermal.walls=z- --set material.conductivity=0",
+                     {"thermal.walls", "would take no heat"});
   // Steps beyond phi < 1's sub-step cap are blamed on the key that made them (not thermal.dt).
   expect_input_error("period_substeps", "", "--preset quick --set thermal.phi=0.5 --set pulses.period=1e-6",
                      {"--set pulses.period=1e-6", "`pulses.period` = 1e-06 s", "thermal.max_substeps` = 1000"});

@@ -111,6 +111,9 @@ std::vector<Wall> read_walls(Params& p, double size) {
   const double temperature = p.number("thermal.wall_temperature", 300, 0, kBig, true);
   const double reach = p.number("thermal.wall_reach", 0, 0, kBig);
   const double conductance = p.number("thermal.wall_conductance", -1, -1, kBig);
+  if (conductance < 0 && conductance != -1)
+    p.fail("thermal.wall_conductance", number_text(conductance),
+           "must be >= 0 (W/K per particle) or -1 (pi K R, from material.conductivity)");
   std::vector<Wall> walls;
   std::vector<std::string> seen;
   std::stringstream list(faces);
@@ -203,6 +206,11 @@ RunConfig read_config(Params& p) {
   const double paper_dt = read_pulses(p, c.sim, packing_radius(c.sim.packing));
   read_thermal(p, c.sim, paper_dt);
   c.sim.thermal.walls = read_walls(p, c.sim.packing.sample_size);
+  // pi K R with K = 0: walls that take no heat are not what a run that names them wants.
+  if (!c.sim.thermal.walls.empty() && c.sim.thermal.walls.front().conductance < 0 && m.conductivity == 0)
+    p.fail("thermal.walls", "\"" + p.text("thermal.walls", "") + "\"",
+           "with `thermal.wall_conductance` = -1 (pi K R) and `material.conductivity` = 0 the walls "
+           "would take no heat: give thermal.wall_conductance in W/K or a conductivity");
   c.sim.thermal.validate();
   c.paper_dt = paper_dt;
   c.output.frames = p.flag("output.frames", false);
