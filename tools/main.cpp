@@ -76,7 +76,10 @@ int main(int argc, char** argv) {
   add_run_sources(sweep_cmd, sweep.run);
   sweep_cmd->add_option("--param", sweep.param, "key to vary")->required();
   // Split by sweep_command itself, which refuses an empty value instead of dropping it.
-  sweep_cmd->add_option("--values", sweep.values, "comma-separated values")->required()->allow_extra_args(false);
+  sweep_cmd->add_option("--values", sweep.values, "comma-separated values, one argument: --values 0,10,100")
+      ->required()
+      ->allow_extra_args(false)
+      ->type_name("V1,V2,...");
   sweep_cmd->add_option("--out", sweep.run.out_dir, "output directory")->capture_default_str();
   sweep_cmd->add_option("--threads", sweep.run.threads, "worker threads (0: all cores)")->check(kThreads);
   sweep_cmd->add_flag("--quiet", sweep.run.quiet, "no progress line");

@@ -476,10 +476,13 @@ int run_command(const RunOptions& options) {
   for (const std::string& warning : open_ledger_warnings(config.sim, r.figures.energy))
     std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
   if (r.interrupted) {
+    const std::string where = r.figures.pulse > 0 ? "in pulse " + std::to_string(r.figures.pulse) + " of " +
+                                                        std::to_string(config.sim.pulses.count)
+                                                  : std::string("before the first pulse");
     std::fprintf(stderr,
-                 "beampack: interrupted at t = %.6g s in pulse %d of %d; outputs in %s hold that state "
+                 "beampack: interrupted at t = %.6g s %s; outputs in %s hold that state "
                  "(history.csv: the pulses before it); continue with: beampack run --resume %s\n",
-                 r.figures.time, r.figures.pulse, config.sim.pulses.count, out_dir.c_str(), out_dir.c_str());
+                 r.figures.time, where.c_str(), out_dir.c_str(), out_dir.c_str());
     return 1;
   }
   return 0;
