@@ -679,6 +679,26 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   EXPECT_TRUE(fs::exists(mine));
 }
 
+// Files of beampack's names in a folder that holds no beampack run (no summary.json of one, no
+// checkpoint) are the user's: a run leaves them. An input where the run writes an output is
+// refused before anything is written or removed.
+TEST(Cli, ARunLeavesTheUsersFilesAndRefusesToWriteOverItsInputs) {
+  const fs::path out = fresh_dir("users_folder");
+  const std::string frame = write(out / "particles_0003.vtp", "the user's own frame");
+  const Result r = run("run --preset quick --quiet --out " + out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_TRUE(fs::exists(frame)) << r.output;
+  EXPECT_EQ(r.output.find("removed"), std::string::npos) << r.output;
+  const fs::path bed = fresh_dir("input_in_out");
+  const std::string packing = write(bed / "particles.csv", "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n");
+  const Result over = run("run --preset quick --quiet --set packing.source=file --set packing.file=" + packing +
+                          " --out " + bed.string());
+  EXPECT_EQ(over.code, 2) << over.output;
+  EXPECT_NE(over.output.find("a file the run writes"), std::string::npos) << over.output;
+  std::ifstream kept(packing);
+  EXPECT_EQ(std::string(std::istreambuf_iterator<char>(kept), {}), "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n");
+}
+
 // The stability grid (minutes) stops at Ctrl-C after the cell it is in, and says how far it got.
 TEST(Cli, StabilityGridStopsAtCtrlC) {
   const auto start = std::chrono::steady_clock::now();

@@ -389,17 +389,49 @@ void warn_if_time_stands_still(const Simulation& sim) {
                "`pulses.period` (s) or `thermal.dt` (s) for a time axis\n");
 }
 
+// Whether dir holds a run of beampack's: its summary.json (the figures and the configuration) or
+// its checkpoint. Files of beampack's names in a folder without either are the user's own.
+bool holds_earlier_run(const fs::path& dir) {
+  std::error_code ec;
+  if (std::ifstream in(dir / "checkpoint.bin", std::ios::binary); in && fs::is_regular_file(dir / "checkpoint.bin", ec)) {
+    std::string head(64, '\0');
+    in.read(head.data(), static_cast<std::streamsize>(head.size()));
+    if (head.find("beampack-checkpoint") != std::string::npos) return true;
+  }
+  if (!fs::is_regular_file(dir / "summary.json", ec)) return false;
+  std::ifstream in(dir / "summary.json");
+  const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
+  return j.is_object() && j.contains("vaporized_fraction") && j.contains("config");
+}
+
+// The names of the files a run writes into its output folder.
+bool is_output_name(const fs::path& file) {
+  static const std::regex ours(R"((particles|rays)_\d{4}\.vtp|particles\.pvd|checkpoint\.bin|)"
+                               R"(summary\.json|history\.csv|particles\.csv)");
+  return std::regex_match(file.filename().string(), ours);
+}
+
+// A run file or packing file where the run writes an output would be overwritten (or removed
+// as an earlier run's) before the run has read it, or after: refused.
+void refuse_outputs_over_inputs(const fs::path& dir, const std::vector<std::pair<std::string, std::string>>& inputs) {
+  for (const auto& [key, path] : inputs) {
+    std::error_code ec;
+    if (path.empty() || !is_output_name(path) || !fs::equivalent(fs::absolute(path).parent_path(), dir, ec))
+      continue;
+    throw InputError(key + " = \"" + path + "\": a file the run writes in --out " + dir.string() +
+                     "; choose another --out or move the file");
+  }
+}
+
 // A new run into a directory that holds an earlier one: that run's results, checkpoint and
 // frames would outlive it (a new run that fails would leave them looking like its own, and
-// `--resume` would continue the earlier run over the new outputs), so they go. Only beampack's
-// own names.
+// `--resume` would continue the earlier run over the new outputs), so they go: beampack's own
+// names only, in a folder that holds a beampack run.
 void remove_earlier_run(const fs::path& dir) {
-  const std::regex ours(R"((particles|rays)_\d{4}\.vtp|particles\.pvd|checkpoint\.bin|)"
-                        R"(summary\.json|history\.csv|particles\.csv)");
+  if (!holds_earlier_run(dir)) return;
   std::vector<fs::path> earlier;
   for (const fs::directory_entry& e : fs::directory_iterator(dir))
-    if (e.is_regular_file() && std::regex_match(e.path().filename().string(), ours))
-      earlier.push_back(e.path());
+    if (e.is_regular_file() && is_output_name(e.path())) earlier.push_back(e.path());
   for (const fs::path& f : earlier) fs::remove(f);
   if (!earlier.empty())
     std::fprintf(stderr, "beampack: note: removed %zu files of an earlier run from %s "
@@ -423,6 +455,7 @@ int run_command(const RunOptions& options) {
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
   const std::string out_dir = options.resume.empty() || options.out_set ? options.out_dir : options.resume;
   prepare_out_dir(out_dir);
+  refuse_outputs_over_inputs(out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});
   if (options.resume.empty()) remove_earlier_run(out_dir);
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
