@@ -1,12 +1,15 @@
 #include "geometry/packing.h"
 
 #include <algorithm>
+#include <array>
 #include <charconv>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <numbers>
+#include <optional>
 #include <sstream>
 #include <vector>
 
@@ -181,27 +184,78 @@ bool is_header(const std::vector<std::string_view>& cols) {
   return std::none_of(cols.begin(), cols.end(), [&](std::string_view c) { return parse_number(c, probe); });
 }
 
-}  // namespace
+std::string file_key(const std::string& path) {
+  return "packing.file = \"" + path + "\": ";
+}
 
-Particles read_packing_file(const std::string& path, double default_radius) {
-  // Checked before opening: a FIFO would block the open, a device would be read without end.
-  std::error_code ec;
-  require(!std::filesystem::exists(path, ec) || std::filesystem::is_regular_file(path, ec),
-          "packing.file = \"" + path + "\": not a regular file (a directory, FIFO or device)");
-  std::ifstream in(path);
-  require(in.good(), "packing.file = \"" + path + "\": cannot open for reading");
+// The lines of a packing file that hold something, '#' comments cut, each split into columns and
+// numbered for messages. Both formats read through it, so they skip and number lines alike.
+class PackingLines {
+ public:
+  PackingLines(std::istream& in, const std::string& path) : in_(in), path_(path) {}
+  PackingLines(const PackingLines&) = delete;  // cols_ views into line_
+
+  bool next() {
+    while (std::getline(in_, line_)) {
+      ++number_;
+      std::string_view text = line_;
+      if (auto hash = text.find('#'); hash != std::string_view::npos) text = text.substr(0, hash);
+      cols_ = split_columns(text);
+      if (!cols_.empty()) return true;
+    }
+    return false;
+  }
+  const std::vector<std::string_view>& cols() const { return cols_; }
+  std::size_t number() const { return number_; }
+  std::string where() const { return path_ + ":" + std::to_string(number_) + ": "; }
+  const std::string& path() const { return path_; }
+
+ private:
+  std::istream& in_;
+  std::string path_, line_;
+  std::vector<std::string_view> cols_;
+  std::size_t number_ = 0;
+};
+
+// Column k of a row (numbered from 1 in messages, as editors number them) as a finite number.
+double finite_column(const std::vector<std::string_view>& cols, std::size_t k,
+                     const std::string& where) {
+  const std::string named =
+      where + "column " + std::to_string(k + 1) + " '" + std::string(cols[k]) + "' is not ";
+  double v = 0;
+  require(parse_number(cols[k], v), named + "a number");
+  require(std::isfinite(v), named + "finite");
+  return v;
+}
+
+// The checks every particle of a file passes, whichever format gave it. Finite numbers can still
+// make a sphere the physics cannot hold (found by fuzz/): a radius whose volume, hence mass,
+// rounds to 0 or overflows, or a centre +- r beyond the doubles.
+void add_checked_sphere(Particles& p, const Vec3& centre, double r,
+                        const std::array<std::size_t, 3>& centre_columns,
+                        const std::string& where) {
+  require(r > 0, where + "radius r = " + str(r) + ": must be > 0");
+  const double volume = 4.0 / 3.0 * std::numbers::pi * r * r * r;
+  require(volume > 0 && std::isfinite(volume),
+          where + "radius r = " + str(r) + ": its volume " + str(volume) +
+              " is not a positive finite double (|r| must be within ~1e-100 .. 1e100)");
+  for (int k = 0; k < 3; ++k)
+    require(
+        std::isfinite(std::abs(centre[k]) + r),
+        where + "centre +- radius overflows in column " + std::to_string(centre_columns[k] + 1));
+  p.add(centre, r);
+}
+
+// Columns x y z r (or x y z with default_radius > 0) after at most one header line; `lines`
+// stands on the first line that holds something.
+Particles read_plain_columns(PackingLines& lines, double default_radius) {
   const std::size_t need = default_radius > 0 ? 3 : 4;
   const std::string layout = need == 4 ? "x y z r" : "x y z";
   Particles p;
-  std::string line;
   bool seen_data = false, seen_header = false;
-  for (std::size_t line_no = 1; std::getline(in, line); ++line_no) {
-    std::string_view view(line);
-    if (auto hash = view.find('#'); hash != std::string_view::npos) view = view.substr(0, hash);
-    const auto cols = split_columns(view);
-    if (cols.empty()) continue;
-    const std::string where = path + ":" + std::to_string(line_no) + ": ";
-    double v[4] = {0, 0, 0, default_radius};
+  do {
+    const auto& cols = lines.cols();
+    const std::string where = lines.where();
     if (!seen_data && is_header(cols)) {  // one header line (no column a number) before the data
       require(!seen_header, where + "a second header line; one is allowed, before the data");
       seen_header = true;
@@ -210,29 +264,233 @@ Particles read_packing_file(const std::string& path, double default_radius) {
     seen_data = true;
     require(cols.size() == need, where + "expected " + std::to_string(need) + " columns (" +
                                      layout + "), found " + std::to_string(cols.size()));
-    for (std::size_t k = 0; k < need; ++k) {
-      require(parse_number(cols[k], v[k]),
-              where + "column " + std::to_string(k + 1) + " '" + std::string(cols[k]) +
-                  "' is not a number");
-      require(std::isfinite(v[k]), where + "column " + std::to_string(k + 1) + " '" +
-                                       std::string(cols[k]) + "' is not finite");
-    }
-    require(v[3] > 0, where + "radius r = " + str(v[3]) + ": must be > 0");
-    // Finite numbers can still make a sphere the physics cannot hold (found by fuzz/): a radius
-    // whose volume, hence mass, rounds to 0 or overflows, or a centre +- r beyond the doubles.
-    const double volume = 4.0 / 3.0 * std::numbers::pi * v[3] * v[3] * v[3];
-    require(volume > 0 && std::isfinite(volume),
-            where + "radius r = " + str(v[3]) + ": its volume " + str(volume) +
-                " is not a positive finite double (|r| must be within ~1e-100 .. 1e100)");
-    for (int k = 0; k < 3; ++k)
-      require(std::isfinite(std::abs(v[k]) + v[3]),
-              where + "centre +- radius overflows in column " + std::to_string(k + 1));
-    p.add({v[0], v[1], v[2]}, v[3]);
+    double v[4] = {0, 0, 0, default_radius};
+    for (std::size_t k = 0; k < need; ++k) v[k] = finite_column(cols, k, where);
+    add_checked_sphere(p, {v[0], v[1], v[2]}, v[3], {0, 1, 2}, where);
+  } while (lines.next());
+  require(p.size() > 0, file_key(lines.path()) + "holds no particle (a header line only)");
+  return p;
+}
+
+// --- LAMMPS / LIGGGHTS text dumps (`dump ID group custom N file id type x y z radius`) ---
+
+// Where the centre and the radius of a particle stand in a dump's ATOMS rows.
+struct AtomColumns {
+  std::size_t count = 0;  // columns a row must have
+  std::array<std::size_t, 3> centre{};
+  std::optional<std::size_t> radius;  // none: every sphere has the default radius
+  double radius_per_value = 1.0;      // 0.5 when the column is a diameter
+};
+
+std::string joined(const std::vector<std::string_view>& words) {
+  std::string s;
+  for (auto w : words) s += (s.empty() ? "" : " ") + std::string(w);
+  return s;
+}
+
+// Reads `ITEM: ATOMS <names>`: x y z, else the unwrapped xu yu zu; radius, else diameter, else
+// the default radius. Scaled coordinates are refused: unscaling them needs the box, and a
+// triclinic box's tilt, which beampack would then have to get right for every dump style.
+AtomColumns atom_columns(const std::vector<std::string_view>& names, double default_radius,
+                         const std::string& where) {
+  auto column = [&](std::string_view name) -> std::optional<std::size_t> {
+    const auto it = std::find(names.begin(), names.end(), name);
+    if (it == names.end()) return std::nullopt;
+    return std::size_t(it - names.begin());
+  };
+  const std::string found = "ITEM: ATOMS names " + joined(names);
+  AtomColumns a;
+  a.count = names.size();
+  std::optional<std::size_t> x, y, z;
+  for (const auto& [cx, cy, cz] : {std::array{"x", "y", "z"}, std::array{"xu", "yu", "zu"}}) {
+    x = column(cx), y = column(cy), z = column(cz);
+    if (x && y && z) break;
   }
-  require(!in.bad(), "packing.file = \"" + path + "\": read error");
+  if (!(x && y && z)) {
+    const bool scaled = column("xs") || column("ys") || column("zs") || column("xsu") ||
+                        column("ysu") || column("zsu");
+    throw InputError(where + found +
+                     (scaled ? ": scaled coordinates (xs ys zs, xsu ysu zsu) are not read; "
+                               "dump x y z (or xu yu zu) instead"
+                             : ": no centre columns; a dump needs x y z (or xu yu zu)"));
+  }
+  a.centre = {*x, *y, *z};
+  if ((a.radius = column("radius"))) return a;
+  if ((a.radius = column("diameter"))) {
+    a.radius_per_value = 0.5;
+    return a;
+  }
+  require(default_radius > 0, where + found +
+                                  ": no radius or diameter column; dump radius, "
+                                  "or give the spheres' radius with packing.radius");
+  return a;
+}
+
+// A dump's ATOMS row as a sphere, through the same checks as a plain file's rows.
+void add_atom_row(Particles& p, const AtomColumns& a, double default_radius,
+                  const std::vector<std::string_view>& cols, const std::string& where,
+                  std::size_t header_line) {
+  require(cols.size() == a.count,
+          where + "expected " + std::to_string(a.count) + " columns (as ITEM: ATOMS on line " +
+              std::to_string(header_line) + " names), found " + std::to_string(cols.size()));
+  Vec3 centre;
+  for (int k = 0; k < 3; ++k) centre[k] = finite_column(cols, a.centre[k], where);
+  const double r =
+      a.radius ? a.radius_per_value * finite_column(cols, *a.radius, where) : default_radius;
+  add_checked_sphere(p, centre, r, a.centre, where);
+}
+
+bool is_item_line(const std::vector<std::string_view>& cols) {
+  return cols[0].starts_with("ITEM:");
+}
+
+// The words of an item line after "ITEM:", one space apart ("BOX BOUNDS xy xz yz pp pp pp").
+std::string item_text(const std::vector<std::string_view>& cols) {
+  std::vector<std::string_view> words(cols.begin() + 1, cols.end());
+  if (cols[0].size() > 5) words.insert(words.begin(), cols[0].substr(5));
+  return joined(words);
+}
+
+// The items of a LAMMPS text dump; UNITS and TIME appear with dump_modify units / time yes.
+constexpr std::array<std::string_view, 6> kDumpItems = {"TIMESTEP", "NUMBER OF ATOMS", "BOX BOUNDS",
+                                                        "ATOMS",    "UNITS",           "TIME"};
+
+std::string_view dump_item(std::string_view text) {
+  for (std::string_view name : kDumpItems)
+    if (text.starts_with(name) && (text.size() == name.size() || text[name.size()] == ' '))
+      return name;
+  return {};
+}
+
+std::uint64_t whole_number(const std::vector<std::string_view>& cols, std::string_view item,
+                           const std::string& where) {
+  std::uint64_t n = 0;
+  const std::string_view t = cols[0];
+  const auto [end, ec] = std::from_chars(t.data(), t.data() + t.size(), n);
+  require(cols.size() == 1 && ec == std::errc() && end == t.data() + t.size(),
+          where + "ITEM: " + std::string(item) + " '" + joined(cols) +
+              "': must be one whole number >= 0");
+  return n;
+}
+
+// Reads one snapshot item by item: an "ITEM: NAME ..." line opens an item, the lines up to the
+// next one are its rows, and each item's row count is checked when the next one opens.
+class DumpReader {
+ public:
+  DumpReader(PackingLines& lines, double default_radius)
+      : lines_(lines), default_radius_(default_radius) {}
+
+  Particles read() {
+    do {
+      if (is_item_line(lines_.cols())) {
+        close_item();
+        open_item();
+      } else {
+        read_row();
+      }
+    } while (lines_.next());
+    close_item();
+    const std::string key = file_key(lines_.path());
+    require(first_line_.count("ATOMS"), key + "a dump without ITEM: ATOMS holds no particle");
+    require(atom_count_ > 0, key + "ITEM: NUMBER OF ATOMS is 0: the dump holds no particle");
+    return std::move(particles_);
+  }
+
+ private:
+  void open_item() {
+    const std::string where = lines_.where(), text = item_text(lines_.cols());
+    const std::string_view name = dump_item(text);
+    require(!name.empty(), where + "ITEM: " + text + ": not an item of a LAMMPS text dump (" +
+                               "TIMESTEP, NUMBER OF ATOMS, BOX BOUNDS, ATOMS, UNITS, TIME)");
+    if (name == "TIMESTEP" && first_line_.count(name)) refuse_snapshots(where);
+    if (const auto first = first_line_.find(name); first != first_line_.end())
+      throw InputError(where + "a second ITEM: " + std::string(name) + " (the first is on line " +
+                       std::to_string(first->second) + ")");
+    first_line_[name] = lines_.number();
+    item_ = name;
+    rows_ = 0;
+    if (name == "BOX BOUNDS") box_columns_ = text.find(" xy") != std::string::npos ? 3 : 2;
+    if (name == "ATOMS") {
+      require(first_line_.count("NUMBER OF ATOMS"),
+              where + "ITEM: ATOMS before ITEM: NUMBER OF ATOMS; a dump gives the count first");
+      atoms_ =
+          atom_columns(split_columns(std::string_view(text).substr(5)), default_radius_, where);
+    }
+  }
+
+  void read_row() {
+    const auto& cols = lines_.cols();
+    const std::string where = lines_.where();
+    ++rows_;
+    if (item_ == "ATOMS") {
+      add_atom_row(particles_, atoms_, default_radius_, cols, where, first_line_["ATOMS"]);
+    } else if (item_ == "NUMBER OF ATOMS" || item_ == "TIMESTEP") {
+      const std::uint64_t n = whole_number(cols, item_, where);
+      if (item_ == "NUMBER OF ATOMS") atom_count_ = n;
+    } else if (item_ == "BOX BOUNDS") {
+      require(cols.size() == box_columns_,
+              where + "expected " + std::to_string(box_columns_) + " columns (lo hi" +
+                  (box_columns_ == 3 ? " tilt" : "") + ", as ITEM: BOX BOUNDS names), found " +
+                  std::to_string(cols.size()));
+      for (std::size_t k = 0; k < cols.size(); ++k) finite_column(cols, k, where);
+    }  // UNITS and TIME: a name and a time the simulation does not use
+  }
+
+  // Each item has the rows it announces; a truncated or hand-edited dump stops here.
+  void close_item() {
+    if (item_.empty()) return;
+    const std::size_t line = first_line_[item_];
+    const std::string where = lines_.path() + ":" + std::to_string(line) + ": ";
+    if (item_ == "ATOMS") {
+      require(rows_ == atom_count_, where + "ITEM: ATOMS is followed by " + std::to_string(rows_) +
+                                        " rows; ITEM: NUMBER OF ATOMS (line " +
+                                        std::to_string(first_line_["NUMBER OF ATOMS"]) + ") says " +
+                                        std::to_string(atom_count_));
+      return;
+    }
+    const std::size_t need = item_ == "BOX BOUNDS" ? 3 : 1;
+    require(rows_ == need, where + "ITEM: " + std::string(item_) + " is followed by " +
+                               std::to_string(rows_) + " lines; it needs " + std::to_string(need));
+  }
+
+  // Which snapshot to simulate is the user's choice, so a trajectory is refused, never cut.
+  [[noreturn]] void refuse_snapshots(const std::string& where) {
+    std::size_t snapshots = 2;
+    while (lines_.next())
+      if (is_item_line(lines_.cols()) && dump_item(item_text(lines_.cols())) == "TIMESTEP")
+        ++snapshots;
+    throw InputError(where + "a second ITEM: TIMESTEP: the dump holds " +
+                     std::to_string(snapshots) +
+                     " snapshots; keep one (the one to simulate) in the file, e.g. with "
+                     "LAMMPS write_dump or by cutting the file at its ITEM: TIMESTEP lines");
+  }
+
+  PackingLines& lines_;
+  double default_radius_;
+  Particles particles_;
+  std::string_view item_;  // the item being read, one of kDumpItems; empty before the first
+  std::size_t rows_ = 0;
+  std::map<std::string_view, std::size_t> first_line_;  // the line each item opens on
+  std::uint64_t atom_count_ = 0;
+  std::size_t box_columns_ = 2;  // lo hi, and a tilt factor in a triclinic box
+  AtomColumns atoms_;
+};
+
+}  // namespace
+
+Particles read_packing_file(const std::string& path, double default_radius) {
+  // Checked before opening: a FIFO would block the open, a device would be read without end.
+  std::error_code ec;
+  require(!std::filesystem::exists(path, ec) || std::filesystem::is_regular_file(path, ec),
+          file_key(path) + "not a regular file (a directory, FIFO or device)");
+  std::ifstream in(path);
+  require(in.good(), file_key(path) + "cannot open for reading");
+  PackingLines lines(in, path);
   // An empty bed is allowed when asked for (packing.count = 0), not from a file that lost its data.
-  require(p.size() > 0, "packing.file = \"" + path + "\": holds no particle (" +
-                            (seen_header ? "a header line only" : "no data line") + ")");
+  require(lines.next(), file_key(path) + "holds no particle (no data line)");
+  Particles p = is_item_line(lines.cols()) ? DumpReader(lines, default_radius).read()
+                                           : read_plain_columns(lines, default_radius);
+  require(!in.bad(), file_key(path) + "read error");
   return p;
 }
 

@@ -15,7 +15,7 @@ struct PackingSpec {
   double radius_ratio = 0.325;            // L of the paper: R = L (D^3 / N_p)^(1/3) = L D / N_p^(1/3)
   double solid_fraction = 0.3;            // rsa target: N (4/3) pi R^3 / D^3
   std::uint64_t seed = 1;
-  std::string file;                       // x y z r columns (source = file)
+  std::string file;                       // x y z r columns or a LAMMPS dump (source = file)
   double file_radius = 0.0;               // radius for x y z files; 0: the file must give r
   double initial_temperature = 300.0;
 };
@@ -43,6 +43,10 @@ Particles lattice_packing(std::size_t count, double size, double radius_ratio);
 // line (no column a number) before the data allowed. InputError with "path:line:" for missing
 // columns, non-numbers (a typo in the first data line too), a second header, NaN/inf, r <= 0,
 // a volume that is not a positive finite double, or a centre +- r that overflows.
+// A file whose first line starts with "ITEM:" is read as one snapshot of a LAMMPS / LIGGGHTS text
+// dump (`dump ... custom ... x y z radius`): centre from x y z (else xu yu zu), radius from
+// radius (else diameter / 2, else default_radius); scaled coordinates, several snapshots or a
+// row count other than NUMBER OF ATOMS are refused, and each row passes the checks above.
 Particles read_packing_file(const std::string& path, double default_radius = 0.0);
 void write_packing_file(const std::string& path, const Particles& particles);
 

@@ -1,4 +1,5 @@
-// Packings: counts, radii, bounds, seeds, non-overlap, and the x y z r file format with its errors.
+// Packings: counts, radii, bounds, seeds, non-overlap, and the x y z r and LAMMPS dump file formats
+// with their errors.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -6,6 +7,10 @@
 #include <filesystem>
 #include <fstream>
 #include <numbers>
+#include <sstream>
+#include <string>
+#include <tuple>
+#include <vector>
 
 #include "geometry/contact.h"
 #include "geometry/error.h"
@@ -191,4 +196,220 @@ TEST(PackingFile, ReadsTheDemBedWithItsRadius) {
   // Without a default radius the three-column file is an error on line 1.
   EXPECT_NE(read_error("dem3", "0.1 0.2 0.3\n").find(":1: expected 4 columns (x y z r), found 3"),
             std::string::npos);
+}
+
+namespace {
+
+// A one-snapshot LAMMPS text dump (`dump ... custom ...`) whose ITEM: ATOMS line names `columns`;
+// NUMBER OF ATOMS is the row count unless `count` says otherwise.
+std::string lammps_dump(const std::string& columns, const std::vector<std::string>& rows,
+                        long count = -1, const std::string& timestep = "1000") {
+  std::string text = "ITEM: TIMESTEP\n" + timestep + "\nITEM: NUMBER OF ATOMS\n" +
+                     std::to_string(count < 0 ? long(rows.size()) : count) +
+                     "\nITEM: BOX BOUNDS pp pp fm\n-0.5 0.5\n-0.5 0.5\n0 0.2\nITEM: ATOMS " +
+                     columns + "\n";
+  for (const auto& row : rows) text += row + "\n";
+  return text;
+}
+
+// The line of `text` (from 1) that starts with `start`, as it appears in error messages.
+std::string line_of(const std::string& text, const std::string& start) {
+  std::size_t line = 1;
+  for (std::size_t at = 0; at < text.size(); at = text.find('\n', at) + 1, ++line)
+    if (text.compare(at, start.size(), start) == 0) return ":" + std::to_string(line) + ": ";
+  return "(no line starting '" + start + "')";
+}
+
+}  // namespace
+
+TEST(PackingDump, RadiusColumnIsReadExactly) {
+  const Particles p = read_packing_file(temp_file(
+      "dump_radius",
+      lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.05 0.01", "2 1 -0.3 0.4 0.125 0.0125"})));
+  ASSERT_EQ(p.size(), 2u);
+  EXPECT_EQ(p.centre[0], Vec3(0.1, 0.2, 0.05));
+  EXPECT_EQ(p.radius[0], 0.01);
+  EXPECT_EQ(p.centre[1], Vec3(-0.3, 0.4, 0.125));
+  EXPECT_EQ(p.radius[1], 0.0125);
+}
+
+TEST(PackingDump, DiameterColumnIsHalved) {
+  const Particles p = read_packing_file(
+      temp_file("dump_diameter", lammps_dump("id type x y z diameter", {"1 1 0.1 0.2 0.3 0.02"})));
+  ASSERT_EQ(p.size(), 1u);
+  EXPECT_EQ(p.radius[0], 0.01);
+  EXPECT_EQ(p.centre[0], Vec3(0.1, 0.2, 0.3));
+}
+
+TEST(PackingDump, UnwrappedCoordinatesAreUsedAndWrappedOnesPreferred) {
+  const Particles u = read_packing_file(
+      temp_file("dump_xu", lammps_dump("id type xu yu zu radius", {"1 1 1.5 -2.5 0.1 0.01"})));
+  ASSERT_EQ(u.size(), 1u);
+  EXPECT_EQ(u.centre[0], Vec3(1.5, -2.5, 0.1));
+  const Particles both = read_packing_file(
+      temp_file("dump_x_and_xu",
+                lammps_dump("id xu yu zu x y z radius", {"1 1.5 -2.5 0.1 0.5 0.25 0.1 0.01"})));
+  EXPECT_EQ(both.centre[0], Vec3(0.5, 0.25, 0.1));
+}
+
+TEST(PackingDump, ColumnsInAnyOrderAndExtraColumns) {
+  const Particles p = read_packing_file(temp_file(
+      "dump_order", lammps_dump("id type vx x radius y z",
+                                {"7 2 -9.5 0.1 0.01 0.2 0.3", "8 2 4.0 0.4 0.02 0.5 0.6"})));
+  ASSERT_EQ(p.size(), 2u);
+  EXPECT_EQ(p.centre[0], Vec3(0.1, 0.2, 0.3));
+  EXPECT_EQ(p.radius[0], 0.01);
+  EXPECT_EQ(p.centre[1], Vec3(0.4, 0.5, 0.6));
+  EXPECT_EQ(p.radius[1], 0.02);
+}
+
+TEST(PackingDump, TriclinicBoxAndOptionalItemsAreAccepted) {
+  const std::string text =
+      "ITEM: UNITS\nsi\nITEM: TIME\n0.5\nITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n1\n"
+      "ITEM: BOX BOUNDS xy xz yz pp pp pp\n-0.5 0.5 0.1\n-0.5 0.5 0\n0 0.2 0\n"
+      "ITEM: ATOMS id type x y z radius\n1 1 0.1 0.2 0.05 0.01\n";
+  EXPECT_EQ(read_packing_file(temp_file("dump_triclinic", text)).centre[0], Vec3(0.1, 0.2, 0.05));
+  std::string orthogonal_bounds = text;
+  orthogonal_bounds.replace(orthogonal_bounds.find("-0.5 0.5 0.1"), 12, "-0.5 0.5");
+  EXPECT_NE(read_error("dump_tilt_missing", orthogonal_bounds)
+                .find(line_of(orthogonal_bounds, "-0.5 0.5\n") + "expected 3 columns (lo hi tilt"),
+            std::string::npos);
+}
+
+TEST(PackingDump, SeveralSnapshotsAreRefusedWithTheirCount) {
+  const std::string one = lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.05 0.01"});
+  const std::string three =
+      one + lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.04 0.01"}, -1, "2000") +
+      lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.03 0.01"}, -1, "3000");
+  const std::string m = read_error("dump_three", three);
+  EXPECT_NE(m.find(":11: a second ITEM: TIMESTEP"), std::string::npos) << m;
+  EXPECT_NE(m.find("holds 3 snapshots"), std::string::npos) << m;
+  EXPECT_NE(m.find("keep one"), std::string::npos) << m;
+}
+
+TEST(PackingDump, RowCountMustMatchNumberOfAtoms) {
+  const std::vector<std::string> rows = {"1 1 0.1 0.2 0.05 0.01", "2 1 0.3 0.2 0.05 0.01"};
+  const std::string fewer = lammps_dump("id type x y z radius", rows, 3);
+  std::string m = read_error("dump_fewer", fewer);
+  EXPECT_NE(m.find(line_of(fewer, "ITEM: ATOMS") + "ITEM: ATOMS is followed by 2 rows; ITEM: "
+                                                   "NUMBER OF ATOMS (line 3) says 3"),
+            std::string::npos)
+      << m;
+  m = read_error("dump_more", lammps_dump("id type x y z radius", rows, 1));
+  EXPECT_NE(m.find("followed by 2 rows; ITEM: NUMBER OF ATOMS (line 3) says 1"), std::string::npos)
+      << m;
+  const std::string short_row = lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.05"});
+  m = read_error("dump_short_row", short_row);
+  EXPECT_NE(m.find(line_of(short_row, "1 1 0.1") +
+                   "expected 6 columns (as ITEM: ATOMS on line 9 names), found 5"),
+            std::string::npos)
+      << m;
+  EXPECT_NE(read_error("dump_none", lammps_dump("id type x y z radius", {}))
+                .find("NUMBER OF ATOMS is 0: the dump holds no particle"),
+            std::string::npos);
+}
+
+TEST(PackingDump, ScaledCoordinatesAreRefused) {
+  for (const char* columns : {"id type xs ys zs radius", "id type xsu ysu zsu radius"}) {
+    const std::string text = lammps_dump(columns, {"1 1 0.6 0.7 0.25 0.01"});
+    const std::string m = read_error("dump_scaled", text);
+    EXPECT_NE(m.find(line_of(text, "ITEM: ATOMS") + "ITEM: ATOMS names " + columns +
+                     ": scaled coordinates"),
+              std::string::npos)
+        << m;
+    EXPECT_NE(m.find("dump x y z"), std::string::npos) << m;
+  }
+  EXPECT_NE(read_error("dump_no_z", lammps_dump("id type x y radius", {"1 1 0.6 0.7 0.01"}))
+                .find("no centre columns; a dump needs x y z (or xu yu zu)"),
+            std::string::npos);
+}
+
+TEST(PackingDump, MissingRadiusNeedsPackingRadius) {
+  const std::string text = lammps_dump("id type x y z", {"1 1 0.1 0.2 0.05", "2 1 0.3 0.2 0.05"});
+  const std::string m = read_error("dump_no_radius", text);
+  EXPECT_NE(m.find(line_of(text, "ITEM: ATOMS") +
+                   "ITEM: ATOMS names id type x y z: no radius or diameter column"),
+            std::string::npos)
+      << m;
+  EXPECT_NE(m.find("packing.radius"), std::string::npos) << m;
+  const Particles p = read_packing_file(temp_file("dump_default_radius", text), 0.01);
+  ASSERT_EQ(p.size(), 2u);
+  EXPECT_EQ(p.radius[0], 0.01);
+  EXPECT_EQ(p.radius[1], 0.01);
+  EXPECT_EQ(p.centre[1], Vec3(0.3, 0.2, 0.05));
+  // A radius column wins over packing.radius: the dump knows each sphere's size.
+  EXPECT_EQ(read_packing_file(temp_file("dump_both_radii",
+                                        lammps_dump("id x y z radius", {"1 0.1 0.2 0.3 0.02"})),
+                              0.01)
+                .radius[0],
+            0.02);
+}
+
+TEST(PackingDump, EveryValueCheckOfPlainFilesApplies) {
+  const std::string columns = "id type vx x radius y z";  // x is column 4, the radius column 5
+  auto error = [&](const std::string& row) {
+    const std::string text = lammps_dump(columns, {"1 1 0 0.1 0.01 0.2 0.3", row});
+    return std::make_pair(read_error("dump_values", text), line_of(text, row));
+  };
+  auto [m, at] = error("2 1 0 0.1 -1 0.2 0.3");
+  EXPECT_NE(m.find(at + "radius r = -1: must be > 0"), std::string::npos) << m;
+  std::tie(m, at) = error("2 1 0 nan 0.01 0.2 0.3");
+  EXPECT_NE(m.find(at + "column 4 'nan' is not finite"), std::string::npos) << m;
+  std::tie(m, at) = error("2 1 0 0.1 0.01 abc 0.3");
+  EXPECT_NE(m.find(at + "column 6 'abc' is not a number"), std::string::npos) << m;
+  std::tie(m, at) = error("2 1 0 0.1 1e-120 0.2 0.3");
+  EXPECT_NE(m.find(at + "radius r = 1e-120: its volume"), std::string::npos) << m;
+  std::tie(m, at) = error("2 1 0 0.1 inf 0.2 0.3");
+  EXPECT_NE(m.find(at + "column 5 'inf' is not finite"), std::string::npos) << m;
+  // An unused column is not read: a velocity that is not a number does not stop the dump.
+  EXPECT_EQ(
+      read_packing_file(temp_file("dump_unused", lammps_dump(columns, {"1 1 - 0.1 0.01 0.2 0.3"})))
+          .size(),
+      1u);
+}
+
+TEST(PackingDump, MalformedHeadersAreRefused) {
+  EXPECT_NE(read_error("dump_unknown_item", "ITEM: TIMESTEP\n0\nITEM: ENTRIES c_1\n1\n")
+                .find(":3: ITEM: ENTRIES c_1: not an item of a LAMMPS text dump"),
+            std::string::npos);
+  EXPECT_NE(read_error("dump_atoms_first", "ITEM: ATOMS id x y z radius\n1 0.1 0.2 0.3 0.01\n")
+                .find(":1: ITEM: ATOMS before ITEM: NUMBER OF ATOMS"),
+            std::string::npos);
+  EXPECT_NE(read_error("dump_bad_count", "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n2.5\n")
+                .find(":4: ITEM: NUMBER OF ATOMS '2.5': must be one whole number >= 0"),
+            std::string::npos);
+  EXPECT_NE(read_error("dump_no_atoms", "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n2\n")
+                .find("a dump without ITEM: ATOMS holds no particle"),
+            std::string::npos);
+  // A plain file stays plain when only a comment mentions ITEM:.
+  EXPECT_EQ(read_packing_file(temp_file("plain_item_comment", "# ITEM: ATOMS\nx y z r\n1 2 3 1\n"))
+                .size(),
+            1u);
+}
+
+TEST(PackingDump, DemBedRowsAsADumpGiveTheSameParticles) {
+  const std::string path = std::string(BEAMPACK_DATA_DIR) + "/dem_bed_28367_r0.01.xyz";
+  if (!fs::exists(path)) GTEST_SKIP() << "shared data not present at " << path;
+  std::ifstream bed(path);
+  std::string plain, line;
+  std::vector<std::string> with_radius, without_radius;
+  for (int id = 1; id <= 50 && std::getline(bed, line); ++id) {
+    plain += line + "\n";
+    std::istringstream xyz(line);
+    std::string x, y, z;
+    xyz >> x >> y >> z;  // the file's own text, so both readers parse the same digits
+    with_radius.push_back(std::to_string(id) + " 1 " + z + " 0.01 " + x + " 0 " + y);
+    without_radius.push_back(std::to_string(id) + " 1 " + x + " " + y + " " + z);
+  }
+  ASSERT_EQ(with_radius.size(), 50u);
+  const Particles expected = read_packing_file(temp_file("dem_50.xyz", plain), 0.01);
+  ASSERT_EQ(expected.size(), 50u);
+  EXPECT_TRUE(
+      same_packing(read_packing_file(temp_file(
+                       "dem_50_radius.dump", lammps_dump("id type z radius x vx y", with_radius))),
+                   expected));
+  EXPECT_TRUE(same_packing(
+      read_packing_file(temp_file("dem_50.dump", lammps_dump("id type x y z", without_radius)),
+                        0.01),
+      expected));
 }
