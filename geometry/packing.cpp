@@ -315,6 +315,10 @@ AtomColumns atom_columns(const std::vector<std::string_view>& names, double defa
                              : ": no centre columns; a dump needs x y z (or xu yu zu)"));
   }
   a.centre = {*x, *y, *z};
+  // Two radii for one sphere: which to use is the user's to say (a plain x y z r file refuses
+  // packing.radius the same way).
+  require(!(default_radius > 0 && (column("radius") || column("diameter"))),
+          where + found + ": the dump gives radii, and packing.radius gives one too; drop one");
   if ((a.radius = column("radius"))) return a;
   if ((a.radius = column("diameter"))) {
     a.radius_per_value = 0.5;

@@ -337,12 +337,17 @@ TEST(PackingDump, MissingRadiusNeedsPackingRadius) {
   EXPECT_EQ(p.radius[0], 0.01);
   EXPECT_EQ(p.radius[1], 0.01);
   EXPECT_EQ(p.centre[1], Vec3(0.3, 0.2, 0.05));
-  // A radius column wins over packing.radius: the dump knows each sphere's size.
-  EXPECT_EQ(read_packing_file(temp_file("dump_both_radii",
-                                        lammps_dump("id x y z radius", {"1 0.1 0.2 0.3 0.02"})),
-                              0.01)
-                .radius[0],
-            0.02);
+  // A radius column and packing.radius: two radii for one sphere, refused as a plain x y z r
+  // file with packing.radius is.
+  for (const char* column : {"radius", "diameter"}) {
+    const std::string both = lammps_dump(std::string("id x y z ") + column, {"1 0.1 0.2 0.3 0.02"});
+    try {
+      read_packing_file(temp_file("dump_both_radii", both), 0.01);
+      ADD_FAILURE() << column << ": two radii accepted";
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find("packing.radius gives one too"), std::string::npos) << e.what();
+    }
+  }
 }
 
 TEST(PackingDump, EveryValueCheckOfPlainFilesApplies) {
