@@ -117,7 +117,8 @@ void Simulation::check_thermal_masses(double run_energy) const {
 // phi < 1 splits a step longer than its limit into sub-steps, up to thermal.max_substeps. The
 // limit only grows during a run (vaporised particles take their contacts along; capacities are
 // the lesser phase's), so steps the user fixed are checked here, as input: a fixed dt, and with
-// one step per pulse flight the wait for the next pulse, up to pulses.period.
+// one step per pulse flight the wait for the next pulse, up to pulses.period (a little less: the
+// wait is the period less the flight, which is not known yet).
 void Simulation::check_step_limit() const {
   const ThermalSpec& t = spec_.thermal;
   if (t.phi >= 1.0) return;
@@ -136,7 +137,7 @@ void Simulation::check_step_limit() const {
   if (spec_.dt > 0) {
     what << "`thermal.dt` = " << spec_.dt << " s";
     refuse_beyond(spec_.dt, what.str());
-  } else if (spec_.pulses.period > 0) {
+  } else if (spec_.pulses.period > 0 && spec_.pulses.count > 1) {  // waits only between pulses
     what << "`pulses.period` = " << spec_.pulses.period << " s (with `thermal.dt` = \"pulse\" the "
          << "wait for the next pulse is one step)";
     refuse_beyond(spec_.pulses.period, what.str());

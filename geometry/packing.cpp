@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "geometry/cell_grid.h"
+#include "geometry/input_file.h"
 #include "geometry/error.h"
 #include "geometry/random.h"
 
@@ -156,15 +157,15 @@ Particles lattice_packing(std::size_t count, double size, double radius_ratio) {
 
 namespace {
 
+bool is_separator(char c) { return c == ' ' || c == '\t' || c == ',' || c == ';' || c == '\r'; }
+
 std::vector<std::string_view> split_columns(std::string_view line) {
   std::vector<std::string_view> cols;
   std::size_t i = 0;
   while (i < line.size()) {
-    while (i < line.size() && (line[i] == ' ' || line[i] == '\t' || line[i] == ',' || line[i] == '\r'))
-      ++i;
+    while (i < line.size() && is_separator(line[i])) ++i;
     std::size_t j = i;
-    while (j < line.size() && !(line[j] == ' ' || line[j] == '\t' || line[j] == ',' || line[j] == '\r'))
-      ++j;
+    while (j < line.size() && !is_separator(line[j])) ++j;
     if (j > i) cols.push_back(line.substr(i, j - i));
     i = j;
   }
@@ -483,9 +484,8 @@ class DumpReader {
 }  // namespace
 
 Particles read_packing_file(const std::string& path, double default_radius) {
-  // Checked before opening: a FIFO would block the open, a device would be read without end.
   std::error_code ec;
-  require(!std::filesystem::exists(path, ec) || std::filesystem::is_regular_file(path, ec),
+  require(!std::filesystem::exists(path, ec) || readable_input_file(path),
           file_key(path) + "not a regular file (a directory, FIFO or device)");
   std::ifstream in(path);
   require(in.good(), file_key(path) + "cannot open for reading");

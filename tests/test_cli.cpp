@@ -236,8 +236,6 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"material.conductivity", "range of a double"});
   expect_input_error("wall_conductance", "", "--preset quick --set thermal.walls=z- --set thermal.wall_conductance=-0.5",
                      {"thermal.wall_conductance", "-0.5", "or -1"});
-  expect_input_error("walls_without_conduction", "", "--preset quick --set thermal.walls=z- --set material.conductivity=0",
-                     {"thermal.walls", "would take no heat"});
   // Steps beyond phi < 1's sub-step cap are blamed on the key that made them (not thermal.dt).
   expect_input_error("period_substeps", "", "--preset quick --set thermal.phi=0.5 --set pulses.period=1e-6",
                      {"--set pulses.period=1e-6", "`pulses.period` = 1e-06 s", "thermal.max_substeps` = 1000"});
@@ -390,6 +388,7 @@ TEST(Cli, ConvergeWritesLaddersWithTheFinestAsReference) {
       EXPECT_EQ(l2, 0.0) << row.at("ladder");  // the reference against itself
     }
     EXPECT_GT(std::stod(row.at("wall_seconds")), 0.0);
+    EXPECT_FALSE(row.at("resolution").empty());  // INTERFACE.md's name for the rung's value
   }
   EXPECT_EQ(per_ladder.size(), 3u);
   EXPECT_TRUE(fs::exists(out / "convergence.svg"));
@@ -689,14 +688,45 @@ TEST(Cli, ARunLeavesTheUsersFilesAndRefusesToWriteOverItsInputs) {
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_TRUE(fs::exists(frame)) << r.output;
   EXPECT_EQ(r.output.find("removed"), std::string::npos) << r.output;
+  // A killed run leaves only frames and their particles.pvd: those mark a run of beampack's too.
+  const fs::path killed = fresh_dir("killed_run");
+  write(killed / "particles.pvd", "<VTKFile><Collection><DataSet file=\"particles_0000.vtp\"/></Collection></VTKFile>\n");
+  const std::string old_frame = write(killed / "particles_0066.vtp", "frame 67 of a killed run");
+  ASSERT_EQ(run("run --preset quick --quiet --out " + killed.string()).code, 0);
+  EXPECT_FALSE(fs::exists(old_frame));
   const fs::path bed = fresh_dir("input_in_out");
   const std::string packing = write(bed / "particles.csv", "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n");
   const Result over = run("run --preset quick --quiet --set packing.source=file --set packing.file=" + packing +
                           " --out " + bed.string());
   EXPECT_EQ(over.code, 2) << over.output;
   EXPECT_NE(over.output.find("a file the run writes"), std::string::npos) << over.output;
+  // The same through a symbolic link from elsewhere.
+  const fs::path link = fresh_dir("input_link") / "bed.csv";
+  fs::create_symlink(packing, link);
+  const Result linked = run("run --preset quick --quiet --set packing.source=file --set packing.file=" +
+                            link.string() + " --out " + bed.string());
+  EXPECT_EQ(linked.code, 2) << linked.output;
+  EXPECT_NE(linked.output.find("a file the run writes"), std::string::npos) << linked.output;
   std::ifstream kept(packing);
   EXPECT_EQ(std::string(std::istreambuf_iterator<char>(kept), {}), "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n");
+}
+
+// Walls that take no heat (pi K R with K = 0) are legal, and a sweep over K passes through 0:
+// announced, not refused. A single pulse never waits for a next one, so a period longer than
+// phi < 1's sub-step cap allows is no reason to refuse it.
+TEST(Cli, LegalButOddScenesRunAndAreAnnounced) {
+  const fs::path out = fresh_dir("odd_scenes");
+  const Result sweep = run("sweep --preset quick --quiet --set thermal.walls=z- --param material.conductivity "
+                           "--values 10,0 --out " + out.string());
+  ASSERT_EQ(sweep.code, 0) << sweep.output;
+  EXPECT_EQ(read_csv(out / "sweep.csv").size(), 2u);
+  const Result walls = run("run --preset quick --quiet --set thermal.walls=z- --set material.conductivity=0 --out " +
+                           out.string());
+  ASSERT_EQ(walls.code, 0) << walls.output;
+  EXPECT_NE(walls.output.find("the walls take no heat"), std::string::npos) << walls.output;
+  const Result single = run("run --preset quick --quiet --set pulses.count=1 --set thermal.phi=0.5 "
+                            "--set pulses.period=1e-6 --out " + out.string());
+  EXPECT_EQ(single.code, 0) << single.output;
 }
 
 // The stability grid (minutes) stops at Ctrl-C after the cell it is in, and says how far it got.

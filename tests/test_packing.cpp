@@ -1,6 +1,7 @@
 // Packings: counts, radii, bounds, seeds, non-overlap, and the x y z r and LAMMPS dump file formats
 // with their errors.
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <cmath>
 #include <cstdio>
@@ -138,10 +139,26 @@ TEST(PackingFile, RoundTripIsExact) {
 
 TEST(PackingFile, HeaderCommentsAndBlankLinesAreAllowed) {
   const Particles p = read_packing_file(
-      temp_file("header", "x y z r\n# a comment\n\n1 2 3 0.5  # trailing\n4,5,6,0.25\n"));
-  ASSERT_EQ(p.size(), 2u);
+      temp_file("header", "x y z r\n# a comment\n\n1 2 3 0.5  # trailing\n4,5,6,0.25\n7;8;9;0.125\r\n"));
+  ASSERT_EQ(p.size(), 3u);
   EXPECT_EQ(p.centre[1], Vec3(4, 5, 6));
   EXPECT_EQ(p.radius[1], 0.25);
+  EXPECT_EQ(p.centre[2], Vec3(7, 8, 9));  // semicolons (spreadsheets with a decimal comma)
+  EXPECT_EQ(p.radius[2], 0.125);
+}
+
+// A pipe whose writer runs, as a shell's process substitution gives one (/dev/fd/N), is read; a
+// named FIFO or a device is refused unread (tests/test_cli.cpp).
+TEST(PackingFile, APipeFromProcessSubstitutionIsRead) {
+  int fds[2];
+  ASSERT_EQ(pipe(fds), 0);
+  const std::string text = "0 0 0 1\n2 0 0 0.5\n";
+  ASSERT_EQ(write(fds[1], text.data(), text.size()), static_cast<ssize_t>(text.size()));
+  close(fds[1]);
+  const Particles p = read_packing_file("/dev/fd/" + std::to_string(fds[0]));
+  close(fds[0]);
+  ASSERT_EQ(p.size(), 2u);
+  EXPECT_EQ(p.radius[1], 0.5);
 }
 
 TEST(PackingFile, EachErrorNamesItsLine) {

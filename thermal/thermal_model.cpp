@@ -563,7 +563,10 @@ void ThermalModel::solve(double dt, const Eigen::VectorXd& c, const Eigen::Vecto
     clusters_assembly_ = assembly_;
   }
   if (rows() > 0) solve_relative(solve_busy_ ? busy_ : all_, dt, c, t.rel0, dh, t.rel1, report);
-  t.theta1 = t.rel1.array() + reference_;
+  // theta0 plus the change, not rel1 + reference_: the round trip through the reference loses a
+  // bit where theta - reference has another exponent than theta, and could take a heated
+  // particle below its start. The change is >= 0 wherever the solve's is (rounding is monotone).
+  t.theta1 = t.theta0 + (t.rel1 - t.rel0);
 }
 
 void ThermalModel::solve_relative(const System& s, double dt, const Eigen::VectorXd& c,

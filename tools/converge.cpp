@@ -97,7 +97,7 @@ int converge_command(const RunOptions& options) {
       ladder.configs.push_back(load_run_config(sources));
       refuse_run_only_outputs(ladder.configs.back(), "converge");
     }
-  std::string csv = "ladder,key,value,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
+  std::string csv = "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
                     "temperature_l2_error_K,temperature_max_error_K\n";
   Chart chart{"error of the vaporised fraction against run time", "wall seconds",
               "|v_v - v_v(finest)|", true, true, {}};

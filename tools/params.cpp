@@ -1,6 +1,7 @@
 #include "tools/params.h"
 
 #include <algorithm>
+#include <array>
 #include <cerrno>
 #include <cmath>
 #include <cstdio>
@@ -11,6 +12,7 @@
 #include <sstream>
 
 #include "geometry/error.h"
+#include "geometry/input_file.h"
 
 namespace beampack::tools {
 namespace {
@@ -258,18 +260,20 @@ void Params::merge_toml_text(const std::string& text, const std::string& source)
 }
 
 void Params::merge_toml_file(const std::string& path) {
-  // Checked before opening: a FIFO would block the open, a device would be read without end.
   std::error_code ec;
-  const bool regular = std::filesystem::is_regular_file(path, ec);
-  if (std::filesystem::exists(path, ec) && !regular)
+  if (std::filesystem::exists(path, ec) && !readable_input_file(path))
     throw InputError(path + ": the run file is not a regular file (a directory, FIFO or device)");
-  constexpr std::uintmax_t kMaxRunFile = 16u << 20;
-  if (const std::uintmax_t bytes = regular ? std::filesystem::file_size(path, ec) : 0; !ec && bytes > kMaxRunFile)
-    throw InputError(path + ": the run file is " + std::to_string(bytes) +
-                     " bytes: must be <= 16 MiB (a run file is a few kB; is this the packing file?)");
   std::ifstream in(path, std::ios::binary);
   if (!in) throw InputError(path + ": cannot open the run file for reading");
-  std::string text{std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+  // Read to a bound (a pipe has no size to look at first).
+  constexpr std::size_t kMaxRunFile = 16u << 20;
+  std::string text;
+  std::array<char, 1 << 16> block;
+  while (in.read(block.data(), block.size()) || in.gcount() > 0) {
+    text.append(block.data(), static_cast<std::size_t>(in.gcount()));
+    if (text.size() > kMaxRunFile)
+      throw InputError(path + ": the run file is over 16 MiB (a run file is a few kB; is this the packing file?)");
+  }
   if (in.bad()) throw InputError(path + ": read error");
   if (text.starts_with("\xEF\xBB\xBF")) text.erase(0, 3);  // a UTF-8 byte-order mark (some editors)
   toml::table layer;

@@ -342,6 +342,16 @@ void warn_of_many_steps(const SimulationSpec& spec) {
                spec.dt, spec.packing.sample_size, crossing, steps);
 }
 
+// pi K R with K = 0: walls that take no heat. Legal (a sweep over K passes through 0), but not
+// what a run that names walls usually wants.
+void warn_if_walls_take_no_heat(const SimulationSpec& spec) {
+  const auto& walls = spec.thermal.walls;
+  if (walls.empty() || walls.front().conductance >= 0 || spec.materials.front().conductivity > 0) return;
+  std::fprintf(stderr, "beampack: warning: `thermal.walls` with `thermal.wall_conductance` = -1 (pi K R) "
+                       "and `material.conductivity` = 0: the walls take no heat; give "
+                       "thermal.wall_conductance in W/K for walls that do\n");
+}
+
 // Pulses start at step boundaries: a pulses.period shorter than a step delays them.
 void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts) {
   if (counts.late_pulses == 0) return;
@@ -389,14 +399,18 @@ void warn_if_time_stands_still(const Simulation& sim) {
                "`pulses.period` (s) or `thermal.dt` (s) for a time axis\n");
 }
 
-// Whether dir holds a run of beampack's: its summary.json (the figures and the configuration) or
-// its checkpoint. Files of beampack's names in a folder without either are the user's own.
+// Whether dir holds a run of beampack's: its summary.json (the figures and the configuration),
+// its checkpoint, or its frames' particles.pvd (a killed run leaves only those). Files of beampack's names in a folder without either are the user's own.
 bool holds_earlier_run(const fs::path& dir) {
   std::error_code ec;
   if (std::ifstream in(dir / "checkpoint.bin", std::ios::binary); in && fs::is_regular_file(dir / "checkpoint.bin", ec)) {
     std::string head(64, '\0');
     in.read(head.data(), static_cast<std::streamsize>(head.size()));
     if (head.find("beampack-checkpoint") != std::string::npos) return true;
+  }
+  if (std::ifstream pvd(dir / "particles.pvd"); pvd && fs::is_regular_file(dir / "particles.pvd", ec)) {
+    const std::string text{std::istreambuf_iterator<char>(pvd), std::istreambuf_iterator<char>()};
+    if (text.find("file=\"particles_0") != std::string::npos) return true;  // frames of a killed run
   }
   if (!fs::is_regular_file(dir / "summary.json", ec)) return false;
   std::ifstream in(dir / "summary.json");
@@ -412,14 +426,17 @@ bool is_output_name(const fs::path& file) {
 }
 
 // A run file or packing file where the run writes an output would be overwritten (or removed
-// as an earlier run's) before the run has read it, or after: refused.
+// as an earlier run's) before the run has read it, or after: refused. Compared as files, so a
+// symlink or hard link to an output is caught too.
 void refuse_outputs_over_inputs(const fs::path& dir, const std::vector<std::pair<std::string, std::string>>& inputs) {
   for (const auto& [key, path] : inputs) {
-    std::error_code ec;
-    if (path.empty() || !is_output_name(path) || !fs::equivalent(fs::absolute(path).parent_path(), dir, ec))
-      continue;
-    throw InputError(key + " = \"" + path + "\": a file the run writes in --out " + dir.string() +
-                     "; choose another --out or move the file");
+    if (path.empty()) continue;
+    for (const fs::directory_entry& e : fs::directory_iterator(dir)) {
+      std::error_code ec;
+      if (!is_output_name(e.path()) || !fs::equivalent(e.path(), path, ec)) continue;
+      throw InputError(key + " = \"" + path + "\" is " + e.path().string() +
+                       ", a file the run writes: choose another --out or move the file");
+    }
   }
 }
 
@@ -452,6 +469,7 @@ int run_command(const RunOptions& options) {
   }
   const RunConfig config = load_run_config(sources);
   warn_of_many_steps(config.sim);
+  warn_if_walls_take_no_heat(config.sim);
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
   const std::string out_dir = options.resume.empty() || options.out_set ? options.out_dir : options.resume;
   prepare_out_dir(out_dir);

@@ -206,11 +206,6 @@ RunConfig read_config(Params& p) {
   const double paper_dt = read_pulses(p, c.sim, packing_radius(c.sim.packing));
   read_thermal(p, c.sim, paper_dt);
   c.sim.thermal.walls = read_walls(p, c.sim.packing.sample_size);
-  // pi K R with K = 0: walls that take no heat are not what a run that names them wants.
-  if (!c.sim.thermal.walls.empty() && c.sim.thermal.walls.front().conductance < 0 && m.conductivity == 0)
-    p.fail("thermal.walls", "\"" + p.text("thermal.walls", "") + "\"",
-           "with `thermal.wall_conductance` = -1 (pi K R) and `material.conductivity` = 0 the walls "
-           "would take no heat: give thermal.wall_conductance in W/K or a conductivity");
   c.sim.thermal.validate();
   c.paper_dt = paper_dt;
   c.output.frames = p.flag("output.frames", false);
