@@ -200,6 +200,7 @@ class PackingLines {
     while (std::getline(in_, line_)) {
       ++number_;
       std::string_view text = line_;
+      if (number_ == 1 && text.starts_with("\xEF\xBB\xBF")) text.remove_prefix(3);  // a UTF-8 BOM
       if (auto hash = text.find('#'); hash != std::string_view::npos) text = text.substr(0, hash);
       cols_ = split_columns(text);
       if (!cols_.empty()) return true;
@@ -407,14 +408,17 @@ class DumpReader {
     const std::string_view name = dump_item(text);
     require(!name.empty(), where + "ITEM: " + text + ": not an item of a LAMMPS text dump (" +
                                "TIMESTEP, NUMBER OF ATOMS, BOX BOUNDS, ATOMS, UNITS, TIME)");
-    if (name == "TIMESTEP" && first_line_.count(name)) refuse_snapshots(where);
+    // A second TIMESTEP, or a second TIME (dump_modify time yes writes it before TIMESTEP).
+    if ((name == "TIMESTEP" || name == "TIME") && first_line_.count(name))
+      refuse_snapshots(where, name == "TIMESTEP" ? 2 : 1);
     if (const auto first = first_line_.find(name); first != first_line_.end())
       throw InputError(where + "a second ITEM: " + std::string(name) + " (the first is on line " +
                        std::to_string(first->second) + ")");
     first_line_[name] = lines_.number();
     item_ = name;
     rows_ = 0;
-    if (name == "BOX BOUNDS") box_columns_ = text.find(" xy") != std::string::npos ? 3 : 2;
+    if (name == "BOX BOUNDS")  // lo hi; a tilt factor (triclinic); a vector and an origin (general)
+      box_columns_ = text.find(" abc origin") != std::string::npos ? 4 : text.find(" xy") != std::string::npos ? 3 : 2;
     if (name == "ATOMS") {
       require(first_line_.count("NUMBER OF ATOMS"),
               where + "ITEM: ATOMS before ITEM: NUMBER OF ATOMS; a dump gives the count first");
@@ -434,8 +438,9 @@ class DumpReader {
       if (item_ == "NUMBER OF ATOMS") atom_count_ = n;
     } else if (item_ == "BOX BOUNDS") {
       require(cols.size() == box_columns_,
-              where + "expected " + std::to_string(box_columns_) + " columns (lo hi" +
-                  (box_columns_ == 3 ? " tilt" : "") + ", as ITEM: BOX BOUNDS names), found " +
+              where + "expected " + std::to_string(box_columns_) + " columns (" +
+                  (box_columns_ == 4 ? "a vector and an origin" : box_columns_ == 3 ? "lo hi tilt" : "lo hi") +
+                  ", as ITEM: BOX BOUNDS names), found " +
                   std::to_string(cols.size()));
       for (std::size_t k = 0; k < cols.size(); ++k) finite_column(cols, k, where);
     }  // UNITS and TIME: a name and a time the simulation does not use
@@ -459,12 +464,11 @@ class DumpReader {
   }
 
   // Which snapshot to simulate is the user's choice, so a trajectory is refused, never cut.
-  [[noreturn]] void refuse_snapshots(const std::string& where) {
-    std::size_t snapshots = 2;
+  [[noreturn]] void refuse_snapshots(const std::string& where, std::size_t snapshots) {
     while (lines_.next())
       if (is_item_line(lines_.cols()) && dump_item(item_text(lines_.cols())) == "TIMESTEP")
         ++snapshots;
-    throw InputError(where + "a second ITEM: TIMESTEP: the dump holds " +
+    throw InputError(where + "a second snapshot: the dump holds " +
                      std::to_string(snapshots) +
                      " snapshots; keep one (the one to simulate) in the file, e.g. with "
                      "LAMMPS write_dump or by cutting the file at its ITEM: TIMESTEP lines");

@@ -234,6 +234,10 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"beam.seed", "<= 9223372036854775807"});
   expect_input_error("beyond_double", "", "--preset quick --set material.conductivity=1e400",
                      {"material.conductivity", "range of a double"});
+  expect_input_error("below_double", "", "--preset quick --set material.conductivity=1e-400",
+                     {"material.conductivity", "underflows to 0"});  // was 0, silently
+  expect_input_error("below_double_file", "[material]\nconductivity = [1.0, 2e-999]\n", "",
+                     {"run.toml:2", "2e-999: underflows to 0"});
   expect_input_error("wall_conductance", "", "--preset quick --set thermal.walls=z- --set thermal.wall_conductance=-0.5",
                      {"thermal.wall_conductance", "-0.5", "or -1"});
   // Steps beyond phi < 1's sub-step cap are blamed on the key that made them (not thermal.dt).

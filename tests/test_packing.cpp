@@ -299,9 +299,24 @@ TEST(PackingDump, SeveralSnapshotsAreRefusedWithTheirCount) {
       one + lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.04 0.01"}, -1, "2000") +
       lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.03 0.01"}, -1, "3000");
   const std::string m = read_error("dump_three", three);
-  EXPECT_NE(m.find(":11: a second ITEM: TIMESTEP"), std::string::npos) << m;
+  EXPECT_NE(m.find(":11: a second snapshot"), std::string::npos) << m;
   EXPECT_NE(m.find("holds 3 snapshots"), std::string::npos) << m;
   EXPECT_NE(m.find("keep one"), std::string::npos) << m;
+  // With dump_modify time yes each snapshot opens with ITEM: TIME.
+  const std::string timed = "ITEM: TIME\n0.5\n" + one + "ITEM: TIME\n1.5\n" +
+                            lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.04 0.01"}, -1, "2000");
+  const std::string t = read_error("dump_timed", timed);
+  EXPECT_NE(t.find("holds 2 snapshots"), std::string::npos) << t;
+}
+
+// A general triclinic box (ITEM: BOX BOUNDS abc origin: a vector and an origin per row), and a
+// file that starts with a UTF-8 byte-order mark: both read.
+TEST(PackingDump, GeneralTriclinicBoxAndByteOrderMarkAreAccepted) {
+  const std::string text =
+      "\xEF\xBB\xBFITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n1\n"
+      "ITEM: BOX BOUNDS abc origin pp pp pp\n1 0 0 -0.5\n0 1 0 -0.5\n0 0 0.2 0\n"
+      "ITEM: ATOMS id type x y z radius\n1 1 0.1 0.2 0.05 0.01\n";
+  EXPECT_EQ(read_packing_file(temp_file("dump_general", text)).centre[0], Vec3(0.1, 0.2, 0.05));
 }
 
 TEST(PackingDump, RowCountMustMatchNumberOfAtoms) {

@@ -243,9 +243,44 @@ std::string ascii_for_toml(std::string_view text, const std::string& source) {
   return out;
 }
 
+constexpr const char* kUnderflow = "underflows to 0 (nonzero numbers must be >= 2.2e-308 in size)";
+
+// A number written below the doubles' range (1e-400), which the parser rounds to 0 without a word.
+bool underflows(const std::string& token) {
+  char* end = nullptr;
+  errno = 0;
+  const double v = std::strtod(token.c_str(), &end);
+  return !token.empty() && *end == 0 && errno == ERANGE && std::abs(v) < 2.2250738585072014e-308;
+}
+
+// Every 0.0 of a parsed file whose written token underflowed is refused, with its line.
+void reject_underflow(const toml::node& node, const std::vector<std::string_view>& lines,
+                      const std::string& source) {
+  if (const toml::table* t = node.as_table()) {
+    for (const auto& [key, child] : *t) reject_underflow(child, lines, source);
+  } else if (const toml::array* a = node.as_array()) {
+    for (const toml::node& child : *a) reject_underflow(child, lines, source);
+  } else if (node.is_floating_point() && node.as_floating_point()->get() == 0.0) {
+    const toml::source_position at = node.source().begin;
+    if (at.line == 0 || at.line > lines.size() || at.column == 0 || at.column > lines[at.line - 1].size()) return;
+    const std::string_view line = lines[at.line - 1].substr(at.column - 1);
+    const std::string token(line.substr(0, line.find_first_of(" \t,]}#")));
+    if (underflows(token)) throw InputError(source + ":" + std::to_string(at.line) + ": " + token + ": " + kUnderflow);
+  }
+}
+
 toml::table parse_checked(const std::string& text, const std::string& source) {
   reject_invalid_utf8(text, source);
-  return toml::parse(ascii_for_toml(text, source), source);
+  const std::string ascii = ascii_for_toml(text, source);
+  toml::table table = toml::parse(ascii, source);
+  std::vector<std::string_view> lines;
+  for (std::size_t begin = 0; begin <= ascii.size();) {
+    const std::size_t end = std::min(ascii.find('\n', begin), ascii.size());
+    lines.push_back(std::string_view(ascii).substr(begin, end - begin));
+    begin = end + 1;
+  }
+  reject_underflow(table, lines, source);
+  return table;
 }
 
 }  // namespace
@@ -295,6 +330,7 @@ void Params::merge_assignment(const std::string& key_equals_value, const std::st
       std::any_of(parts.begin(), parts.end(), [](const std::string& part) { return part.empty(); }))
     throw InputError(named + ": expected KEY=VALUE with KEY like material.conductivity");
   const std::string value = trimmed(key_equals_value.substr(eq + 1));
+  if (underflows(value)) throw InputError(named + ": `" + key + "` = " + value + ": " + kUnderflow);
   toml::table parsed;
   try {
     parsed = parse_checked("v = " + value, "--set");
