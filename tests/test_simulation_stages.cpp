@@ -6,6 +6,7 @@
 
 #include "engine/beam.h"
 #include "engine/simulation.h"
+#include "engine/state_io.h"
 #include "geometry/error.h"
 
 namespace beampack {
@@ -173,6 +174,52 @@ TEST(SimulationStages, ResampledPulsesCarryTheirOwnRayEnergies) {
   }
   EXPECT_EQ(launches, 3);
   EXPECT_EQ(redrawn, 2);  // pulses 1 and 2 drew rays of their own
+}
+
+// A state whose checksum holds but whose per-particle arrays do not fit the particles (a
+// writer's mistake) is refused by name: a longer temperature array was copied past the
+// particles'. The state is rebuilt from a real one with one temperature too many.
+TEST(SimulationStages, AStateWithAnArrayOfTheWrongLengthIsRefused) {
+  Simulation sim(quick_spec());
+  for (int k = 0; k < 3; ++k) sim.step();
+  StateWriter written;
+  sim.write_state(written);
+  const std::string bytes = written.finish();
+  StateReader in(bytes, "state");
+  const auto version = in.value<std::uint32_t>();
+  Particles p;
+  in.vector(p.centre), in.vector(p.radius), in.vector(p.material);
+  in.vector(p.temperature), in.vector(p.phase), in.vector(p.alive);
+  // What follows the six arrays, byte for byte: after the layout tag (4 + 3 bytes), the version
+  // and the arrays (each its length and values), up to the checksum (8 bytes).
+  const std::size_t n = p.size(), tag = 7, checksum = 8;
+  const std::size_t head = tag + sizeof version + 6 * sizeof(std::uint64_t) + n * sizeof(Vec3) +
+                     n * sizeof(double) * 2 + n * sizeof(p.material[0]) + n * sizeof(p.phase[0]) +
+                     n * sizeof(p.alive[0]);
+  const std::string rest = bytes.substr(head, bytes.size() - head - checksum);
+  auto state_with = [&](std::size_t temperatures) {
+    StateWriter out;
+    out.value(version);
+    std::vector<double> t = p.temperature;
+    t.resize(temperatures, 300.0);
+    out.vector(p.centre), out.vector(p.radius), out.vector(p.material);
+    out.vector(t), out.vector(p.phase), out.vector(p.alive);
+    for (char c : rest) out.value(c);
+    return out.finish();
+  };
+  Simulation same(quick_spec());
+  StateReader as_written(state_with(n), "rebuilt");
+  same.read_state(as_written);  // the rebuilt state, unchanged, reads: the test rebuilds it right
+  EXPECT_EQ(same.particles().temperature, sim.particles().temperature);
+  Simulation other(quick_spec());
+  StateReader longer(state_with(n + 1), "longer");
+  try {
+    other.read_state(longer);
+    ADD_FAILURE() << "a state with " << n + 1 << " temperatures for " << n << " particles was read";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("per-particle array holds " + std::to_string(n + 1)), std::string::npos)
+        << e.what();
+  }
 }
 
 TEST(SimulationStages, BeforeTheFirstStepNothingHasRunYet) {
