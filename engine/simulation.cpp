@@ -120,27 +120,23 @@ void Simulation::check_thermal_masses(double run_energy) const {
 // one step per pulse flight the wait for the next pulse, up to pulses.period (a little less: the
 // wait is the period less the flight, which is not known yet).
 void Simulation::check_step_limit() const {
-  const ThermalSpec& t = spec_.thermal;
-  if (t.phi >= 1.0) return;
-  const double limit = thermal_->monotone_step_limit();
-  auto refuse_beyond = [&](double step, const std::string& what) {
-    if (!(step / limit > t.max_substeps)) return;
-    std::ostringstream msg;
-    msg << what << " with `thermal.phi` = " << t.phi << " exceeds the limit of a "
-        << (t.phi < 0.5 ? "stable" : "monotone") << " step, " << limit << " s, and would need "
-        << std::ceil(step / limit) << " sub-steps > `thermal.max_substeps` = " << t.max_substeps
-        << ": use thermal.phi = 1 (monotone at any step)"
-        << (spec_.dt > 0 ? " or a smaller thermal.dt" : ", a fixed thermal.dt or a shorter period");
-    throw InputError(msg.str());
-  };
   std::ostringstream what;
   if (spec_.dt > 0) {
     what << "`thermal.dt` = " << spec_.dt << " s";
-    refuse_beyond(spec_.dt, what.str());
+    check_substeps(spec_.dt, what.str());
   } else if (spec_.pulses.period > 0 && spec_.pulses.count > 1) {  // waits only between pulses
     what << "`pulses.period` = " << spec_.pulses.period << " s (with `thermal.dt` = \"pulse\" the "
          << "wait for the next pulse is one step)";
-    refuse_beyond(spec_.pulses.period, what.str());
+    check_substeps(spec_.pulses.period, what.str());
+  }
+}
+
+// The thermal model's refusal of a step beyond thermal.max_substeps, naming what made the step.
+void Simulation::check_substeps(double step, const std::string& made_by) const {
+  try {
+    thermal_->substep_count(step);
+  } catch (const InputError& e) {
+    throw InputError(made_by + ": " + e.what());
   }
 }
 
@@ -186,13 +182,10 @@ Beam Simulation::resampled_beam(int pulse) const {
 // The thermal step (3.10). With one step per pulse flight a step's length is the rays' (or the
 // wait for the next pulse), which the user did not write as thermal.dt: a refusal says so.
 StepReport Simulation::heat_step(double dt) {
-  try {
-    return thermal_->step(dt, deposits_, heated_);
-  } catch (const InputError& e) {
-    if (spec_.dt > 0) throw;
-    throw InputError(std::string("`thermal.dt` = \"pulse\" (step ") + std::to_string(counts_.steps) +
-                     " lasts the rays' flight, or the wait for the next pulse): " + e.what());
-  }
+  if (!(spec_.dt > 0))
+    check_substeps(dt, "`thermal.dt` = \"pulse\" (step " + std::to_string(counts_.steps) +
+                           " lasts the rays' flight, or the wait for the next pulse)");
+  return thermal_->step(dt, deposits_, heated_);
 }
 
 // A pulse starts at a step boundary: with thermal.dt = "pulse" a step is a whole flight, so a

@@ -134,6 +134,7 @@ class Simulation {
   std::string skip_reason(int stage) const;
   void check_thermal_masses(double run_energy) const;
   void check_step_limit() const;
+  void check_substeps(double step, const std::string& made_by) const;
   StepReport heat_step(double dt);
 
   SimulationSpec spec_;

@@ -242,7 +242,7 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"thermal.wall_conductance", "-0.5", "or -1"});
   // Steps beyond phi < 1's sub-step cap are blamed on the key that made them (not thermal.dt).
   expect_input_error("period_substeps", "", "--preset quick --set thermal.phi=0.5 --set pulses.period=1e-6",
-                     {"--set pulses.period=1e-6", "`pulses.period` = 1e-06 s", "thermal.max_substeps` = 1000"});
+                     {"--set pulses.period=1e-6", "`pulses.period` = 1e-06 s", "thermal.max_substeps = 1000"});
   expect_input_error("flight_substeps", "",
                      "--preset quick --set thermal.phi=0.5 --set material.conductivity=1e4 --set thermal.max_substeps=1",
                      {"`thermal.dt` = \"pulse\" (step 0 lasts the rays' flight", "thermal.max_substeps = 1"});

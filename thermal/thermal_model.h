@@ -115,6 +115,10 @@ class ThermalModel {
   // stiff modes flip sign every step: a 5-sphere chain cooled in one 1 us step went to -136 K).
   // Infinite for phi = 1 or without conduction.
   double monotone_step_limit() const;
+  // The sub-steps a step of dt takes (dt / monotone_step_limit, rounded up); InputError beyond
+  // thermal.max_substeps. The limit only grows as particles vaporise, so a caller may check a
+  // step it will take before the run.
+  int substep_count(double dt) const;
   // Thermal mass m_i C_i / M of particle i in its current phase (no bands).
   double thermal_mass(std::size_t i) const;
 
@@ -182,7 +186,6 @@ class ThermalModel {
     double at(std::size_t i) const { return absorbed->empty() ? 0.0 : (*absorbed)[i] / parts; }
   };
   Heat checked_heat(const std::vector<double>& absorbed, std::span<const std::uint32_t> given) const;
-  int substep_count(double dt) const;
   void begin_undo();
   void put_back_changed();
   void clear_undo();
