@@ -5,7 +5,6 @@
 #include <charconv>
 #include <cmath>
 #include <cstdio>
-#include <filesystem>
 #include <fstream>
 #include <map>
 #include <numbers>
@@ -488,8 +487,7 @@ class DumpReader {
 }  // namespace
 
 Particles read_packing_file(const std::string& path, double default_radius) {
-  std::error_code ec;
-  require(!std::filesystem::exists(path, ec) || readable_input_file(path),
+  require(!unsafe_input_file(path),
           file_key(path) + "not a regular file (a directory, FIFO or device)");
   std::ifstream in(path);
   require(in.good(), file_key(path) + "cannot open for reading");

@@ -220,11 +220,11 @@ namespace {
 // A one-snapshot LAMMPS text dump (`dump ... custom ...`) whose ITEM: ATOMS line names `columns`;
 // NUMBER OF ATOMS is the row count unless `count` says otherwise.
 std::string lammps_dump(const std::string& columns, const std::vector<std::string>& rows,
-                        long count = -1, const std::string& timestep = "1000") {
+                        long count = -1, const std::string& timestep = "1000",
+                        const std::string& box = "BOX BOUNDS pp pp fm\n-0.5 0.5\n-0.5 0.5\n0 0.2") {
   std::string text = "ITEM: TIMESTEP\n" + timestep + "\nITEM: NUMBER OF ATOMS\n" +
-                     std::to_string(count < 0 ? long(rows.size()) : count) +
-                     "\nITEM: BOX BOUNDS pp pp fm\n-0.5 0.5\n-0.5 0.5\n0 0.2\nITEM: ATOMS " +
-                     columns + "\n";
+                     std::to_string(count < 0 ? long(rows.size()) : count) + "\nITEM: " + box +
+                     "\nITEM: ATOMS " + columns + "\n";
   for (const auto& row : rows) text += row + "\n";
   return text;
 }
@@ -282,9 +282,9 @@ TEST(PackingDump, ColumnsInAnyOrderAndExtraColumns) {
 
 TEST(PackingDump, TriclinicBoxAndOptionalItemsAreAccepted) {
   const std::string text =
-      "ITEM: UNITS\nsi\nITEM: TIME\n0.5\nITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n1\n"
-      "ITEM: BOX BOUNDS xy xz yz pp pp pp\n-0.5 0.5 0.1\n-0.5 0.5 0\n0 0.2 0\n"
-      "ITEM: ATOMS id type x y z radius\n1 1 0.1 0.2 0.05 0.01\n";
+      "ITEM: UNITS\nsi\nITEM: TIME\n0.5\n" +
+      lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.05 0.01"}, -1, "0",
+                  "BOX BOUNDS xy xz yz pp pp pp\n-0.5 0.5 0.1\n-0.5 0.5 0\n0 0.2 0");
   EXPECT_EQ(read_packing_file(temp_file("dump_triclinic", text)).centre[0], Vec3(0.1, 0.2, 0.05));
   std::string orthogonal_bounds = text;
   orthogonal_bounds.replace(orthogonal_bounds.find("-0.5 0.5 0.1"), 12, "-0.5 0.5");
@@ -313,9 +313,8 @@ TEST(PackingDump, SeveralSnapshotsAreRefusedWithTheirCount) {
 // file that starts with a UTF-8 byte-order mark: both read.
 TEST(PackingDump, GeneralTriclinicBoxAndByteOrderMarkAreAccepted) {
   const std::string text =
-      "\xEF\xBB\xBFITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n1\n"
-      "ITEM: BOX BOUNDS abc origin pp pp pp\n1 0 0 -0.5\n0 1 0 -0.5\n0 0 0.2 0\n"
-      "ITEM: ATOMS id type x y z radius\n1 1 0.1 0.2 0.05 0.01\n";
+      "\xEF\xBB\xBF" + lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.05 0.01"}, -1, "0",
+                                "BOX BOUNDS abc origin pp pp pp\n1 0 0 -0.5\n0 1 0 -0.5\n0 0 0.2 0");
   EXPECT_EQ(read_packing_file(temp_file("dump_general", text)).centre[0], Vec3(0.1, 0.2, 0.05));
 }
 

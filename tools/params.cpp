@@ -245,13 +245,18 @@ std::string ascii_for_toml(std::string_view text, const std::string& source) {
 
 constexpr const char* kUnderflow = "underflows to 0 (nonzero numbers must be >= 2.2e-308 in size)";
 
-// A number written below the doubles' range (1e-400), which the parser rounds to 0 without a word.
-bool underflows(const std::string& token) {
+// A number written beyond the doubles' range: +1 above it (1e400: the TOML parser refuses it, so
+// it reaches the reader as text), -1 below it (1e-400: the parser rounds it to 0 without a
+// word), 0 within it or not a number.
+int beyond_doubles(const std::string& token) {
   char* end = nullptr;
   errno = 0;
   const double v = std::strtod(token.c_str(), &end);
-  return !token.empty() && *end == 0 && errno == ERANGE && std::abs(v) < 2.2250738585072014e-308;
+  if (token.empty() || *end != 0 || errno != ERANGE) return 0;
+  return std::isfinite(v) ? -1 : 1;
 }
+
+bool underflows(const std::string& token) { return beyond_doubles(token) < 0; }
 
 // Every 0.0 of a parsed file whose written token underflowed is refused, with its line.
 void reject_underflow(const toml::node& node, const std::vector<std::string_view>& lines,
@@ -295,8 +300,7 @@ void Params::merge_toml_text(const std::string& text, const std::string& source)
 }
 
 void Params::merge_toml_file(const std::string& path) {
-  std::error_code ec;
-  if (std::filesystem::exists(path, ec) && !readable_input_file(path))
+  if (unsafe_input_file(path))
     throw InputError(path + ": the run file is not a regular file (a directory, FIFO or device)");
   std::ifstream in(path, std::ios::binary);
   if (!in) throw InputError(path + ": cannot open the run file for reading");
@@ -404,18 +408,6 @@ void Params::fail(const std::string& key, const std::string& value, const std::s
   throw InputError(where(key) + "`" + key + "` = " + value + ": " + limit);
 }
 
-namespace {
-// A number too large for a double reaches the reader as text (the TOML parser refuses it).
-bool out_of_double_range(const toml::node& node) {
-  if (!node.is_string()) return false;
-  const std::string& text = node.as_string()->get();
-  char* end = nullptr;
-  errno = 0;
-  const double v = std::strtod(text.c_str(), &end);
-  return !text.empty() && *end == 0 && errno == ERANGE && !std::isfinite(v);
-}
-}  // namespace
-
 double Params::number(const std::string& key, double fallback, double lo, double hi, bool lo_open) {
   double v = fallback;
   if (const toml::node* node = find(key)) {
@@ -423,7 +415,7 @@ double Params::number(const std::string& key, double fallback, double lo, double
       v = double(node->as_integer()->get());
     else if (node->is_floating_point())
       v = node->as_floating_point()->get();
-    else if (out_of_double_range(*node))
+    else if (node->is_string() && beyond_doubles(node->as_string()->get()) > 0)
       fail(key, repr(*node), "must be a finite number (|x| <= 1.8e308, the range of a double)");
     else
       fail(key, repr(*node), "must be a number");

@@ -399,22 +399,24 @@ void warn_if_time_stands_still(const Simulation& sim) {
                "`pulses.period` (s) or `thermal.dt` (s) for a time axis\n");
 }
 
-// Whether dir holds a run of beampack's: its summary.json (the figures and the configuration),
-// its checkpoint, or its frames' particles.pvd (a killed run leaves only those). Files of beampack's names in a folder without either are the user's own.
-bool holds_earlier_run(const fs::path& dir) {
+// The first `bytes` of a regular file; "" for anything else (a FIFO would block the open).
+std::string head_of(const fs::path& file, std::size_t bytes) {
   std::error_code ec;
-  if (std::ifstream in(dir / "checkpoint.bin", std::ios::binary); in && fs::is_regular_file(dir / "checkpoint.bin", ec)) {
-    std::string head(64, '\0');
-    in.read(head.data(), static_cast<std::streamsize>(head.size()));
-    if (head.find("beampack-checkpoint") != std::string::npos) return true;
-  }
-  if (std::ifstream pvd(dir / "particles.pvd"); pvd && fs::is_regular_file(dir / "particles.pvd", ec)) {
-    const std::string text{std::istreambuf_iterator<char>(pvd), std::istreambuf_iterator<char>()};
-    if (text.find("file=\"particles_0") != std::string::npos) return true;  // frames of a killed run
-  }
-  if (!fs::is_regular_file(dir / "summary.json", ec)) return false;
-  std::ifstream in(dir / "summary.json");
-  const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
+  if (!fs::is_regular_file(file, ec)) return "";
+  std::ifstream in(file, std::ios::binary);
+  std::string head(bytes, '\0');
+  in.read(head.data(), static_cast<std::streamsize>(bytes));
+  head.resize(static_cast<std::size_t>(in.gcount()));
+  return head;
+}
+
+// Whether dir holds a run of beampack's: its checkpoint, its frames' particles.pvd (a killed run
+// leaves only those), or its summary.json (the figures and the configuration). Files of
+// beampack's names in a folder without any of them are the user's own.
+bool holds_earlier_run(const fs::path& dir) {
+  if (head_of(dir / "checkpoint.bin", 64).find("beampack-checkpoint") != std::string::npos) return true;
+  if (head_of(dir / "particles.pvd", 4096).find("file=\"particles_0") != std::string::npos) return true;
+  const nlohmann::json j = nlohmann::json::parse(head_of(dir / "summary.json", 1 << 24), nullptr, false);
   return j.is_object() && j.contains("vaporized_fraction") && j.contains("config");
 }
 
