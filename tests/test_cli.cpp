@@ -15,6 +15,7 @@
 #include <sstream>
 
 #include "tests/test_dirs.h"
+#include "tools/run_config.h"
 
 namespace fs = std::filesystem;
 
@@ -672,6 +673,14 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   EXPECT_TRUE(fs::exists(mine));
   EXPECT_EQ(int(read_json(out / "summary.json")["pulses"]), 2);
   EXPECT_EQ(run("run --resume " + out.string() + " --quiet").code, 2);  // nothing left to resume
+  // Bad input changes nothing, also when it is found while the packing is read (a flawed row).
+  const std::string flawed = write(fresh_dir("earlier_run_input") / "flawed.xyz", "0 0 0 1e-4\n0 0 0 -1\n");
+  const Result refused = run("run --preset quick --quiet --set packing.source=file --set packing.file=" + flawed +
+                             " --out " + out.string());
+  ASSERT_EQ(refused.code, 2) << refused.output;
+  EXPECT_NE(refused.output.find("flawed.xyz:2: radius r = -1: must be > 0"), std::string::npos) << refused.output;
+  EXPECT_EQ(int(read_json(out / "summary.json")["pulses"]), 2) << refused.output;
+  EXPECT_TRUE(fs::exists(out / "particles.csv"));
   // A run that fails leaves no results, rather than the earlier run's as if they were its own.
   const Result failed = run("run --preset zohdi2013 --quiet --set thermal.solver=fixed-point "
                             "--set material.conductivity=1e6 --out " + out.string());
@@ -731,6 +740,17 @@ TEST(Cli, LegalButOddScenesRunAndAreAnnounced) {
   const Result single = run("run --preset quick --quiet --set pulses.count=1 --set thermal.phi=0.5 "
                             "--set pulses.period=1e-6 --out " + out.string());
   EXPECT_EQ(single.code, 0) << single.output;
+}
+
+// A beam beyond the machine's memory is refused at once, before any allocation, naming its key.
+TEST(Cli, ABeamBeyondTheMachinesMemoryIsRefusedAtOnce) {
+  if (beampack::tools::machine_memory() > 3.9e10) GTEST_SKIP() << "10^8 rays fit in this machine's memory";
+  const auto start = std::chrono::steady_clock::now();
+  const Result r = run("run --preset quick --quiet --set beam.rays=100000000 --out " + fresh_dir("huge_beam").string());
+  EXPECT_EQ(r.code, 2) << r.output;
+  EXPECT_NE(r.output.find("--set beam.rays=100000000: `beam.rays` = 100000000: the run needs at least"),
+            std::string::npos) << r.output;
+  EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(), 5.0);
 }
 
 // The stability grid (minutes) stops at Ctrl-C after the cell it is in, and says how far it got.

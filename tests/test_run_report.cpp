@@ -7,6 +7,7 @@
 #include <regex>
 
 #include "tools/run_command.h"
+#include "tools/run_config.h"
 #include "tools/svg_plot.h"
 
 namespace beampack::tools {
@@ -61,6 +62,46 @@ std::vector<std::string> svg_texts(const std::string& svg, const std::string& at
 
 // convergence.svg: log axes label whole decades once each; an error of 0 is a hollow circle on
 // the lower edge, said in a note (it used to be drawn at 1e-6 as if measured, and labels repeated).
+// A scene beyond the machine's memory is refused before set-up, naming the key that needs the
+// most: it ended in std::bad_alloc (exit 1) after minutes of allocation.
+TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
+  constexpr double k24GiB = 24.0 * (1 << 30);
+  SimulationSpec paper;  // 1000 rays on 1000 particles
+  paper.beam.rays = 1000, paper.packing.count = 1000;
+  EXPECT_NO_THROW(refuse_beyond_memory(paper, k24GiB));
+  EXPECT_LT(least_memory_need(paper), 1e7);
+  SimulationSpec rays = paper;
+  rays.beam.rays = 100'000'000;  // 44 GB measured by extrapolation: 437 bytes per ray
+  EXPECT_GE(least_memory_need(rays), 4e10);
+  try {
+    refuse_beyond_memory(rays, k24GiB);
+    ADD_FAILURE() << "10^8 rays fit in 24 GiB";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("`beam.rays` = 100000000:"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("at least 40 GB"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("more than the 25.8 GB of this machine"), std::string::npos) << e.what();
+  }
+  SimulationSpec particles = paper;
+  particles.packing.count = 100'000'000;
+  try {
+    refuse_beyond_memory(particles, k24GiB);
+    ADD_FAILURE() << "10^8 particles fit in 24 GiB";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("`packing.count` = 100000000: the run needs at least 40 GB with beam.rays = 1000 ("), std::string::npos)
+        << e.what();
+  }
+  particles.packing.source = "file";  // counted when the file is read: only the rays are known
+  EXPECT_NO_THROW(refuse_beyond_memory(particles, k24GiB));
+  rays.packing.source = "file";
+  try {
+    refuse_beyond_memory(rays, k24GiB);
+    ADD_FAILURE() << "10^8 rays fit in 24 GiB";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("at least 40 GB for its rays alone"), std::string::npos) << e.what();
+  }
+  EXPECT_GT(machine_memory(), 1e8);
+}
+
 TEST(RunReport, LogChartsLabelEachDecadeOnceAndShowZerosAsZeros) {
   const Chart chart{"t", "x", "y", true, true, {{"a", {0.5, 2.0, 12.0}, {3e-5, 0.2, 0.0}}}};
   const std::string svg = render_svg(chart);

@@ -476,7 +476,6 @@ int run_command(const RunOptions& options) {
   const std::string out_dir = options.resume.empty() || options.out_set ? options.out_dir : options.resume;
   prepare_out_dir(out_dir);
   refuse_outputs_over_inputs(out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});
-  if (options.resume.empty()) remove_earlier_run(out_dir);
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
   const std::unique_ptr<Simulation> owned = start_simulation(config);
@@ -484,6 +483,8 @@ int run_command(const RunOptions& options) {
   warn_if_beam_meets_nothing(sim);
   warn_if_time_stands_still(sim);
   if (saved) sim.read_state(*saved);
+  // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
+  if (options.resume.empty()) remove_earlier_run(out_dir);
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);
   bool checkpoint_due = false;

@@ -45,6 +45,17 @@ std::string locate(const std::string& message, const std::map<std::string, std::
 // thermal masses) names where the key it mentions was set.
 std::unique_ptr<Simulation> start_simulation(const RunConfig& config);
 
+// The least memory a scene needs, in bytes: its rays and its particles, at the bytes each that
+// a run measured (BENCHMARKS.md, "Memory a run needs"). Less than a run takes, never more.
+double least_memory_need(const SimulationSpec& s);
+
+// This machine's memory in bytes: the physical memory, or the control group's limit if lower.
+double machine_memory();
+
+// InputError naming the key that needs the most, when a scene needs more than `available` bytes
+// (it would end in std::bad_alloc, or the kernel's out-of-memory kill, part way into set-up).
+void refuse_beyond_memory(const SimulationSpec& s, double available);
+
 // Named presets: TOML text.
 struct Preset {
   const char* name;
