@@ -22,9 +22,10 @@ struct PackingSpec {
 
 Particles make_packing(const PackingSpec& spec);
 
-// The radius a generated packing gives its spheres (the file's radius, or D / 100 when the file
-// gives its own): R = L D / N^(1/3) for random-overlap and lattice (the paper's L, written so
-// that D^3 never over- or underflows), D (3 phi / (4 pi N))^(1/3) for rsa.
+// The radius R of a packing's spheres: R = L D / N^(1/3) for random-overlap and lattice (the
+// paper's L, written so that D^3 never over- or underflows), D (3 phi / (4 pi N))^(1/3) for rsa;
+// for a file, the median of its radii (the paper's R when sizes differ, remark after (3.11)),
+// read from the file, 0 for an empty one.
 double packing_radius(const PackingSpec& spec);
 
 // Generated packings are numbered along a Morton curve (neighbours in space are neighbours in

@@ -3,9 +3,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
+#include <fstream>
 #include <limits>
 #include <regex>
 
+#include "tests/test_dirs.h"
 #include "tools/run_command.h"
 #include "tools/run_config.h"
 #include "tools/svg_plot.h"
@@ -100,6 +103,39 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
     EXPECT_NE(std::string(e.what()).find("at least 40 GB for its rays alone"), std::string::npos) << e.what();
   }
   EXPECT_GT(machine_memory(), 1e8);
+}
+
+// MODEL.md section 2: tau = xi R / c ("auto"), or E / P ("energy"); thermal.dt = "paper" is the
+// paper's ray time step xi R / c. R = L (D^3 / N)^(1/3) = 0.325 (1e-9 / 1000)^(1/3) = 3.25e-5 m.
+TEST(RunReport, PulseDurationAndThePapersStepFollowTheirFormulas) {
+  constexpr double kC = 299'792'458.0, kR = 3.25e-5;
+  RunSources auto_tau;
+  auto_tau.preset = "zohdi2013";
+  auto_tau.sets = {"pulses.duration=\"auto\"", "pulses.xi=0.08", "thermal.dt=\"paper\""};
+  const RunConfig a = load_run_config(auto_tau);
+  EXPECT_NEAR(a.sim.pulses.duration, 0.08 * kR / kC, 1e-12 * a.sim.pulses.duration);
+  EXPECT_NEAR(a.sim.dt, 0.08 * kR / kC, 1e-12 * a.sim.dt);
+  RunSources energy;
+  energy.preset = "zohdi2013";
+  energy.sets = {"pulses.duration=\"energy\"", "pulses.energy=3e-9", "beam.power=1500"};
+  const RunConfig e = load_run_config(energy);
+  EXPECT_DOUBLE_EQ(e.sim.pulses.duration, 3e-9 / 1500);
+  EXPECT_DOUBLE_EQ(e.sim.dt, 0.0);  // the preset's "pulse": one step per pulse flight
+  // A file's spheres differ in size: R is their median (the paper, remark after (3.11)), 3e-5 m
+  // here, and for an even count the mean of the middle two. Was sample.size / 100 = 1e-5 m.
+  const std::filesystem::path dir = beampack::testing::fresh_dir("paper_step");
+  for (const auto& [rows, median] : {std::pair{"1 1 1 1e-5\n2 2 2 2e-4\n3 3 3 3e-5\n", 3e-5},
+                                     std::pair{"1 1 1 1e-5\n2 2 2 2e-4\n3 3 3 3e-5\n4 4 4 4e-5\n", 3.5e-5}}) {
+    std::ofstream(dir / "bed.xyz") << "x y z r\n" << rows;
+    RunSources file = auto_tau;
+    file.sets.push_back("packing.source=\"file\"");
+    file.sets.push_back("packing.file=\"" + (dir / "bed.xyz").string() + "\"");
+    file.sets.push_back("sample.size=5");
+    const RunConfig f = load_run_config(file);
+    EXPECT_NEAR(f.sim.pulses.duration, 0.08 * median / kC, 1e-12 * f.sim.pulses.duration) << rows;
+    EXPECT_NEAR(f.sim.dt, 0.08 * median / kC, 1e-12 * f.sim.dt) << rows;
+    EXPECT_NEAR(paper_step(f.sim.packing, f.xi), 0.08 * median / kC, 1e-12 * f.sim.dt) << rows;  // converge's
+  }
 }
 
 TEST(RunReport, LogChartsLabelEachDecadeOnceAndShowZerosAsZeros) {

@@ -3,10 +3,12 @@
 #include <algorithm>
 #include <cctype>
 #include <cmath>
+#include <functional>
 #include <fstream>
 #include <iomanip>
 #include <limits>
 #include <numbers>
+#include <optional>
 #include <sstream>
 
 #include <unistd.h>
@@ -137,7 +139,7 @@ std::vector<Wall> read_walls(Params& p, double size) {
 
 // thermal.dt: seconds, "pulse" (one step per pulse flight: the event-driven limit) or "paper"
 // (xi R / c, the paper's ray time step).
-void read_thermal(Params& p, SimulationSpec& s, double paper_dt) {
+void read_thermal(Params& p, SimulationSpec& s, const std::function<double()>& paper_step) {
   ThermalSpec& t = s.thermal;
   t.time_scaling = p.number("thermal.time_scaling", 1e6, 0, kBig, true);
   t.phi = p.number("thermal.phi", 1.0, 0, 1);
@@ -148,6 +150,7 @@ void read_thermal(Params& p, SimulationSpec& s, double paper_dt) {
   s.max_staggers = int(p.integer("thermal.max_staggers", 4, 0, 1000));
   double dt = 0;
   const std::string word = p.number_or_word("thermal.dt", dt, 0, kBig, {"pulse", "paper"}, "pulse");
+  const double paper_dt = word == "paper" ? paper_step() : 0.0;
   if (word == "paper" && !(std::isfinite(paper_dt) && paper_dt > 0)) {
     std::ostringstream m;
     m << "`thermal.dt` = \"paper\" gives xi R / c = " << paper_dt
@@ -167,20 +170,20 @@ void read_thermal(Params& p, SimulationSpec& s, double paper_dt) {
 }
 
 // tau: seconds, or "auto" = xi R / c (the paper's ray time step), or from pulses.energy.
-// Returns xi R / c.
-double read_pulses(Params& p, SimulationSpec& s, double radius) {
+// Returns xi.
+double read_pulses(Params& p, SimulationSpec& s, const std::function<double(double xi)>& paper_step) {
   s.pulses.count = int(p.integer("pulses.count", 20, 0, 10'000'000));
   double tau = 0;
   const std::string word = p.number_or_word("pulses.duration", tau, 0, kBig, {"auto", "energy"}, "auto");
   const double xi = p.number("pulses.xi", 0.05, 0, 10, true);
   const double energy = p.number("pulses.energy", 1e-9, 0, kBig, true);
-  if (word == "auto") tau = xi * radius / kSpeedOfLight;
+  if (word == "auto") tau = paper_step(xi);
   if (word == "energy") tau = energy / s.beam.power;
   // Each input is in range, but a quotient can still overflow or underflow (found by fuzz/).
   if (!(std::isfinite(tau) && tau > 0)) {
     std::ostringstream m;
     m << "`pulses.duration` = \"" << word << "\" gives tau = " << tau << " s ("
-      << (word == "auto" ? "pulses.xi * R / c, R from sample.size and packing.*"
+      << (word == "auto" ? "pulses.xi * R / c, R from sample.size and packing.*, or a file's median radius"
                          : "pulses.energy / beam.power")
       << "): must be finite and > 0; give pulses.duration in seconds";
     throw InputError(m.str());
@@ -189,7 +192,7 @@ double read_pulses(Params& p, SimulationSpec& s, double radius) {
   double period = 0;
   const std::string pw = p.number_or_word("pulses.period", period, 0, kBig, {"auto"}, "auto");
   s.pulses.period = pw == "auto" ? 0.0 : period;
-  return xi * radius / kSpeedOfLight;
+  return xi;
 }
 
 // Every key, read in the order the library needs them, and the library's own checks.
@@ -207,11 +210,16 @@ RunConfig read_config(Params& p) {
            "must be < material.vapor_temperature = " + number_text(m.vapor_temperature) +
                " (every particle would start as vapour)");
   }
-  const double paper_dt = read_pulses(p, c.sim, packing_radius(c.sim.packing));
-  read_thermal(p, c.sim, paper_dt);
+  // xi R / c once, and only if a key asks for it: a file's radius is read from the file.
+  std::optional<double> step;
+  auto paper_step = [&](double xi) {
+    if (!step) step = beampack::tools::paper_step(c.sim.packing, xi);
+    return *step;
+  };
+  c.xi = read_pulses(p, c.sim, paper_step);
+  read_thermal(p, c.sim, [&] { return paper_step(c.xi); });
   c.sim.thermal.walls = read_walls(p, c.sim.packing.sample_size);
   c.sim.thermal.validate();
-  c.paper_dt = paper_dt;
   c.output.frames = p.flag("output.frames", false);
   c.output.rays = p.flag("output.rays", false);
   p.check_all_used();  // first: a misspelt key is named before what it would have changed
@@ -270,6 +278,10 @@ std::string locate(const std::string& message, const std::map<std::string, std::
 // per particle without conduction, 600 with). Rounded down: a bound that refuses only the hopeless.
 constexpr double kBytesPerRay = 400;
 constexpr double kBytesPerParticle = 400;
+
+double paper_step(const PackingSpec& packing, double xi) {
+  return xi * packing_radius(packing) / kSpeedOfLight;
+}
 
 double least_memory_need(const SimulationSpec& s) {
   // A file's particles are counted when it is read, after this check; its rays are known.

@@ -20,7 +20,7 @@ struct RunConfig {
   SimulationSpec sim;
   OutputSpec output;
   toml::table resolved;  // every key with the value used
-  double paper_dt = 0;   // xi R / c: the paper's ray time step for this scene
+  double xi = 0.05;      // pulses.xi: the paper's ray time step is xi R / c (paper_step)
   std::map<std::string, std::string> origins;  // key -> where a layer set it ("run.toml:7")
 };
 
@@ -44,6 +44,10 @@ std::string locate(const std::string& message, const std::map<std::string, std::
 // The simulation of a configuration; an InputError from its set-up (the packing file, the
 // thermal masses) names where the key it mentions was set.
 std::unique_ptr<Simulation> start_simulation(const RunConfig& config);
+
+// xi R / c, the paper's ray time step, with R the packing's radius (a file's median radius,
+// read from the file).
+double paper_step(const PackingSpec& packing, double xi);
 
 // The least memory a scene needs, in bytes: its rays and its particles, at the bytes each that
 // a run measured (BENCHMARKS.md, "Memory a run needs"). Less than a run takes, never more.
