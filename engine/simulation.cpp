@@ -405,27 +405,74 @@ void Simulation::write_state(StateWriter& out) const {
   out.value(heat.ledger);
 }
 
+namespace {
+
+// What a checkpoint holds, read whole before the simulation changes.
+struct SavedRun {
+  Particles particles;
+  std::vector<double> absorbed;
+  double time = 0, next_pulse_time = 0, max_temperature = 0;
+  int launched = 0;
+  Counts counts;
+  std::array<StageTime, Simulation::kStages> stages{};
+  RayState rays;
+  Tracer::FirstHits first_hits;
+  ThermalModel::Snapshot heat;
+};
+
+void require_in_state(bool ok, const std::string& what) {
+  if (!ok) throw InputError("checkpoint: " + what);
+}
+
+// A checksum guards the bytes, not a writer's mistake or an edit: every value must be one a run
+// can hold (a particle index past the arrays crashed the tracer, a NaN reached the outputs).
+void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
+  const Particles& p = s.particles;
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    const std::string particle = "particle " + std::to_string(i) + " has ";
+    require_in_state(p.material[i] < spec.materials.size(), particle + "material " + std::to_string(p.material[i]) +
+                                                                " of " + std::to_string(spec.materials.size()));
+    require_in_state(std::isfinite(p.temperature[i]) && p.temperature[i] >= 0,
+                     particle + "temperature " + std::to_string(p.temperature[i]) + " K");
+    require_in_state(p.phase[i] <= Phase::vapor && p.alive[i] <= 1, particle + "a phase or live flag out of range");
+    require_in_state(std::isfinite(s.absorbed[i]) && s.absorbed[i] >= 0,
+                     particle + "absorbed " + std::to_string(s.absorbed[i]) + " J");
+    require_in_state(std::isfinite(s.heat.stored[i]), particle + "stored heat " + std::to_string(s.heat.stored[i]) + " J");
+  }
+  require_in_state(std::isfinite(s.time) && s.time >= 0 && std::isfinite(s.next_pulse_time) &&
+                       s.next_pulse_time >= 0 && !std::isnan(s.max_temperature),
+                   "its time, next pulse time or peak temperature is not a number a run reaches");
+  require_in_state(s.launched >= 0 && s.launched <= spec.pulses.count,
+                   std::to_string(s.launched) + " pulses launched, of pulses.count = " + std::to_string(spec.pulses.count));
+  require_in_state(s.counts.particles == p.size(), "its counts are of " + std::to_string(s.counts.particles) + " particles");
+  const ThermalLedger& h = s.heat.ledger;
+  for (const double v : {h.absorbed, h.stored, h.vaporized, h.walls})
+    require_in_state(std::isfinite(v), "a heat ledger entry is " + std::to_string(v));
+  for (const StageTime& t : s.stages) require_in_state(std::isfinite(t.seconds) && t.seconds >= 0, "a stage time is not finite");
+  s.rays.check_values(p.size(), "checkpoint");
+}
+
+}  // namespace
+
 void Simulation::read_state(StateReader& in) {
   if (in.value<std::uint32_t>() != kStateVersion)
     throw InputError("checkpoint: written by another version of beampack's state format");
-  Particles p;
+  SavedRun s;
+  Particles& p = s.particles;
   in.vector(p.centre), in.vector(p.radius), in.vector(p.material);
   in.vector(p.temperature), in.vector(p.phase), in.vector(p.alive);
   if (p.size() != particles_.size() || p.centre.size() != p.size())
     throw InputError("checkpoint: its packing has " + std::to_string(p.size()) +
                      " particles, the run file's has " + std::to_string(particles_.size()));
-  std::vector<double> absorbed;
-  in.vector(absorbed);
-  time_ = in.value<double>(), next_pulse_time_ = in.value<double>();
-  max_temperature_ = in.value<double>(), launched_ = in.value<int>();
-  counts_ = in.value<Counts>();
-  for (StageTime& s : stages_) s.seconds = in.value<double>(), s.calls = in.value<std::uint64_t>();
-  RayState rays;
-  rays.read(in);
-  tracer_->read_first_hits(in);
-  ThermalModel::Snapshot heat;
-  in.vector(heat.stored);
-  heat.ledger = in.value<ThermalLedger>();
+  in.vector(s.absorbed);
+  s.time = in.value<double>(), s.next_pulse_time = in.value<double>();
+  s.max_temperature = in.value<double>(), s.launched = in.value<int>();
+  s.counts = in.value<Counts>();
+  for (StageTime& t : s.stages) t.seconds = in.value<double>(), t.calls = in.value<std::uint64_t>();
+  s.rays.read(in);
+  s.first_hits = tracer_->read_first_hits(in);
+  in.vector(s.heat.stored);
+  s.heat.ledger = in.value<ThermalLedger>();
   // The geometry must be the run file's: the scene, the grid and the contact graph were built
   // from it. The state arrays are copied into place; the tracer and the heat model keep their
   // references to particles_.
@@ -434,11 +481,15 @@ void Simulation::read_state(StateReader& in) {
   // A checksum guards the bytes, not a writer's mistake: every per-particle array must fit.
   const std::size_t n = p.size();
   for (std::size_t size : {p.material.size(), p.temperature.size(), p.phase.size(), p.alive.size(),
-                           absorbed.size(), heat.stored.size()})
+                           s.absorbed.size(), s.heat.stored.size()})
     if (size != n)
       throw InputError("checkpoint: a per-particle array holds " + std::to_string(size) +
                        " values for " + std::to_string(n) + " particles");
-  absorbed_ = std::move(absorbed);
+  check_saved_values(s, spec_);
+  time_ = s.time, next_pulse_time_ = s.next_pulse_time, max_temperature_ = s.max_temperature;
+  launched_ = s.launched, counts_ = s.counts;
+  for (int k = 0; k < kStages; ++k) stages_[k].seconds = s.stages[k].seconds, stages_[k].calls = s.stages[k].calls;
+  absorbed_ = std::move(s.absorbed);
   std::copy(p.material.begin(), p.material.end(), particles_.material.begin());
   std::copy(p.temperature.begin(), p.temperature.end(), particles_.temperature.begin());
   std::copy(p.phase.begin(), p.phase.end(), particles_.phase.begin());
@@ -447,7 +498,9 @@ void Simulation::read_state(StateReader& in) {
   for (std::uint32_t i = 0; i < particles_.size(); ++i)
     if (!particles_.alive[i]) dead.push_back(i);
   tracer_->remove_particles(dead);
-  tracer_->restore(rays);
+  tracer_->restore(s.rays);
+  tracer_->restore_first_hits(std::move(s.first_hits));
+  ThermalModel::Snapshot& heat = s.heat;
   heat.temperature = particles_.temperature;
   heat.phase = particles_.phase;
   heat.alive = particles_.alive;

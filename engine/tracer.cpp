@@ -609,6 +609,26 @@ void RayState::check_live_count(const std::string& source) const {
                      std::to_string(live_rays) + " rays are live");
 }
 
+void RayState::check_values(std::size_t particles, const std::string& source) const {
+  auto bad = [&](const std::string& what, std::size_t r) {
+    throw InputError(source + ": ray " + std::to_string(r) + " has " + what);
+  };
+  auto finite = [](const Vec3& v) { return v.allFinite(); };
+  for (std::size_t r = 0; r < live.size(); ++r) {
+    for (const std::uint32_t p : {last_particle[r], next_particle[r]})
+      if (p != kNoParticle && p >= particles)
+        bad("particle " + std::to_string(p) + ", beyond the " + std::to_string(particles) + " particles", r);
+    if (!(energy[r] >= 0 && energy[r] <= initial_energy[r] && std::isfinite(initial_energy[r])))
+      bad("energy " + std::to_string(energy[r]) + " J of " + std::to_string(initial_energy[r]) + " J", r);
+    if (!(finite(origin[r]) && finite(direction[r]) && std::isfinite(start_clock[r]) && !std::isnan(t_next[r])))
+      bad("a position, direction or clock that is not a finite number", r);
+    if (live[r] > 1 || bounces[r] < 0) bad("a live flag or bounce count out of range", r);
+  }
+  const OpticsLedger& l = ledger;
+  for (const double v : {l.injected, l.absorbed, l.escaped, l.cutoff, clock})
+    if (!(std::isfinite(v) && v >= 0)) throw InputError(source + ": a ledger entry or the clock is " + std::to_string(v));
+}
+
 void Tracer::write_first_hits(StateWriter& out) const {
   const FirstHits& f = first_hits_;
   for (int a = 0; a < 3; ++a) out.value(f.direction[a]);
@@ -616,7 +636,7 @@ void Tracer::write_first_hits(StateWriter& out) const {
   out.vector(f.origin), out.vector(f.normal), out.vector(f.t), out.vector(f.particle);
 }
 
-void Tracer::read_first_hits(StateReader& in) {
+Tracer::FirstHits Tracer::read_first_hits(StateReader& in) const {
   FirstHits f;
   for (int a = 0; a < 3; ++a) f.direction[a] = in.value<double>();
   f.upstream = in.value<double>();
@@ -628,7 +648,9 @@ void Tracer::read_first_hits(StateReader& in) {
     if (p != kNoParticle && p >= particles_.size())
       throw InputError("checkpoint: a first hit on particle " + std::to_string(p) + " of " +
                        std::to_string(particles_.size()));
-  first_hits_ = std::move(f);
+  for (const double t : f.t)
+    if (!(t >= 0)) throw InputError("checkpoint: a first hit at distance " + std::to_string(t));
+  return f;
 }
 
 // Adds a traced chunk to the deposits, the ledger and the counters: ray order inside the chunk,

@@ -163,6 +163,9 @@ struct RayState {
   void read(StateReader& in);
   // InputError naming `source` when live_count is not the number of live flags.
   void check_live_count(const std::string& source) const;
+  // InputError when a value is beyond what a trace can hold: a particle index past `particles`,
+  // an energy or clock that is negative or not finite, a flag other than 0 or 1.
+  void check_values(std::size_t particles, const std::string& source) const;
 };
 
 class Tracer {
@@ -215,10 +218,22 @@ class Tracer {
 
   RayState save() const { return state_; }
   void restore(const RayState& state);
+  // The first hit of every ray of the last beam launched, by the ray's place k in the beam
+  // (OpticsSpec::reuse_primaries): the beam's direction and start plane, ray k's point on the
+  // beam's disk, and what its query found.
+  struct FirstHits {
+    Vec3 direction = Vec3::Zero();
+    double upstream = 0.0;
+    std::vector<Vec3> origin, normal;
+    std::vector<double> t;
+    std::vector<std::uint32_t> particle;
+  };
   // Checkpoints: the first hits kept for reuse, so a resumed run traces (and counts) what the
   // uninterrupted one would. restore() leaves them alone: they stay true whatever the rays.
+  // Reading checks their lengths, particle indices and distances and changes nothing.
   void write_first_hits(StateWriter& out) const;
-  void read_first_hits(StateReader& in);
+  FirstHits read_first_hits(StateReader& in) const;
+  void restore_first_hits(FirstHits hits) { first_hits_ = std::move(hits); }
 
   // While on, every advance keeps what it changes (the rays of the chunks it ran, the ledger,
   // counters, clock and recorded segments), and undo_advance() puts them back: the stagger's
@@ -284,16 +299,6 @@ class Tracer {
   // its end; the others are in free flight, which changes nothing but the clock.
   std::vector<double> next_event_;
   std::vector<std::uint32_t> due_chunks_;  // per advance: the chunks it runs
-  // The first hit of every ray of the last beam launched, by the ray's place k in the beam
-  // (OpticsSpec::reuse_primaries): the beam's direction and start plane, ray k's point on the
-  // beam's disk, and what its query found.
-  struct FirstHits {
-    Vec3 direction = Vec3::Zero();
-    double upstream = 0.0;
-    std::vector<Vec3> origin, normal;
-    std::vector<double> t;
-    std::vector<std::uint32_t> particle;
-  };
   FirstHits first_hits_;
   // The undo record of the last advance: its totals as they were (each chunk it ran keeps the
   // rays it changed, chunks_[j] for due_chunks_[j]).

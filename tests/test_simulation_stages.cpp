@@ -2,7 +2,13 @@
 // and a stage that ran carries none (brief: "no stage runs unless the scene needs it").
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <array>
+#include <functional>
+#include <limits>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "engine/beam.h"
 #include "engine/simulation.h"
@@ -176,50 +182,146 @@ TEST(SimulationStages, ResampledPulsesCarryTheirOwnRayEnergies) {
   EXPECT_EQ(redrawn, 2);  // pulses 1 and 2 drew rays of their own
 }
 
+// A written state taken apart in write_state's order, to be edited and written again: a
+// checksum guards the bytes, so a state with bad values must be rebuilt whole.
+struct StateParts {
+  std::uint32_t version = 0;
+  Particles p;
+  std::vector<double> absorbed;
+  double time = 0, next_pulse_time = 0, peak = 0;
+  int launched = 0;
+  Counts counts;
+  std::array<std::pair<double, std::uint64_t>, Simulation::kStages> stages{};
+  RayState rays;
+  std::array<double, 4> hit_frame{};  // the first hits' beam direction and start plane
+  std::vector<Vec3> hit_origin, hit_normal;
+  std::vector<double> hit_t;
+  std::vector<std::uint32_t> hit_particle;
+  std::vector<double> stored;
+  ThermalLedger ledger;
+
+  explicit StateParts(const Simulation& sim) {
+    StateWriter written;
+    sim.write_state(written);
+    StateReader in(written.finish(), "state");
+    version = in.value<std::uint32_t>();
+    in.vector(p.centre), in.vector(p.radius), in.vector(p.material);
+    in.vector(p.temperature), in.vector(p.phase), in.vector(p.alive);
+    in.vector(absorbed);
+    time = in.value<double>(), next_pulse_time = in.value<double>(), peak = in.value<double>();
+    launched = in.value<int>(), counts = in.value<Counts>();
+    for (auto& [seconds, calls] : stages) seconds = in.value<double>(), calls = in.value<std::uint64_t>();
+    rays.read(in);
+    for (double& v : hit_frame) v = in.value<double>();
+    in.vector(hit_origin), in.vector(hit_normal), in.vector(hit_t), in.vector(hit_particle);
+    in.vector(stored);
+    ledger = in.value<ThermalLedger>();
+  }
+  std::string bytes() const {
+    StateWriter out;
+    out.value(version);
+    out.vector(p.centre), out.vector(p.radius), out.vector(p.material);
+    out.vector(p.temperature), out.vector(p.phase), out.vector(p.alive);
+    out.vector(absorbed);
+    out.value(time), out.value(next_pulse_time), out.value(peak), out.value(launched), out.value(counts);
+    for (const auto& [seconds, calls] : stages) out.value(seconds), out.value(calls);
+    rays.write(out);
+    for (double v : hit_frame) out.value(v);
+    out.vector(hit_origin), out.vector(hit_normal), out.vector(hit_t), out.vector(hit_particle);
+    out.vector(stored);
+    out.value(ledger);
+    return out.finish();
+  }
+};
+
+// The InputError reading `parts` gives a simulation of `spec`, or "" when it reads.
+std::string read_error(const SimulationSpec& spec, const StateParts& parts) {
+  Simulation sim(spec);
+  StateReader in(parts.bytes(), "rebuilt");
+  try {
+    sim.read_state(in);
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "";
+}
+
 // A state whose checksum holds but whose per-particle arrays do not fit the particles (a
 // writer's mistake) is refused by name: a longer temperature array was copied past the
 // particles'. The state is rebuilt from a real one with one temperature too many.
 TEST(SimulationStages, AStateWithAnArrayOfTheWrongLengthIsRefused) {
   Simulation sim(quick_spec());
   for (int k = 0; k < 3; ++k) sim.step();
-  StateWriter written;
-  sim.write_state(written);
-  const std::string bytes = written.finish();
-  StateReader in(bytes, "state");
-  const auto version = in.value<std::uint32_t>();
-  Particles p;
-  in.vector(p.centre), in.vector(p.radius), in.vector(p.material);
-  in.vector(p.temperature), in.vector(p.phase), in.vector(p.alive);
-  // What follows the six arrays, byte for byte: after the layout tag (4 + 3 bytes), the version
-  // and the arrays (each its length and values), up to the checksum (8 bytes).
-  const std::size_t n = p.size(), tag = 7, checksum = 8;
-  const std::size_t head = tag + sizeof version + 6 * sizeof(std::uint64_t) + n * sizeof(Vec3) +
-                     n * sizeof(double) * 2 + n * sizeof(p.material[0]) + n * sizeof(p.phase[0]) +
-                     n * sizeof(p.alive[0]);
-  const std::string rest = bytes.substr(head, bytes.size() - head - checksum);
-  auto state_with = [&](std::size_t temperatures) {
-    StateWriter out;
-    out.value(version);
-    std::vector<double> t = p.temperature;
-    t.resize(temperatures, 300.0);
-    out.vector(p.centre), out.vector(p.radius), out.vector(p.material);
-    out.vector(t), out.vector(p.phase), out.vector(p.alive);
-    for (char c : rest) out.value(c);
-    return out.finish();
-  };
+  const StateParts parts(sim);
   Simulation same(quick_spec());
-  StateReader as_written(state_with(n), "rebuilt");
+  StateReader as_written(parts.bytes(), "rebuilt");
   same.read_state(as_written);  // the rebuilt state, unchanged, reads: the test rebuilds it right
   EXPECT_EQ(same.particles().temperature, sim.particles().temperature);
-  Simulation other(quick_spec());
-  StateReader longer(state_with(n + 1), "longer");
-  try {
-    other.read_state(longer);
-    ADD_FAILURE() << "a state with " << n + 1 << " temperatures for " << n << " particles was read";
-  } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("per-particle array holds " + std::to_string(n + 1)), std::string::npos)
-        << e.what();
+  StateParts longer = parts;
+  longer.p.temperature.push_back(300.0);
+  const std::size_t n = parts.p.size();
+  EXPECT_NE(read_error(quick_spec(), longer).find("per-particle array holds " + std::to_string(n + 1)),
+            std::string::npos);
+}
+
+// Nor are values a run cannot hold (a review doctored checkpoints and recomputed the checksum):
+// a ray's particle index past the arrays crashed the tracer, a material id read past the
+// materials, NaN reached the outputs, a pulse count beyond pulses.count ran extra rows. Each is
+// refused by name, and a refused state leaves the simulation as it was.
+TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
+  SimulationSpec spec = quick_spec();
+  spec.dt = 4e-13;  // about ten steps per pulse flight: after three, rays are in flight
+  Simulation sim(spec);
+  for (int k = 0; k < 3; ++k) sim.step();
+  const StateParts parts(sim);
+  ASSERT_GT(parts.rays.live_count, 0u);
+  ASSERT_EQ(read_error(spec, parts), "");
+  const std::size_t live = std::size_t(std::find(parts.rays.live.begin(), parts.rays.live.end(), 1) -
+                                       parts.rays.live.begin());
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  const std::vector<std::pair<std::function<void(StateParts&)>, std::string>> edits = {
+      {[](StateParts& s) { s.p.material[3] = 99; }, "particle 3 has material 99 of 1"},
+      {[&](StateParts& s) { s.p.temperature[4] = nan; }, "particle 4 has temperature nan K"},
+      {[](StateParts& s) { s.p.temperature[4] = -50; }, "particle 4 has temperature -50"},
+      {[](StateParts& s) { s.p.phase[5] = Phase(7); }, "particle 5 has a phase or live flag out of range"},
+      {[](StateParts& s) { s.p.alive[5] = 2; }, "particle 5 has a phase or live flag out of range"},
+      {[&](StateParts& s) { s.absorbed[6] = nan; }, "particle 6 has absorbed nan J"},
+      {[&](StateParts& s) { s.stored[6] = nan; }, "particle 6 has stored heat nan J"},
+      {[&](StateParts& s) { s.time = nan; }, "its time, next pulse time or peak"},
+      {[&](StateParts& s) { s.peak = nan; }, "its time, next pulse time or peak"},
+      {[](StateParts& s) { s.launched = 99; }, "99 pulses launched, of pulses.count = 5"},
+      {[](StateParts& s) { s.launched = -5; }, "-5 pulses launched"},
+      {[](StateParts& s) { s.counts.particles = 7; }, "its counts are of 7 particles"},
+      {[&](StateParts& s) { s.ledger.walls = nan; }, "a heat ledger entry is nan"},
+      {[&](StateParts& s) { s.stages[1].first = nan; }, "a stage time is not finite"},
+      {[&](StateParts& s) { s.rays.next_particle[live] = 5'000'000; },
+       "ray " + std::to_string(live) + " has particle 5000000, beyond the 200 particles"},
+      {[&](StateParts& s) { s.rays.last_particle[live] = 200; }, "has particle 200, beyond the 200"},
+      {[&](StateParts& s) { s.rays.energy[live] = nan; }, "ray " + std::to_string(live) + " has energy nan"},
+      {[&](StateParts& s) { s.rays.energy[live] = 2 * s.rays.initial_energy[live]; }, " has energy "},
+      {[&](StateParts& s) { s.rays.start_clock[live] = nan; }, "clock that is not a finite number"},
+      {[&](StateParts& s) { s.rays.ledger.escaped = -1; }, "a ledger entry or the clock is -1"},
+      {[&](StateParts& s) { s.hit_t.front() = nan; }, "a first hit at distance nan"},
+  };
+  ASSERT_FALSE(parts.hit_t.empty());
+  for (const auto& [edit, message] : edits) {
+    StateParts bad = parts;
+    edit(bad);
+    const std::string error = read_error(spec, bad);
+    EXPECT_NE(error.find("checkpoint: "), std::string::npos) << message << ": " << error;
+    EXPECT_NE(error.find(message), std::string::npos) << message << ": " << error;
   }
+  // A refused state changes nothing: the simulation goes on as if it had never read it.
+  Simulation kept(spec), fresh(spec);
+  StateParts bad = parts;
+  bad.rays.next_particle[live] = 5'000'000;
+  StateReader in(bad.bytes(), "rebuilt");
+  EXPECT_THROW(kept.read_state(in), InputError);
+  while (kept.step() | fresh.step()) {
+  }
+  EXPECT_EQ(kept.particles().temperature, fresh.particles().temperature);
+  EXPECT_EQ(kept.figures().time, fresh.figures().time);
+  EXPECT_EQ(kept.counts().segments, fresh.counts().segments);
 }
 
 TEST(SimulationStages, BeforeTheFirstStepNothingHasRunYet) {
