@@ -559,6 +559,29 @@ TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
   EXPECT_EQ(file_text(dir / "particles.csv"), file_text(whole / "particles.csv"));
 }
 
+// A set-up of seconds (2e6 particles and their contacts) cannot stop between steps: a first
+// interrupt says it will stop after the step, a second ends the process at once (by the signal,
+// as a shell expects: status 130). Before, every further Ctrl-C waited for the set-up.
+TEST(Cli, ASecondInterruptEndsALongSetUpAtOnce) {
+  const fs::path dir = fresh_dir("interrupt_twice");
+  const std::string script = write(dir / "twice.sh", std::string(BEAMPACK_CLI) +
+      " run --preset zohdi2013 --set packing.count=2000000 --set material.conductivity=100 --quiet --out " +
+      (dir / "out").string() + " 2>" + (dir / "stderr").string() + " & p=$!\n"
+      "sleep 0.5; kill -INT $p; sleep 0.5; kill -INT $p; wait $p; echo \"status $?\"\n");
+  const auto start = std::chrono::steady_clock::now();
+  std::FILE* pipe = popen(("bash " + script).c_str(), "r");
+  std::string out;
+  std::array<char, 256> buf;
+  while (std::fgets(buf.data(), buf.size(), pipe)) out += buf.data();
+  pclose(pipe);
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  if (out.find("status 0") != std::string::npos) GTEST_SKIP() << "the run finished before the interrupts";
+  EXPECT_NE(out.find("status 130"), std::string::npos) << out << file_text(dir / "stderr");
+  EXPECT_NE(file_text(dir / "stderr").find("interrupt again to quit at once"), std::string::npos);
+  EXPECT_LT(seconds, 3.0) << "the set-up alone takes about 7 s";
+  EXPECT_FALSE(fs::exists(dir / "out" / "summary.json"));
+}
+
 // A thermal.dt far below light's crossing time of the sample is legal but makes millions of steps
 // per pulse: the run says so before it starts; a step of a thousandth of the crossing does not.
 TEST(Cli, ATimeStepOfMillionsOfStepsPerCrossingIsAnnounced) {
@@ -735,6 +758,16 @@ TEST(Cli, ARunLeavesTheUsersFilesAndRefusesToWriteOverItsInputs) {
   const std::string old_frame = write(killed / "particles_0066.vtp", "frame 67 of a killed run");
   ASSERT_EQ(run("run --preset quick --quiet --out " + killed.string()).code, 0);
   EXPECT_FALSE(fs::exists(old_frame));
+  // A killed run that wrote ray paths only leaves those, and perhaps a temporary file of a write
+  // it was in: both go too.
+  const fs::path rays = fresh_dir("killed_rays_run");
+  ASSERT_EQ(run("run --preset quick --quiet --set output.rays=true --out " + rays.string()).code, 0);
+  for (const char* name : {"summary.json", "history.csv", "particles.csv"}) fs::remove(rays / name);
+  const std::string temporary = write(rays / "checkpoint.bin.tmp.4242", "half a checkpoint");
+  ASSERT_EQ(run("run --preset quick --quiet --set pulses.count=2 --out " + rays.string()).code, 0);
+  EXPECT_FALSE(fs::exists(rays / "rays_0004.vtp"));
+  EXPECT_FALSE(fs::exists(rays / "rays_0000.vtp"));
+  EXPECT_FALSE(fs::exists(temporary));
   const fs::path bed = fresh_dir("input_in_out");
   const std::string packing = write(bed / "particles.csv", "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n");
   const Result over = run("run --preset quick --quiet --set packing.source=file --set packing.file=" + packing +

@@ -16,6 +16,8 @@
 #include <sstream>
 #include <string_view>
 
+#include <unistd.h>
+
 #include "geometry/error.h"
 #include "tools/svg_plot.h"
 #include "tools/writers.h"
@@ -28,9 +30,26 @@ std::atomic<bool>& stop_requested() {
   return flag;
 }
 
+namespace {
+
+// The first SIGINT or SIGTERM asks the run to stop between steps and write what it has; a second
+// one ends the process at once, for a set-up or a step that would keep the user waiting.
+void on_interrupt(int signal) {
+  if (stop_requested().exchange(true)) {
+    std::signal(signal, SIG_DFL);
+    std::raise(signal);
+    return;
+  }
+  static constexpr char kNote[] = "\nbeampack: stopping after the current step; interrupt again to quit at once\n";
+  [[maybe_unused]] const auto written = ::write(STDERR_FILENO, kNote, sizeof kNote - 1);
+}
+
+}  // namespace
+
 void install_interrupt_handler() {
-  std::signal(SIGINT, [](int) { stop_requested().store(true); });
-  std::signal(SIGTERM, [](int) { stop_requested().store(true); });
+  stop_requested();  // the flag exists before a signal can arrive
+  std::signal(SIGINT, on_interrupt);
+  std::signal(SIGTERM, on_interrupt);
 }
 
 namespace {
@@ -410,20 +429,22 @@ std::string head_of(const fs::path& file, std::size_t bytes) {
   return head;
 }
 
-// Whether dir holds a run of beampack's: its checkpoint, its frames' particles.pvd (a killed run
-// leaves only those), or its summary.json (the figures and the configuration). Files of
-// beampack's names in a folder without any of them are the user's own.
+// Whether dir holds a run of beampack's: its checkpoint, its frames' particles.pvd or its first
+// ray paths (a killed run leaves only those), or its summary.json (the figures and the
+// configuration). Files of beampack's names in a folder without any of them are the user's own.
 bool holds_earlier_run(const fs::path& dir) {
   if (head_of(dir / "checkpoint.bin", 64).find("beampack-checkpoint") != std::string::npos) return true;
   if (head_of(dir / "particles.pvd", 4096).find("file=\"particles_0") != std::string::npos) return true;
+  if (head_of(dir / "rays_0000.vtp", 256).find("<!-- written by beampack -->") != std::string::npos) return true;
   const nlohmann::json j = nlohmann::json::parse(head_of(dir / "summary.json", 1 << 24), nullptr, false);
   return j.is_object() && j.contains("vaporized_fraction") && j.contains("config");
 }
 
-// The names of the files a run writes into its output folder.
+// The names of the files a run writes into its output folder, and of the temporary files it
+// writes them through (a killed run can leave one).
 bool is_output_name(const fs::path& file) {
-  static const std::regex ours(R"((particles|rays)_\d{4}\.vtp|particles\.pvd|checkpoint\.bin|)"
-                               R"(summary\.json|history\.csv|particles\.csv)");
+  static const std::regex ours(R"(((particles|rays)_\d{4}\.vtp|particles\.pvd|checkpoint\.bin|)"
+                               R"(summary\.json|history\.csv|particles\.csv)(\.tmp\.\d+)?)");
   return std::regex_match(file.filename().string(), ours);
 }
 

@@ -63,6 +63,7 @@ void data_array(std::ostream& out, const char* type, const char* name, int compo
 
 void vtp_header(std::ostream& out, std::size_t points, std::size_t verts, std::size_t lines) {
   out << "<?xml version=\"1.0\"?>\n"
+         "<!-- written by beampack -->\n"
          "<VTKFile type=\"PolyData\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
          "  <PolyData>\n"
       << "    <Piece NumberOfPoints=\"" << points << "\" NumberOfVerts=\"" << verts
