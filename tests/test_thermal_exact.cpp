@@ -4,6 +4,7 @@
 
 #include <Eigen/Eigenvalues>
 #include <cmath>
+#include <numbers>
 
 #include "geometry/contact.h"
 #include "tests/thermal_test_util.h"
@@ -88,7 +89,12 @@ TEST_P(TwoParticles, DifferenceDecaysExponentiallyEnergyConstant) {
   spec.solver = GetParam();
   ThermalModel model(p, {a, b}, spec);
   model.set_contacts(contacts);
-  const double c1 = model.thermal_mass(0), c2 = model.thermal_mass(1);
+  // m C / M by hand (section 1, 4.1; M = 1e6 by default), each sphere with its own material and
+  // radius: rho 4/3 pi r^3 C_S / M.
+  const double c1 = 1000.0 * 4.0 / 3.0 * std::numbers::pi * std::pow(1e-4, 3) * 1000.0 / 1e6;
+  const double c2 = 3000.0 * 4.0 / 3.0 * std::numbers::pi * std::pow(0.8e-4, 3) * 700.0 / 1e6;
+  EXPECT_NEAR(model.thermal_mass(0) / c1, 1.0, 1e-14);
+  EXPECT_NEAR(model.thermal_mass(1) / c2, 1.0, 1e-14);
   const double rate = g * (1.0 / c1 + 1.0 / c2);
   const double energy0 = c1 * p.temperature[0] + c2 * p.temperature[1];
   const double dt = 0.002 / rate;  // the fixed-point contraction dt phi 2G/c_min is < 0.002
@@ -152,7 +158,14 @@ TEST(ThermalExact, ChainMatchesMatrixExponential) {
   const double g_wall = std::numbers::pi * 20 * 0.6 * a;
   lw(0, 0) += g_wall;
   b[0] = g_wall * 250.0;
-  for (int k = 0; k < n; ++k) c[k] = model.thermal_mass(k), theta0[k] = p.temperature[k];
+  // m C / M by hand: rho 4/3 pi (0.6 a)^3 C_S / M with rho = 1000 (even k) or 4000 (odd k),
+  // C_S = 1000 and M = 1e6 (the defaults); the model's own masses must agree.
+  for (int k = 0; k < n; ++k) {
+    const double rho = k % 2 ? 4000.0 : 1000.0;
+    c[k] = rho * 4.0 / 3.0 * std::numbers::pi * std::pow(0.6 * a, 3) * 1000.0 / 1e6;
+    theta0[k] = p.temperature[k];
+    EXPECT_NEAR(model.thermal_mass(static_cast<std::size_t>(k)) / c[k], 1.0, 1e-14) << k;
+  }
 
   Eigen::GeneralizedSelfAdjointEigenSolver<Eigen::MatrixXd> eig(lw, Eigen::MatrixXd(c.asDiagonal()));
   const double slowest = eig.eigenvalues().minCoeff(), fastest = eig.eigenvalues().maxCoeff();
