@@ -21,6 +21,15 @@ double mass_over_m(const Material& m) {
   return m.density * 4.0 / 3.0 * std::numbers::pi * std::pow(kRadius, 3) / kScaling;
 }
 
+// Distinct latent bands (J/(kg K)), so that a band applied in place of another changes the answer.
+Material distinct_bands() {
+  Material m;
+  m.latent_melt = 1000;
+  m.latent_solidify = 3000;
+  m.latent_vapor = 5000;
+  return m;
+}
+
 struct Single {
   Particles p;
   Material m;
@@ -36,9 +45,10 @@ struct Single {
 };
 
 TEST(ThermalPhase, ThroughMeltAndVaporInOneStepVaporisesWithBothBands) {
-  Single s(300.0);
+  Single s(300.0, {}, distinct_bands());
   const Material& m = s.m;
-  const double c_eff = mass_over_m(m) * (m.c_solid + m.latent_melt + m.latent_vapor);
+  // C_eff = C_S + dP_SL + dP_LV = 1000 + 1000 + 5000 = 7000 J/(kg K).
+  const double c_eff = mass_over_m(m) * 7000.0;
   const double dh = c_eff * 500.0;  // 300 -> 800 K with both bands: beyond theta_v = 700
   const StepReport r = s.model.step(1e-9, {dh});
   ASSERT_EQ(r.vaporized, std::vector<std::uint32_t>{0});
@@ -56,28 +66,49 @@ TEST(ThermalPhase, ThroughMeltAndVaporInOneStepVaporisesWithBothBands) {
 }
 
 TEST(ThermalPhase, BandsHoldBackVaporisation) {
-  // Enough to vaporise with C_S alone (predictor: 1300 K), not with both bands (corrector):
-  // the particle ends liquid at theta0 + dH / (C_S + dP_SL + dP_LV) (m / M).
-  Single s(300.0);
+  // Enough to vaporise with C_S alone (predictor: 300 + 7 * 350 = 2750 K), not with both bands
+  // (corrector, C_eff = 1000 + 1000 + 5000 = 7000): the particle ends liquid at 300 + 350 = 650 K.
+  Single s(300.0, {}, distinct_bands());
   const Material& m = s.m;
-  const double dh = mass_over_m(m) * m.c_solid * 1000.0;
+  const double dh = mass_over_m(m) * 7000.0 * 350.0;
   const StepReport r = s.model.step(1e-9, {dh});
   EXPECT_TRUE(r.vaporized.empty());
   ASSERT_EQ(r.phase_changed, std::vector<std::uint32_t>{0});
   EXPECT_EQ(s.p.phase[0], Phase::liquid);
-  const double c_eff = mass_over_m(m) * (m.c_solid + m.latent_melt + m.latent_vapor);
-  EXPECT_NEAR(s.p.temperature[0], 300.0 + dh / c_eff, 1e-9);
+  EXPECT_NEAR(s.p.temperature[0], 650.0, 1e-9);
   EXPECT_NEAR(s.model.ledger().stored, dh, 1e-12 * dh);
 }
 
 TEST(ThermalPhase, MeltingUsesSolidPlusMeltBand) {
-  Single s(550.0);
+  Single s(550.0, {}, distinct_bands());
   const Material& m = s.m;
-  const double dh = mass_over_m(m) * m.c_solid * 130.0;  // predictor 680 K: crosses theta_m only
+  // Predictor 680 K: crosses theta_m only. Corrector C_eff = C_S + dP_SL = 2000: 550 + 130 / 2 =
+  // 615 K, liquid (with the vapour band's 5000 instead it would stay solid at 571.7 K).
+  const double dh = mass_over_m(m) * m.c_solid * 130.0;
   const StepReport r = s.model.step(1e-9, {dh});
   ASSERT_EQ(r.phase_changed, std::vector<std::uint32_t>{0});
   EXPECT_EQ(s.p.phase[0], Phase::liquid);
-  EXPECT_NEAR(s.p.temperature[0], 550.0 + dh / (mass_over_m(m) * (m.c_solid + m.latent_melt)), 1e-9);
+  EXPECT_NEAR(s.p.temperature[0], 615.0, 1e-9);
+}
+
+// MODEL.md 5 step 3: a liquid crossing theta_v upward is re-solved with C = C_L + dP_LV/dtheta.
+// Liquid at 650 K, dH = m C_L 80 / M: predictor 730 K >= theta_v = 700 K; corrector with
+// C_eff = 2000 + 5000 = 7000: 650 + 80 * 2000 / 7000 = 672.857 K, below theta_v, so it stays
+// liquid (the band of a predicted crossing stands, as for melting). No melt band: it starts liquid.
+TEST(ThermalPhase, LiquidCrossingVaporAloneUsesLiquidPlusVaporBand) {
+  Single s(650.0, {}, distinct_bands());
+  const Material& m = s.m;
+  ASSERT_EQ(s.p.phase[0], Phase::liquid);
+  const double dh = mass_over_m(m) * 2000.0 * 80.0;
+  const StepReport r = s.model.step(1e-9, {dh});
+  EXPECT_TRUE(r.phase_corrected);
+  EXPECT_TRUE(r.vaporized.empty());
+  EXPECT_TRUE(r.phase_changed.empty());
+  EXPECT_EQ(s.p.alive[0], 1);
+  EXPECT_EQ(s.p.phase[0], Phase::liquid);
+  EXPECT_NEAR(s.p.temperature[0], 650.0 + 80.0 * 2000.0 / 7000.0, 1e-9);
+  // The ledger stores what the corrector's capacity took: m C_eff / M * 22.857 K = dH.
+  EXPECT_NEAR(s.model.ledger().stored, dh, 1e-12 * dh);
 }
 
 TEST(ThermalPhase, BandOfAPredictedCrossingStaysEvenIfTheCorrectorFallsShort) {
