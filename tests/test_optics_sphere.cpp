@@ -211,7 +211,8 @@ struct PencilRun {
   double escaped;
 };
 
-PencilRun trace_pencils(double n_solid, Polarisation polarisation, const std::vector<double>& phis) {
+PencilRun trace_pencils(double n_solid, Polarisation polarisation, const std::vector<double>& phis,
+                        double n_liquid = 1.0) {
   const double s = 1e-4;  // length unit
   Particles p;
   p.add(Vec3(0, 0, 0), 1.0 * s);
@@ -219,7 +220,7 @@ PencilRun trace_pencils(double n_solid, Polarisation polarisation, const std::ve
   p.phase[1] = Phase::liquid;
   OpticsSpec optics;
   optics.materials[0].n_solid = n_solid;
-  optics.materials[0].n_liquid = 1.0;
+  optics.materials[0].n_liquid = n_liquid;
   optics.polarisation = polarisation;
   Tracer tracer(p, optics);
   Beam beam;
@@ -272,6 +273,85 @@ TEST(OpticsSphere, PolarisedPencilsSplitTheirFieldOnEachPlaneOfIncidence) {
   EXPECT_NEAR(run.deposits[0], expected_a, 1e-12);
   EXPECT_NEAR(run.deposits[1], n - expected_a, 1e-12);
   EXPECT_GT(std::abs(expected_a - n * (1.0 - 0.5 * (r.parallel + r.perpendicular))), 1e-3);
+  EXPECT_EQ(run.hits, 2u * n);
+}
+
+// Fresnel amplitude ratios for real index n (mu = 1), written out here apart from fresnel.h:
+// n cos_t = sqrt(n^2 - sin^2 theta_i), r_s = (cos_i - n cos_t) / (cos_i + n cos_t),
+// r_p = (n^2 cos_i - n cos_t) / (n^2 cos_i + n cos_t) (Born & Wolf 1.5.(21a) with mu = 1).
+struct HandFresnel {
+  double par, perp;  // R_par = r_p^2, R_perp = r_s^2
+};
+HandFresnel hand_fresnel(double cos_i, double n) {
+  const double n_cos_t = std::sqrt(n * n - (1.0 - cos_i * cos_i));
+  const double rs = (cos_i - n_cos_t) / (cos_i + n_cos_t);
+  const double rp = (n * n * cos_i - n_cos_t) / (n * n * cos_i + n_cos_t);
+  return {rp * rp, rs * rs};
+}
+
+// The field at psi = 90 deg is along v = d x u = x x z = -y for a +x beam (u = x x y = z, the
+// disk axes of tracer.h). The pencil at azimuth phi has its plane of incidence through x and
+// (0, cos phi, sin phi), so the field's in-plane share is cos^2 gamma = (-y . (0, cos phi,
+// sin phi))^2 = cos^2 phi: A absorbs 1 - R_par cos^2 phi - R_perp sin^2 phi (2.18), B (n = 1) the
+// rest. A tracer that ignored psi (field always along u = z) would give sin^2 and cos^2 swapped.
+TEST(OpticsSphere, PolarisedPencilsAtNinetyDegreesTurnTheirShareWithTheField) {
+  const HandFresnel r = hand_fresnel(std::cos(kPencilIncidence), 3.0);
+  const int n = 8;
+  std::vector<double> phis;
+  double expected_a = 0, swapped = 0;
+  for (int k = 0; k < n; ++k) {
+    const double phi = 0.1 + 0.3 * k;
+    phis.push_back(phi);
+    const double cos2 = std::cos(phi) * std::cos(phi);
+    expected_a += 1.0 - r.par * cos2 - r.perp * (1.0 - cos2);
+    swapped += 1.0 - r.par * (1.0 - cos2) - r.perp * cos2;
+  }
+  const PencilRun run = trace_pencils(3.0, {true, 0.5 * kPi}, phis);
+  EXPECT_NEAR(run.deposits[0], expected_a, 1e-12);
+  EXPECT_NEAR(run.deposits[1], n - expected_a, 1e-12);
+  EXPECT_GT(std::abs(expected_a - swapped), 1e-2);  // psi = 0 would be told apart
+  EXPECT_EQ(run.hits, 2u * n);
+}
+
+// B too has n = 3 (liquid index), so what it absorbs depends on the field the ray carries after
+// A. All in one plane (through the axis, B's centre on it), the plane of incidence is the same at
+// A and B, so the in-plane (p) and normal (s) parts of the field reflect separately: the energy
+// that leaves B is cos^2 gamma R_par(A) R_par(B) + sin^2 gamma R_perp(A) R_perp(B), with
+// cos^2 gamma = sin^2(phi - psi) the field's in-plane share at A (e = cos psi z - sin psi y against
+// (0, cos phi, sin phi)). B's incidence by hand in that plane (unit s = 1e-4 m): the ray leaves
+// P = (-cos 75, sin 75) at 30 deg, (cos 30, sin 30), and enters |X - (7.5, 0)| = 6 at
+// t = -b - sqrt(b^2 - c), b = (P - C).d, c = |P - C|^2 - 36; cos_i = -d.(X - C) / 6 (~0.618, 52 deg).
+// B reflects it to (-0.28, 0.96) in the plane, which misses A (and a convex B): it escapes.
+TEST(OpticsSphere, SecondSphereAbsorbsByTheFieldTheFirstReflected) {
+  const double c75 = std::cos(kPencilIncidence), s75 = std::sin(kPencilIncidence);
+  const double px = -c75, py = s75, dx = std::cos(kPi / 6), dy = std::sin(kPi / 6);
+  const double fx = px - 7.5, fy = py;
+  const double b = fx * dx + fy * dy, c = fx * fx + fy * fy - 36.0;
+  const double t = -b - std::sqrt(b * b - c);
+  const double cos_b = -(dx * (fx + t * dx) + dy * (fy + t * dy)) / 6.0;
+  ASSERT_NEAR(cos_b, 0.6182, 1e-4);
+  const HandFresnel ra = hand_fresnel(c75, 3.0), rb = hand_fresnel(cos_b, 3.0);
+  const double psi = 1.0;
+  const int n = 8;
+  std::vector<double> phis;
+  double expected_a = 0, expected_b = 0, expected_out = 0, stale = 0;
+  for (int k = 0; k < n; ++k) {
+    const double phi = 0.1 + 0.3 * k;
+    phis.push_back(phi);
+    const double in_plane = std::pow(std::sin(phi - psi), 2);
+    const double to_b = ra.par * in_plane + ra.perp * (1.0 - in_plane);
+    const double out = ra.par * rb.par * in_plane + ra.perp * rb.perp * (1.0 - in_plane);
+    expected_a += 1.0 - to_b;
+    expected_b += to_b - out;
+    expected_out += out;
+    // Had the field not turned at A, B would see A's incident share: to_b (1 - R_B(in_plane)).
+    stale += to_b * (1.0 - rb.par * in_plane - rb.perp * (1.0 - in_plane));
+  }
+  const PencilRun run = trace_pencils(3.0, {true, psi}, phis, 3.0);
+  EXPECT_NEAR(run.deposits[0], expected_a, 1e-12);
+  EXPECT_NEAR(run.deposits[1], expected_b, 1e-12);
+  EXPECT_NEAR(run.escaped, expected_out, 1e-12);
+  EXPECT_GT(std::abs(expected_b - stale), 1e-2);  // the reflected field matters here
   EXPECT_EQ(run.hits, 2u * n);
 }
 
