@@ -19,10 +19,16 @@
 #include "geometry/error.h"
 #include "geometry/packing.h"
 #include "geometry/ray_sphere.h"
+#include "tests/optics_reference.h"
 #include "thermal/thermal_model.h"
 
 namespace beampack {
 namespace {
+
+using test::expect_beam_matches_reference;
+using test::expect_rays_match_reference;
+using test::reference_trace;
+using test::ReferenceRay;
 
 constexpr double kD = 1e-3;
 constexpr double kAll = std::numeric_limits<double>::infinity();
@@ -62,119 +68,6 @@ void expect_finite_state(const Simulation& sim) {
 double distance_to_axis(const Vec3& q, const Vec3& c, const Vec3& d) {
   const Vec3 f = q - c;
   return (f - f.dot(d) * d).norm();
-}
-
-// ---------------------------------------------------------------------------------------------
-// The reference: one ray against every live sphere in double precision, with the tracer's rules
-// (MODEL.md section 3): nearest outside hit (ray_sphere_entry), ties to the lower particle id,
-// the sphere just left skipped, (1 - R) E absorbed, specular reflection, cutoff and bounce limit.
-struct ReferenceRay {
-  std::vector<std::pair<std::uint32_t, double>> deposits;  // in hit order
-  double escaped = 0.0, cutoff = 0.0;
-};
-
-ReferenceRay reference_trace(const Particles& p, const OpticsSpec& spec, Vec3 o, Vec3 d, double e) {
-  ReferenceRay out;
-  const double e0 = e;
-  std::uint32_t last = kNoParticle;
-  for (int bounces = 0;;) {
-    double best = kNoHit;
-    std::uint32_t hit = kNoParticle;
-    for (std::uint32_t i = 0; i < p.size(); ++i) {
-      if (!p.alive[i] || i == last) continue;
-      const double t = ray_sphere_entry(o, d, p.centre[i], p.radius[i]);
-      if (t < best || (t == best && t < kNoHit && i < hit)) best = t, hit = i;
-    }
-    if (hit == kNoParticle) {
-      out.escaped += e;
-      return out;
-    }
-    const Vec3 point = o + best * d;
-    const Vec3 normal = ((o + best * d - p.centre[hit]) / p.radius[hit]).normalized();
-    const MaterialOptics& m = spec.materials[p.material[hit]];
-    const double n = (p.phase[hit] == Phase::solid ? m.n_solid : m.n_liquid).real();
-    const double carried = reflectance(-d.dot(normal), n, m.mu_hat) * e;
-    out.deposits.emplace_back(hit, e - carried);
-    d = reflect(d, normal).normalized();
-    o = point;
-    e = carried;
-    last = hit;
-    if (carried < spec.cutoff * e0 || ++bounces >= spec.max_bounces) {
-      out.cutoff += carried;
-      return out;
-    }
-  }
-}
-
-// A beam of given rays (origins on an entry plane, one direction, energy 1 J each unless given).
-Beam custom_beam(const std::vector<Vec3>& origins, const Vec3& d) {
-  Beam b;
-  b.direction = d;
-  b.centre = origins.front();
-  b.origin = origins;
-  b.intensity.assign(origins.size(), 1.0);
-  b.ray_area = 1.0;
-  b.power = static_cast<double>(origins.size());
-  return b;
-}
-
-// Traces every ray alone through the tracer and through the reference; the hit counts, every
-// particle's deposit and the escaped and cut-off energy must agree ray by ray: no missed hit, no
-// phantom hit. Adds the number of hits to total_hits.
-void expect_rays_match_reference(const Particles& p, const OpticsSpec& spec,
-                                 const std::vector<Vec3>& origins, const Vec3& d,
-                                 std::uint64_t& total_hits) {
-  Tracer tracer(p, spec);
-  for (std::size_t k = 0; k < origins.size(); ++k) {
-    const Beam beam = custom_beam({origins[k]}, d);
-    const double energy = 1.0 + 1e-3 * static_cast<double>(k);  // distinct energies
-    const std::uint64_t hits_before = tracer.hits();
-    const OpticsLedger before = tracer.ledger();
-    tracer.launch(beam, std::span<const double>(&energy, 1));
-    const RayState launched = tracer.save();  // the tracer's exact start point (upstream plane)
-    const Vec3 start = launched.origin.back();
-    std::vector<double> deposits;
-    tracer.advance(kAll, deposits);
-    const ReferenceRay ref = reference_trace(p, spec, start, d, energy);
-    const std::uint64_t hits = tracer.hits() - hits_before;
-    total_hits += hits;
-    ASSERT_EQ(hits, ref.deposits.size()) << "ray " << k << " from " << start.transpose();
-    std::vector<double> expected(p.size(), 0.0);
-    for (const auto& [i, e] : ref.deposits) expected[i] += e;
-    deposits.resize(p.size(), 0.0);
-    for (std::size_t i = 0; i < p.size(); ++i)
-      ASSERT_NEAR(deposits[i], expected[i], 1e-12 * energy) << "ray " << k << ", particle " << i;
-    EXPECT_NEAR(tracer.ledger().escaped - before.escaped, ref.escaped, 1e-12 * energy) << "ray " << k;
-    EXPECT_NEAR(tracer.ledger().cutoff - before.cutoff, ref.cutoff, 1e-12 * energy) << "ray " << k;
-  }
-  const OpticsLedger& l = tracer.ledger();
-  EXPECT_NEAR(l.in_flight(), 0.0, 1e-12 * l.injected);
-}
-
-// The same rays launched together (16-ray packets, parallel chunks): per-particle deposits and
-// the hit count equal the reference's sums.
-void expect_beam_matches_reference(const Particles& p, const OpticsSpec& spec,
-                                   const std::vector<Vec3>& origins, const Vec3& d) {
-  Tracer tracer(p, spec);
-  std::vector<double> energies(origins.size());
-  for (std::size_t k = 0; k < energies.size(); ++k) energies[k] = 1.0 + 1e-3 * static_cast<double>(k);
-  tracer.launch(custom_beam(origins, d), energies);
-  const RayState launched = tracer.save();
-  std::vector<double> deposits;
-  tracer.advance(kAll, deposits);
-  deposits.resize(p.size(), 0.0);
-  std::vector<double> expected(p.size(), 0.0);
-  std::uint64_t hits = 0;
-  double escaped = 0;
-  for (std::size_t k = 0; k < origins.size(); ++k) {
-    const ReferenceRay ref = reference_trace(p, spec, launched.origin[k], d, energies[k]);
-    hits += ref.deposits.size();
-    escaped += ref.escaped;
-    for (const auto& [i, e] : ref.deposits) expected[i] += e;
-  }
-  EXPECT_EQ(tracer.hits(), hits);
-  EXPECT_NEAR(tracer.ledger().escaped, escaped, 1e-12 * tracer.ledger().injected);
-  for (std::size_t i = 0; i < p.size(); ++i) ASSERT_NEAR(deposits[i], expected[i], 1e-12) << i;
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@
 #include "geometry/packing.h"
 #include "geometry/random.h"
 #include "geometry/ray_sphere.h"
+#include "tests/optics_reference.h"
 
 namespace beampack {
 namespace {
@@ -276,18 +277,8 @@ TEST(OpticsSphere, PolarisedPencilsSplitTheirFieldOnEachPlaneOfIncidence) {
   EXPECT_EQ(run.hits, 2u * n);
 }
 
-// Fresnel amplitude ratios for real index n (mu = 1), written out here apart from fresnel.h:
-// n cos_t = sqrt(n^2 - sin^2 theta_i), r_s = (cos_i - n cos_t) / (cos_i + n cos_t),
-// r_p = (n^2 cos_i - n cos_t) / (n^2 cos_i + n cos_t) (Born & Wolf 1.5.(21a) with mu = 1).
-struct HandFresnel {
-  double par, perp;  // R_par = r_p^2, R_perp = r_s^2
-};
-HandFresnel hand_fresnel(double cos_i, double n) {
-  const double n_cos_t = std::sqrt(n * n - (1.0 - cos_i * cos_i));
-  const double rs = (cos_i - n_cos_t) / (cos_i + n_cos_t);
-  const double rp = (n * n * cos_i - n_cos_t) / (n * n * cos_i + n_cos_t);
-  return {rp * rp, rs * rs};
-}
+using test::hand_fresnel;
+using test::HandFresnel;
 
 // The field at psi = 90 deg is along v = d x u = x x z = -y for a +x beam (u = x x y = z, the
 // disk axes of tracer.h). The pencil at azimuth phi has its plane of incidence through x and
@@ -320,8 +311,9 @@ TEST(OpticsSphere, PolarisedPencilsAtNinetyDegreesTurnTheirShareWithTheField) {
 // cos^2 gamma = sin^2(phi - psi) the field's in-plane share at A (e = cos psi z - sin psi y against
 // (0, cos phi, sin phi)). B's incidence by hand in that plane (unit s = 1e-4 m): the ray leaves
 // P = (-cos 75, sin 75) at 30 deg, (cos 30, sin 30), and enters |X - (7.5, 0)| = 6 at
-// t = -b - sqrt(b^2 - c), b = (P - C).d, c = |P - C|^2 - 36; cos_i = -d.(X - C) / 6 (~0.618, 52 deg).
-// B reflects it to (-0.28, 0.96) in the plane, which misses A (and a convex B): it escapes.
+// t = -b - sqrt(b^2 - c), b = (P - C).d, c = |P - C|^2 - 36; cos_i = -d.(X - C) / 6 (~0.618,
+// 52 deg). B reflects it to (-0.28, 0.96) in the plane, which misses A (and a convex B): it
+// escapes.
 TEST(OpticsSphere, SecondSphereAbsorbsByTheFieldTheFirstReflected) {
   const double c75 = std::cos(kPencilIncidence), s75 = std::sin(kPencilIncidence);
   const double px = -c75, py = s75, dx = std::cos(kPi / 6), dy = std::sin(kPi / 6);
