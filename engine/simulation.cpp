@@ -385,8 +385,9 @@ Figures Simulation::figures() const {
 }
 
 namespace {
-// 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks; 7: reused first hits
-constexpr std::uint32_t kStateVersion = 7;
+// 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks; 7: reused first
+// hits; 8: the ray paths recorded since the last pulse ended (output.rays)
+constexpr std::uint32_t kStateVersion = 8;
 }
 
 void Simulation::write_state(StateWriter& out) const {
@@ -403,6 +404,7 @@ void Simulation::write_state(StateWriter& out) const {
   const ThermalModel::Snapshot heat = thermal_->save();
   out.vector(heat.stored);
   out.value(heat.ledger);
+  out.vector(ray_paths_);
 }
 
 namespace {
@@ -418,6 +420,7 @@ struct SavedRun {
   RayState rays;
   Tracer::FirstHits first_hits;
   ThermalModel::Snapshot heat;
+  std::vector<RaySegment> ray_paths;
 };
 
 void require_in_state(bool ok, const std::string& what) {
@@ -450,6 +453,9 @@ void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
     require_in_state(std::isfinite(v), "a heat ledger entry is " + std::to_string(v));
   for (const StageTime& t : s.stages) require_in_state(std::isfinite(t.seconds) && t.seconds >= 0, "a stage time is not finite");
   s.rays.check_values(p.size(), "checkpoint");
+  for (const RaySegment& r : s.ray_paths)
+    require_in_state(r.from.allFinite() && r.to.allFinite() && std::isfinite(r.energy) && r.energy >= 0,
+                     "a recorded ray path holds a value that is not a finite number");
 }
 
 }  // namespace
@@ -473,6 +479,7 @@ void Simulation::read_state(StateReader& in) {
   s.first_hits = tracer_->read_first_hits(in);
   in.vector(s.heat.stored);
   s.heat.ledger = in.value<ThermalLedger>();
+  in.vector(s.ray_paths);
   // The geometry must be the run file's: the scene, the grid and the contact graph were built
   // from it. The state arrays are copied into place; the tracer and the heat model keep their
   // references to particles_.
@@ -490,6 +497,7 @@ void Simulation::read_state(StateReader& in) {
   launched_ = s.launched, counts_ = s.counts;
   for (int k = 0; k < kStages; ++k) stages_[k].seconds = s.stages[k].seconds, stages_[k].calls = s.stages[k].calls;
   absorbed_ = std::move(s.absorbed);
+  ray_paths_ = std::move(s.ray_paths);
   std::copy(p.material.begin(), p.material.end(), particles_.material.begin());
   std::copy(p.temperature.begin(), p.temperature.end(), particles_.temperature.begin());
   std::copy(p.phase.begin(), p.phase.end(), particles_.phase.begin());

@@ -514,23 +514,19 @@ void write_packing_file(const std::string& path, const Particles& particles) {
   require(out.good(), "write error on \"" + path + "\"");
 }
 
-namespace {
-
-// The middle value (the mean of the two middle ones for an even count); 0 for none.
-double median(std::vector<double> v) {
-  if (v.empty()) return 0;
-  const auto mid = v.begin() + std::ptrdiff_t(v.size() / 2);
-  std::nth_element(v.begin(), mid, v.end());
-  if (v.size() % 2) return *mid;
-  return 0.5 * (*mid + *std::max_element(v.begin(), mid));
+double median_radius(const Particles& particles) {
+  std::vector<double> r = particles.radius;
+  if (r.empty()) return 0;
+  const auto mid = r.begin() + std::ptrdiff_t(r.size() / 2);
+  std::nth_element(r.begin(), mid, r.end());
+  if (r.size() % 2) return *mid;
+  return 0.5 * (*mid + *std::max_element(r.begin(), mid));
 }
-
-}  // namespace
 
 double packing_radius(const PackingSpec& s) {
   const double n = double(std::max<std::size_t>(s.count, 1));
   if (s.source == "rsa") return s.sample_size * std::cbrt(3.0 * s.solid_fraction / (4.0 * std::numbers::pi * n));
-  if (s.source == "file") return median(read_packing_file(s.file, s.file_radius).radius);
+  if (s.source == "file") return median_radius(read_packing_file(s.file, s.file_radius));
   return s.radius_ratio * s.sample_size / std::cbrt(n);
 }
 

@@ -27,6 +27,8 @@ Particles make_packing(const PackingSpec& spec);
 // for a file, the median of its radii (the paper's R when sizes differ, remark after (3.11)),
 // read from the file, 0 for an empty one.
 double packing_radius(const PackingSpec& spec);
+// The middle radius (the mean of the middle two for an even count); 0 for no particles.
+double median_radius(const Particles& particles);
 
 // Generated packings are numbered along a Morton curve (neighbours in space are neighbours in
 // memory); files keep their order.

@@ -474,6 +474,37 @@ TEST(Cli, ResumeFromACheckpointEndsBitIdentical) {
   EXPECT_EQ(run("run --resume " + part.string() + " --preset quick").code, 2);
 }
 
+// A finished run's folder has nothing to resume: its periodic checkpoint would run the tail again
+// over the results. Resumed into another folder, the run continues there whole: the frames and
+// ray paths of the pulses before the checkpoint are carried over, the paths of rays in flight at
+// the checkpoint are in it (pulses overlap here), and an earlier run's files there are removed.
+// Every file equals the uninterrupted run's.
+TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
+  const fs::path whole = fresh_dir("series_whole"), other = fresh_dir("series_other");
+  const std::string scene = "--preset quick --set thermal.dt=4e-13 --set pulses.period=1e-12 "
+                            "--set output.rays=true --set output.frames=true --quiet";
+  ASSERT_EQ(run("run " + scene + " --checkpoint-every 2 --out " + whole.string()).code, 0);
+  const std::string summary = file_text(whole / "summary.json");
+  const Result finished = run("run --resume " + whole.string() + " --quiet");
+  EXPECT_EQ(finished.code, 2) << finished.output;
+  EXPECT_NE(finished.output.find("the run there finished (summary.json, 5 pulses): nothing to resume"),
+            std::string::npos) << finished.output;
+  EXPECT_EQ(file_text(whole / "summary.json"), summary);
+  write(other / "summary.json", R"({"vaporized_fraction": 0, "config": {}})");
+  const std::string stale = write(other / "particles_0011.vtp", "a frame of an earlier run");
+  const Result r = run("run --resume " + whole.string() + " --out " + other.string() + " --quiet");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_FALSE(fs::exists(stale));
+  std::size_t compared = 0;
+  for (const fs::directory_entry& e : fs::directory_iterator(whole)) {
+    const std::string name = e.path().filename().string();
+    if (name == "summary.json" || name == "checkpoint.bin") continue;  // wall times; kept only in `whole`
+    EXPECT_TRUE(file_text(e.path()) == file_text(other / name)) << name << " differs";
+    ++compared;
+  }
+  EXPECT_EQ(compared, 13u);  // 5 frames, 5 ray files, particles.pvd, particles.csv, history.csv
+}
+
 TEST(Cli, SigkillAtRandomMomentsLeavesALoadableCheckpoint) {
   const fs::path whole = fresh_dir("kill_whole");
   const auto start = std::chrono::steady_clock::now();
@@ -508,15 +539,17 @@ TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
   const fs::path dir = fresh_dir("ck_damaged");
   ASSERT_EQ(run("run --preset quick --quiet --checkpoint-every 2 --out " + dir.string()).code, 0);
   const std::string bytes = file_text(dir / "checkpoint.bin");
-  std::ofstream(dir / "checkpoint.bin", std::ios::binary).write(bytes.data(), std::streamsize(bytes.size() / 2));
-  const Result r = run("run --resume " + dir.string() + " --quiet");
+  // Resumed from a folder of its own: the finished run's folder has nothing to resume.
+  const fs::path copy = fresh_dir("ck_damaged_copy");
+  std::ofstream(copy / "checkpoint.bin", std::ios::binary).write(bytes.data(), std::streamsize(bytes.size() / 2));
+  const Result r = run("run --resume " + copy.string() + " --quiet");
   EXPECT_EQ(r.code, 2) << r.output;
   EXPECT_NE(r.output.find("damaged or truncated"), std::string::npos) << r.output;
   // As if written on a machine of the other byte order: the layout tag's first word reversed.
   std::string swapped = bytes;
   std::reverse(swapped.begin(), swapped.begin() + 4);
-  std::ofstream(dir / "checkpoint.bin", std::ios::binary).write(swapped.data(), std::streamsize(swapped.size()));
-  const Result other = run("run --resume " + dir.string() + " --quiet");
+  std::ofstream(copy / "checkpoint.bin", std::ios::binary).write(swapped.data(), std::streamsize(swapped.size()));
+  const Result other = run("run --resume " + copy.string() + " --quiet");
   EXPECT_EQ(other.code, 2) << other.output;
   EXPECT_NE(other.output.find("other byte order"), std::string::npos) << other.output;
 }

@@ -199,6 +199,7 @@ struct StateParts {
   std::vector<std::uint32_t> hit_particle;
   std::vector<double> stored;
   ThermalLedger ledger;
+  std::vector<RaySegment> ray_paths;
 
   explicit StateParts(const Simulation& sim) {
     StateWriter written;
@@ -216,6 +217,7 @@ struct StateParts {
     in.vector(hit_origin), in.vector(hit_normal), in.vector(hit_t), in.vector(hit_particle);
     in.vector(stored);
     ledger = in.value<ThermalLedger>();
+    in.vector(ray_paths);
   }
   std::string bytes() const {
     StateWriter out;
@@ -230,6 +232,7 @@ struct StateParts {
     out.vector(hit_origin), out.vector(hit_normal), out.vector(hit_t), out.vector(hit_particle);
     out.vector(stored);
     out.value(ledger);
+    out.vector(ray_paths);
     return out.finish();
   }
 };
@@ -302,6 +305,8 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
       {[&](StateParts& s) { s.rays.start_clock[live] = nan; }, "clock that is not a finite number"},
       {[&](StateParts& s) { s.rays.ledger.escaped = -1; }, "a ledger entry or the clock is -1"},
       {[&](StateParts& s) { s.hit_t.front() = nan; }, "a first hit at distance nan"},
+      {[&](StateParts& s) { s.ray_paths.push_back({Vec3(nan, 0, 0), Vec3::Zero(), 1e-12}); },
+       "a recorded ray path holds a value that is not a finite number"},
   };
   ASSERT_FALSE(parts.hit_t.empty());
   for (const auto& [edit, message] : edits) {

@@ -28,7 +28,7 @@ struct Ladder {
 };
 
 std::vector<Ladder> ladders(const RunConfig& base) {
-  const double paper_dt = paper_step(base.sim.packing, base.xi);
+  const double paper_dt = paper_step(base.sim.packing, base.xi, base.packing.get());
   auto seconds = [](double v) {
     std::ostringstream s;
     s.precision(6);

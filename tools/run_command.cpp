@@ -478,6 +478,33 @@ void remove_earlier_run(const fs::path& dir) {
                          "(results, checkpoint.bin, frames)\n", earlier.size(), dir.c_str());
 }
 
+// `--resume DIR` into DIR whose run finished: nothing is left to run. A checkpoint there is a
+// periodic one (--checkpoint-every), and resuming it would run the tail again over the results.
+void refuse_to_resume_a_finished_run(const fs::path& dir) {
+  const nlohmann::json j = nlohmann::json::parse(head_of(dir / "summary.json", 1 << 24), nullptr, false);
+  if (!j.is_object() || !j.contains("interrupted") || j["interrupted"] != false) return;
+  throw InputError("--resume " + dir.string() + ": the run there finished (summary.json, " +
+                   j.value("pulses", nlohmann::json(0)).dump() + " pulses): nothing to resume; to run it " +
+                   "again from its last periodic checkpoint, give --out another folder");
+}
+
+// A run resumed into another folder than its checkpoint's continues the frames and ray paths
+// of the pulses before the checkpoint, which stay in the checkpoint's folder: copied, so the
+// new folder holds the whole series (particles.pvd names every frame).
+void carry_earlier_files(const fs::path& from, const fs::path& to, const RunRecord& record,
+                         const OutputSpec& output, int pulses_ended) {
+  auto carry = [&](const std::string& name) {
+    std::error_code ec;
+    if (fs::is_regular_file(from / name, ec)) fs::copy_file(from / name, to / name, fs::copy_options::overwrite_existing);
+  };
+  for (const auto& [name, time] : record.frames) carry(name);
+  for (int k = 0; output.rays && k < pulses_ended; ++k) {
+    char name[64];
+    std::snprintf(name, sizeof name, "rays_%04d.vtp", k);
+    carry(name);
+  }
+}
+
 int run_command(const RunOptions& options) {
   if (!options.resume.empty() && (!options.sources.file.empty() || !options.sources.preset.empty() ||
                                   !options.sources.sets.empty()))
@@ -486,6 +513,10 @@ int run_command(const RunOptions& options) {
   RunRecord record;
   std::optional<StateReader> saved;
   RunSources sources = options.sources;
+  const std::string out_dir = options.resume.empty() || options.out_set ? options.out_dir : options.resume;
+  std::error_code same_ec;
+  const bool into_checkpoint_folder = !options.resume.empty() && fs::equivalent(out_dir, options.resume, same_ec);
+  if (into_checkpoint_folder) refuse_to_resume_a_finished_run(options.resume);
   if (!options.resume.empty()) {
     saved.emplace(open_checkpoint(fs::path(options.resume) / "checkpoint.bin", record));
     sources.text = record.config_text;
@@ -494,7 +525,6 @@ int run_command(const RunOptions& options) {
   warn_of_many_steps(config.sim);
   warn_if_walls_take_no_heat(config.sim);
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
-  const std::string out_dir = options.resume.empty() || options.out_set ? options.out_dir : options.resume;
   prepare_out_dir(out_dir);
   refuse_outputs_over_inputs(out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});
   const auto threads = limit_threads(options.threads);
@@ -505,7 +535,9 @@ int run_command(const RunOptions& options) {
   warn_if_time_stands_still(sim);
   if (saved) sim.read_state(*saved);
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
-  if (options.resume.empty()) remove_earlier_run(out_dir);
+  if (!into_checkpoint_folder) remove_earlier_run(out_dir);
+  if (saved && !into_checkpoint_folder)
+    carry_earlier_files(options.resume, out_dir, record, config.output, std::max(sim.figures().pulse - 1, 0));
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);
   bool checkpoint_due = false;

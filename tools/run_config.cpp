@@ -210,10 +210,12 @@ RunConfig read_config(Params& p) {
            "must be < material.vapor_temperature = " + number_text(m.vapor_temperature) +
                " (every particle would start as vapour)");
   }
-  // xi R / c once, and only if a key asks for it: a file's radius is read from the file.
+  // xi R / c once, and only if a key asks for it: a file's radii are read from the file, once
+  // (the simulation takes the particles read here).
   std::optional<double> step;
   auto paper_step = [&](double xi) {
-    if (!step) step = beampack::tools::paper_step(c.sim.packing, xi);
+    if (!step && c.sim.packing.source == "file") c.packing = std::make_shared<const Particles>(make_packing(c.sim.packing));
+    if (!step) step = beampack::tools::paper_step(c.sim.packing, xi, c.packing.get());
     return *step;
   };
   c.xi = read_pulses(p, c.sim, paper_step);
@@ -279,8 +281,8 @@ std::string locate(const std::string& message, const std::map<std::string, std::
 constexpr double kBytesPerRay = 400;
 constexpr double kBytesPerParticle = 400;
 
-double paper_step(const PackingSpec& packing, double xi) {
-  return xi * packing_radius(packing) / kSpeedOfLight;
+double paper_step(const PackingSpec& packing, double xi, const Particles* particles) {
+  return xi * (particles ? median_radius(*particles) : packing_radius(packing)) / kSpeedOfLight;
 }
 
 double least_memory_need(const SimulationSpec& s) {
@@ -318,6 +320,7 @@ void refuse_beyond_memory(const SimulationSpec& s, double available) {
 
 std::unique_ptr<Simulation> start_simulation(const RunConfig& config) {
   try {
+    if (config.packing) return std::make_unique<Simulation>(config.sim, *config.packing);
     return std::make_unique<Simulation>(config.sim);
   } catch (const InputError& e) {
     throw InputError(locate(e.what(), config.origins));

@@ -21,6 +21,9 @@ struct RunConfig {
   OutputSpec output;
   toml::table resolved;  // every key with the value used
   double xi = 0.05;      // pulses.xi: the paper's ray time step is xi R / c (paper_step)
+  // A packing file's particles when the configuration had to read them (its median radius for
+  // xi R / c), so that the simulation does not read the file again; null otherwise.
+  std::shared_ptr<const Particles> packing;
   std::map<std::string, std::string> origins;  // key -> where a layer set it ("run.toml:7")
 };
 
@@ -45,9 +48,9 @@ std::string locate(const std::string& message, const std::map<std::string, std::
 // thermal masses) names where the key it mentions was set.
 std::unique_ptr<Simulation> start_simulation(const RunConfig& config);
 
-// xi R / c, the paper's ray time step, with R the packing's radius (a file's median radius,
-// read from the file).
-double paper_step(const PackingSpec& packing, double xi);
+// xi R / c, the paper's ray time step, with R the packing's radius: for a file, the median of
+// `particles`' radii (read from the file when null).
+double paper_step(const PackingSpec& packing, double xi, const Particles* particles = nullptr);
 
 // The least memory a scene needs, in bytes: its rays and its particles, at the bytes each that
 // a run measured (BENCHMARKS.md, "Memory a run needs"). Less than a run takes, never more.
