@@ -256,6 +256,7 @@ bool Simulation::step() {
   time_ += dt;
   ++counts_.steps;
   counts_.heat_rows_solved += report.solved_rows;
+  counts_.capped_phase_steps += report.phase_passes_capped;
   counts_.heat_rows_live += report.live_rows;
   counts_.ray_chunks_run += chunks_run;
   counts_.ray_chunks_live += chunks_live;

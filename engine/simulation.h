@@ -79,6 +79,8 @@ struct Counts {
   // run, and live. Fewer run than live: chunks whose rays were all in free flight through a step,
   // left alone.
   std::uint64_t ray_chunks_run = 0, ray_chunks_live = 0;
+  // Heat steps whose latent-heat corrector stopped at its pass cap with a band still newly crossed.
+  std::uint64_t capped_phase_steps = 0;
 };
 
 class Simulation {

@@ -170,6 +170,34 @@ TEST(ThermalPhase, CoolingThroughMeltSolidifiesWithLiquidPlusSolidifyBand) {
   EXPECT_NEAR(s.model.ledger().walls, c_eff * (610.0 - expected), 1e-12 * s.model.ledger().walls);
 }
 
+// A band one pass adds can push a neighbour across another: a liquid sphere at 640 K touching a
+// solid one at 510 K (equal masses, a step long enough to equalise, dt G / c ~ 1e5). Predictor,
+// C_L = 2000 and C_S = 1000: both go to (2000 640 + 1000 510) / 3000 = 596.7 K, the liquid
+// crosses theta_m = 600 K downward. Pass 1, with its solidification band (C = 3000): both go to
+// (3000 640 + 1000 510) / 4000 = 607.5 K, now the solid one crosses upward: a new band. Pass 2,
+// with its melt band (C = 2000): (3000 640 + 2000 510) / 5000 = 588 K, no new band. With one
+// pass allowed the step stops with the new band unsolved, and says so.
+TEST(ThermalPhase, ACorrectorStoppedAtItsCapWithANewBandSaysSo) {
+  for (const int cap : {1, 4}) {
+    Particles p;
+    p.add(Vec3::Zero(), kRadius, 0, 640.0);
+    p.add(Vec3(1.5 * kRadius, 0, 0), kRadius, 0, 510.0);
+    Material m;
+    m.conductivity = 1.0;
+    ThermalSpec spec;
+    spec.max_phase_corrections = cap;
+    ThermalModel model(p, {m}, spec);
+    model.set_contacts(find_contacts(p));
+    ASSERT_EQ(p.phase[0], Phase::liquid);
+    const StepReport r = model.step(4e-3, {0.0, 0.0});
+    EXPECT_TRUE(r.phase_corrected) << cap;
+    EXPECT_EQ(r.phase_passes_capped, cap == 1) << cap;
+    const double expected = cap == 1 ? 607.5 : 588.0;
+    EXPECT_NEAR(p.temperature[0], expected, 0.05) << cap;
+    EXPECT_NEAR(p.temperature[1], expected, 0.05) << cap;
+  }
+}
+
 TEST(ThermalPhase, VaporisedParticleCarriesItsEnergyAndLeavesTheGraph) {
   // Two touching spheres; the first is heated until it vaporises. Its energy leaves the stored
   // column for the vaporised one, and the second no longer exchanges heat with it.

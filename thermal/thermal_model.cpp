@@ -702,7 +702,11 @@ int ThermalModel::correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::Ve
         grew = true;
       }
     }
-    if (!grew || passes == spec_.max_phase_corrections) break;
+    if (!grew) break;
+    if (passes == spec_.max_phase_corrections) {
+      report.phase_passes_capped = true;
+      break;
+    }
     c = capacity_with_bands(theta0, bands);
     solve(dt, c, dh, t, report);
     report.phase_corrected = true;
@@ -918,6 +922,7 @@ void ThermalModel::add_substep(StepReport& report, const StepReport& sub) {
   report.phases_ran |= sub.phases_ran;
   report.phases_seconds += sub.phases_seconds;
   report.phase_corrected |= sub.phase_corrected;
+  report.phase_passes_capped |= sub.phase_passes_capped;
   report.symbolic_reused = sub.symbolic_reused;
   report.factors_reused = sub.factors_reused;
 }

@@ -64,6 +64,9 @@ struct StepReport {
   bool phases_ran = false;
   double phases_seconds = 0;    // wall time of the latent-heat work (section 4), all sub-steps
   bool phase_corrected = false; // a band was crossed and the step re-solved with C_eff
+  // The corrector stopped at max_phase_corrections while its last solve still crossed a new band:
+  // that band's latent heat is missing from the step.
+  bool phase_passes_capped = false;
   bool symbolic_reused = false; // direct: analysis kept from an earlier step
   bool factors_reused = false;  // direct: numeric factors kept too
 };

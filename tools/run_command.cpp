@@ -166,7 +166,8 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
                  {"rebuilds", r.counts.rebuilds},   {"staggers", r.counts.staggers},
                  {"late_pulses", r.counts.late_pulses},
                  {"heat_rows_solved", r.counts.heat_rows_solved}, {"heat_rows_live", r.counts.heat_rows_live},
-                 {"ray_chunks_run", r.counts.ray_chunks_run}, {"ray_chunks_live", r.counts.ray_chunks_live}};
+                 {"ray_chunks_run", r.counts.ray_chunks_run}, {"ray_chunks_live", r.counts.ray_chunks_live},
+                 {"capped_phase_steps", r.counts.capped_phase_steps}};
   j["max_pulse_delay_s"] = r.counts.max_pulse_delay;
   nlohmann::json stages = nlohmann::json::object();
   const auto stage_times = sim.stages();
@@ -350,10 +351,9 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
 // A fixed thermal.dt far below the light's crossing time of the sample makes a run of millions
 // of steps per pulse: legal (the budget per step is c dt), but say so before it starts.
 void warn_of_many_steps(const SimulationSpec& spec) {
-  if (!(spec.dt > 0)) return;
-  const double crossing = spec.packing.sample_size / kSpeedOfLight;
-  const double steps = crossing / spec.dt;
+  const double steps = steps_per_crossing(spec);
   if (steps < 1e6) return;
+  const double crossing = spec.packing.sample_size / kSpeedOfLight;
   std::fprintf(stderr,
                "beampack: warning: `thermal.dt` = %g s: light crosses the sample (%g m) in %.3g s, "
                "%.3g steps of this length per crossing; `thermal.dt = \"pulse\"` takes one step "
@@ -369,6 +369,17 @@ void warn_if_walls_take_no_heat(const SimulationSpec& spec) {
   std::fprintf(stderr, "beampack: warning: `thermal.walls` with `thermal.wall_conductance` = -1 (pi K R) "
                        "and `material.conductivity` = 0: the walls take no heat; give "
                        "thermal.wall_conductance in W/K for walls that do\n");
+}
+
+// The latent-heat corrector re-solves a step at most a few times (section 4); one that still
+// found a new band at its last pass left that band's latent heat out.
+void warn_of_capped_phase_steps(const SimulationSpec& spec, const Counts& counts) {
+  if (counts.capped_phase_steps == 0) return;
+  std::fprintf(stderr,
+               "beampack: warning: %llu heat steps stopped the latent-heat correction at its cap of %d "
+               "passes while a particle still crossed a new band (theta_m or theta_v): that band's "
+               "latent heat is missing from the step; a shorter `thermal.dt` crosses fewer bands per step\n",
+               static_cast<unsigned long long>(counts.capped_phase_steps), spec.thermal.max_phase_corrections);
 }
 
 // Pulses start at step boundaries: a pulses.period shorter than a step delays them.
@@ -580,6 +591,7 @@ int run_command(const RunOptions& options) {
                    [&](std::ostream& o) { o << summary_json(sim, r, config).dump(2) << '\n'; });
   print_table(sim, r);
   warn_of_late_pulses(config.sim, r.counts);
+  warn_of_capped_phase_steps(config.sim, r.counts);
   for (const std::string& warning : open_ledger_warnings(config.sim, r.figures.energy))
     std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
   if (r.interrupted) {

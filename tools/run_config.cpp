@@ -162,7 +162,7 @@ void read_thermal(Params& p, SimulationSpec& s, const std::function<double()>& p
   // exponent, most likely); the paper's dt takes thousands.
   constexpr double kMaxStepsPerCrossing = 1e9;
   const double crossing = s.packing.sample_size / kSpeedOfLight;
-  if (s.dt > 0 && crossing / s.dt > kMaxStepsPerCrossing)
+  if (steps_per_crossing(s) > kMaxStepsPerCrossing)
     p.fail("thermal.dt", word == "paper" ? "\"paper\" (xi R / c = " + number_text(s.dt) + " s)" : number_text(s.dt),
            "must be >= sample.size / c / 1e9 = " + number_text(crossing / kMaxStepsPerCrossing) +
                " s (light crosses the sample in " + number_text(crossing) + " s)");
@@ -280,6 +280,10 @@ std::string locate(const std::string& message, const std::map<std::string, std::
 // per particle without conduction, 600 with). Rounded down: a bound that refuses only the hopeless.
 constexpr double kBytesPerRay = 400;
 constexpr double kBytesPerParticle = 400;
+
+double steps_per_crossing(const SimulationSpec& s) {
+  return s.dt > 0 ? s.packing.sample_size / kSpeedOfLight / s.dt : 0.0;
+}
 
 double paper_step(const PackingSpec& packing, double xi, const Particles* particles) {
   return xi * (particles ? median_radius(*particles) : packing_radius(packing)) / kSpeedOfLight;
