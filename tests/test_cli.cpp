@@ -801,6 +801,14 @@ TEST(Cli, ARunLeavesTheUsersFilesAndRefusesToWriteOverItsInputs) {
   EXPECT_FALSE(fs::exists(rays / "rays_0004.vtp"));
   EXPECT_FALSE(fs::exists(rays / "rays_0000.vtp"));
   EXPECT_FALSE(fs::exists(temporary));
+  // A temporary file is a killed run's even where nothing else marks one (killed in its first
+  // write); a user's own file of a result's name stays.
+  const fs::path first_write = fresh_dir("killed_in_first_write");
+  const std::string half = write(first_write / "checkpoint.bin.tmp.77", "half a checkpoint");
+  const std::string own = write(first_write / "particles_0007.vtp", "the user's own frame");
+  ASSERT_EQ(run("run --preset quick --quiet --out " + first_write.string()).code, 0);
+  EXPECT_FALSE(fs::exists(half));
+  EXPECT_TRUE(fs::exists(own));
   const fs::path bed = fresh_dir("input_in_out");
   const std::string packing = write(bed / "particles.csv", "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n");
   const Result over = run("run --preset quick --quiet --set packing.source=file --set packing.file=" + packing +
@@ -842,9 +850,13 @@ TEST(Cli, ABeamBeyondTheMachinesMemoryIsRefusedAtOnce) {
   const auto start = std::chrono::steady_clock::now();
   const Result r = run("run --preset quick --quiet --set beam.rays=100000000 --out " + fresh_dir("huge_beam").string());
   EXPECT_EQ(r.code, 2) << r.output;
-  EXPECT_NE(r.output.find("--set beam.rays=100000000: `beam.rays` = 100000000: the run needs at least"),
+  EXPECT_NE(r.output.find("--set beam.rays=100000000: `beam.rays = 100000000`: the run needs at least"),
             std::string::npos) << r.output;
   EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(), 5.0);
+  // A run file for a larger machine can still be written.
+  const Result config = run("config --preset quick --set beam.rays=100000000");
+  EXPECT_EQ(config.code, 0) << config.output;
+  EXPECT_NE(config.output.find("rays = 100000000"), std::string::npos) << config.output;
 }
 
 // The stability grid (minutes) stops at Ctrl-C after the cell it is in, and says how far it got.

@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <limits>
@@ -80,7 +81,7 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
     refuse_beyond_memory(rays, k24GiB);
     ADD_FAILURE() << "10^8 rays fit in 24 GiB";
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("`beam.rays` = 100000000:"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("`beam.rays = 100000000`:"), std::string::npos) << e.what();
     EXPECT_NE(std::string(e.what()).find("at least 40 GB"), std::string::npos) << e.what();
     EXPECT_NE(std::string(e.what()).find("more than the 25.8 GB of this machine"), std::string::npos) << e.what();
   }
@@ -90,11 +91,20 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
     refuse_beyond_memory(particles, k24GiB);
     ADD_FAILURE() << "10^8 particles fit in 24 GiB";
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("`packing.count` = 100000000: the run needs at least 40 GB with beam.rays = 1000 ("), std::string::npos)
+    EXPECT_NE(std::string(e.what()).find("`packing.count = 100000000`: the run needs at least 40 GB with beam.rays = 1000 ("), std::string::npos)
         << e.what();
   }
   particles.packing.source = "file";  // counted when the file is read: only the rays are known
   EXPECT_NO_THROW(refuse_beyond_memory(particles, k24GiB));
+  particles.packing.file = "bed.xyz";
+  try {
+    refuse_beyond_memory(particles, k24GiB, 100'000'000);  // once it is read: its particles count
+    ADD_FAILURE() << "a file of 10^8 particles fits in 24 GiB";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("`packing.file = \"bed.xyz\" (100000000 particles)`: the run needs at "
+                                         "least 40 GB with beam.rays = 1000"),
+              std::string::npos) << e.what();
+  }
   rays.packing.source = "file";
   try {
     refuse_beyond_memory(rays, k24GiB);
@@ -115,6 +125,7 @@ TEST(RunReport, PulseDurationAndThePapersStepFollowTheirFormulas) {
   const RunConfig a = load_run_config(auto_tau);
   EXPECT_NEAR(a.sim.pulses.duration, 0.08 * kR / kC, 1e-12 * a.sim.pulses.duration);
   EXPECT_NEAR(a.sim.dt, 0.08 * kR / kC, 1e-12 * a.sim.dt);
+  EXPECT_EQ(a.packing, nullptr);  // generated, not read: nothing to hand on
   RunSources energy;
   energy.preset = "zohdi2013";
   energy.sets = {"pulses.duration=\"energy\"", "pulses.energy=3e-9", "beam.power=1500"};
@@ -135,6 +146,19 @@ TEST(RunReport, PulseDurationAndThePapersStepFollowTheirFormulas) {
     EXPECT_NEAR(f.sim.pulses.duration, 0.08 * median / kC, 1e-12 * f.sim.pulses.duration) << rows;
     EXPECT_NEAR(f.sim.dt, 0.08 * median / kC, 1e-12 * f.sim.dt) << rows;
     EXPECT_NEAR(paper_step(f.sim.packing, f.xi), 0.08 * median / kC, 1e-12 * f.sim.dt) << rows;  // converge's
+    ASSERT_NE(f.packing, nullptr);  // read once, for the simulation too
+    EXPECT_EQ(f.packing->size(), std::count(rows, rows + std::strlen(rows), '\n'));
+  }
+  // The file is read once every key is: a misspelt key is named first, not a missing file.
+  RunSources typo = auto_tau;
+  typo.sets.push_back("packing.source=\"file\"");
+  typo.sets.push_back("packing.file=\"" + (dir / "no such bed.xyz").string() + "\"");
+  typo.sets.push_back("beam.rayz=5");
+  try {
+    load_run_config(typo);
+    ADD_FAILURE() << "a misspelt key and a missing file were accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("unknown key `beam.rayz`"), std::string::npos) << e.what();
   }
 }
 

@@ -85,16 +85,18 @@ int run_ladder(Ladder& ladder, bool quiet) {
 }  // namespace
 
 int converge_command(const RunOptions& options) {
-  const RunConfig base = load_run_config(options.sources);
+  RunConfig base = load_run_config(options.sources);
   const auto threads = limit_threads(options.threads);
   prepare_out_dir(options.out_dir);  // an unusable --out fails before the runs, not after
   std::vector<Ladder> all = ladders(base);
+  base.packing.reset();  // each rung reads its packing when it runs: one copy at a time
   for (Ladder& ladder : all)
     for (const std::string& value : ladder.values) {  // a bad rung fails before any run starts
       RunSources sources = options.sources;
       sources.swept = ladder.key + "=" + value;
       sources.swept_origin = "converge's " + ladder.name + " ladder, " + ladder.key + " = " + value;
       ladder.configs.push_back(load_run_config(sources));
+      ladder.configs.back().packing.reset();
       refuse_run_only_outputs(ladder.configs.back(), "converge");
     }
   std::string csv = "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"

@@ -16,6 +16,7 @@
 #include <sstream>
 #include <string_view>
 
+#include <signal.h>
 #include <unistd.h>
 
 #include "geometry/error.h"
@@ -37,7 +38,7 @@ namespace {
 void on_interrupt(int signal) {
   if (stop_requested().exchange(true)) {
     std::signal(signal, SIG_DFL);
-    std::raise(signal);
+    ::kill(::getpid(), signal);
     return;
   }
   static constexpr char kNote[] = "\nbeampack: stopping after the current step; interrupt again to quit at once\n";
@@ -479,10 +480,13 @@ void refuse_outputs_over_inputs(const fs::path& dir, const std::vector<std::pair
 // `--resume` would continue the earlier run over the new outputs), so they go: beampack's own
 // names only, in a folder that holds a beampack run.
 void remove_earlier_run(const fs::path& dir) {
-  if (!holds_earlier_run(dir)) return;
+  const bool earlier_run = holds_earlier_run(dir);
   std::vector<fs::path> earlier;
-  for (const fs::directory_entry& e : fs::directory_iterator(dir))
-    if (e.is_regular_file() && is_output_name(e.path())) earlier.push_back(e.path());
+  for (const fs::directory_entry& e : fs::directory_iterator(dir)) {
+    // A temporary file of a write (NAME.tmp.PID) is a killed run's, with or without a marker.
+    const bool temporary = e.path().filename().string().find(".tmp.") != std::string::npos;
+    if (e.is_regular_file() && is_output_name(e.path()) && (earlier_run || temporary)) earlier.push_back(e.path());
+  }
   for (const fs::path& f : earlier) fs::remove(f);
   if (!earlier.empty())
     std::fprintf(stderr, "beampack: note: removed %zu files of an earlier run from %s "
@@ -532,7 +536,7 @@ int run_command(const RunOptions& options) {
     saved.emplace(open_checkpoint(fs::path(options.resume) / "checkpoint.bin", record));
     sources.text = record.config_text;
   }
-  const RunConfig config = load_run_config(sources);
+  RunConfig config = load_run_config(sources);
   warn_of_many_steps(config.sim);
   warn_if_walls_take_no_heat(config.sim);
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
@@ -541,6 +545,7 @@ int run_command(const RunOptions& options) {
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
   const std::unique_ptr<Simulation> owned = start_simulation(config);
+  config.packing.reset();  // the simulation holds its own copy
   Simulation& sim = *owned;
   warn_if_beam_meets_nothing(sim);
   warn_if_time_stands_still(sim);
@@ -662,6 +667,7 @@ int sweep_command(const SweepOptions& options) {
     sources.swept = options.param + "=" + value;
     sources.swept_origin = "--param " + options.param + " --values " + value;
     configs.push_back(load_run_config(sources));
+    configs.back().packing.reset();  // each value reads its packing when it runs: one copy at a time
     refuse_run_only_outputs(configs.back(), "sweep");
   }
   const std::string header = options.param + ',' + kFigureColumns + ",steps,wall_seconds";

@@ -3,12 +3,10 @@
 #include <algorithm>
 #include <cctype>
 #include <cmath>
-#include <functional>
 #include <fstream>
 #include <iomanip>
 #include <limits>
 #include <numbers>
-#include <optional>
 #include <sstream>
 
 #include <unistd.h>
@@ -137,9 +135,17 @@ std::vector<Wall> read_walls(Params& p, double size) {
   return walls;
 }
 
+// Where a run uses the paper's ray time step xi R / c, derived once every key is read (for a
+// file packing R comes from the file: a misspelt key is named before the file is read).
+struct PaperStepUse {
+  double xi = 0.05;
+  bool duration = false;  // pulses.duration = "auto"
+  bool dt = false;        // thermal.dt = "paper"
+};
+
 // thermal.dt: seconds, "pulse" (one step per pulse flight: the event-driven limit) or "paper"
-// (xi R / c, the paper's ray time step).
-void read_thermal(Params& p, SimulationSpec& s, const std::function<double()>& paper_step) {
+// (xi R / c, the paper's ray time step: derive_paper_step).
+void read_thermal(Params& p, SimulationSpec& s, PaperStepUse& use) {
   ThermalSpec& t = s.thermal;
   t.time_scaling = p.number("thermal.time_scaling", 1e6, 0, kBig, true);
   t.phi = p.number("thermal.phi", 1.0, 0, 1);
@@ -150,49 +156,63 @@ void read_thermal(Params& p, SimulationSpec& s, const std::function<double()>& p
   s.max_staggers = int(p.integer("thermal.max_staggers", 4, 0, 1000));
   double dt = 0;
   const std::string word = p.number_or_word("thermal.dt", dt, 0, kBig, {"pulse", "paper"}, "pulse");
-  const double paper_dt = word == "paper" ? paper_step() : 0.0;
-  if (word == "paper" && !(std::isfinite(paper_dt) && paper_dt > 0)) {
-    std::ostringstream m;
-    m << "`thermal.dt` = \"paper\" gives xi R / c = " << paper_dt
-      << " s: must be finite and > 0; give thermal.dt in seconds";
-    throw InputError(m.str());
-  }
-  s.dt = word == "pulse" ? 0.0 : word == "paper" ? paper_dt : dt;
-  // More steps than this per light crossing of the sample would never finish (a typo of the
-  // exponent, most likely); the paper's dt takes thousands.
-  constexpr double kMaxStepsPerCrossing = 1e9;
-  const double crossing = s.packing.sample_size / kSpeedOfLight;
-  if (steps_per_crossing(s) > kMaxStepsPerCrossing)
-    p.fail("thermal.dt", word == "paper" ? "\"paper\" (xi R / c = " + number_text(s.dt) + " s)" : number_text(s.dt),
-           "must be >= sample.size / c / 1e9 = " + number_text(crossing / kMaxStepsPerCrossing) +
-               " s (light crosses the sample in " + number_text(crossing) + " s)");
+  use.dt = word == "paper";
+  s.dt = word == "pulse" || use.dt ? 0.0 : dt;
   t.validate();
 }
 
-// tau: seconds, or "auto" = xi R / c (the paper's ray time step), or from pulses.energy.
-// Returns xi.
-double read_pulses(Params& p, SimulationSpec& s, const std::function<double(double xi)>& paper_step) {
+// More steps than this per light crossing of the sample would never finish (a typo of the
+// exponent, most likely); the paper's dt takes thousands.
+void check_steps_per_crossing(Params& p, const SimulationSpec& s, bool paper) {
+  constexpr double kMaxStepsPerCrossing = 1e9;
+  const double crossing = s.packing.sample_size / kSpeedOfLight;
+  if (steps_per_crossing(s) > kMaxStepsPerCrossing)
+    p.fail("thermal.dt", paper ? "\"paper\" (xi R / c = " + number_text(s.dt) + " s)" : number_text(s.dt),
+           "must be >= sample.size / c / 1e9 = " + number_text(crossing / kMaxStepsPerCrossing) +
+               " s (light crosses the sample in " + number_text(crossing) + " s)");
+}
+
+// tau: seconds, or "auto" = xi R / c (the paper's ray time step: derive_paper_step), or from
+// pulses.energy.
+void read_pulses(Params& p, SimulationSpec& s, PaperStepUse& use) {
   s.pulses.count = int(p.integer("pulses.count", 20, 0, 10'000'000));
   double tau = 0;
   const std::string word = p.number_or_word("pulses.duration", tau, 0, kBig, {"auto", "energy"}, "auto");
-  const double xi = p.number("pulses.xi", 0.05, 0, 10, true);
+  use.xi = p.number("pulses.xi", 0.05, 0, 10, true);
+  use.duration = word == "auto";
   const double energy = p.number("pulses.energy", 1e-9, 0, kBig, true);
-  if (word == "auto") tau = paper_step(xi);
   if (word == "energy") tau = energy / s.beam.power;
   // Each input is in range, but a quotient can still overflow or underflow (found by fuzz/).
-  if (!(std::isfinite(tau) && tau > 0)) {
+  if (word == "energy" && !(std::isfinite(tau) && tau > 0)) {
     std::ostringstream m;
-    m << "`pulses.duration` = \"" << word << "\" gives tau = " << tau << " s ("
-      << (word == "auto" ? "pulses.xi * R / c, R from sample.size and packing.*, or a file's median radius"
-                         : "pulses.energy / beam.power")
-      << "): must be finite and > 0; give pulses.duration in seconds";
+    m << "`pulses.duration` = \"energy\" gives tau = " << tau
+      << " s (pulses.energy / beam.power): must be finite and > 0; give pulses.duration in seconds";
     throw InputError(m.str());
   }
   s.pulses.duration = tau;
   double period = 0;
   const std::string pw = p.number_or_word("pulses.period", period, 0, kBig, {"auto"}, "auto");
   s.pulses.period = pw == "auto" ? 0.0 : period;
-  return xi;
+}
+
+// xi R / c where the run uses it, R the packing's radius; a file's particles are read here, once
+// (the simulation takes them).
+void derive_paper_step(RunConfig& c, const PaperStepUse& use) {
+  c.xi = use.xi;
+  if (!use.duration && !use.dt) return;
+  if (c.sim.packing.source == "file") c.packing = std::make_shared<const Particles>(make_packing(c.sim.packing));
+  const double step = paper_step(c.sim.packing, use.xi, c.packing.get());
+  if (std::isfinite(step) && step > 0) {
+    if (use.duration) c.sim.pulses.duration = step;
+    if (use.dt) c.sim.dt = step;
+    return;
+  }
+  std::ostringstream m;
+  m << (use.duration ? "`pulses.duration` = \"auto\" gives tau" : "`thermal.dt` = \"paper\" gives")
+    << " = pulses.xi * R / c = " << step
+    << " s (R from sample.size and packing.*, or a file's median radius): must be finite and > 0; give "
+    << (use.duration ? "pulses.duration" : "thermal.dt") << " in seconds";
+  throw InputError(m.str());
 }
 
 // Every key, read in the order the library needs them, and the library's own checks.
@@ -210,23 +230,17 @@ RunConfig read_config(Params& p) {
            "must be < material.vapor_temperature = " + number_text(m.vapor_temperature) +
                " (every particle would start as vapour)");
   }
-  // xi R / c once, and only if a key asks for it: a file's radii are read from the file, once
-  // (the simulation takes the particles read here).
-  std::optional<double> step;
-  auto paper_step = [&](double xi) {
-    if (!step && c.sim.packing.source == "file") c.packing = std::make_shared<const Particles>(make_packing(c.sim.packing));
-    if (!step) step = beampack::tools::paper_step(c.sim.packing, xi, c.packing.get());
-    return *step;
-  };
-  c.xi = read_pulses(p, c.sim, paper_step);
-  read_thermal(p, c.sim, [&] { return paper_step(c.xi); });
+  PaperStepUse use;
+  read_pulses(p, c.sim, use);
+  read_thermal(p, c.sim, use);
   c.sim.thermal.walls = read_walls(p, c.sim.packing.sample_size);
   c.sim.thermal.validate();
   c.output.frames = p.flag("output.frames", false);
   c.output.rays = p.flag("output.rays", false);
   p.check_all_used();  // first: a misspelt key is named before what it would have changed
+  derive_paper_step(c, use);
+  check_steps_per_crossing(p, c.sim, use.dt);
   validate_beam(c.sim.beam, c.sim.packing.sample_size);
-  refuse_beyond_memory(c.sim, machine_memory());
   c.resolved = p.resolved();
   c.origins = p.origins();
   return c;
@@ -289,9 +303,8 @@ double paper_step(const PackingSpec& packing, double xi, const Particles* partic
   return xi * (particles ? median_radius(*particles) : packing_radius(packing)) / kSpeedOfLight;
 }
 
-double least_memory_need(const SimulationSpec& s) {
-  // A file's particles are counted when it is read, after this check; its rays are known.
-  const double particles = s.packing.source == "file" ? 0.0 : double(s.packing.count);
+double least_memory_need(const SimulationSpec& s, std::size_t file_particles) {
+  const double particles = s.packing.source == "file" ? double(file_particles) : double(s.packing.count);
   return kBytesPerRay * double(s.beam.rays) + kBytesPerParticle * particles;
 }
 
@@ -303,27 +316,28 @@ double machine_memory() {
   return bytes;
 }
 
-void refuse_beyond_memory(const SimulationSpec& s, double available) {
-  const double need = least_memory_need(s);
+void refuse_beyond_memory(const SimulationSpec& s, double available, std::size_t file_particles) {
+  const double need = least_memory_need(s, file_particles);
   if (need <= available) return;
-  const double rays = kBytesPerRay * double(s.beam.rays);
-  const bool by_rays = rays >= need - rays;
-  const std::string key = by_rays ? "beam.rays" : "packing.count";
+  const bool file = s.packing.source == "file";
+  const std::string particles = file ? "packing.file = \"" + s.packing.file + "\" (" + std::to_string(file_particles) +
+                                           " particles)"
+                                     : "packing.count = " + std::to_string(s.packing.count);
+  const std::string rays = "beam.rays = " + std::to_string(s.beam.rays);
+  const double ray_bytes = kBytesPerRay * double(s.beam.rays);
+  const bool by_rays = ray_bytes >= need - ray_bytes;
   std::ostringstream m;
-  m << "`" << key << "` = " << (by_rays ? s.beam.rays : s.packing.count) << ": the run needs at least "
-    << std::setprecision(3) << need / 1e9 << " GB ";
-  if (need == rays)
-    m << "for its rays alone";
-  else
-    m << "with " << (by_rays ? "packing.count = " + std::to_string(s.packing.count)
-                             : "beam.rays = " + std::to_string(s.beam.rays));
-  m << " (" << kBytesPerRay << " bytes per ray, " << kBytesPerParticle << " per particle), more than the "
-    << available / 1e9 << " GB of this machine; lower " << key;
+  m << "`" << (by_rays ? rays : particles) << "`: the run needs at least " << std::setprecision(3) << need / 1e9
+    << " GB " << (need == ray_bytes ? "for its rays alone" : "with " + (by_rays ? particles : rays)) << " ("
+    << kBytesPerRay << " bytes per ray, " << kBytesPerParticle << " per particle), more than the "
+    << available / 1e9 << " GB of this machine; lower "
+    << (by_rays ? "beam.rays" : file ? "the particle count" : "packing.count");
   throw InputError(m.str());
 }
 
 std::unique_ptr<Simulation> start_simulation(const RunConfig& config) {
   try {
+    refuse_beyond_memory(config.sim, machine_memory(), config.packing ? config.packing->size() : 0);
     if (config.packing) return std::make_unique<Simulation>(config.sim, *config.packing);
     return std::make_unique<Simulation>(config.sim);
   } catch (const InputError& e) {

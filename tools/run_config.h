@@ -44,8 +44,8 @@ RunConfig load_run_config(const RunSources& sources);
 // already starts with one: for errors found after the run file was read.
 std::string locate(const std::string& message, const std::map<std::string, std::string>& origins);
 
-// The simulation of a configuration; an InputError from its set-up (the packing file, the
-// thermal masses) names where the key it mentions was set.
+// The simulation of a configuration (refused beyond this machine's memory); an InputError from
+// its set-up (the packing file, the thermal masses) names where the key it mentions was set.
 std::unique_ptr<Simulation> start_simulation(const RunConfig& config);
 
 // xi R / c, the paper's ray time step, with R the packing's radius: for a file, the median of
@@ -57,15 +57,17 @@ double paper_step(const PackingSpec& packing, double xi, const Particles* partic
 double steps_per_crossing(const SimulationSpec& s);
 
 // The least memory a scene needs, in bytes: its rays and its particles, at the bytes each that
-// a run measured (BENCHMARKS.md, "Memory a run needs"). Less than a run takes, never more.
-double least_memory_need(const SimulationSpec& s);
+// a run measured (BENCHMARKS.md, "Memory a run needs"). Less than a run takes, never more. A
+// file packing counts `file_particles` (0 when it has not been read).
+double least_memory_need(const SimulationSpec& s, std::size_t file_particles = 0);
 
 // This machine's memory in bytes: the physical memory, or the control group's limit if lower.
 double machine_memory();
 
 // InputError naming the key that needs the most, when a scene needs more than `available` bytes
 // (it would end in std::bad_alloc, or the kernel's out-of-memory kill, part way into set-up).
-void refuse_beyond_memory(const SimulationSpec& s, double available);
+// start_simulation checks it: `beampack config` prints a run file for any machine.
+void refuse_beyond_memory(const SimulationSpec& s, double available, std::size_t file_particles = 0);
 
 // Named presets: TOML text.
 struct Preset {
