@@ -7,10 +7,11 @@
 
 int main() {
   using namespace beampack;
-  // A lattice of 8^3 touching-and-overlapping spheres in a 1 mm cube, hit by a flat beam along +x.
+  // A lattice of 8^3 spheres in a 1 mm cube, each overlapping its six neighbours (radius 0.55 of
+  // the spacing, so the contacts conduct), hit by a flat beam along +x.
   SimulationSpec spec;
   spec.packing.sample_size = 1e-3;
-  Particles particles = lattice_packing(512, spec.packing.sample_size, 0.3);
+  Particles particles = lattice_packing(512, spec.packing.sample_size, 0.55);
   spec.beam.rays = 2000;
   spec.beam.profile = "flat";
   spec.beam.sampling = "stratified";

@@ -263,8 +263,10 @@ Particles read_plain_columns(PackingLines& lines, double default_radius) {
       continue;
     }
     seen_data = true;
-    require(cols.size() == need, where + "expected " + std::to_string(need) + " columns (" +
-                                     layout + "), found " + std::to_string(cols.size()));
+    require(cols.size() == need, where + "expected " + std::to_string(need) + " columns (" + layout + "), found " +
+                                     std::to_string(cols.size()) +
+                                     (need == 4 && cols.size() == 3 ? "; for x y z rows give the radius with packing.radius"
+                                                                    : ""));
     double v[4] = {0, 0, 0, default_radius};
     for (std::size_t k = 0; k < need; ++k) v[k] = finite_column(cols, k, where);
     add_checked_sphere(p, {v[0], v[1], v[2]}, v[3], {0, 1, 2}, where);

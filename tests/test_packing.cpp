@@ -163,6 +163,10 @@ TEST(PackingFile, APipeFromProcessSubstitutionIsRead) {
 
 TEST(PackingFile, EachErrorNamesItsLine) {
   EXPECT_NE(read_error("cols", "1 2 3 1\n1 2 3\n").find(":2: expected 4 columns"), std::string::npos);
+  // An x y z file read without packing.radius: the message says where the radius goes.
+  EXPECT_NE(read_error("xyz", "1 2 3\n").find(":1: expected 4 columns (x y z r), found 3; for x y z rows give "
+                                             "the radius with packing.radius"),
+            std::string::npos);
   EXPECT_NE(read_error("nan_text", "# c\n1 2 abc 1\n").find(":2: column 3 'abc' is not a number"),
             std::string::npos);
   EXPECT_NE(read_error("neg", "1 2 3 1\n\n1 2 3 -1\n").find(":3: radius r = -1: must be > 0"),
