@@ -461,6 +461,16 @@ void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
 
 }  // namespace
 
+Particles Simulation::saved_packing(StateReader in) {
+  if (in.value<std::uint32_t>() != kStateVersion)
+    throw InputError("checkpoint: written by another version of beampack's state format");
+  Particles p;
+  in.vector(p.centre), in.vector(p.radius), in.vector(p.material);
+  if (p.centre.size() != p.radius.size() || p.material.size() != p.radius.size())
+    throw InputError("checkpoint: its packing's arrays differ in length");
+  return p;
+}
+
 void Simulation::read_state(StateReader& in) {
   if (in.value<std::uint32_t>() != kStateVersion)
     throw InputError("checkpoint: written by another version of beampack's state format");

@@ -117,6 +117,9 @@ class Simulation {
   // Restoring it into a Simulation built from the same spec continues bit-identically.
   void write_state(StateWriter& out) const;
   void read_state(StateReader& in);
+  // The particles a state was written for (centres, radii, materials), read from a copy of its
+  // reader: a resumed run needs no packing file.
+  static Particles saved_packing(StateReader in);
 
  private:
   void launch_pulse_if_due();

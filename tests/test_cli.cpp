@@ -505,6 +505,29 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
   EXPECT_EQ(compared, 13u);  // 5 frames, 5 ray files, particles.pvd, particles.csv, history.csv
 }
 
+// A checkpoint holds its particles: a file packing's run resumes after the file has moved (a
+// cluster's scratch folder emptied, say), from the checkpoint's own geometry, and ends as the
+// uninterrupted run did. tau = xi R / c ("auto") takes R from those particles too.
+TEST(Cli, AResumedRunNeedsNoPackingFile) {
+  const fs::path dir = fresh_dir("resume_without_file"), whole = dir / "whole", part = dir / "part";
+  std::string rows = "x y z r\n";
+  for (int i = 0; i < 60; ++i)
+    rows += std::to_string(0.3e-3 + 0.01e-3 * (i % 7)) + " " + std::to_string(0.42e-3 + 0.027e-3 * (i % 6)) + " " +
+            std::to_string(0.42e-3 + 0.031e-3 * (i / 6 % 6)) + " " + std::to_string(2e-5 + 1e-6 * (i % 5)) + "\n";
+  const std::string bed = write(dir / "bed.xyz", rows);
+  const std::string scene = "--preset quick --set packing.source=file --set packing.file=" + bed +
+                            " --set pulses.duration='\"auto\"' --set pulses.xi=1 --set material.conductivity=50 --quiet";
+  ASSERT_EQ(run("run " + scene + " --checkpoint-every 2 --out " + whole.string()).code, 0);
+  fs::create_directories(part);
+  fs::copy_file(whole / "checkpoint.bin", part / "checkpoint.bin");
+  fs::rename(bed, dir / "moved.xyz");
+  const Result r = run("run --resume " + part.string() + " --quiet");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_EQ(file_text(whole / "particles.csv"), file_text(part / "particles.csv"));
+  EXPECT_EQ(file_text(whole / "history.csv"), file_text(part / "history.csv"));
+  EXPECT_GT(double(read_json(whole / "summary.json")["energy_J"]["absorbed"]), 0.0);
+}
+
 TEST(Cli, SigkillAtRandomMomentsLeavesALoadableCheckpoint) {
   const fs::path whole = fresh_dir("kill_whole");
   const auto start = std::chrono::steady_clock::now();

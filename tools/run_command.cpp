@@ -535,6 +535,7 @@ int run_command(const RunOptions& options) {
   if (!options.resume.empty()) {
     saved.emplace(open_checkpoint(fs::path(options.resume) / "checkpoint.bin", record));
     sources.text = record.config_text;
+    sources.packing = std::make_shared<const Particles>(Simulation::saved_packing(*saved));
   }
   RunConfig config = load_run_config(sources);
   warn_of_many_steps(config.sim);

@@ -200,7 +200,8 @@ void read_pulses(Params& p, SimulationSpec& s, PaperStepUse& use) {
 void derive_paper_step(RunConfig& c, const PaperStepUse& use) {
   c.xi = use.xi;
   if (!use.duration && !use.dt) return;
-  if (c.sim.packing.source == "file") c.packing = std::make_shared<const Particles>(make_packing(c.sim.packing));
+  if (c.sim.packing.source == "file" && !c.packing)
+    c.packing = std::make_shared<const Particles>(make_packing(c.sim.packing));
   const double step = paper_step(c.sim.packing, use.xi, c.packing.get());
   if (std::isfinite(step) && step > 0) {
     if (use.duration) c.sim.pulses.duration = step;
@@ -215,11 +216,19 @@ void derive_paper_step(RunConfig& c, const PaperStepUse& use) {
   throw InputError(m.str());
 }
 
+// A file packing's particles read before, as a new run starts them.
+std::shared_ptr<const Particles> packing_at_start(const Particles& read, double initial_temperature) {
+  Particles p;
+  for (std::size_t i = 0; i < read.size(); ++i) p.add(read.centre[i], read.radius[i], read.material[i], initial_temperature);
+  return std::make_shared<const Particles>(std::move(p));
+}
+
 // Every key, read in the order the library needs them, and the library's own checks.
-RunConfig read_config(Params& p) {
+RunConfig read_config(Params& p, const std::shared_ptr<const Particles>& read) {
   RunConfig c;
   read_packing(p, c.sim.packing);
   c.sim.packing.initial_temperature = p.number("material.initial_temperature", 300, 0, kBig, true);
+  if (read && c.sim.packing.source == "file") c.packing = packing_at_start(*read, c.sim.packing.initial_temperature);
   read_beam(p, c.sim.beam);
   read_optics(p, c.sim.optics);
   Material m;
@@ -266,7 +275,7 @@ RunConfig load_run_config(const RunSources& sources) {
   for (const std::string& s : sources.sets) p.merge_assignment(s);
   if (!sources.swept.empty()) p.merge_assignment(sources.swept, sources.swept_origin);
   try {
-    return read_config(p);
+    return read_config(p, sources.packing);
   } catch (const InputError& e) {  // a library check of several keys: where were they set?
     throw InputError(locate(e.what(), p.origins()));
   }

@@ -35,6 +35,9 @@ struct RunSources {
   // KEY=VALUE applied after the --set list by sweep and converge, and named in messages as
   // `swept_origin` ("--param K --values V") rather than as a --set the user never typed.
   std::string swept, swept_origin;
+  // A file packing's particles already read: a resumed run's, from its checkpoint (which holds
+  // them), so that the run continues without its packing file. null: read the file.
+  std::shared_ptr<const Particles> packing;
 };
 
 // InputError (exit code 2) for any bad key, type or value, naming file and line.
