@@ -468,6 +468,9 @@ Particles Simulation::saved_packing(StateReader in) {
   in.vector(p.centre), in.vector(p.radius), in.vector(p.material);
   if (p.centre.size() != p.radius.size() || p.material.size() != p.radius.size())
     throw InputError("checkpoint: its packing's arrays differ in length");
+  // The checks a packing file's rows pass: the scene and the grid are built from these.
+  for (std::size_t i = 0; i < p.radius.size(); ++i)
+    check_sphere(p.centre[i], p.radius[i], {0, 1, 2}, "checkpoint: particle " + std::to_string(i) + ": ");
   return p;
 }
 

@@ -154,6 +154,22 @@ Particles lattice_packing(std::size_t count, double size, double radius_ratio) {
   return p;
 }
 
+// The checks every particle of a packing passes, whichever file format (or checkpoint) gave it. Finite numbers can still
+// make a sphere the physics cannot hold (found by fuzz/): a radius whose volume, hence mass,
+// rounds to 0 or overflows, or a centre +- r beyond the doubles.
+void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>& centre_columns,
+                  const std::string& where) {
+  require(r > 0, where + "radius r = " + str(r) + ": must be > 0");
+  const double volume = 4.0 / 3.0 * std::numbers::pi * r * r * r;
+  require(volume > 0 && std::isfinite(volume),
+          where + "radius r = " + str(r) + ": its volume " + str(volume) +
+              " is not a positive finite double (|r| must be within ~1e-100 .. 1e100)");
+  for (int k = 0; k < 3; ++k)
+    require(
+        std::isfinite(std::abs(centre[k]) + r),
+        where + "centre +- radius overflows in column " + std::to_string(centre_columns[k] + 1));
+}
+
 namespace {
 
 bool is_separator(char c) { return c == ' ' || c == '\t' || c == ',' || c == ';' || c == '\r'; }
@@ -229,21 +245,9 @@ double finite_column(const std::vector<std::string_view>& cols, std::size_t k,
   return v;
 }
 
-// The checks every particle of a file passes, whichever format gave it. Finite numbers can still
-// make a sphere the physics cannot hold (found by fuzz/): a radius whose volume, hence mass,
-// rounds to 0 or overflows, or a centre +- r beyond the doubles.
 void add_checked_sphere(Particles& p, const Vec3& centre, double r,
-                        const std::array<std::size_t, 3>& centre_columns,
-                        const std::string& where) {
-  require(r > 0, where + "radius r = " + str(r) + ": must be > 0");
-  const double volume = 4.0 / 3.0 * std::numbers::pi * r * r * r;
-  require(volume > 0 && std::isfinite(volume),
-          where + "radius r = " + str(r) + ": its volume " + str(volume) +
-              " is not a positive finite double (|r| must be within ~1e-100 .. 1e100)");
-  for (int k = 0; k < 3; ++k)
-    require(
-        std::isfinite(std::abs(centre[k]) + r),
-        where + "centre +- radius overflows in column " + std::to_string(centre_columns[k] + 1));
+                        const std::array<std::size_t, 3>& centre_columns, const std::string& where) {
+  check_sphere(centre, r, centre_columns, where);
   p.add(centre, r);
 }
 

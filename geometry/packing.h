@@ -1,6 +1,7 @@
 #pragma once
 // Packings: where the spheres are. Every generator is sequential and seeded with beampack::Rng,
 // so the same seed gives the same packing on every machine and thread count.
+#include <array>
 #include <cstdint>
 #include <string>
 
@@ -27,6 +28,12 @@ Particles make_packing(const PackingSpec& spec);
 // for a file, the median of its radii (the paper's R when sizes differ, remark after (3.11)),
 // read from the file, 0 for an empty one.
 double packing_radius(const PackingSpec& spec);
+// The checks every sphere of a packing file passes (a checkpoint's too): a radius > 0 whose
+// volume is a positive finite double, and centre +- radius finite. InputError prefixed by
+// `where`, naming the file's column of x, y or z (centre_columns) that overflows.
+void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>& centre_columns,
+                  const std::string& where);
+
 // The middle radius (the mean of the middle two for an even count); 0 for no particles.
 double median_radius(const Particles& particles);
 

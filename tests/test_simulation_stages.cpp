@@ -316,6 +316,21 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
     EXPECT_NE(error.find("checkpoint: "), std::string::npos) << message << ": " << error;
     EXPECT_NE(error.find(message), std::string::npos) << message << ": " << error;
   }
+  // A resumed run builds its scene from the state's particles (no packing file): they pass the
+  // checks a packing file's rows do.
+  EXPECT_EQ(Simulation::saved_packing(StateReader(parts.bytes(), "rebuilt")).centre, parts.p.centre);
+  for (const auto& edit : std::vector<std::function<void(StateParts&)>>{
+           [&](StateParts& s) { s.p.centre[8].y() = nan; }, [](StateParts& s) { s.p.radius[8] = -1; },
+           [](StateParts& s) { s.p.radius[8] = 0; }}) {
+    StateParts bad = parts;
+    edit(bad);
+    try {
+      Simulation::saved_packing(StateReader(bad.bytes(), "rebuilt"));
+      ADD_FAILURE() << "a saved packing with a bad sphere was read";
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find("checkpoint: particle 8: "), std::string::npos) << e.what();
+    }
+  }
   // A refused state changes nothing: the simulation goes on as if it had never read it.
   Simulation kept(spec), fresh(spec);
   StateParts bad = parts;
