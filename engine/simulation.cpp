@@ -461,16 +461,20 @@ void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
 
 }  // namespace
 
-Particles Simulation::saved_packing(StateReader in) {
+Particles Simulation::saved_packing(StateReader in, double initial_temperature) {
   if (in.value<std::uint32_t>() != kStateVersion)
     throw InputError("checkpoint: written by another version of beampack's state format");
-  Particles p;
-  in.vector(p.centre), in.vector(p.radius), in.vector(p.material);
-  if (p.centre.size() != p.radius.size() || p.material.size() != p.radius.size())
+  Particles saved;
+  in.vector(saved.centre), in.vector(saved.radius), in.vector(saved.material);
+  if (saved.centre.size() != saved.radius.size() || saved.material.size() != saved.radius.size())
     throw InputError("checkpoint: its packing's arrays differ in length");
-  // The checks a packing file's rows pass: the scene and the grid are built from these.
-  for (std::size_t i = 0; i < p.radius.size(); ++i)
-    check_sphere(p.centre[i], p.radius[i], {0, 1, 2}, "checkpoint: particle " + std::to_string(i) + ": ");
+  Particles p;
+  p.reserve(saved.radius.size());
+  for (std::size_t i = 0; i < saved.radius.size(); ++i) {
+    // The checks a packing file's rows pass: the scene and the grid are built from these.
+    check_sphere(saved.centre[i], saved.radius[i], {0, 1, 2}, "checkpoint: particle " + std::to_string(i) + ": ");
+    p.add(saved.centre[i], saved.radius[i], saved.material[i], initial_temperature);
+  }
   return p;
 }
 

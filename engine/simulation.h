@@ -117,9 +117,10 @@ class Simulation {
   // Restoring it into a Simulation built from the same spec continues bit-identically.
   void write_state(StateWriter& out) const;
   void read_state(StateReader& in);
-  // The particles a state was written for (centres, radii, materials), read from a copy of its
-  // reader: a resumed run needs no packing file.
-  static Particles saved_packing(StateReader in);
+  // The particles a state was written for (centres, radii, materials), as a new simulation
+  // starts them (at `initial_temperature`, solid, alive), read from a copy of its reader: a
+  // resumed run needs no packing file. Simulation(spec, saved_packing(r, T0)).read_state(r).
+  static Particles saved_packing(StateReader in, double initial_temperature);
 
  private:
   void launch_pulse_if_due();

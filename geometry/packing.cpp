@@ -159,6 +159,7 @@ Particles lattice_packing(std::size_t count, double size, double radius_ratio) {
 // rounds to 0 or overflows, or a centre +- r beyond the doubles.
 void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>& centre_columns,
                   const std::string& where) {
+  require(centre.allFinite(), where + "its centre is not a finite number");
   require(r > 0, where + "radius r = " + str(r) + ": must be > 0");
   const double volume = 4.0 / 3.0 * std::numbers::pi * r * r * r;
   require(volume > 0 && std::isfinite(volume),

@@ -149,6 +149,28 @@ TEST(RunReport, PulseDurationAndThePapersStepFollowTheirFormulas) {
     ASSERT_NE(f.packing, nullptr);  // read once, for the simulation too
     EXPECT_EQ(f.packing->size(), std::count(rows, rows + std::strlen(rows), '\n'));
   }
+  // A resumed run's particles come from its checkpoint, not the file: at the run file's start
+  // temperature, and with materials the run defines (a checkpoint's are checked by name).
+  Particles saved;
+  saved.add(Vec3(1, 1, 1), 2e-5, 0, 999.0);
+  saved.add(Vec3(2, 2, 2), 3e-5, 0, 999.0);
+  RunSources resumed = auto_tau;
+  resumed.sets.push_back("packing.source=\"file\"");
+  resumed.sets.push_back("packing.file=\"" + (dir / "gone.xyz").string() + "\"");
+  resumed.sets.push_back("sample.size=5");
+  resumed.packing = std::make_shared<const Particles>(saved);
+  const RunConfig r = load_run_config(resumed);
+  ASSERT_NE(r.packing, nullptr);
+  EXPECT_EQ(r.packing->temperature, std::vector<double>(2, 300.0));
+  EXPECT_NEAR(r.sim.pulses.duration, 0.08 * 2.5e-5 / kC, 1e-12 * r.sim.pulses.duration);  // their median
+  saved.material[1] = 9;
+  resumed.packing = std::make_shared<const Particles>(saved);
+  try {
+    load_run_config(resumed);
+    ADD_FAILURE() << "a checkpoint's particle of material 9 was accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("checkpoint: particle 1 has material 9 of 1"), std::string::npos) << e.what();
+  }
   // The file is read once every key is: a misspelt key is named first, not a missing file.
   RunSources typo = auto_tau;
   typo.sets.push_back("packing.source=\"file\"");

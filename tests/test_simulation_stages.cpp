@@ -318,14 +318,29 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
   }
   // A resumed run builds its scene from the state's particles (no packing file): they pass the
   // checks a packing file's rows do.
-  EXPECT_EQ(Simulation::saved_packing(StateReader(parts.bytes(), "rebuilt")).centre, parts.p.centre);
+  // As a library does it: a simulation built from the state's own particles continues as the one
+  // that wrote it.
+  const Particles saved = Simulation::saved_packing(StateReader(parts.bytes(), "rebuilt"), 300.0);
+  EXPECT_EQ(saved.centre, parts.p.centre);
+  {
+    Simulation resumed(spec, saved);
+    StateReader in(parts.bytes(), "rebuilt");
+    resumed.read_state(in);
+    Simulation original = Simulation(spec);
+    StateReader again(parts.bytes(), "rebuilt");
+    original.read_state(again);
+    while (resumed.step() | original.step()) {
+    }
+    EXPECT_EQ(resumed.particles().temperature, original.particles().temperature);
+    EXPECT_EQ(resumed.figures().energy.absorbed, original.figures().energy.absorbed);
+  }
   for (const auto& edit : std::vector<std::function<void(StateParts&)>>{
            [&](StateParts& s) { s.p.centre[8].y() = nan; }, [](StateParts& s) { s.p.radius[8] = -1; },
            [](StateParts& s) { s.p.radius[8] = 0; }}) {
     StateParts bad = parts;
     edit(bad);
     try {
-      Simulation::saved_packing(StateReader(bad.bytes(), "rebuilt"));
+      Simulation::saved_packing(StateReader(bad.bytes(), "rebuilt"), 300.0);
       ADD_FAILURE() << "a saved packing with a bad sphere was read";
     } catch (const InputError& e) {
       EXPECT_NE(std::string(e.what()).find("checkpoint: particle 8: "), std::string::npos) << e.what();

@@ -535,9 +535,10 @@ int run_command(const RunOptions& options) {
   if (!options.resume.empty()) {
     saved.emplace(open_checkpoint(fs::path(options.resume) / "checkpoint.bin", record));
     sources.text = record.config_text;
-    sources.packing = std::make_shared<const Particles>(Simulation::saved_packing(*saved));
+    sources.packing = std::make_shared<const Particles>(Simulation::saved_packing(*saved, 0.0));
   }
   RunConfig config = load_run_config(sources);
+  sources.packing.reset();  // the configuration holds what it needs of it
   warn_of_many_steps(config.sim);
   warn_if_walls_take_no_heat(config.sim);
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);

@@ -216,24 +216,25 @@ void derive_paper_step(RunConfig& c, const PaperStepUse& use) {
   throw InputError(m.str());
 }
 
-// A file packing's particles read before, as a new run starts them.
-std::shared_ptr<const Particles> packing_at_start(const Particles& read, double initial_temperature) {
-  Particles p;
-  for (std::size_t i = 0; i < read.size(); ++i) p.add(read.centre[i], read.radius[i], read.material[i], initial_temperature);
-  return std::make_shared<const Particles>(std::move(p));
-}
-
 // Every key, read in the order the library needs them, and the library's own checks.
 RunConfig read_config(Params& p, const std::shared_ptr<const Particles>& read) {
   RunConfig c;
   read_packing(p, c.sim.packing);
   c.sim.packing.initial_temperature = p.number("material.initial_temperature", 300, 0, kBig, true);
-  if (read && c.sim.packing.source == "file") c.packing = packing_at_start(*read, c.sim.packing.initial_temperature);
+  if (read && c.sim.packing.source == "file") {  // a checkpoint's, at their start temperature
+    Particles p = *read;
+    std::fill(p.temperature.begin(), p.temperature.end(), c.sim.packing.initial_temperature);
+    c.packing = std::make_shared<const Particles>(std::move(p));
+  }
   read_beam(p, c.sim.beam);
   read_optics(p, c.sim.optics);
   Material m;
   read_material(p, m);
   c.sim.materials = {m};
+  for (std::size_t i = 0; c.packing && i < c.packing->size(); ++i)
+    if (c.packing->material[i] >= c.sim.materials.size())
+      throw InputError("checkpoint: particle " + std::to_string(i) + " has material " +
+                       std::to_string(c.packing->material[i]) + " of " + std::to_string(c.sim.materials.size()));
   if (!(c.sim.packing.initial_temperature < m.vapor_temperature)) {
     p.fail("material.initial_temperature", number_text(c.sim.packing.initial_temperature),
            "must be < material.vapor_temperature = " + number_text(m.vapor_temperature) +
@@ -346,6 +347,12 @@ void refuse_beyond_memory(const SimulationSpec& s, double available, std::size_t
 
 std::unique_ptr<Simulation> start_simulation(const RunConfig& config) {
   try {
+    // A file's particles are counted once read: here, unless the configuration read them.
+    if (!config.packing && config.sim.packing.source == "file") {
+      Particles read = make_packing(config.sim.packing);
+      refuse_beyond_memory(config.sim, machine_memory(), read.size());
+      return std::make_unique<Simulation>(config.sim, std::move(read));
+    }
     refuse_beyond_memory(config.sim, machine_memory(), config.packing ? config.packing->size() : 0);
     if (config.packing) return std::make_unique<Simulation>(config.sim, *config.packing);
     return std::make_unique<Simulation>(config.sim);
