@@ -428,14 +428,19 @@ void require_in_state(bool ok, const std::string& what) {
   if (!ok) throw InputError("checkpoint: " + what);
 }
 
+void require_material(std::size_t particle, std::uint16_t material, const SimulationSpec& spec) {
+  require_in_state(material < spec.materials.size(), "particle " + std::to_string(particle) + " has material " +
+                                                         std::to_string(material) + " of " +
+                                                         std::to_string(spec.materials.size()));
+}
+
 // A checksum guards the bytes, not a writer's mistake or an edit: every value must be one a run
 // can hold (a particle index past the arrays crashed the tracer, a NaN reached the outputs).
 void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
   const Particles& p = s.particles;
   for (std::size_t i = 0; i < p.size(); ++i) {
     const std::string particle = "particle " + std::to_string(i) + " has ";
-    require_in_state(p.material[i] < spec.materials.size(), particle + "material " + std::to_string(p.material[i]) +
-                                                                " of " + std::to_string(spec.materials.size()));
+    require_material(i, p.material[i], spec);
     require_in_state(std::isfinite(p.temperature[i]) && p.temperature[i] >= 0,
                      particle + "temperature " + std::to_string(p.temperature[i]) + " K");
     require_in_state(p.phase[i] <= Phase::vapor && p.alive[i] <= 1, particle + "a phase or live flag out of range");
@@ -461,7 +466,7 @@ void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
 
 }  // namespace
 
-Particles Simulation::saved_packing(StateReader in, double initial_temperature) {
+Particles Simulation::saved_packing(StateReader in, const SimulationSpec& spec) {
   if (in.value<std::uint32_t>() != kStateVersion)
     throw InputError("checkpoint: written by another version of beampack's state format");
   Particles saved;
@@ -473,7 +478,8 @@ Particles Simulation::saved_packing(StateReader in, double initial_temperature) 
   for (std::size_t i = 0; i < saved.radius.size(); ++i) {
     // The checks a packing file's rows pass: the scene and the grid are built from these.
     check_sphere(saved.centre[i], saved.radius[i], {0, 1, 2}, "checkpoint: particle " + std::to_string(i) + ": ");
-    p.add(saved.centre[i], saved.radius[i], saved.material[i], initial_temperature);
+    require_material(i, saved.material[i], spec);
+    p.add(saved.centre[i], saved.radius[i], saved.material[i], spec.packing.initial_temperature);
   }
   return p;
 }

@@ -117,10 +117,11 @@ class Simulation {
   // Restoring it into a Simulation built from the same spec continues bit-identically.
   void write_state(StateWriter& out) const;
   void read_state(StateReader& in);
-  // The particles a state was written for (centres, radii, materials), as a new simulation
-  // starts them (at `initial_temperature`, solid, alive), read from a copy of its reader: a
-  // resumed run needs no packing file. Simulation(spec, saved_packing(r, T0)).read_state(r).
-  static Particles saved_packing(StateReader in, double initial_temperature);
+  // The particles a state was written for (centres, radii, materials), as a new simulation of
+  // `spec` starts them (at its initial temperature, solid, alive), read from a copy of its
+  // reader: a resumed run needs no packing file. Simulation(spec, saved_packing(r, spec))
+  // followed by read_state(r). InputError for a sphere or material the spec cannot hold.
+  static Particles saved_packing(StateReader in, const SimulationSpec& spec);
 
  private:
   void launch_pulse_if_due();

@@ -320,7 +320,11 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
   // checks a packing file's rows do.
   // As a library does it: a simulation built from the state's own particles continues as the one
   // that wrote it.
-  const Particles saved = Simulation::saved_packing(StateReader(parts.bytes(), "rebuilt"), 300.0);
+  SimulationSpec warm = spec;
+  warm.packing.initial_temperature = 450.0;
+  EXPECT_EQ(Simulation::saved_packing(StateReader(parts.bytes(), "rebuilt"), warm).temperature,
+            std::vector<double>(parts.p.size(), 450.0));  // as a new run of the spec starts them
+  const Particles saved = Simulation::saved_packing(StateReader(parts.bytes(), "rebuilt"), spec);
   EXPECT_EQ(saved.centre, parts.p.centre);
   {
     Simulation resumed(spec, saved);
@@ -340,10 +344,22 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
     StateParts bad = parts;
     edit(bad);
     try {
-      Simulation::saved_packing(StateReader(bad.bytes(), "rebuilt"), 300.0);
+      Simulation::saved_packing(StateReader(bad.bytes(), "rebuilt"), spec);
       ADD_FAILURE() << "a saved packing with a bad sphere was read";
     } catch (const InputError& e) {
       EXPECT_NE(std::string(e.what()).find("checkpoint: particle 8: "), std::string::npos) << e.what();
+    }
+  }
+  // Nor a material the spec does not define: named as the checkpoint's (the tracer would refuse
+  // it as if the run file were wrong).
+  {
+    StateParts bad = parts;
+    bad.p.material[3] = 9;
+    try {
+      Simulation::saved_packing(StateReader(bad.bytes(), "rebuilt"), spec);
+      ADD_FAILURE() << "a saved packing with material 9 of 1 was read";
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find("checkpoint: particle 3 has material 9 of 1"), std::string::npos) << e.what();
     }
   }
   // A refused state changes nothing: the simulation goes on as if it had never read it.

@@ -441,6 +441,18 @@ std::string head_of(const fs::path& file, std::size_t bytes) {
   return head;
 }
 
+// dir's summary.json, parsed; not an object if there is none (or it is not JSON).
+nlohmann::json summary_in(const fs::path& dir) {
+  return nlohmann::json::parse(head_of(dir / "summary.json", 1 << 24), nullptr, false);
+}
+
+// A pulse's file of a run: particles_0003.vtp, rays_0003.vtp.
+std::string pulse_file(const char* stem, int pulse) {
+  char name[64];
+  std::snprintf(name, sizeof name, "%s_%04d.vtp", stem, pulse);
+  return name;
+}
+
 // Whether dir holds a run of beampack's: its checkpoint, its frames' particles.pvd or its first
 // ray paths (a killed run leaves only those), or its summary.json (the figures and the
 // configuration). Files of beampack's names in a folder without any of them are the user's own.
@@ -448,7 +460,7 @@ bool holds_earlier_run(const fs::path& dir) {
   if (head_of(dir / "checkpoint.bin", 64).find("beampack-checkpoint") != std::string::npos) return true;
   if (head_of(dir / "particles.pvd", 4096).find("file=\"particles_0") != std::string::npos) return true;
   if (head_of(dir / "rays_0000.vtp", 256).find("<!-- written by beampack -->") != std::string::npos) return true;
-  const nlohmann::json j = nlohmann::json::parse(head_of(dir / "summary.json", 1 << 24), nullptr, false);
+  const nlohmann::json j = summary_in(dir);
   return j.is_object() && j.contains("vaporized_fraction") && j.contains("config");
 }
 
@@ -496,7 +508,7 @@ void remove_earlier_run(const fs::path& dir) {
 // `--resume DIR` into DIR whose run finished: nothing is left to run. A checkpoint there is a
 // periodic one (--checkpoint-every), and resuming it would run the tail again over the results.
 void refuse_to_resume_a_finished_run(const fs::path& dir) {
-  const nlohmann::json j = nlohmann::json::parse(head_of(dir / "summary.json", 1 << 24), nullptr, false);
+  const nlohmann::json j = summary_in(dir);
   if (!j.is_object() || !j.contains("interrupted") || j["interrupted"] != false) return;
   throw InputError("--resume " + dir.string() + ": the run there finished (summary.json, " +
                    j.value("pulses", nlohmann::json(0)).dump() + " pulses): nothing to resume; to run it " +
@@ -513,11 +525,7 @@ void carry_earlier_files(const fs::path& from, const fs::path& to, const RunReco
     if (fs::is_regular_file(from / name, ec)) fs::copy_file(from / name, to / name, fs::copy_options::overwrite_existing);
   };
   for (const auto& [name, time] : record.frames) carry(name);
-  for (int k = 0; output.rays && k < pulses_ended; ++k) {
-    char name[64];
-    std::snprintf(name, sizeof name, "rays_%04d.vtp", k);
-    carry(name);
-  }
+  for (int k = 0; output.rays && k < pulses_ended; ++k) carry(pulse_file("rays", k));
 }
 
 int run_command(const RunOptions& options) {
@@ -535,10 +543,9 @@ int run_command(const RunOptions& options) {
   if (!options.resume.empty()) {
     saved.emplace(open_checkpoint(fs::path(options.resume) / "checkpoint.bin", record));
     sources.text = record.config_text;
-    sources.packing = std::make_shared<const Particles>(Simulation::saved_packing(*saved, 0.0));
+    sources.saved_packing = [&saved](const SimulationSpec& spec) { return Simulation::saved_packing(*saved, spec); };
   }
   RunConfig config = load_run_config(sources);
-  sources.packing.reset();  // the configuration holds what it needs of it
   warn_of_many_steps(config.sim);
   warn_if_walls_take_no_heat(config.sim);
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
@@ -561,14 +568,9 @@ int run_command(const RunOptions& options) {
   bool checkpoint_due = false;
   sim.on_pulse_end([&](int pulse) {
     record.history += history_row(sim.figures());
-    if (config.output.rays) {
-      char name[64];
-      std::snprintf(name, sizeof name, "rays_%04d.vtp", pulse);
-      write_rays_vtp((out / name).string(), sim.take_ray_paths());
-    }
+    if (config.output.rays) write_rays_vtp((out / pulse_file("rays", pulse)).string(), sim.take_ray_paths());
     if (config.output.frames) {
-      char name[64];
-      std::snprintf(name, sizeof name, "particles_%04d.vtp", pulse);
+      const std::string name = pulse_file("particles", pulse);
       write_particles_vtp((out / name).string(), sim.particles(), sim.absorbed());
       record.frames.emplace_back(name, sim.figures().time);
       write_pvd((out / "particles.pvd").string(), record.frames);

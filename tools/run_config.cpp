@@ -217,24 +217,17 @@ void derive_paper_step(RunConfig& c, const PaperStepUse& use) {
 }
 
 // Every key, read in the order the library needs them, and the library's own checks.
-RunConfig read_config(Params& p, const std::shared_ptr<const Particles>& read) {
+RunConfig read_config(Params& p, const std::function<Particles(const SimulationSpec&)>& saved_packing) {
   RunConfig c;
   read_packing(p, c.sim.packing);
   c.sim.packing.initial_temperature = p.number("material.initial_temperature", 300, 0, kBig, true);
-  if (read && c.sim.packing.source == "file") {  // a checkpoint's, at their start temperature
-    Particles p = *read;
-    std::fill(p.temperature.begin(), p.temperature.end(), c.sim.packing.initial_temperature);
-    c.packing = std::make_shared<const Particles>(std::move(p));
-  }
   read_beam(p, c.sim.beam);
   read_optics(p, c.sim.optics);
   Material m;
   read_material(p, m);
   c.sim.materials = {m};
-  for (std::size_t i = 0; c.packing && i < c.packing->size(); ++i)
-    if (c.packing->material[i] >= c.sim.materials.size())
-      throw InputError("checkpoint: particle " + std::to_string(i) + " has material " +
-                       std::to_string(c.packing->material[i]) + " of " + std::to_string(c.sim.materials.size()));
+  if (saved_packing && c.sim.packing.source == "file")
+    c.packing = std::make_shared<const Particles>(saved_packing(c.sim));
   if (!(c.sim.packing.initial_temperature < m.vapor_temperature)) {
     p.fail("material.initial_temperature", number_text(c.sim.packing.initial_temperature),
            "must be < material.vapor_temperature = " + number_text(m.vapor_temperature) +
@@ -276,7 +269,7 @@ RunConfig load_run_config(const RunSources& sources) {
   for (const std::string& s : sources.sets) p.merge_assignment(s);
   if (!sources.swept.empty()) p.merge_assignment(sources.swept, sources.swept_origin);
   try {
-    return read_config(p, sources.packing);
+    return read_config(p, sources.saved_packing);
   } catch (const InputError& e) {  // a library check of several keys: where were they set?
     throw InputError(locate(e.what(), p.origins()));
   }

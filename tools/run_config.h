@@ -1,6 +1,7 @@
 #pragma once
 // A run's configuration: defaults, then a preset, then a run file, then --set overrides, read
 // through Params into the library's SimulationSpec.
+#include <functional>
 #include <map>
 #include <memory>
 #include <string>
@@ -35,9 +36,10 @@ struct RunSources {
   // KEY=VALUE applied after the --set list by sweep and converge, and named in messages as
   // `swept_origin` ("--param K --values V") rather than as a --set the user never typed.
   std::string swept, swept_origin;
-  // A file packing's particles already read: a resumed run's, from its checkpoint (which holds
-  // them), so that the run continues without its packing file. null: read the file.
-  std::shared_ptr<const Particles> packing;
+  // A file packing's particles for the resolved spec, when they need not be read from the file:
+  // a resumed run's, from its checkpoint (which holds them), so that the run continues without
+  // its packing file. Called only for a file packing. Empty: read the file.
+  std::function<Particles(const SimulationSpec&)> saved_packing;
 };
 
 // InputError (exit code 2) for any bad key, type or value, naming file and line.
