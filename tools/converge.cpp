@@ -56,7 +56,9 @@ double max_error(const std::vector<double>& a, const std::vector<double>& b) {
 }
 
 // Runs every rung of the ladder that can run; a rung that fails is reported and left out, and an
-// interrupted one is not kept (a part of a run is not a result). Returns the exit code so far.
+// interrupted one is not kept (a part of a run is not a result). The reference is the finest
+// rung, run first: without it the others have nothing to be compared with, so when it fails the
+// ladder stops there. Returns the exit code so far.
 int run_ladder(Ladder& ladder, bool quiet) {
   int code = 0;
   for (std::size_t k = 0; k < ladder.values.size() && !stop_requested().load(); ++k) {
@@ -70,14 +72,12 @@ int run_ladder(Ladder& ladder, bool quiet) {
       }
       ladder.rungs.push_back({ladder.values[k], std::move(r)});
     } catch (const std::exception& e) {
-      code = std::max(code, report_failed_run(label, e, "left out of convergence.csv"));
+      const bool reference = k == 0;
+      code = std::max(code, report_failed_run(label, e, reference ? "the reference rung: ladder left out of "
+                                                                    "convergence.csv, its other rungs not run"
+                                                                  : "left out of convergence.csv"));
+      if (reference) break;
     }
-  }
-  // The reference is the finest rung: without it the others have nothing to be compared with.
-  if (!ladder.rungs.empty() && ladder.rungs.front().value != ladder.values.front()) {
-    std::fprintf(stderr, "beampack: %s: the reference rung %s did not finish; ladder left out\n",
-                 ladder.name.c_str(), ladder.values.front().c_str());
-    ladder.rungs.clear();
   }
   return code;
 }
@@ -87,7 +87,7 @@ int run_ladder(Ladder& ladder, bool quiet) {
 int converge_command(const RunOptions& options) {
   RunConfig base = load_run_config(options.sources);
   const auto threads = limit_threads(options.threads);
-  prepare_out_dir(options.out_dir);  // an unusable --out fails before the runs, not after
+  const OutDir out_folder(options.out_dir);  // an unusable --out fails before the runs, not after
   std::vector<Ladder> all = ladders(base);
   base.packing.reset();  // each rung reads its packing when it runs: one copy at a time
   for (Ladder& ladder : all)

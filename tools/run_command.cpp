@@ -257,8 +257,20 @@ int report_failed_run(const std::string& label, const std::exception& e, const c
   return input ? 2 : 1;
 }
 
-void prepare_out_dir(const std::string& dir) {
+namespace {
+
+// `dir` as an absolute path without a trailing separator, so that its parents can be walked.
+fs::path folder_path(const std::string& dir) {
   std::error_code ec;
+  fs::path p = fs::absolute(dir, ec).lexically_normal();
+  return p.has_filename() ? p : p.parent_path();
+}
+
+}  // namespace
+
+OutDir::OutDir(const std::string& dir) : dir_(folder_path(dir)) {
+  std::error_code ec;
+  for (fs::path p = dir_; p.has_relative_path() && !fs::exists(p, ec); p = p.parent_path()) first_made_ = p;
   fs::create_directories(dir, ec);
   if (ec || !fs::is_directory(dir))
     throw InputError("--out " + dir + ": cannot create the output directory (" + ec.message() + ")");
@@ -267,6 +279,13 @@ void prepare_out_dir(const std::string& dir) {
   if (!f) throw InputError("--out " + dir + ": the output directory is not writable");
   std::fclose(f);
   fs::remove(probe);
+}
+
+OutDir::~OutDir() {
+  if (first_made_.empty()) return;
+  std::error_code ec;
+  // fs::remove takes a folder only when it is empty: one with results in it stays.
+  for (fs::path p = dir_; fs::remove(p, ec) && p != first_made_;) p = p.parent_path();
 }
 
 std::unique_ptr<tbb::global_control> limit_threads(int threads) {
@@ -549,7 +568,7 @@ int run_command(const RunOptions& options) {
   warn_of_many_steps(config.sim);
   warn_if_walls_take_no_heat(config.sim);
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
-  prepare_out_dir(out_dir);
+  const OutDir out_folder(out_dir);
   refuse_outputs_over_inputs(out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
@@ -662,7 +681,7 @@ std::vector<std::string> sweep_values(const SweepOptions& options) {
 
 int sweep_command(const SweepOptions& options) {
   const std::vector<std::string> values = sweep_values(options);
-  prepare_out_dir(options.run.out_dir);
+  const OutDir out_folder(options.run.out_dir);
   const auto threads = limit_threads(options.run.threads);
   // Resolve every configuration first: a bad value fails before any run starts.
   std::vector<RunConfig> configs;

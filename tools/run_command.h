@@ -4,6 +4,7 @@
 
 #include <atomic>
 #include <exception>
+#include <filesystem>
 #include <memory>
 #include <string>
 #include <vector>
@@ -45,8 +46,20 @@ struct RunResult {
   std::vector<double> temperature;
   bool interrupted = false;
 };
-// InputError naming --out when the directory cannot be created or written.
-void prepare_out_dir(const std::string& dir);
+// A command's --out folder, made (with any missing parents) and checked writable at once, so an
+// unusable --out fails before any run. When the command leaves the folders it made empty (bad
+// input found while the runs are set up), they are removed again: no empty folder is left behind.
+class OutDir {
+ public:
+  explicit OutDir(const std::string& dir);  // InputError naming --out when not creatable or writable
+  ~OutDir();
+  OutDir(const OutDir&) = delete;
+  OutDir& operator=(const OutDir&) = delete;
+
+ private:
+  std::filesystem::path dir_;
+  std::filesystem::path first_made_;  // the outermost folder made here; empty if none was
+};
 // The ledgers close to round-off (optics: 1e-9 of the injected energy) and to the solver's
 // tolerance (heat: max(1e-6, 1e4 thermal.tolerance) of the absorbed); one message per open one.
 std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e);
