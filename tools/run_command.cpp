@@ -220,7 +220,7 @@ void print_table(const Simulation& sim, const RunResult& r) {
               static_cast<unsigned long long>(r.counts.rays),
               static_cast<unsigned long long>(r.counts.segments));
   if (r.counts.primaries_reused > 0)
-    std::printf(", %llu first hits reused from earlier pulses",
+    std::printf(", %llu primary segments (hits or misses) reused from earlier pulses",
                 static_cast<unsigned long long>(r.counts.primaries_reused));
   std::printf(")\n");
 }
