@@ -6,6 +6,7 @@
 #include <limits>
 #include <sstream>
 
+#include "geometry/check.h"
 #include "geometry/contact.h"
 #include "geometry/error.h"
 
@@ -206,6 +207,7 @@ double Simulation::step_length(bool traced) const {
 
 bool Simulation::step() {
   if (done()) return false;
+  if constexpr (BEAMPACK_CHECKS_ON) name_step_for_checks();
   launch_pulse_if_due();
   const double budget = spec_.dt > 0 ? kSpeedOfLight * spec_.dt : std::numeric_limits<double>::infinity();
   tracer_->compact_if_sparse();  // ended rays would be scanned by every chunk that runs
@@ -273,8 +275,30 @@ bool Simulation::step() {
   max_temperature_ = peak;
   // Rebuild: vaporised particles leave the scene and the contact graph (paper, Remark 10).
   if (!report.vaporized.empty()) remove_vaporized(report.vaporized);
+  if constexpr (BEAMPACK_CHECKS_ON) check_ledgers_close();
   if (done() && on_pulse_end_) on_pulse_end_(launched_ - 1);
   return !done();
+}
+
+// What a failed check (geometry/check.h) prints to say how to reproduce it.
+void Simulation::name_step_for_checks() const {
+  set_check_context(check_facts("step %llu (t = %.17g s, pulse %d) of a run of %zu particles, packing.seed %llu, "
+                                "beam.seed %llu",
+                                static_cast<unsigned long long>(counts_.steps), time_, launched_, particles_.size(),
+                                static_cast<unsigned long long>(spec_.packing.seed),
+                                static_cast<unsigned long long>(spec_.beam.seed)));
+}
+
+// After every step, in BEAMPACK_CHECKS builds: the optics ledger closes to round-off (it does by
+// construction), the heat ledger to the solver's tolerance, as the end of a run demands.
+void Simulation::check_ledgers_close() const {
+  const EnergyLedger e = figures().energy;
+  BEAMPACK_DCHECK(std::abs(e.optics_imbalance()) <= 1e-9 * e.injected,
+                  "optics ledger open by %g J of %g J injected", e.optics_imbalance(), e.injected);
+  const double scale = e.absorbed + std::abs(e.stored) + e.vaporized + std::abs(e.walls);
+  BEAMPACK_DCHECK(std::abs(e.heat_imbalance()) <= std::max(1e-6, 1e4 * spec_.thermal.tolerance) * scale,
+                  "heat ledger open by %g J (absorbed %g, stored %g, vaporised %g, walls %g J)", e.heat_imbalance(),
+                  e.absorbed, e.stored, e.vaporized, e.walls);
 }
 
 // The phase whose index the rays see: a particle that vaporised in this step is still hit during

@@ -132,6 +132,8 @@ class Simulation {
   static Phase optical(Phase phase);
   void note_pulse_delay(double delay);
   Beam resampled_beam(int pulse) const;
+  void name_step_for_checks() const;
+  void check_ledgers_close() const;
   // (particle, phase) pairs sorted by particle: phases the rays see instead of the particles'.
   using PhaseOverride = std::vector<std::pair<std::uint32_t, Phase>>;
   bool optics_changed(const PhaseOverride& seen) const;

@@ -21,6 +21,7 @@
 #include <utility>
 
 #include "engine/fresnel.h"
+#include "geometry/check.h"
 #include "geometry/error.h"
 #include "geometry/ray_sphere.h"
 
@@ -70,6 +71,25 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
                        "below 1: the reflected light is elliptical there, which is not followed; "
                        "use optics.polarisation = \"unpolarised\"");
   }
+}
+
+// A hit as every search must report one (MODEL.md section 3): ahead of the ray's origin, on the
+// surface of a sphere in the scene other than the one the ray just left, entered from outside.
+// BEAMPACK_CHECKS builds only (geometry/check.h).
+void check_hit(const RayState& s, const Particles& p, const EmbreeScene& scene, std::uint32_t r) {
+  const std::uint32_t i = s.next_particle[r];
+  const double t = s.t_next[r];
+  BEAMPACK_DCHECK(std::isfinite(t) && t >= 0.0, "ray %u: hit at t = %g m on particle %u", r, t, i);
+  BEAMPACK_DCHECK(i < p.size() && i != s.last_particle[r] && !scene.removed(i),
+                  "ray %u: hit particle %u of %zu, the one it just left (%u) or a removed one", r, i, p.size(),
+                  s.last_particle[r]);
+  const Vec3 point = s.origin[r] + t * s.direction[r];
+  const double off = std::abs((point - p.centre[i]).norm() - p.radius[i]);
+  BEAMPACK_DCHECK(off <= 1e-6 * p.radius[i] + 1e-12 * point.norm(),
+                  "ray %u: hit point %g m off the surface of particle %u (R = %g m)", r, off, i, p.radius[i]);
+  const double d_dot_n = s.direction[r].dot(s.normal[r]);
+  BEAMPACK_DCHECK(d_dot_n <= 1e-6 * s.normal[r].norm(),
+                  "ray %u: hit particle %u from inside (d.n = %g, |n| = %g)", r, i, d_dot_n, s.normal[r].norm());
 }
 
 // Unpolarised Fresnel reflectance (2.25) with the particle's current index (solid or liquid).
@@ -408,7 +428,10 @@ void Tracer::open_query(std::uint32_t r) {
 // After it: no hit means the next event is leaving the box (MODEL.md 3a). True when it hit.
 bool Tracer::close_query(std::uint32_t r) {
   RayState& s = state_;
-  if (s.next_particle[r] != kNoParticle) return true;
+  if (s.next_particle[r] != kNoParticle) {
+    if constexpr (BEAMPACK_CHECKS_ON) check_hit(s, particles_, *scene_, r);
+    return true;
+  }
   s.t_next[r] = box_exit_distance(box_, s.origin[r], s.direction[r]);
   return false;
 }
@@ -492,6 +515,8 @@ bool Tracer::step_ray(std::uint32_t r, double end_clock, Chunk& c) {
     const double R = s.polarised ? reflect_field(r, normal, m, particles_.phase[p])
                                  : particle_reflectance(m, particles_.phase[p], cos_i);
     const double carried = R * s.energy[r];
+    BEAMPACK_DCHECK(R >= 0.0 && R <= 1.0 && std::isfinite(carried),
+                    "ray %u at particle %u: reflectance %g (cos_i %g), energy %g J", r, p, R, cos_i, s.energy[r]);
     c.events.push_back({r, p, s.energy[r] - carried});  // absorbed + carried == E exactly
     ++c.hits;
     s.energy[r] = carried;
@@ -664,6 +689,8 @@ void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits, std::vector<std:
     for (const auto& seg : c.segments) segments_.push_back(seg.second);
   }
   for (const Event& e : c.events) {
+    BEAMPACK_DCHECK(std::isfinite(e.energy) && e.energy >= 0.0, "ray %u: an event of %g J into bin %u", e.ray,
+                    e.energy, e.bin);
     if (e.bin == kEscapedBin) {
       t.ledger.escaped += e.energy;
     } else if (e.bin == kCutoffBin) {

@@ -8,6 +8,7 @@
 #include <numbers>
 
 #include "geometry/cell_grid.h"
+#include "geometry/check.h"
 
 namespace beampack {
 
@@ -22,6 +23,9 @@ ContactGeometry contact_geometry(double d, double ri, double rj) {
   // Each factor is formed so that it is symmetric in (ri, rj) and cannot underflow for tiny d.
   const double sum = ri + rj, diff = r_large - r_small;
   const double a2 = 0.25 * (sum - d) * (sum + d) * ((d - diff) / d) * ((d + diff) / d);
+  // The contact disk is never wider than the smaller sphere's equator.
+  BEAMPACK_DCHECK(a2 <= r_small * r_small * (1.0 + 1e-12), "contact of radii %g and %g m at distance %g m: a^2 = %g",
+                  ri, rj, d, a2);
   return {std::numbers::pi * std::max(a2, 0.0), std::max(d, kMinContactDistanceFraction * r_small)};
 }
 

@@ -16,7 +16,8 @@ if [[ -f build-asan/CMakeCache.txt ]] &&
    ! grep -q "^CMAKE_CXX_COMPILER:[A-Z]*=$(command -v "${CXX:-c++}")$" build-asan/CMakeCache.txt; then
   rm -rf build-asan
 fi
-cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DBEAMPACK_SANITIZE=ON \
+# BEAMPACK_CHECKS: the hot paths' invariants (geometry/check.h) are checked throughout the suite.
+cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DBEAMPACK_SANITIZE=ON -DBEAMPACK_CHECKS=ON \
       -DBEAMPACK_BUILD_BENCHMARKS=OFF "$@" >/dev/null
 cmake --build build-asan -j"$(nproc)" --target beampack-tests beampack_cli
 # halt_on_error/abort_on_error: the first report ends the test with a failure, so ctest sees it.
