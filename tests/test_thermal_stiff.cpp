@@ -221,6 +221,62 @@ TEST(ThermalStiff, AWallOfHugeConductanceTakesTheHeatIntoTheLedger) {
   }
 }
 
+// A chain joined by K = 1e9 at dt = 1e-3 s (dt G / c ~ 1e13): every solver must keep the
+// cluster's energy, c^T theta1 = c^T theta0 + dH, to round-off. CG stops at a residual relative
+// to its drive dt Q(theta0) + dH, which here is ~1e13 times the change: before each cluster's
+// energy was restored, CG ended with the chain at 365 K where the energy says 552.8 K, and the
+// ledger open by 1.7 times the heat absorbed.
+TEST(ThermalStiff, EverySolverKeepsAStiffClustersEnergy) {
+  Material m = conductive();
+  m.conductivity = 1e9;
+  std::vector<double> reference;
+  for (const char* solver : {"direct", "cg", "auto"}) {
+    Particles p = test::chain(4, 1e-4);
+    p.temperature[0] = 690.0;
+    ThermalSpec spec;
+    spec.solver = solver;
+    ThermalModel model(p, {m}, spec);
+    model.set_contacts(find_contacts(p));
+    double energy = 1e-9, mass = 0;  // c^T theta after the step, and c^T 1
+    for (std::size_t i = 0; i < p.size(); ++i) {
+      energy += model.thermal_mass(i) * p.temperature[i];
+      mass += model.thermal_mass(i);
+    }
+    const std::vector<double> dh = {0.0, 0.0, 0.0, 1e-9};
+    model.step(1e-3, dh);
+    const ThermalLedger& l = model.ledger();
+    EXPECT_NEAR(l.imbalance(), 0.0, 1e-12 * l.absorbed) << solver;
+    // One temperature throughout (the conductance is 1e13 times the capacity per step).
+    for (double t : p.temperature) EXPECT_NEAR(t, energy / mass, 1e-6) << solver;
+    if (reference.empty()) reference = p.temperature;
+    for (std::size_t i = 0; i < p.size(); ++i) EXPECT_NEAR(p.temperature[i], reference[i], 1e-6) << solver;
+  }
+}
+
+// A stiff chain that touches a wall of almost no conductance is as nearly singular as an
+// insulated one: the factorisation must keep its energy too (it lost 1e-5 of the absorbed heat
+// at g = 1e-20 W/K, grounded only insulated clusters). With the wall's share: c^T (theta1 -
+// theta0) = dH - walls.
+TEST(ThermalStiff, AStiffClusterTouchingAWeakWallKeepsItsEnergy) {
+  Material m = conductive();
+  m.conductivity = 1e9;
+  for (const double g : {1e-20, 1e-12, 1e-6}) {
+    for (const char* solver : {"direct", "cg", "auto"}) {
+      Particles p = test::chain(3, 1e-4);  // the first sphere touches x = 0
+      ThermalSpec spec;
+      spec.solver = solver;
+      spec.walls.push_back({0, 0.0, 1e-5, 200.0, g});
+      ThermalModel model(p, {m}, spec);
+      model.set_contacts(find_contacts(p));
+      const std::vector<double> dh = {0.0, 0.0, 1e-9};
+      for (int s = 0; s < 3; ++s) model.step(1e-3, dh);
+      const ThermalLedger& l = model.ledger();
+      EXPECT_NEAR(l.imbalance(), 0.0, 1e-12 * l.absorbed) << solver << " g = " << g;
+      EXPECT_NE(l.walls, 0.0) << solver << " g = " << g;  // the wall takes its (tiny) share
+    }
+  }
+}
+
 TEST(ThermalStiff, FixedPointBeyondItsLimitReportsFailure) {
   Particles p = stiff_packing();
   const double dt = 1e6 * explicit_limit(p);

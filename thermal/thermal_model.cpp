@@ -8,6 +8,7 @@
 #include <numeric>
 #include <sstream>
 
+#include "geometry/check.h"
 #include "geometry/error.h"
 #include "thermal/phase.h"
 
@@ -345,9 +346,10 @@ bool ThermalModel::insulated(std::uint32_t r) const {
   return r != kNoComponent && component_size_[r] >= 2 && !component_walled_[r];
 }
 
-// A system's insulated clusters (>= 2 live particles joined by conducting contacts, no wall
-// touching them): cluster id per row and the row grounded in each, the component's lowest
-// particle (rows ascend, so it is the cluster's first row).
+// A system's clusters (>= 2 live particles joined by conducting contacts, touching a wall or not):
+// cluster id per row and the row grounded in each, the component's lowest particle (rows ascend,
+// so it is the cluster's first row). A wall of little conductance leaves a stiff cluster as
+// nearly singular as an insulated one, so walls make no difference here.
 void ThermalModel::mark_clusters(System& s) {
   const auto m = static_cast<Eigen::Index>(s.rows());
   s.cluster.assign(static_cast<std::size_t>(m), -1);
@@ -356,7 +358,7 @@ void ThermalModel::mark_clusters(System& s) {
   for (Eigen::Index k = 0; k < m; ++k) {
     const std::size_t i = s.particle.empty() ? static_cast<std::size_t>(k) : static_cast<std::size_t>(s.particle[k]);
     const std::uint32_t r = component_[i];
-    if (!insulated(r)) continue;
+    if (r == kNoComponent || component_size_[r] < 2) continue;
     if (r == i) {
       cluster_of_root_[r] = static_cast<int>(s.ground.size());
       s.ground.push_back(k);
@@ -494,6 +496,8 @@ Eigen::VectorXd ThermalModel::base_capacity() const {
     const std::size_t i = particle_of(k);
     if (!p_.alive[i]) continue;
     c[k] = thermal_mass(i);
+    BEAMPACK_DCHECK(c[k] > 0.0 && std::isfinite(c[k]), "particle %zu: thermal mass %g J/K at %g K", i, c[k],
+                    p_.temperature[i]);
     sum += c[k];
     ++live;
   }
@@ -589,12 +593,46 @@ void ThermalModel::solve_relative(const System& s, double dt, const Eigen::Vecto
   report.contraction_estimate = std::max(report.contraction_estimate, rho);
   report.conduction_ran = true;
   report.solver = spec_.solver == "auto" ? choose_solver(rho) : spec_.solver;
-  if (report.solver != "direct" && solve_change(a, c, drive, rho, theta0, theta1, report)) return;
+  // A cluster's rows summed: (c + dt phi W)^T theta1 = its energy (the contacts' terms cancel).
+  const Eigen::VectorXd weight = c + implicit * s.wall_conductance;
+  if (report.solver != "direct" && solve_change(a, c, drive, rho, theta0, theta1, report)) {
+    const Eigen::VectorXd own = dt * (s.wall_source - s.wall_conductance.cwiseProduct(theta0)) + dh;
+    keep_energy_of_components(s, weight, own, theta0, theta1);
+    return;
+  }
   // The factorisation solves for theta1 itself: at a stiff step dt (L + W) theta0 is far larger
   // than the change, and its rounding would enter the clusters' energy balance.
   const Eigen::VectorXd rhs = c.cwiseProduct(theta0) + explicit_part * (s.wall_source - flux_in) +
                               implicit * s.wall_source + dh;
-  solve_direct_grounded(s, a, c, rhs, theta1, report);
+  solve_direct_grounded(s, a, weight, rhs, theta1, report);
+}
+
+// An iterative solve stops at a residual relative to its drive, dt Q(theta0) + dH. At a stiff step
+// that drive is far larger than what the step changes (dt L theta0 >> c (theta1 - theta0)), and
+// the residual left lies mostly along each cluster's constant vector: its energy. Summed over a
+// component, the step (3.10) reads (c + dt phi W)^T (theta1 - theta0) = sum(dt (b - W theta0) + dH),
+// `own` per row (1^T L = 0: the contacts only move heat within it). A uniform shift of each
+// cluster's change restores that balance exactly, and keeps the solver's accuracy within it; a
+// lone particle's row is decoupled, and is solved exactly.
+void ThermalModel::keep_energy_of_components(const System& s, const Eigen::VectorXd& weight,
+                                             const Eigen::VectorXd& own, const Eigen::VectorXd& theta0,
+                                             Eigen::VectorXd& theta1) const {
+  const std::size_t clusters = s.ground.size();
+  std::vector<double> energy(clusters, 0.0), held(clusters, 0.0), mass(clusters, 0.0);
+  for (Eigen::Index i = 0; i < theta1.size(); ++i) {
+    const int k = s.cluster[i];
+    if (k < 0) {
+      theta1[i] = theta0[i] + own[i] / weight[i];
+      continue;
+    }
+    energy[k] += own[i];
+    held[k] += weight[i] * (theta1[i] - theta0[i]);
+    mass[k] += weight[i];
+  }
+  for (Eigen::Index i = 0; i < theta1.size(); ++i) {
+    const int k = s.cluster[i];
+    if (k >= 0) theta1[i] += (energy[k] - held[k]) / mass[k];
+  }
 }
 
 // The iterative solvers solve for the step's change, A (theta1 - theta0) = dt Q(theta0) + dH (the
@@ -624,17 +662,18 @@ bool ThermalModel::solve_change(const SparseMatrix& a, const Eigen::VectorXd& c,
   return true;
 }
 
-// Stiff steps (dt phi G >> c, e.g. K = 1e9 or a long cooling step): on an insulated cluster
-// A = C + dt phi L is nearly singular: its constant vector has eigenvalue ~ c, next to others
+// Stiff steps (dt phi G >> c, e.g. K = 1e9 or a long cooling step): on a cluster that is insulated,
+// or touches walls of little conductance, A = C + dt phi (L + W) is nearly singular: its constant vector has eigenvalue ~ c, next to others
 // ~ dt phi G up to 1e18 times larger. A factorisation of A then loses the cluster's mean
 // temperature, i.e. its energy (heat appeared, the maximum principle broke by kelvins), and
 // meets zero pivots. Grounding one particle r per cluster, A' = A + a_rr e_r e_r^T, makes the
 // matrix as well conditioned as the contact graph. The exact solution is theta = y + alpha u with
 // A' y = rhs and A' u = e_r: every row but r holds for any alpha, and row r holds exactly when
-// the cluster's energy balance does, 1^T A theta = c^T theta = 1^T rhs (L 1 = 0 without walls).
-// That fixes alpha = (1^T rhs - c^T y) / c^T u: Sherman-Morrison with its ill-conditioned scalar
-// replaced by the conservation law. One factorisation, two solves (all clusters at once).
-void ThermalModel::solve_direct_grounded(const System& s, SparseMatrix& a, const Eigen::VectorXd& c,
+// the cluster's energy balance does, 1^T A theta = w^T theta = 1^T rhs, with w = c + dt phi W
+// (1^T L = 0 over a cluster). That fixes alpha = (1^T rhs - w^T y) / w^T u: Sherman-Morrison with
+// its ill-conditioned scalar replaced by the conservation law. One factorisation, two solves (all
+// clusters at once).
+void ThermalModel::solve_direct_grounded(const System& s, SparseMatrix& a, const Eigen::VectorXd& w,
                                          const Eigen::VectorXd& rhs, Eigen::VectorXd& theta1,
                                          StepReport& report) {
   auto first_solve = [&](Eigen::VectorXd& x) {
@@ -652,18 +691,18 @@ void ThermalModel::solve_direct_grounded(const System& s, SparseMatrix& a, const
   first_solve(y);
   direct_.solve(a, s.pattern_version, e_r, u);  // same values: the factors are reused
   const std::size_t clusters = s.ground.size();
-  std::vector<double> energy(clusters, 0.0), cy(clusters, 0.0), cu(clusters, 0.0);
+  std::vector<double> energy(clusters, 0.0), wy(clusters, 0.0), wu(clusters, 0.0);
   for (Eigen::Index i = 0; i < rhs.size(); ++i) {
     const int k = s.cluster[i];
     if (k < 0) continue;
     energy[k] += rhs[i];
-    cy[k] += c[i] * y[i];
-    cu[k] += c[i] * u[i];
+    wy[k] += w[i] * y[i];
+    wu[k] += w[i] * u[i];
   }
   theta1 = y;
   for (Eigen::Index i = 0; i < rhs.size(); ++i) {
     const int k = s.cluster[i];
-    if (k >= 0) theta1[i] += (energy[k] - cy[k]) / cu[k] * u[i];
+    if (k >= 0) theta1[i] += (energy[k] - wy[k]) / wu[k] * u[i];
   }
   if (!theta1.allFinite()) throw RunError("thermal direct solver: non-finite temperature");
 }

@@ -127,7 +127,7 @@ class ThermalModel {
 
   // The conducting component of live particle i (contacts with G > 0 between live particles),
   // named by its lowest particle id, and whether it is an insulated cluster (>= 2 particles, no
-  // wall touching it: the direct solver grounds one of them). For diagnostics and tests.
+  // wall touching it). For diagnostics and tests.
   std::uint32_t component_of(std::size_t i);
   bool in_insulated_cluster(std::size_t i);
 
@@ -165,9 +165,8 @@ class ThermalModel {
     Eigen::VectorXd wall_source;         // sum_w g_w (theta_w - reference_) (live), W
     Eigen::VectorXd wall_conductance;    // sum_w g_w (live), W/K
     std::vector<std::uint8_t> live;
-    // Insulated clusters (>= 2 live particles joined by conducting contacts, none touching a
-    // wall): cluster id per row (-1: none) and the row grounded in each (solve_direct_grounded),
-    // marked by mark_clusters.
+    // Clusters (>= 2 live particles joined by conducting contacts): cluster id per row (-1:
+    // none) and the row grounded in each (solve_direct_grounded), marked by mark_clusters.
     std::vector<int> cluster;
     std::vector<Eigen::Index> ground;
     std::uint64_t pattern_version = 0;   // the direct solver keeps its analysis while unchanged
@@ -208,6 +207,8 @@ class ThermalModel {
   void update_components(const std::vector<Eigen::Index>& touched);
   std::uint32_t next_stamp();
   void mark_clusters(System& s);
+  void keep_energy_of_components(const System& s, const Eigen::VectorXd& weight, const Eigen::VectorXd& own,
+                                 const Eigen::VectorXd& theta0, Eigen::VectorXd& theta1) const;
   bool insulated(std::uint32_t root) const;
   bool select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat, std::size_t live);
   std::vector<Eigen::Index> busy_rows_of_all(const Eigen::Ref<const Eigen::VectorXd>& theta0,
@@ -225,7 +226,7 @@ class ThermalModel {
   bool solve_change(const SparseMatrix& a, const Eigen::VectorXd& c, const Eigen::VectorXd& drive,
                     double rho, const Eigen::VectorXd& theta0, Eigen::VectorXd& theta1,
                     StepReport& report) const;
-  void solve_direct_grounded(const System& s, SparseMatrix& a, const Eigen::VectorXd& c,
+  void solve_direct_grounded(const System& s, SparseMatrix& a, const Eigen::VectorXd& w,
                              const Eigen::VectorXd& rhs, Eigen::VectorXd& theta1, StepReport& report);
   double contraction_estimate(const System& s, double dt, const Eigen::VectorXd& c) const;
   std::string choose_solver(double contraction) const;
