@@ -212,6 +212,7 @@ bool Simulation::step() {
   const double budget = spec_.dt > 0 ? kSpeedOfLight * spec_.dt : std::numeric_limits<double>::infinity();
   tracer_->compact_if_sparse();  // ended rays would be scanned by every chunk that runs
   PhaseOverride seen;  // where the phases the rays see differ from the particles' (a redo)
+  PhaseOverride seen_before;  // the pass before's
   StepReport report;
   double dt = 0;
   std::size_t chunks_run = 0, chunks_live = 0;  // of the last pass
@@ -244,11 +245,19 @@ bool Simulation::step() {
       if (report.phases_ran) ++stages_[kPhases].calls;
     }
     // Stagger: a phase change that alters the optics of a particle the rays met in this step
-    // sends the step back to the trace, with the new indices (bounded number of times).
-    if (!optics_changed(seen) || pass >= spec_.max_staggers) break;
+    // sends the step back to the trace, with the new indices (bounded number of times). Redos
+    // that would only alternate between two sets of phases (a particle melts when traced solid
+    // and stays solid when traced liquid) stop at the second pass of the cycle, whatever the cap.
+    if (!optics_changed(seen)) break;
+    PhaseOverride next = optics_after_step();
+    if (pass >= spec_.max_staggers || (pass > 0 && next == seen_before)) {
+      ++(pass >= spec_.max_staggers ? counts_.capped_stagger_steps : counts_.stagger_cycles);
+      break;
+    }
     StageClock clock(stages_[kStagger]);
     ++counts_.staggers;
-    seen = optics_after_step();
+    seen_before = std::move(seen);
+    seen = std::move(next);
     if (traced) tracer_->undo_advance();  // its recorded segments too: the redo records its own
     thermal_->undo_step();
     report = StepReport{};
@@ -411,8 +420,8 @@ Figures Simulation::figures() const {
 
 namespace {
 // 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks; 7: reused first
-// hits; 8: the ray paths recorded since the last pulse ended (output.rays)
-constexpr std::uint32_t kStateVersion = 8;
+// hits; 8: the ray paths recorded since the last pulse ended (output.rays); 9: the stagger's counts
+constexpr std::uint32_t kStateVersion = 9;
 }
 
 void Simulation::write_state(StateWriter& out) const {

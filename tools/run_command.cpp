@@ -168,7 +168,9 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
                  {"late_pulses", r.counts.late_pulses},
                  {"heat_rows_solved", r.counts.heat_rows_solved}, {"heat_rows_live", r.counts.heat_rows_live},
                  {"ray_chunks_run", r.counts.ray_chunks_run}, {"ray_chunks_live", r.counts.ray_chunks_live},
-                 {"capped_phase_steps", r.counts.capped_phase_steps}};
+                 {"capped_phase_steps", r.counts.capped_phase_steps},
+                 {"capped_stagger_steps", r.counts.capped_stagger_steps},
+                 {"stagger_cycles", r.counts.stagger_cycles}};
   j["max_pulse_delay_s"] = r.counts.max_pulse_delay;
   nlohmann::json stages = nlohmann::json::object();
   const auto stage_times = sim.stages();
@@ -402,6 +404,24 @@ void warn_of_capped_phase_steps(const SimulationSpec& spec, const Counts& counts
                static_cast<unsigned long long>(counts.capped_phase_steps), spec.thermal.max_phase_corrections);
 }
 
+// The stagger redoes a step while a phase change alters the optics of a particle the rays met; in
+// some steps the phases never settle (MODEL.md section 5, step 4).
+void warn_of_unsettled_staggers(const SimulationSpec& spec, const Counts& counts) {
+  if (counts.capped_stagger_steps > 0)
+    std::fprintf(stderr,
+                 "beampack: warning: %llu steps reached `thermal.max_staggers` = %d redos with the optics "
+                 "still changing: their result is the last redo's and depends on the cap; raise it or "
+                 "shorten `thermal.dt`\n",
+                 static_cast<unsigned long long>(counts.capped_stagger_steps), spec.max_staggers);
+  if (counts.stagger_cycles > 0)
+    std::fprintf(stderr,
+                 "beampack: warning: in %llu steps the stagger's redos alternated between two sets of "
+                 "phases (a particle melts when traced solid and does not when traced liquid, or the like): "
+                 "each such step keeps the second pass of the cycle; a shorter `thermal.dt` splits the "
+                 "melting over steps\n",
+                 static_cast<unsigned long long>(counts.stagger_cycles));
+}
+
 // Pulses start at step boundaries: a pulses.period shorter than a step delays them.
 void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts) {
   if (counts.late_pulses == 0) return;
@@ -620,6 +640,7 @@ int run_command(const RunOptions& options) {
   print_table(sim, r);
   warn_of_late_pulses(config.sim, r.counts);
   warn_of_capped_phase_steps(config.sim, r.counts);
+  warn_of_unsettled_staggers(config.sim, r.counts);
   for (const std::string& warning : open_ledger_warnings(config.sim, r.figures.energy))
     std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
   if (r.interrupted) {
