@@ -74,12 +74,18 @@ std::vector<Eigen::Vector2d> stratified_disk(std::size_t n) {
 
 // Scale I_k = I_0 f_k with I_0 = P / (A_r sum f): sum I_k A_r = P (MODEL.md section 2). The
 // largest ray then absorbs the round-off residual so the sum, taken in ray order, is P to the ulp.
+// The shape is first scaled by a power of two that brings its largest value to [0.5, 1): rays
+// only in a profile's far tail (f ~ 1e-307) made A_r sum f underflow and I_0 infinite, a NaN at
+// the first hit. A power of two scales exactly, so every other beam keeps its bits.
 void normalise(const BeamSpec& spec, std::vector<double>& intensity, double ray_area, double power) {
-  double shape_sum = 0.0;
-  for (double f : intensity) shape_sum += f;
+  const double f_max = intensity.empty() ? 0.0 : *std::max_element(intensity.begin(), intensity.end());
   constexpr const char* kZero = "too narrow a profile: it underflows to zero on every ray";
-  if (!(shape_sum > 0.0) && spec.profile == "gaussian") bad("beam.gaussian_width", spec.gaussian_width, kZero);
-  if (!(shape_sum > 0.0)) bad("beam.decay", spec.decay, kZero);
+  if (!(f_max > 0.0) && spec.profile == "gaussian") bad("beam.gaussian_width", spec.gaussian_width, kZero);
+  if (!(f_max > 0.0)) bad("beam.decay", spec.decay, kZero);
+  int exponent = 0;
+  std::frexp(f_max, &exponent);
+  double shape_sum = 0.0;
+  for (double& f : intensity) shape_sum += (f = std::ldexp(f, -exponent));
   const double i0 = power / (ray_area * shape_sum);
   std::size_t largest = 0;
   for (std::size_t k = 0; k < intensity.size(); ++k) {
