@@ -387,6 +387,32 @@ TEST(Cli, StaggerCyclesStopTheSameWayWhateverTheCap) {
   EXPECT_GT(read_json(dir / "1" / "summary.json")["counts"]["capped_stagger_steps"].get<int>(), 0);
 }
 
+// A reader that quits early (`| head -c 1`) cost every result: SIGPIPE killed the command before
+// it wrote its table.
+TEST(Cli, ASweepPipedIntoAnEarlyQuitterKeepsItsTable) {
+  const fs::path dir = fresh_dir("pipe_and_ladders");
+  const Result piped = run("sweep --preset quick --quiet --param material.conductivity --values 0,1,2,3 --out " +
+                           (dir / "sweep").string() + " | head -c 1");
+  const auto rows = read_csv(dir / "sweep" / "sweep.csv");
+  ASSERT_EQ(rows.size(), 4u) << piped.output;
+  for (const auto& row : rows) EXPECT_NE(row.at("vaporized_fraction"), "");
+}
+
+// A wall within whose reach no particle lies takes no heat: announced, as it usually means a
+// reach too short for the packing (a DEM bed's top face lies below the cube's).
+TEST(Cli, AWallThatTouchesNoParticleIsAnnounced) {
+  const fs::path dir = fresh_dir("lonely_wall");
+  const std::string lattice = "run --preset quick --quiet --set packing.source=lattice --set packing.count=27 "
+                              "--set packing.radius_ratio=0.3 --set material.conductivity=100 --set thermal.walls=x-,x+ ";
+  const Result far = run(lattice + "--set thermal.wall_reach=1e-6 --out " + (dir / "far").string());
+  ASSERT_EQ(far.code, 0) << far.output;
+  EXPECT_NE(far.output.find("the wall x- (`thermal.walls`) touches no particle"), std::string::npos) << far.output;
+  EXPECT_NE(far.output.find("the wall x+ (`thermal.walls`) touches no particle"), std::string::npos) << far.output;
+  const Result near = run(lattice + "--set thermal.wall_reach=1e-3 --out " + (dir / "near").string());
+  ASSERT_EQ(near.code, 0) << near.output;
+  EXPECT_EQ(near.output.find("touches no particle"), std::string::npos) << near.output;
+}
+
 TEST(Cli, ValidatePassesAndConfigRoundTrips) {
   const Result v = run("validate --quiet");
   EXPECT_EQ(v.code, 0) << v.output;
@@ -470,6 +496,13 @@ TEST(Cli, ConvergeWritesLaddersWithTheFinestAsReference) {
     EXPECT_FALSE(row.at("resolution").empty());  // INTERFACE.md's name for the rung's value
   }
   EXPECT_EQ(per_ladder.size(), 3u);
+  // --set beam.rays=50 is the other ladders' ray count; the rays ladder varies its own (`rays`
+  // counts a run's rays over its pulses).
+  for (const auto& row : rows) {
+    const bool rays_ladder = row.at("ladder") == "rays per pulse";
+    const double per_pulse = rays_ladder ? std::stod(row.at("resolution")) : 50.0;
+    EXPECT_EQ(std::stod(row.at("rays")), 5 * per_pulse) << row.at("ladder") << " " << row.at("resolution");
+  }
   // Every coarser rung differs from its reference, and the coarsest by more than the rung next
   // to the reference: errors measured against anything but the finest rung would not.
   std::map<std::string, std::vector<double>> l2s;
@@ -592,7 +625,7 @@ TEST(Cli, SigkillAtRandomMomentsLeavesALoadableCheckpoint) {
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
   const std::string reference = file_text(whole / "particles.csv");
   std::uint64_t seed = 12345;
-  int resumed = 0;
+  int resumed = 0, refreshed = 0;
   for (int trial = 0; trial < 4; ++trial) {
     const fs::path dir = fresh_dir("kill_" + std::to_string(trial));
     seed = seed * 6364136223846793005ull + 1442695040888963407ull;
@@ -607,12 +640,18 @@ TEST(Cli, SigkillAtRandomMomentsLeavesALoadableCheckpoint) {
     // Finished before the kill (a machine faster now than for the timed run): --resume of a
     // finished run is refused by design (Cli.AResumeIntoAnotherFolderContinuesTheWholeSeries).
     if (fs::exists(dir / "summary.json")) continue;
+    const auto killed_at = fs::last_write_time(dir / "checkpoint.bin");
     const Result r = run("run --resume " + dir.string() + " --quiet");
     ASSERT_EQ(r.code, 0) << "trial " << trial << " (killed after " << delay_ms << " ms): " << r.output;
     EXPECT_EQ(file_text(dir / "particles.csv"), reference) << "trial " << trial;
     ++resumed;
+    // The resumed run keeps checkpointing every pulse, as its checkpoint says (it stopped: a kill
+    // after a resume lost everything since). None is written after the last pulse, so a kill in
+    // the last pulse leaves nothing to refresh.
+    refreshed += fs::last_write_time(dir / "checkpoint.bin") > killed_at;
   }
   EXPECT_GE(resumed, 1);
+  EXPECT_GE(refreshed, 1);
 }
 
 TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {

@@ -21,6 +21,10 @@ void Wall::validate(const std::string& prefix) const {
   if (!std::isfinite(conductance)) fail("conductance", conductance, "must be finite (< 0: from K)");
 }
 
+bool touches(const Wall& w, const Particles& p, std::size_t i) {
+  return std::abs(p.centre[i][w.axis] - w.position) - p.radius[i] <= w.reach;
+}
+
 bool WallCoupling::any() const {
   for (double g : conductance)
     if (g > 0) return true;
@@ -32,8 +36,7 @@ WallCoupling wall_coupling(const Particles& p, const std::vector<Material>& mate
   WallCoupling out{std::vector<double>(p.size(), 0.0), std::vector<double>(p.size(), 0.0)};
   for (const Wall& w : walls) {
     for (std::size_t i = 0; i < p.size(); ++i) {
-      const double gap = std::abs(p.centre[i][w.axis] - w.position) - p.radius[i];
-      if (gap > w.reach) continue;
+      if (!touches(w, p, i)) continue;
       const double g = w.conductance >= 0
                            ? w.conductance
                            : std::numbers::pi * materials[p.material[i]].conductivity * p.radius[i];

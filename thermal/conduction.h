@@ -31,6 +31,9 @@ struct Wall {
   void validate(const std::string& prefix = "thermal.wall") const;
 };
 
+// Whether particle i lies within the wall's reach (its surface at most `reach` from the wall).
+bool touches(const Wall& w, const Particles& p, std::size_t i);
+
 // Per particle: total wall conductance sum_w g_w (W/K) and sum_w g_w theta_w (W).
 struct WallCoupling {
   std::vector<double> conductance;

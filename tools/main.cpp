@@ -113,6 +113,7 @@ int main(int argc, char** argv) {
   try {
     if (run_cmd->parsed()) {
       run.out_set = run_cmd->count("--out") > 0;
+      run.checkpoint_set = run_cmd->count("--checkpoint-every") > 0;
       return run_command(run);
     }
     if (sweep_cmd->parsed()) return sweep_command(sweep);

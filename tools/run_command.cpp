@@ -51,6 +51,9 @@ void install_interrupt_handler() {
   stop_requested();  // the flag exists before a signal can arrive
   std::signal(SIGINT, on_interrupt);
   std::signal(SIGTERM, on_interrupt);
+  // Output piped into a reader that quits early (`| head`): the lines are lost, not the run's
+  // files, which sweep and converge write after their per-run lines.
+  std::signal(SIGPIPE, SIG_IGN);
 }
 
 namespace {
@@ -316,8 +319,9 @@ RunResult run_scene(const RunConfig& config, bool quiet, const std::string& labe
 
 namespace {
 
-// Format 2 added the wall time before the checkpoint; format 1 ("beampack-checkpoint") lacks it.
-constexpr const char* kCheckpointMagic = "beampack-checkpoint-2";
+// Format 2 added the wall time before the checkpoint, format 3 the pulses between checkpoints;
+// format 1 is "beampack-checkpoint".
+constexpr const char* kCheckpointMagic = "beampack-checkpoint-3";
 
 // What a run accumulates besides the simulation's own state: the history rows and the frames.
 struct RunRecord {
@@ -325,6 +329,7 @@ struct RunRecord {
   std::string history = history_header();
   std::vector<std::pair<std::string, double>> frames;
   double earlier_seconds = 0;  // wall time of the runs this one resumes
+  int checkpoint_every = 0;    // --checkpoint-every of the run: a resume keeps it
 };
 
 std::string toml_text(const toml::table& table) {
@@ -338,6 +343,7 @@ void write_checkpoint(const fs::path& path, const Simulation& sim, const RunReco
   StateWriter w;
   w.text(kCheckpointMagic);
   w.value(wall_seconds);
+  w.value(record.checkpoint_every);
   w.text(record.config_text);
   w.text(record.history);
   w.value<std::uint64_t>(record.frames.size());
@@ -354,10 +360,12 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   StateReader r(std::move(bytes), path.string());
   const std::string magic = r.text();
-  if (magic == "beampack-checkpoint")
-    throw InputError(path.string() + ": a checkpoint of an earlier beampack (format 1); this one reads format 2");
+  if (magic == "beampack-checkpoint" || magic == "beampack-checkpoint-2")
+    throw InputError(path.string() + ": a checkpoint of an earlier beampack (" + magic + "); this one reads " +
+                     kCheckpointMagic);
   if (magic != kCheckpointMagic) throw InputError(path.string() + ": not a beampack checkpoint");
   record.earlier_seconds = r.value<double>();
+  record.checkpoint_every = r.value<int>();
   record.config_text = r.text();
   record.history = r.text();
   const auto frames = r.value<std::uint64_t>();
@@ -433,6 +441,20 @@ void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts) {
                spec.pulses.period, counts.max_pulse_delay,
                spec.dt > 0 ? "`thermal.dt` does not divide the period"
                            : "with `thermal.dt` = \"pulse\" a step is a whole pulse flight, longer than the period");
+}
+
+// A wall within whose reach no particle lies takes no heat: legal, but not what naming it asks.
+void warn_of_walls_touching_nothing(const Simulation& sim) {
+  const Particles& p = sim.particles();
+  for (const Wall& w : sim.spec().thermal.walls) {
+    std::size_t touching = 0;
+    for (std::size_t i = 0; i < p.size(); ++i) touching += touches(w, p, i);
+    if (touching > 0 || p.size() == 0) continue;
+    std::fprintf(stderr,
+                 "beampack: warning: the wall %c%c (`thermal.walls`) touches no particle: none lies within "
+                 "`thermal.wall_reach` = %g m of it, so it takes no heat\n",
+                 "xyz"[w.axis], w.position > 0 ? '+' : '-', w.reach);
+  }
 }
 
 // A beam whose tube meets no particle is legal but almost always a misplaced sample (a file
@@ -588,6 +610,7 @@ int run_command(const RunOptions& options) {
   warn_of_many_steps(config.sim);
   warn_if_walls_take_no_heat(config.sim);
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
+  if (options.resume.empty() || options.checkpoint_set) record.checkpoint_every = options.checkpoint_every;
   const OutDir out_folder(out_dir);
   refuse_outputs_over_inputs(out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});
   const auto threads = limit_threads(options.threads);
@@ -596,6 +619,7 @@ int run_command(const RunOptions& options) {
   config.packing.reset();  // the simulation holds its own copy
   Simulation& sim = *owned;
   warn_if_beam_meets_nothing(sim);
+  warn_of_walls_touching_nothing(sim);
   warn_if_time_stands_still(sim);
   if (saved) sim.read_state(*saved);
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
@@ -614,7 +638,7 @@ int run_command(const RunOptions& options) {
       record.frames.emplace_back(name, sim.figures().time);
       write_pvd((out / "particles.pvd").string(), record.frames);
     }
-    checkpoint_due = options.checkpoint_every > 0 && (pulse + 1) % options.checkpoint_every == 0;
+    checkpoint_due = record.checkpoint_every > 0 && (pulse + 1) % record.checkpoint_every == 0;
   });
   {
     Progress progress(options.quiet, "");

@@ -19,6 +19,7 @@ struct RunOptions {
   int threads = 0;     // 0: all cores
   bool quiet = false;
   int checkpoint_every = 0;  // pulses between checkpoints (0: none; Ctrl-C always writes one)
+  bool checkpoint_set = false;  // --checkpoint-every given (a resume otherwise keeps the checkpoint's)
   std::string resume;        // directory holding checkpoint.bin
   bool out_set = false;      // --out given (a resume otherwise writes into its own directory)
 };

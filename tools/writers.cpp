@@ -21,7 +21,8 @@ void write_atomically(const std::string& path, const std::function<void(std::ost
   const std::string tmp = path + ".tmp." + std::to_string(::getpid());
   {
     std::ofstream out(tmp, std::ios::binary);
-    if (!out) throw InputError("output file \"" + path + "\": cannot write in its directory");
+    // A failed run, not bad input: the command checked --out was writable before it started.
+    if (!out) throw RunError("output file \"" + path + "\": cannot write in its directory");
     fill(out);
     out.flush();
     if (!out) {
