@@ -747,6 +747,12 @@ TEST(Cli, ATimeStepOfMillionsOfStepsPerCrossingIsAnnounced) {
                           out.string());
   ASSERT_EQ(fine.code, 0) << fine.output;
   EXPECT_EQ(fine.output.find("warning"), std::string::npos) << fine.output;
+  // A period stepped through at a short dt: 2 x 1e-3 s / 1e-13 s steps, announced before the
+  // run (which the test cuts short).
+  const Result slow = run("run --preset quick --quiet --set pulses.count=2 --set pulses.period=1e-3 "
+                          "--set thermal.dt=1e-13 --out " + out.string(), "timeout --preserve-status -s INT 1");
+  EXPECT_NE(slow.output.find("in steps of `thermal.dt` = 1e-13 s: 2e+10 steps at least"), std::string::npos)
+      << slow.output;
 }
 
 TEST(Cli, ABeamThatMeetsNoParticleIsAnnounced) {

@@ -381,6 +381,14 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
 // A fixed thermal.dt far below the light's crossing time of the sample makes a run of millions
 // of steps per pulse: legal (the budget per step is c dt), but say so before it starts.
 void warn_of_many_steps(const SimulationSpec& spec) {
+  // A period in seconds is stepped through whole, rays or not: count x period / dt steps at least.
+  const double periods = spec.dt > 0 ? spec.pulses.count * spec.pulses.period / spec.dt : 0.0;
+  if (periods >= 1e7)
+    std::fprintf(stderr,
+                 "beampack: warning: `pulses.count` = %d pulses of `pulses.period` = %g s in steps of "
+                 "`thermal.dt` = %g s: %.3g steps at least; a longer thermal.dt cools between pulses in "
+                 "fewer steps\n",
+                 spec.pulses.count, spec.pulses.period, spec.dt, periods);
   const double steps = steps_per_crossing(spec);
   if (steps < 1e6) return;
   const double crossing = spec.packing.sample_size / kSpeedOfLight;
