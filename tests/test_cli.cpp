@@ -269,6 +269,26 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"`thermal.dt` = \"pulse\" (step 0 lasts the rays' flight", "thermal.max_substeps = 1"});
 }
 
+// A --set of `material.conductivity.x` turns the number an earlier layer gave into a table: the
+// error names that --set, not the layer whose number it replaced (found by an adversarial review:
+// the run file's line, "preset quick" and the first --set were named).
+TEST(Cli, AKeyTurnedIntoATableIsBlamedOnTheSetThatDidIt) {
+  const char* table = "--set material.conductivity.x=5: `material.conductivity` = { x = 5 }: must be a number";
+  expect_input_error("table_over_file", "[material]\nconductivity = 3\n", "--set material.conductivity.x=5",
+                     {table});
+  expect_input_error("table_over_preset", "", "--preset quick --set material.conductivity.x=5", {table});
+  expect_input_error("table_over_set", "",
+                     "--preset quick --set material.conductivity=1 --set material.conductivity.x=5", {table});
+  // Of two entries, the one that made the table (the earlier), whatever their names' order.
+  expect_input_error("table_two_sets", "",
+                     "--preset quick --set material.conductivity.b=1 --set material.conductivity.a=2",
+                     {"--set material.conductivity.b=1: `material.conductivity` = { a = 2, b = 1 }"});
+  // A number over a table: the number's --set, as before.
+  expect_input_error("number_over_table", "",
+                     "--preset quick --set material.conductivity.x=5 --set material.conductivity=-1",
+                     {"--set material.conductivity=-1: `material.conductivity` = -1: must be >= 0"});
+}
+
 // A FIFO or a device given as the run file or the packing file is refused before it is opened:
 // opening a FIFO blocks (no signal ended it), and /dev/zero was read until memory ran out.
 TEST(Cli, SpecialFilesAsInputsAreRefusedBeforeTheyAreRead) {
