@@ -289,6 +289,75 @@ TEST(Cli, AKeyTurnedIntoATableIsBlamedOnTheSetThatDidIt) {
                      {"--set material.conductivity=-1: `material.conductivity` = -1: must be >= 0"});
 }
 
+// A key given in this run that the scene does not read is refused, naming the key, its value and
+// what would make it apply. Each of these ran before, with the numbers of a run without it (found
+// by an adversarial review).
+TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
+  struct Case {
+    const char* name;
+    const char* args;
+    const char* value;  // `key` = value
+    const char* needs;
+  };
+  const Case cases[] = {
+      {"gaussian_width", "--set beam.gaussian_width=7", "`beam.gaussian_width` = 7",
+       "applies to beam.profile = \"gaussian\" only (it is \"exponential\")"},
+      {"decay_flat", "--set beam.profile=flat --set beam.decay=50", "`beam.decay` = 50",
+       "applies to beam.profile = \"exponential\" only (it is \"flat\")"},
+      {"solid_fraction", "--set packing.solid_fraction=0.45", "`packing.solid_fraction` = 0.45",
+       "applies to packing.source = \"rsa\" only (it is \"random-overlap\")"},
+      {"radius_ratio", "--set packing.source=rsa --set packing.solid_fraction=0.2 --set packing.radius_ratio=5",
+       "`packing.radius_ratio` = 5",
+       "applies to packing.source = \"random-overlap\" or \"lattice\" only (it is \"rsa\")"},
+      {"packing_seed", "--set packing.source=lattice --set packing.count=8 --set packing.seed=3",
+       "`packing.seed` = 3", "applies to packing.source = \"random-overlap\" or \"rsa\" only (it is \"lattice\")"},
+      {"beam_seed", "--set beam.sampling=stratified --set beam.seed=4", "`beam.seed` = 4",
+       "applies to beam.sampling = \"random\" only"},
+      {"energy", "--set pulses.energy=5", "`pulses.energy` = 5",
+       "applies to pulses.duration = \"energy\" only (it is 3e-13)"},
+      {"wall_temperature", "--set thermal.wall_temperature=3000", "`thermal.wall_temperature` = 3000",
+       "applies to walls only (thermal.walls = \"\" names none"},
+      {"wall_reach", "--set thermal.wall_reach=1", "`thermal.wall_reach` = 1", "applies to walls only"},
+      {"wall_conductance", "--set thermal.wall_conductance=1e6", "`thermal.wall_conductance` = 1e+06",
+       "applies to walls only"},
+  };
+  for (const Case& c : cases) {
+    const std::string set = std::string(c.args).substr(std::string(c.args).rfind("--set "));
+    expect_input_error(std::string("unread_") + c.name, "", std::string("--preset quick ") + c.args,
+                       {set.c_str(), c.value, c.needs, "so this run would ignore it"});
+  }
+  // A sweep of such a key wrote identical rows and exited 0; now it stops before any run.
+  const fs::path dir = fresh_dir("unread_sweep");
+  const Result sweep = run("sweep --preset quick --param beam.gaussian_width --values 0.1,10 --quiet --out " +
+                           (dir / "out").string());
+  EXPECT_EQ(sweep.code, 2) << sweep.output;
+  EXPECT_NE(sweep.output.find("--param beam.gaussian_width --values 0.1: `beam.gaussian_width` = 0.1: applies "
+                              "to beam.profile = \"gaussian\" only"),
+            std::string::npos)
+      << sweep.output;
+  EXPECT_FALSE(fs::exists(dir / "out" / "sweep.csv"));
+  // A preset's or a run file's keys are not the user's request in this run: switching the
+  // zohdi2013 preset's exponential profile (beam.decay = 2) to flat runs, and so do a lattice
+  // under the quick preset's packing.seed and a run file that holds every key.
+  for (const char* args : {"--preset zohdi2013 --set beam.profile=flat",
+                           "--preset quick --set packing.source=lattice --set packing.count=8"}) {
+    const Result r =
+        run(std::string("run ") + args + " --set pulses.count=1 --quiet --out " + (dir / "preset").string());
+    EXPECT_EQ(r.code, 0) << args << ": " << r.output;
+  }
+  const std::string file = write(dir / "run.toml", "[beam]\ngaussian_width = 7.0\n[thermal]\nwall_reach = 1.0\n");
+  const Result from_file = run("run " + file + " --preset quick --quiet --out " + (dir / "file").string());
+  EXPECT_EQ(from_file.code, 0) << from_file.output;
+  // A sweep over the deciding key uses the key in some of its runs: both rows are written.
+  const Result profiles = run("sweep --preset quick --set beam.decay=5 --param beam.profile --values flat,exponential "
+                              "--quiet --out " + (dir / "profiles").string());
+  ASSERT_EQ(profiles.code, 0) << profiles.output;
+  const auto rows = read_csv(dir / "profiles" / "sweep.csv");
+  ASSERT_EQ(rows.size(), 2u);
+  EXPECT_NE(rows[0].at("vaporized_fraction"), "");
+  EXPECT_NE(rows[1].at("vaporized_fraction"), "");
+}
+
 // A FIFO or a device given as the run file or the packing file is refused before it is opened:
 // opening a FIFO blocks (no signal ended it), and /dev/zero was read until memory ran out.
 TEST(Cli, SpecialFilesAsInputsAreRefusedBeforeTheyAreRead) {

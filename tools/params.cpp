@@ -338,7 +338,8 @@ void Params::merge_toml_file(const std::string& path) {
   merge_layer(merged_, origin_, layer, {path, path, ++layers_}, true);
 }
 
-void Params::merge_assignment(const std::string& key_equals_value, const std::string& origin) {
+void Params::merge_assignment(const std::string& key_equals_value, const std::string& origin,
+                              bool swept) {
   const std::string named = origin.empty() ? "--set " + key_equals_value : origin;
   const auto eq = key_equals_value.find('=');
   const std::string key = trimmed(key_equals_value.substr(0, eq));  // --set "k = v" as k=v
@@ -355,7 +356,7 @@ void Params::merge_assignment(const std::string& key_equals_value, const std::st
     parsed = toml::table{{"v", value}};  // a bare word: a string
   }
   set_path(merged_, key, *parsed.get("v"));
-  set_origin(origin_, key, {named, "", ++layers_, true});
+  set_origin(origin_, key, {named, "", ++layers_, true, swept});
 }
 
 const toml::node* Params::find(const std::string& key) const {
@@ -389,6 +390,19 @@ bool Params::set_later(const std::string& later, const std::string& earlier) con
 bool Params::set_on_command_line(const std::string& key) const {
   const KeyOrigin* o = origin(key);
   return o && o->command_line;
+}
+
+bool Params::swept(const std::string& key) const {
+  const KeyOrigin* o = origin(key);
+  return o && o->swept;
+}
+
+std::string Params::shown(const std::string& key) const {
+  const toml::node* node = resolved_.at_path(key).node();
+  if (!node) return "";
+  if (const auto* v = node->as_floating_point()) return fmt(v->get());
+  if (const auto* w = node->as_string()) return "\"" + w->get() + "\"";
+  return repr(*node);
 }
 
 void Params::forget(const std::string& key) {

@@ -48,11 +48,6 @@ void read_packing(Params& p, PackingSpec& s) {
     p.fail("packing.radius", number_text(s.file_radius), "applies to packing.source = \"file\" only");
   if (s.source == "file" && s.file.empty())
     p.fail("packing.file", "\"\"", "required with packing.source = \"file\"");
-  // A run file may hold it (`beampack config` prints every key); asked for in this run, it
-  // would be ignored without a word.
-  if (s.source == "file" && p.set_on_command_line("packing.count"))
-    p.fail("packing.count", std::to_string(s.count),
-           "applies to generated packings only; with packing.source = \"file\" the file gives the count");
 }
 
 void read_beam(Params& p, BeamSpec& b) {
@@ -216,6 +211,54 @@ void derive_paper_step(RunConfig& c, const PaperStepUse& use) {
   throw InputError(m.str());
 }
 
+// A key that some scenes do not read: whether this one does, the key that decides it, and what
+// would make the key apply.
+struct KeyUse {
+  const char* key;
+  bool applies;
+  const char* decider;
+  std::string needs;
+};
+
+// A key set in this run (--set, a swept value) that the scene does not read would give the
+// numbers of a run without it, without a word: refused. A preset or a run file may hold it
+// (`beampack config` prints every key; a user may switch a preset's profile away from its
+// beam.decay), and so may a sweep over the deciding key (beam.profile), whose other runs use it.
+// pulses.xi is not among them: converge's time-step ladder uses it whatever the pulse duration.
+void refuse_unread_keys(const Params& p, const SimulationSpec& s) {
+  const std::string& source = s.packing.source;
+  const std::string is_source = " (it is " + p.shown("packing.source") + ")";
+  const std::string is_profile = " (it is " + p.shown("beam.profile") + ")";
+  const std::string duration = p.shown("pulses.duration");
+  const bool walls = !s.thermal.walls.empty();
+  const std::string wall_needs = "applies to walls only (thermal.walls = " + p.shown("thermal.walls") +
+                                 " names none; e.g. thermal.walls = \"z-\")";
+  const KeyUse uses[] = {
+      {"packing.count", source != "file", "packing.source",
+       "applies to generated packings only; with packing.source = \"file\" the file gives the count"},
+      {"packing.radius_ratio", source == "random-overlap" || source == "lattice", "packing.source",
+       "applies to packing.source = \"random-overlap\" or \"lattice\" only" + is_source},
+      {"packing.solid_fraction", source == "rsa", "packing.source",
+       "applies to packing.source = \"rsa\" only" + is_source},
+      {"packing.seed", source == "random-overlap" || source == "rsa", "packing.source",
+       "applies to packing.source = \"random-overlap\" or \"rsa\" only" + is_source},
+      {"beam.decay", s.beam.profile == "exponential", "beam.profile",
+       "applies to beam.profile = \"exponential\" only" + is_profile},
+      {"beam.gaussian_width", s.beam.profile == "gaussian", "beam.profile",
+       "applies to beam.profile = \"gaussian\" only" + is_profile},
+      {"beam.seed", s.beam.sampling == "random", "beam.sampling",
+       "applies to beam.sampling = \"random\" only (stratified rays are fixed)"},
+      {"pulses.energy", duration == "\"energy\"", "pulses.duration",
+       "applies to pulses.duration = \"energy\" only (it is " + duration + ")"},
+      {"thermal.wall_temperature", walls, "thermal.walls", wall_needs},
+      {"thermal.wall_reach", walls, "thermal.walls", wall_needs},
+      {"thermal.wall_conductance", walls, "thermal.walls", wall_needs},
+  };
+  for (const KeyUse& use : uses)
+    if (!use.applies && p.set_on_command_line(use.key) && !p.swept(use.decider))
+      p.fail(use.key, p.shown(use.key), use.needs + ", so this run would ignore it");
+}
+
 // Every key, read in the order the library needs them, and the library's own checks.
 RunConfig read_config(Params& p, const std::function<Particles(const SimulationSpec&)>& saved_packing) {
   RunConfig c;
@@ -241,6 +284,7 @@ RunConfig read_config(Params& p, const std::function<Particles(const SimulationS
   c.output.frames = p.flag("output.frames", false);
   c.output.rays = p.flag("output.rays", false);
   p.check_all_used();  // first: a misspelt key is named before what it would have changed
+  refuse_unread_keys(p, c.sim);
   derive_paper_step(c, use);
   check_steps_per_crossing(p, c.sim, use.dt);
   validate_beam(c.sim.beam, c.sim.packing.sample_size);
@@ -267,7 +311,7 @@ RunConfig load_run_config(const RunSources& sources) {
   if (!sources.text.empty()) p.merge_toml_text(sources.text, "checkpoint");
   if (!sources.file.empty()) p.merge_toml_file(sources.file);
   for (const std::string& s : sources.sets) p.merge_assignment(s);
-  if (!sources.swept.empty()) p.merge_assignment(sources.swept, sources.swept_origin);
+  if (!sources.swept.empty()) p.merge_assignment(sources.swept, sources.swept_origin, true);
   try {
     return read_config(p, sources.saved_packing);
   } catch (const InputError& e) {  // a library check of several keys: where were they set?
