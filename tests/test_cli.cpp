@@ -358,6 +358,72 @@ TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
   EXPECT_NE(rows[1].at("vaporized_fraction"), "");
 }
 
+namespace {
+
+// Every number of a JSON document is finite (a NaN or an infinity would be written as null).
+bool all_finite(const nlohmann::json& j) {
+  if (j.is_null()) return false;
+  if (j.is_number()) return std::isfinite(j.get<double>());
+  if (!j.is_structured()) return true;  // a string or a bool (iterating one gives itself)
+  for (const auto& item : j) {
+    if (!all_finite(item)) return false;
+  }
+  return true;
+}
+
+}  // namespace
+
+// Keys accepted up to 1.8e308 overflowed in the run: non-finite temperatures (exit 1, naming no
+// key) for material.conductivity = 1e308 and a wall conductance of 1e306; 1.6e280 J "stored" of
+// 8e-9 J absorbed for material.latent_vapor = 1e308 (found by an adversarial review), and the
+// like for the other keys here (the limits' comment in run_config.cpp). Each is refused above its
+// limit, naming the key, the value and the limit; at the limit the quick preset runs, with finite
+// figures and a heat ledger closed to 1e-6.
+TEST(Cli, NumbersBeyondTheArithmeticAreRefusedAndTheLimitsRun) {
+  const std::string walls = " --set thermal.walls=x-,x+ --set thermal.wall_reach=1e-4";
+  struct Case {
+    std::string key, too_large, limit, at_limit;  // at_limit: the --set of a run at the limit
+  };
+  const std::string big_heat = "must be <= 1e+12 J/(kg K)", hot = "must be <= 1e+12 K", hot_run =
+      " --set material.vapor_temperature=1e12";
+  const Case cases[] = {
+      {"material.conductivity", "1e308", "must be <= 1e+20 W/(m K)", "material.conductivity=1e20"},
+      {"thermal.wall_conductance", "1e306", "must be <= 1e+20 W/K", "thermal.wall_conductance=1e20" + walls},
+      {"material.latent_vapor", "1e308", big_heat, "material.latent_vapor=1e12"},
+      {"material.latent_melt", "1e25", big_heat, "material.latent_melt=1e12"},
+      {"material.latent_solidify", "1e308", big_heat,
+       "material.latent_solidify=1e12 --set thermal.wall_temperature=100" + walls},
+      {"material.c_solid", "1e308", big_heat, "material.c_solid=1e12"},
+      {"material.c_liquid", "1e308", big_heat, "material.c_liquid=1e12"},
+      {"material.vapor_temperature", "1e300", hot, "material.vapor_temperature=1e12"},
+      {"material.melt_temperature", "1e300", hot, "material.melt_temperature=9.9e11" + hot_run},
+      {"material.initial_temperature", "1e300", hot, "material.initial_temperature=9e11" + hot_run},
+      {"thermal.wall_temperature", "1e300", hot, "thermal.wall_temperature=1e12" + walls},
+      {"beam.power", "1e300", "must be <= 1e+20 W", "beam.power=1e20"},
+      {"pulses.duration", "1e290", "must be <= 1e+12 s", "pulses.duration=1e12"},
+      {"thermal.dt", "1e308", "must be <= 1e+12 s", "thermal.dt=1e12"},
+      {"pulses.period", "1e308", "must be <= 1e+12 s", "pulses.period=1e12"},
+  };
+  const fs::path dir = fresh_dir("limits");
+  for (const Case& c : cases) {
+    const std::string set = "--set " + c.key + "=" + c.too_large;
+    const std::string shown = "`" + c.key + "` = " + c.too_large.substr(0, 1) + "e+" + c.too_large.substr(2);
+    expect_input_error("limit_" + c.key, "", "--preset quick " + set + walls, {set.c_str(), shown.c_str(),
+                                                                                  c.limit.c_str()});
+    const fs::path out = dir / c.key;
+    const Result r = run("run --preset quick --set " + c.at_limit + " --quiet --out " + out.string());
+    ASSERT_EQ(r.code, 0) << c.at_limit << ": " << r.output;
+    EXPECT_EQ(r.output.find("ledger is open"), std::string::npos) << c.at_limit << ": " << r.output;
+    const auto summary = read_json(out / "summary.json");
+    EXPECT_TRUE(all_finite(summary)) << c.at_limit << ": " << summary.dump();
+    const auto& e = summary["energy_J"];
+    const double absorbed = e["absorbed"], stored = e["stored"], vaporized = e["vaporized"], to_walls = e["walls"];
+    const double flows = absorbed + std::abs(stored) + vaporized + std::abs(to_walls);
+    EXPECT_GT(absorbed, 0.0) << c.at_limit;
+    EXPECT_LE(std::abs(absorbed - stored - vaporized - to_walls), 1e-6 * flows) << c.at_limit << ": " << e.dump();
+  }
+}
+
 // A FIFO or a device given as the run file or the packing file is refused before it is opened:
 // opening a FIFO blocks (no signal ended it), and /dev/zero was read until memory ran out.
 TEST(Cli, SpecialFilesAsInputsAreRefusedBeforeTheyAreRead) {
