@@ -91,6 +91,19 @@ std::vector<std::string> leaf_keys(const toml::table& table, const std::string& 
 
 namespace {
 
+// Records that `source` set `key`. Its value replaces whatever the merged table held on its path
+// (set_path): a value above it (`k.a = 2` over `k = 1` turns k into a table) and the keys under it
+// (`k = 1` over `k.a = 2`), so their origins go too: a message then names the layer whose value is
+// there now, not an older one that set the key before it was overridden.
+void set_origin(std::map<std::string, KeyOrigin>& origin, const std::string& key, const KeyOrigin& source) {
+  for (std::size_t dot = key.find('.'); dot != std::string::npos; dot = key.find('.', dot + 1))
+    origin.erase(key.substr(0, dot));
+  const std::string below = key + ".";
+  for (auto it = origin.lower_bound(below); it != origin.end() && it->first.starts_with(below);)
+    it = origin.erase(it);
+  origin[key] = source;
+}
+
 // Walks the layer's own tables (not dotted paths: a quoted key such as "a.b", "" or "x[0]" is
 // one TOML key that a path lookup cannot find; fuzz/ found the null dereference that caused).
 // Such names cannot be run-file keys, whose parts are bare words joined by dots.
@@ -110,7 +123,7 @@ void merge_layer(toml::table& merged, std::map<std::string, KeyOrigin>& origin,
       continue;
     }
     set_path(merged, key, node);
-    origin[key] = {at, source.file, source.layer};
+    set_origin(origin, key, {at, source.file, source.layer});
   }
 }
 
@@ -325,7 +338,8 @@ void Params::merge_toml_file(const std::string& path) {
   merge_layer(merged_, origin_, layer, {path, path, ++layers_}, true);
 }
 
-void Params::merge_assignment(const std::string& key_equals_value, const std::string& origin) {
+void Params::merge_assignment(const std::string& key_equals_value, const std::string& origin,
+                              bool swept) {
   const std::string named = origin.empty() ? "--set " + key_equals_value : origin;
   const auto eq = key_equals_value.find('=');
   const std::string key = trimmed(key_equals_value.substr(0, eq));  // --set "k = v" as k=v
@@ -342,7 +356,7 @@ void Params::merge_assignment(const std::string& key_equals_value, const std::st
     parsed = toml::table{{"v", value}};  // a bare word: a string
   }
   set_path(merged_, key, *parsed.get("v"));
-  origin_[key] = {named, "", ++layers_, true};
+  set_origin(origin_, key, {named, "", ++layers_, true, swept});
 }
 
 const toml::node* Params::find(const std::string& key) const {
@@ -351,11 +365,16 @@ const toml::node* Params::find(const std::string& key) const {
 
 bool Params::has(const std::string& key) const { return find(key) != nullptr; }
 
-// A key's own layer, or for a key given as a table (`conductivity = {a = 1}`) its first entry's.
+// A key's own layer, or for a key given as a table (`conductivity = {a = 1}`) the earliest layer
+// of its entries: the one that made it a table (set_origin keeps only the layers whose values are
+// in the merged table).
 const KeyOrigin* Params::origin(const std::string& key) const {
   if (const auto it = origin_.find(key); it != origin_.end()) return &it->second;
-  const auto below = origin_.lower_bound(key + ".");
-  return below != origin_.end() && below->first.starts_with(key + ".") ? &below->second : nullptr;
+  const std::string below = key + ".";
+  const KeyOrigin* first = nullptr;
+  for (auto it = origin_.lower_bound(below); it != origin_.end() && it->first.starts_with(below); ++it)
+    if (!first || it->second.layer < first->layer) first = &it->second;
+  return first;
 }
 
 std::string Params::where(const std::string& key) const {
@@ -371,6 +390,19 @@ bool Params::set_later(const std::string& later, const std::string& earlier) con
 bool Params::set_on_command_line(const std::string& key) const {
   const KeyOrigin* o = origin(key);
   return o && o->command_line;
+}
+
+bool Params::swept(const std::string& key) const {
+  const KeyOrigin* o = origin(key);
+  return o && o->swept;
+}
+
+std::string Params::shown(const std::string& key) const {
+  const toml::node* node = resolved_.at_path(key).node();
+  if (!node) return "";
+  if (const auto* v = node->as_floating_point()) return fmt(v->get());
+  if (const auto* w = node->as_string()) return "\"" + w->get() + "\"";
+  return repr(*node);
 }
 
 void Params::forget(const std::string& key) {

@@ -20,6 +20,7 @@ struct KeyOrigin {
   std::string at, file;
   int layer = 0;
   bool command_line = false;  // a --set (or a swept value): what the user asked for in this run
+  bool swept = false;         // a value of sweep's --param or of a converge ladder
 };
 
 class Params {
@@ -28,8 +29,10 @@ class Params {
   // Layers apply in order: later ones override earlier ones key by key.
   void merge_toml_text(const std::string& text, const std::string& source);  // preset
   void merge_toml_file(const std::string& path);
-  // --set KEY=VALUE; `origin` names it in messages (default "--set KEY=VALUE").
-  void merge_assignment(const std::string& key_equals_value, const std::string& origin = "");
+  // --set KEY=VALUE; `origin` names it in messages (default "--set KEY=VALUE"); `swept` for a
+  // value of sweep's --param or of a converge ladder.
+  void merge_assignment(const std::string& key_equals_value, const std::string& origin = "",
+                        bool swept = false);
 
   double number(const std::string& key, double fallback, double lo, double hi,
                 bool lo_open = false);
@@ -48,6 +51,10 @@ class Params {
   bool set_later(const std::string& later, const std::string& earlier) const;
   // Whether --set (or a sweep) gave the key: what the user asked for in this run.
   bool set_on_command_line(const std::string& key) const;
+  // Whether the key's value is a swept one (sweep's --param, a converge ladder).
+  bool swept(const std::string& key) const;
+  // The value a key was read as (after its accessor), as messages show it: 7, "flat".
+  std::string shown(const std::string& key) const;
   // Drops a key from the layers, as if none had set it.
   void forget(const std::string& key);
   // Every key a layer set, with where: RunConfig keeps them to locate errors found later.

@@ -1,7 +1,9 @@
 #include "tools/run_config.h"
 
 #include <algorithm>
+#include <array>
 #include <cctype>
+#include <charconv>
 #include <cmath>
 #include <fstream>
 #include <iomanip>
@@ -23,6 +25,51 @@ std::string number_text(double v) {
   std::ostringstream s;
   s << v;
   return s.str();
+}
+
+// An upper limit beyond which a run's arithmetic breaks, physically generous, with its unit and
+// why. Measured with the quick preset (each key alone, or with walls within reach): conductivity
+// 1e308 and wall conductance 1e306 gave non-finite temperatures (exit 1, no key named); latent
+// heat 1e308 booked 1.6e280 J as stored of 8e-9 J absorbed, 1e25 (latent_melt) 4e-4 J, and the
+// heat ledger opens by more than 1e-6 from ~1e14 (latent or specific heats alike: C + L is one
+// capacity); a wall at 1e300 K booked -7.5e273 J, and conjugate gradients' residual turned NaN at
+// 1e200 K, at beam.power = 1e300 W and pulses.duration = 1e290 s; thermal.dt = 1e308 s with
+// K = 1e4 gave non-finite temperatures, and pulses.period = 1e308 s "thermal.dt = inf". At all
+// these limits together the direct solver closes the ledger and the iterative ones stop with
+// their own message; the stiff scenes the project validates (K up to 1e6 in `beampack validate
+// --stiff`, 1e9 in tests/test_thermal_stiff.cpp) are far inside.
+struct Cap {
+  double limit;
+  const char* why;  // unit and reason, after "must be <= limit"
+};
+constexpr Cap kConductivity{1e20, "W/(m K) (5e16 times diamond's; far larger ones overflow the conductances and the "
+                                  "heat flows)"};
+constexpr Cap kWallConductance{1e20, "W/K per particle (far larger ones overflow the heat flows from the walls)"};
+constexpr Cap kHeatCapacity{1e12, "J/(kg K) (2e8 times water's; beyond it a step's warming is lost to the "
+                                  "temperatures' round-off: the heat ledger opens, and far beyond it books energies "
+                                  "the beam never gave)"};
+constexpr Cap kTemperature{1e12, "K (hotter than any solid or liquid; far higher ones overflow the heat flows, "
+                                 "conductance times temperature difference)"};
+constexpr Cap kPower{1e20, "W (1e5 times the most powerful lasers'; far beyond it the pulse energy with "
+                           "pulses.duration, or the temperatures it gives, overflows)"};
+constexpr Cap kDuration{1e12, "s (30,000 years; far longer pulses overflow their energy and the temperatures it "
+                              "gives)"};
+// thermal.dt, and pulses.period: with thermal.dt = "pulse" the wait for the next pulse is one step.
+constexpr Cap kStep{1e12, "s (30,000 years; far longer steps overflow their heat flows, time step times "
+                          "conductance times temperature)"};
+
+// `value` of `key`, refused above the cap with its reason (Params::number states a range only).
+// The value is shown in full: 1.0000001e+20 is not "1e+20" above a limit of 1e+20.
+double capped(const Params& p, const std::string& key, double value, const Cap& cap) {
+  if (!(value > cap.limit)) return value;
+  std::array<char, 32> shown;
+  const auto end = std::to_chars(shown.data(), shown.data() + shown.size(), value).ptr;
+  p.fail(key, std::string(shown.data(), end), "must be <= " + number_text(cap.limit) + " " + cap.why);
+}
+
+double number_up_to(Params& p, const std::string& key, double fallback, double lo, const Cap& cap,
+                    bool lo_open = false) {
+  return capped(p, key, p.number(key, fallback, lo, kBig, lo_open), cap);
 }
 
 // Every key is read whatever the source, so `beampack config` lists them all and a preset's
@@ -48,15 +95,10 @@ void read_packing(Params& p, PackingSpec& s) {
     p.fail("packing.radius", number_text(s.file_radius), "applies to packing.source = \"file\" only");
   if (s.source == "file" && s.file.empty())
     p.fail("packing.file", "\"\"", "required with packing.source = \"file\"");
-  // A run file may hold it (`beampack config` prints every key); asked for in this run, it
-  // would be ignored without a word.
-  if (s.source == "file" && p.set_on_command_line("packing.count"))
-    p.fail("packing.count", std::to_string(s.count),
-           "applies to generated packings only; with packing.source = \"file\" the file gives the count");
 }
 
 void read_beam(Params& p, BeamSpec& b) {
-  b.power = p.number("beam.power", 6000, 0, kBig, true);
+  b.power = number_up_to(p, "beam.power", 6000, 0, kPower, true);
   b.diameter_fraction = p.number("beam.diameter_fraction", 0.3, 0, 10, true);
   b.rays = std::size_t(p.integer("beam.rays", 1000, 1, 100'000'000));
   b.sampling = p.choice("beam.sampling", "random", {"random", "stratified"});
@@ -97,14 +139,14 @@ void read_optics(Params& p, OpticsSpec& o) {
 
 void read_material(Params& p, Material& m) {
   m.density = p.number("material.density", 1000, 0, kBig, true);
-  m.c_solid = p.number("material.c_solid", 1000, 0, kBig, true);
-  m.c_liquid = p.number("material.c_liquid", 2000, 0, kBig, true);
-  m.conductivity = p.number("material.conductivity", 0, 0, kBig);
-  m.melt_temperature = p.number("material.melt_temperature", 600, 0, kBig, true);
-  m.vapor_temperature = p.number("material.vapor_temperature", 700, 0, kBig, true);
-  m.latent_melt = p.number("material.latent_melt", 1000, 0, kBig);
-  m.latent_solidify = p.number("material.latent_solidify", 1000, 0, kBig);
-  m.latent_vapor = p.number("material.latent_vapor", 1000, 0, kBig);
+  m.c_solid = number_up_to(p, "material.c_solid", 1000, 0, kHeatCapacity, true);
+  m.c_liquid = number_up_to(p, "material.c_liquid", 2000, 0, kHeatCapacity, true);
+  m.conductivity = number_up_to(p, "material.conductivity", 0, 0, kConductivity);
+  m.melt_temperature = number_up_to(p, "material.melt_temperature", 600, 0, kTemperature, true);
+  m.vapor_temperature = number_up_to(p, "material.vapor_temperature", 700, 0, kTemperature, true);
+  m.latent_melt = number_up_to(p, "material.latent_melt", 1000, 0, kHeatCapacity);
+  m.latent_solidify = number_up_to(p, "material.latent_solidify", 1000, 0, kHeatCapacity);
+  m.latent_vapor = number_up_to(p, "material.latent_vapor", 1000, 0, kHeatCapacity);
   m.validate("material");
 }
 
@@ -112,9 +154,9 @@ void read_material(Params& p, Material& m) {
 // a particle within thermal.wall_reach of a face (surface to face) exchanges heat with it.
 std::vector<Wall> read_walls(Params& p, double size) {
   const std::string faces = p.text("thermal.walls", "");
-  const double temperature = p.number("thermal.wall_temperature", 300, 0, kBig, true);
+  const double temperature = number_up_to(p, "thermal.wall_temperature", 300, 0, kTemperature, true);
   const double reach = p.number("thermal.wall_reach", 0, 0, kBig);
-  const double conductance = p.number("thermal.wall_conductance", -1, -1, kBig);
+  const double conductance = number_up_to(p, "thermal.wall_conductance", -1, -1, kWallConductance);
   if (conductance < 0 && conductance != -1)
     p.fail("thermal.wall_conductance", number_text(conductance),
            "must be >= 0 (W/K per particle) or -1 (pi K R, from material.conductivity)");
@@ -156,6 +198,7 @@ void read_thermal(Params& p, SimulationSpec& s, PaperStepUse& use) {
   s.max_staggers = int(p.integer("thermal.max_staggers", 4, 0, 1000));
   double dt = 0;
   const std::string word = p.number_or_word("thermal.dt", dt, 0, kBig, {"pulse", "paper"}, "pulse");
+  capped(p, "thermal.dt", dt, kStep);
   use.dt = word == "paper";
   s.dt = word == "pulse" || use.dt ? 0.0 : dt;
   t.validate();
@@ -178,20 +221,22 @@ void read_pulses(Params& p, SimulationSpec& s, PaperStepUse& use) {
   s.pulses.count = int(p.integer("pulses.count", 20, 0, 10'000'000));
   double tau = 0;
   const std::string word = p.number_or_word("pulses.duration", tau, 0, kBig, {"auto", "energy"}, "auto");
+  capped(p, "pulses.duration", tau, kDuration);
   use.xi = p.number("pulses.xi", 0.05, 0, 10, true);
   use.duration = word == "auto";
   const double energy = p.number("pulses.energy", 1e-9, 0, kBig, true);
   if (word == "energy") tau = energy / s.beam.power;
   // Each input is in range, but a quotient can still overflow or underflow (found by fuzz/).
-  if (word == "energy" && !(std::isfinite(tau) && tau > 0)) {
+  if (word == "energy" && !(std::isfinite(tau) && tau > 0 && tau <= kDuration.limit)) {
     std::ostringstream m;
-    m << "`pulses.duration` = \"energy\" gives tau = " << tau
-      << " s (pulses.energy / beam.power): must be finite and > 0; give pulses.duration in seconds";
+    m << "`pulses.duration` = \"energy\" gives tau = " << tau << " s (pulses.energy / beam.power): must be > 0 "
+      << "and <= " << kDuration.limit << " " << kDuration.why << "; give pulses.duration in seconds";
     throw InputError(m.str());
   }
   s.pulses.duration = tau;
   double period = 0;
   const std::string pw = p.number_or_word("pulses.period", period, 0, kBig, {"auto"}, "auto");
+  capped(p, "pulses.period", period, kStep);
   s.pulses.period = pw == "auto" ? 0.0 : period;
 }
 
@@ -203,7 +248,7 @@ void derive_paper_step(RunConfig& c, const PaperStepUse& use) {
   if (c.sim.packing.source == "file" && !c.packing)
     c.packing = std::make_shared<const Particles>(make_packing(c.sim.packing));
   const double step = paper_step(c.sim.packing, use.xi, c.packing.get());
-  if (std::isfinite(step) && step > 0) {
+  if (std::isfinite(step) && step > 0 && step <= kStep.limit) {
     if (use.duration) c.sim.pulses.duration = step;
     if (use.dt) c.sim.dt = step;
     return;
@@ -211,16 +256,65 @@ void derive_paper_step(RunConfig& c, const PaperStepUse& use) {
   std::ostringstream m;
   m << (use.duration ? "`pulses.duration` = \"auto\" gives tau" : "`thermal.dt` = \"paper\" gives")
     << " = pulses.xi * R / c = " << step
-    << " s (R from sample.size and packing.*, or a file's median radius): must be finite and > 0; give "
+    << " s (R from sample.size and packing.*, or a file's median radius): must be > 0 and <= "
+    << kStep.limit << " s; give "
     << (use.duration ? "pulses.duration" : "thermal.dt") << " in seconds";
   throw InputError(m.str());
+}
+
+// A key that some scenes do not read: whether this one does, the key that decides it, and what
+// would make the key apply.
+struct KeyUse {
+  const char* key;
+  bool applies;
+  const char* decider;
+  std::string needs;
+};
+
+// A key set in this run (--set, a swept value) that the scene does not read would give the
+// numbers of a run without it, without a word: refused. A preset or a run file may hold it
+// (`beampack config` prints every key; a user may switch a preset's profile away from its
+// beam.decay), and so may a sweep over the deciding key (beam.profile), whose other runs use it.
+// pulses.xi is not among them: converge's time-step ladder uses it whatever the pulse duration.
+void refuse_unread_keys(const Params& p, const SimulationSpec& s) {
+  const std::string& source = s.packing.source;
+  const std::string is_source = " (it is " + p.shown("packing.source") + ")";
+  const std::string is_profile = " (it is " + p.shown("beam.profile") + ")";
+  const std::string duration = p.shown("pulses.duration");
+  const bool walls = !s.thermal.walls.empty();
+  const std::string wall_needs = "applies to walls only (thermal.walls = " + p.shown("thermal.walls") +
+                                 " names none; e.g. thermal.walls = \"z-\")";
+  const KeyUse uses[] = {
+      {"packing.count", source != "file", "packing.source",
+       "applies to generated packings only; with packing.source = \"file\" the file gives the count"},
+      {"packing.radius_ratio", source == "random-overlap" || source == "lattice", "packing.source",
+       "applies to packing.source = \"random-overlap\" or \"lattice\" only" + is_source},
+      {"packing.solid_fraction", source == "rsa", "packing.source",
+       "applies to packing.source = \"rsa\" only" + is_source},
+      {"packing.seed", source == "random-overlap" || source == "rsa", "packing.source",
+       "applies to packing.source = \"random-overlap\" or \"rsa\" only" + is_source},
+      {"beam.decay", s.beam.profile == "exponential", "beam.profile",
+       "applies to beam.profile = \"exponential\" only" + is_profile},
+      {"beam.gaussian_width", s.beam.profile == "gaussian", "beam.profile",
+       "applies to beam.profile = \"gaussian\" only" + is_profile},
+      {"beam.seed", s.beam.sampling == "random", "beam.sampling",
+       "applies to beam.sampling = \"random\" only (stratified rays are fixed)"},
+      {"pulses.energy", duration == "\"energy\"", "pulses.duration",
+       "applies to pulses.duration = \"energy\" only (it is " + duration + ")"},
+      {"thermal.wall_temperature", walls, "thermal.walls", wall_needs},
+      {"thermal.wall_reach", walls, "thermal.walls", wall_needs},
+      {"thermal.wall_conductance", walls, "thermal.walls", wall_needs},
+  };
+  for (const KeyUse& use : uses)
+    if (!use.applies && p.set_on_command_line(use.key) && !p.swept(use.decider))
+      p.fail(use.key, p.shown(use.key), use.needs + ", so this run would ignore it");
 }
 
 // Every key, read in the order the library needs them, and the library's own checks.
 RunConfig read_config(Params& p, const std::function<Particles(const SimulationSpec&)>& saved_packing) {
   RunConfig c;
   read_packing(p, c.sim.packing);
-  c.sim.packing.initial_temperature = p.number("material.initial_temperature", 300, 0, kBig, true);
+  c.sim.packing.initial_temperature = number_up_to(p, "material.initial_temperature", 300, 0, kTemperature, true);
   read_beam(p, c.sim.beam);
   read_optics(p, c.sim.optics);
   Material m;
@@ -241,6 +335,7 @@ RunConfig read_config(Params& p, const std::function<Particles(const SimulationS
   c.output.frames = p.flag("output.frames", false);
   c.output.rays = p.flag("output.rays", false);
   p.check_all_used();  // first: a misspelt key is named before what it would have changed
+  refuse_unread_keys(p, c.sim);
   derive_paper_step(c, use);
   check_steps_per_crossing(p, c.sim, use.dt);
   validate_beam(c.sim.beam, c.sim.packing.sample_size);
@@ -267,7 +362,7 @@ RunConfig load_run_config(const RunSources& sources) {
   if (!sources.text.empty()) p.merge_toml_text(sources.text, "checkpoint");
   if (!sources.file.empty()) p.merge_toml_file(sources.file);
   for (const std::string& s : sources.sets) p.merge_assignment(s);
-  if (!sources.swept.empty()) p.merge_assignment(sources.swept, sources.swept_origin);
+  if (!sources.swept.empty()) p.merge_assignment(sources.swept, sources.swept_origin, true);
   try {
     return read_config(p, sources.saved_packing);
   } catch (const InputError& e) {  // a library check of several keys: where were they set?
