@@ -245,11 +245,12 @@ std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const 
   }
   if (!(heat <= heat_limit)) {
     std::snprintf(text, sizeof text, "the heat ledger is open by %.3g of the absorbed energy (more "
-                  "than %.3g, from `thermal.tolerance` = %g): lower the tolerance or use "
-                  "`thermal.solver` = \"direct\"; or, if a step's temperature rises are below "
-                  "~1e-13 of the temperatures (a faint beam, large particles, `thermal.time_scaling` "
-                  "near 1), doubles cannot hold them: raise `thermal.time_scaling` or the energy of "
-                  "a step", heat, heat_limit, spec.thermal.tolerance);
+                  "than %.3g, from `thermal.tolerance` = %g). Every solver keeps each cluster's "
+                  "energy to round-off, so the likely cause is a step whose temperature rises are "
+                  "below ~1e-13 of the temperatures (a faint beam, large or dense particles, "
+                  "`thermal.time_scaling` near 1): doubles cannot hold them; raise "
+                  "`thermal.time_scaling` or the energy of a step. Otherwise please report this run file",
+                  heat, heat_limit, spec.thermal.tolerance);
     out.emplace_back(text);
   }
   return out;
