@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <chrono>
 #include <csignal>
+#include <ctime>
 #include <cstdlib>
 #include <cstdio>
 #include <filesystem>
@@ -33,14 +34,31 @@ std::atomic<bool>& stop_requested() {
 
 namespace {
 
+// Nanoseconds on the monotonic clock (clock_gettime is async-signal-safe).
+std::int64_t monotonic_ns() {
+  timespec t{};
+  ::clock_gettime(CLOCK_MONOTONIC, &t);
+  return std::int64_t(t.tv_sec) * 1'000'000'000 + t.tv_nsec;
+}
+
+// When the first interrupt arrived (0: none yet).
+std::atomic<std::int64_t> first_interrupt_ns{0};
+
 // The first SIGINT or SIGTERM asks the run to stop between steps and write what it has; a second
-// one ends the process at once, for a set-up or a step that would keep the user waiting.
+// one ends the process at once, for a set-up or a step that would keep the user waiting. One
+// sent to the process and to its process group arrives twice, microseconds apart (`timeout -s
+// INT`, a batch system's SIGTERM): a second within 0.2 s is that same interrupt, not a second one
+// (it ended a sanitizer build's run at once, status 130, without its results).
 void on_interrupt(int signal) {
+  constexpr std::int64_t kSameInterruptNs = 200'000'000;
+  const std::int64_t now = monotonic_ns();
   if (stop_requested().exchange(true)) {
+    if (now - first_interrupt_ns.load() < kSameInterruptNs) return;
     std::signal(signal, SIG_DFL);
     ::kill(::getpid(), signal);
     return;
   }
+  first_interrupt_ns.store(now);
   static constexpr char kNote[] = "\nbeampack: stopping after the current step; interrupt again to quit at once\n";
   [[maybe_unused]] const auto written = ::write(STDERR_FILENO, kNote, sizeof kNote - 1);
 }
