@@ -930,6 +930,19 @@ TEST(Cli, ATimeStepOfMillionsOfStepsPerCrossingIsAnnounced) {
       << slow.output;
 }
 
+// A set-up of seconds is announced before it starts (the progress line comes only with the steps).
+TEST(Cli, ALongSetUpIsAnnounced) {
+  const fs::path out = fresh_dir("long_set_up");
+  const Result big = run("run --preset zohdi2013 --set packing.count=200000 --set pulses.count=0 --out " + out.string());
+  ASSERT_EQ(big.code, 0) << big.output;
+  EXPECT_NE(big.output.find("setting up 200000 particles and 1000 rays a pulse"), std::string::npos) << big.output;
+  const Result quiet = run("run --preset zohdi2013 --set packing.count=200000 --set pulses.count=0 --quiet --out " +
+                           out.string());
+  EXPECT_EQ(quiet.output.find("setting up"), std::string::npos) << quiet.output;
+  const Result small = run("run --preset quick --set pulses.count=0 --out " + out.string());
+  EXPECT_EQ(small.output.find("setting up"), std::string::npos) << small.output;
+}
+
 TEST(Cli, ABeamThatMeetsNoParticleIsAnnounced) {
   const fs::path out = fresh_dir("beam_misses");
   const std::string base = "run --preset quick --quiet --set pulses.count=1 --set packing.source=file ";

@@ -470,6 +470,16 @@ void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts) {
                            : "with `thermal.dt` = \"pulse\" a step is a whole pulse flight, longer than the period");
 }
 
+// A set-up of seconds (the packing, its contacts, the ray scene: ~11 s at 3e6 particles) passed
+// without a word before the first progress line: say what is being set up.
+void announce_long_set_up(const RunConfig& config, bool quiet) {
+  const PackingSpec& s = config.sim.packing;
+  const std::size_t particles = config.packing ? config.packing->size() : s.source == "file" ? 0 : s.count;
+  if (quiet || (particles < 200'000 && config.sim.beam.rays < 1'000'000)) return;
+  std::fprintf(stderr, "beampack: setting up %zu particles and %zu rays a pulse (packing, contacts, ray scene)\n",
+               particles, config.sim.beam.rays);
+}
+
 // A wall within whose reach no particle lies takes no heat: legal, but not what naming it asks.
 void warn_of_walls_touching_nothing(const Simulation& sim) {
   const Particles& p = sim.particles();
@@ -642,6 +652,7 @@ int run_command(const RunOptions& options) {
   refuse_outputs_over_inputs(out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
+  announce_long_set_up(config, options.quiet);
   const std::unique_ptr<Simulation> owned = start_simulation(config);
   config.packing.reset();  // the simulation holds its own copy
   Simulation& sim = *owned;
