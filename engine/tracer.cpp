@@ -516,7 +516,8 @@ bool Tracer::step_ray(std::uint32_t r, double end_clock, Chunk& c) {
                                  : particle_reflectance(m, particles_.phase[p], cos_i);
     const double carried = R * s.energy[r];
     BEAMPACK_DCHECK(R >= 0.0 && R <= 1.0 && std::isfinite(carried),
-                    "ray %u at particle %u: reflectance %g (cos_i %g), energy %g J", r, p, R, cos_i, s.energy[r]);
+                    "ray %u at particle %u: reflectance %.17g (cos_i %.17g), energy %.17g J", r, p, R, cos_i,
+                    s.energy[r]);
     c.events.push_back({r, p, s.energy[r] - carried});  // absorbed + carried == E exactly
     ++c.hits;
     s.energy[r] = carried;

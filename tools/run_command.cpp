@@ -52,13 +52,15 @@ std::atomic<std::int64_t> first_interrupt_ns{0};
 void on_interrupt(int signal) {
   constexpr std::int64_t kSameInterruptNs = 200'000'000;
   const std::int64_t now = monotonic_ns();
-  if (stop_requested().exchange(true)) {
-    if (now - first_interrupt_ns.load() < kSameInterruptNs) return;
+  // One compare-and-swap: two deliveries handled on two threads at once see one first interrupt.
+  std::int64_t first = 0;
+  if (!first_interrupt_ns.compare_exchange_strong(first, now)) {
+    if (now - first < kSameInterruptNs) return;
     std::signal(signal, SIG_DFL);
     ::kill(::getpid(), signal);
     return;
   }
-  first_interrupt_ns.store(now);
+  stop_requested().store(true);
   static constexpr char kNote[] = "\nbeampack: stopping after the current step; interrupt again to quit at once\n";
   [[maybe_unused]] const auto written = ::write(STDERR_FILENO, kNote, sizeof kNote - 1);
 }
@@ -400,8 +402,9 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
 // A fixed thermal.dt far below the light's crossing time of the sample makes a run of millions
 // of steps per pulse: legal (the budget per step is c dt), but say so before it starts.
 void warn_of_many_steps(const SimulationSpec& spec) {
-  // A period in seconds is stepped through whole, rays or not: count x period / dt steps at least.
-  const double periods = spec.dt > 0 ? spec.pulses.count * spec.pulses.period / spec.dt : 0.0;
+  // A period in seconds is stepped through whole, rays or not: pulse k starts at k T_p, so the last
+  // starts after (count - 1) x period / dt steps.
+  const double periods = spec.dt > 0 ? (spec.pulses.count - 1) * spec.pulses.period / spec.dt : 0.0;
   if (periods >= 1e7)
     std::fprintf(stderr,
                  "beampack: warning: `pulses.count` = %d pulses of `pulses.period` = %g s in steps of "

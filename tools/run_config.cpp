@@ -48,6 +48,9 @@ constexpr Cap kWallConductance{1e20, "W/K per particle (far larger ones overflow
 constexpr Cap kHeatCapacity{1e12, "J/(kg K) (2e8 times water's; beyond it a step's warming is lost to the "
                                   "temperatures' round-off: the heat ledger opens, and far beyond it books energies "
                                   "the beam never gave)"};
+constexpr Cap kLatentHeat{1e12, "J/kg (4e5 times water's heat of vaporisation; beyond it a step's warming is "
+                                "lost to the temperatures' round-off: the heat ledger opens, and far beyond it books "
+                                "energies the beam never gave)"};
 constexpr Cap kTemperature{1e12, "K (hotter than any solid or liquid; far higher ones overflow the heat flows, "
                                  "conductance times temperature difference)"};
 constexpr Cap kPower{1e20, "W (1e5 times the most powerful lasers'; far beyond it the pulse energy with "
@@ -144,9 +147,9 @@ void read_material(Params& p, Material& m) {
   m.conductivity = number_up_to(p, "material.conductivity", 0, 0, kConductivity);
   m.melt_temperature = number_up_to(p, "material.melt_temperature", 600, 0, kTemperature, true);
   m.vapor_temperature = number_up_to(p, "material.vapor_temperature", 700, 0, kTemperature, true);
-  m.latent_melt = number_up_to(p, "material.latent_melt", 1000, 0, kHeatCapacity);
-  m.latent_solidify = number_up_to(p, "material.latent_solidify", 1000, 0, kHeatCapacity);
-  m.latent_vapor = number_up_to(p, "material.latent_vapor", 1000, 0, kHeatCapacity);
+  m.latent_melt = number_up_to(p, "material.latent_melt", 1000, 0, kLatentHeat);
+  m.latent_solidify = number_up_to(p, "material.latent_solidify", 1000, 0, kLatentHeat);
+  m.latent_vapor = number_up_to(p, "material.latent_vapor", 1000, 0, kLatentHeat);
   m.validate("material");
 }
 
