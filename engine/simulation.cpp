@@ -303,7 +303,7 @@ void Simulation::name_step_for_checks() const {
 // construction), the heat ledger to the solver's tolerance, as the end of a run demands.
 void Simulation::check_ledgers_close() const {
   const EnergyLedger e = figures().energy;
-  BEAMPACK_DCHECK(std::abs(e.optics_imbalance()) <= 1e-9 * e.injected,
+  BEAMPACK_DCHECK(std::abs(e.optics_imbalance()) <= EnergyLedger::kOpticsTolerance * e.injected,
                   "optics ledger open by %g J of %g J injected", e.optics_imbalance(), e.injected);
   const double scale = e.absorbed + std::abs(e.stored) + e.vaporized + std::abs(e.walls);
   // A faint step's warming can lie below the temperatures' last digits: the ledger then opens by
@@ -312,7 +312,7 @@ void Simulation::check_ledgers_close() const {
   for (std::size_t i = 0; i < particles_.size(); ++i)
     if (particles_.alive[i]) heat_content += thermal_->thermal_mass(i) * particles_.temperature[i];
   const double roundoff = 1e-12 * heat_content * double(counts_.steps);
-  BEAMPACK_DCHECK(std::abs(e.heat_imbalance()) <= std::max(1e-6, 1e4 * spec_.thermal.tolerance) * scale + roundoff,
+  BEAMPACK_DCHECK(std::abs(e.heat_imbalance()) <= EnergyLedger::heat_tolerance(spec_.thermal.tolerance) * scale + roundoff,
                   "heat ledger open by %g J (absorbed %g, stored %g, vaporised %g, walls %g J)", e.heat_imbalance(),
                   e.absorbed, e.stored, e.vaporized, e.walls);
 }

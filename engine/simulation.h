@@ -2,6 +2,7 @@
 // The simulator as a library: the staggered loop of MODEL.md section 5 over a packing, a beam,
 // the optics and the heat. Build a SimulationSpec (or a Particles set) in code, run pulses, read
 // temperatures: see examples/run_in_code.cpp.
+#include <algorithm>
 #include <array>
 #include <atomic>
 #include <cstdint>
@@ -45,6 +46,10 @@ struct EnergyLedger {
   double stored = 0, vaporized = 0, walls = 0;                 // heat
   double optics_imbalance() const { return injected - absorbed - escaped - cutoff - in_flight; }
   double heat_imbalance() const { return absorbed - stored - vaporized - walls; }
+  // How far a ledger may be open, relative: the optics one to round-off (it closes by
+  // construction), the heat one to the solver's tolerance, max(1e-6, 1e4 thermal.tolerance).
+  static constexpr double kOpticsTolerance = 1e-9;
+  static double heat_tolerance(double solver_tolerance) { return std::max(1e-6, 1e4 * solver_tolerance); }
 };
 
 struct StageTime {

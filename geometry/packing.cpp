@@ -154,9 +154,9 @@ Particles lattice_packing(std::size_t count, double size, double radius_ratio) {
   return p;
 }
 
-// The checks every particle of a packing passes, whichever file format (or checkpoint) gave it. Finite numbers can still
-// make a sphere the physics cannot hold (found by fuzz/): a radius whose volume, hence mass,
-// rounds to 0 or overflows, or a centre +- r beyond the doubles.
+// The checks every particle of a packing passes, whichever file format (or checkpoint) gave it.
+// Finite numbers can still make a sphere the physics cannot hold (found by fuzz/): a radius whose
+// volume, hence mass, rounds to 0 or overflows, or a centre +- r beyond the doubles.
 void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>& centre_columns,
                   const std::string& where) {
   require(centre.allFinite(), where + "its centre is not a finite number");

@@ -342,9 +342,10 @@ bool ThermalModel::in_insulated_cluster(std::size_t i) {
 }
 
 // The component named r is an insulated cluster: >= 2 particles, no wall touching it.
-bool ThermalModel::insulated(std::uint32_t r) const {
-  return r != kNoComponent && component_size_[r] >= 2 && !component_walled_[r];
-}
+bool ThermalModel::insulated(std::uint32_t r) const { return clustered(r) && !component_walled_[r]; }
+
+// The component named r is a cluster: >= 2 particles joined by conducting contacts.
+bool ThermalModel::clustered(std::uint32_t r) const { return r != kNoComponent && component_size_[r] >= 2; }
 
 // A system's clusters (>= 2 live particles joined by conducting contacts, touching a wall or not):
 // cluster id per row and the row grounded in each, the component's lowest particle (rows ascend,
@@ -358,7 +359,7 @@ void ThermalModel::mark_clusters(System& s) {
   for (Eigen::Index k = 0; k < m; ++k) {
     const std::size_t i = s.particle.empty() ? static_cast<std::size_t>(k) : static_cast<std::size_t>(s.particle[k]);
     const std::uint32_t r = component_[i];
-    if (r == kNoComponent || component_size_[r] < 2) continue;
+    if (!clustered(r)) continue;
     if (r == i) {
       cluster_of_root_[r] = static_cast<int>(s.ground.size());
       s.ground.push_back(k);
@@ -662,9 +663,9 @@ bool ThermalModel::solve_change(const SparseMatrix& a, const Eigen::VectorXd& c,
   return true;
 }
 
-// Stiff steps (dt phi G >> c, e.g. K = 1e9 or a long cooling step): on a cluster that is insulated,
-// or touches walls of little conductance, A = C + dt phi (L + W) is nearly singular: its constant vector has eigenvalue ~ c, next to others
-// ~ dt phi G up to 1e18 times larger. A factorisation of A then loses the cluster's mean
+// Stiff steps (dt phi G >> c, e.g. K = 1e9 or a long cooling step): on a cluster that is
+// insulated, or touches walls of little conductance, A = C + dt phi (L + W) is nearly singular:
+// its constant vector has eigenvalue ~ c, next to others ~ dt phi G up to 1e18 times larger. A factorisation of A then loses the cluster's mean
 // temperature, i.e. its energy (heat appeared, the maximum principle broke by kelvins), and
 // meets zero pivots. Grounding one particle r per cluster, A' = A + a_rr e_r e_r^T, makes the
 // matrix as well conditioned as the contact graph. The exact solution is theta = y + alpha u with

@@ -210,6 +210,7 @@ class ThermalModel {
   void keep_energy_of_components(const System& s, const Eigen::VectorXd& weight, const Eigen::VectorXd& own,
                                  const Eigen::VectorXd& theta0, Eigen::VectorXd& theta1) const;
   bool insulated(std::uint32_t root) const;
+  bool clustered(std::uint32_t root) const;
   bool select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat, std::size_t live);
   std::vector<Eigen::Index> busy_rows_of_all(const Eigen::Ref<const Eigen::VectorXd>& theta0,
                                              const Heat& heat) const;

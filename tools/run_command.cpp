@@ -255,10 +255,10 @@ void print_table(const Simulation& sim, const RunResult& r) {
 std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e) {
   const double optics = e.injected > 0 ? std::abs(e.optics_imbalance()) / e.injected : 0.0;
   const double heat = e.absorbed > 0 ? std::abs(e.heat_imbalance()) / e.absorbed : 0.0;
-  const double heat_limit = std::max(1e-6, 1e4 * spec.thermal.tolerance);
+  const double heat_limit = EnergyLedger::heat_tolerance(spec.thermal.tolerance);
   std::vector<std::string> out;
   char text[640];
-  if (!(optics <= 1e-9)) {  // NaN included
+  if (!(optics <= EnergyLedger::kOpticsTolerance)) {  // NaN included
     std::snprintf(text, sizeof text, "the optics ledger is open by %.3g of the injected energy "
                   "(round-off is ~1e-15): please report this run file", optics);
     out.emplace_back(text);

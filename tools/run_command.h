@@ -61,8 +61,8 @@ class OutDir {
   std::filesystem::path dir_;
   std::filesystem::path first_made_;  // the outermost folder made here; empty if none was
 };
-// The ledgers close to round-off (optics: 1e-9 of the injected energy) and to the solver's
-// tolerance (heat: max(1e-6, 1e4 thermal.tolerance) of the absorbed); one message per open one.
+// The ledgers close within EnergyLedger::kOpticsTolerance of the injected energy and
+// EnergyLedger::heat_tolerance of the absorbed; one message per open one.
 std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e);
 // A run of a sweep or converge that threw: one line on stderr naming `label`, the error and
 // `consequence`; returns the exit code it calls for (2 bad input, 1 a failed run).
