@@ -118,6 +118,9 @@ TEST(ThermalStiff, ExplicitModeratelyBeyondLimitIsSubSteppedAndStable) {
     const StepReport r = model.step(50.5 * limit, {});
     EXPECT_EQ(r.substeps, 51);
     EXPECT_EQ(r.solver, "explicit");
+    // Every sub-step solves every row, and the counts say so (the run's "rows solved" share).
+    EXPECT_EQ(r.live_rows, 51 * p.size());
+    EXPECT_EQ(r.solved_rows, r.live_rows);
   }
   EXPECT_GE(*std::min_element(p.temperature.begin(), p.temperature.end()), lo0 - 1e-9);
   EXPECT_LE(*std::max_element(p.temperature.begin(), p.temperature.end()), hi0 + 1e-9);

@@ -957,8 +957,8 @@ void ThermalModel::add_substep(StepReport& report, const StepReport& sub) {
   report.solves += sub.solves;
   report.contraction_estimate = std::max(report.contraction_estimate, sub.contraction_estimate);
   report.conduction_ran |= sub.conduction_ran;
-  report.solved_rows = sub.solved_rows;
-  report.live_rows = sub.live_rows;
+  report.solved_rows += sub.solved_rows;
+  report.live_rows += sub.live_rows;
   report.phases_ran |= sub.phases_ran;
   report.phases_seconds += sub.phases_seconds;
   report.phase_corrected |= sub.phase_corrected;

@@ -57,8 +57,10 @@ struct StepReport {
   int substeps = 1;
   double contraction_estimate = 0;  // dt phi max_i (2 sum_j G_ij + W_i) / c_i, see solvers.h
   bool conduction_ran = false;  // false: no contact conducts (K = 0) or every component was at rest
-  std::size_t solved_rows = 0;  // particles in the last solve (with skip_resting, the busy ones)
-  std::size_t live_rows = 0;    // live particles at the step
+  // Particle rows solved, summed over sub-steps (with skip_resting, the busy ones), and the live
+  // particles, summed the same way: their ratio is the share of the step's work that was done.
+  std::size_t solved_rows = 0;
+  std::size_t live_rows = 0;
   // false: no particle the step worked on (with skip_resting: the busy ones; one at rest cannot
   // cross a band) was at or above theta_m before or after it.
   bool phases_ran = false;
