@@ -10,6 +10,7 @@
 #include <regex>
 
 #include "tests/test_dirs.h"
+#include "tools/converge.h"
 #include "tools/run_command.h"
 #include "tools/run_config.h"
 #include "tools/svg_plot.h"
@@ -22,6 +23,25 @@ EnergyLedger closed_ledger() {
   e.injected = 1.0, e.absorbed = 0.6, e.escaped = 0.3, e.cutoff = 0.1;
   e.stored = 0.5, e.vaporized = 0.1;
   return e;
+}
+
+// converge's temperature errors: a particle vaporised in either run keeps the temperature it left
+// with, which is no field value, so it is left out (what vaporised is v_v's error).
+TEST(RunReport, TemperatureErrorsCompareParticlesLiveInBothRuns) {
+  RunResult reference, rung;
+  reference.temperature = {400, 500, 700, 320};
+  reference.alive = {1, 1, 0, 1};  // particle 2 vaporised at 700 K
+  rung.temperature = {403, 496, 350, 320};
+  rung.alive = {1, 1, 1, 0};  // particle 2 did not; particle 3 did
+  const TemperatureError e = temperature_error(rung, reference);
+  EXPECT_EQ(e.compared, 2u);
+  EXPECT_DOUBLE_EQ(e.max, 4.0);
+  EXPECT_DOUBLE_EQ(e.l2, std::sqrt((9.0 + 16.0) / 2.0));
+  reference.alive = rung.alive = {0, 0, 0, 0};
+  const TemperatureError none = temperature_error(rung, reference);
+  EXPECT_EQ(none.compared, 0u);
+  EXPECT_EQ(none.l2, 0.0);
+  EXPECT_EQ(none.max, 0.0);
 }
 
 TEST(RunReport, AClosedLedgerGivesNoWarning) {

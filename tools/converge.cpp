@@ -43,18 +43,6 @@ std::vector<Ladder> ladders(const RunConfig& base) {
   return {dt, rays, tol};
 }
 
-double l2_error(const std::vector<double>& a, const std::vector<double>& b) {
-  double s = 0;
-  for (std::size_t i = 0; i < a.size(); ++i) s += (a[i] - b[i]) * (a[i] - b[i]);
-  return a.empty() ? 0 : std::sqrt(s / double(a.size()));
-}
-
-double max_error(const std::vector<double>& a, const std::vector<double>& b) {
-  double m = 0;
-  for (std::size_t i = 0; i < a.size(); ++i) m = std::max(m, std::abs(a[i] - b[i]));
-  return m;
-}
-
 // Runs every rung of the ladder that can run; a rung that fails is reported and left out, and an
 // interrupted one is not kept (a part of a run is not a result). The reference is the finest
 // rung, run first: without it the others have nothing to be compared with, so when it fails the
@@ -84,6 +72,20 @@ int run_ladder(Ladder& ladder, bool quiet) {
 
 }  // namespace
 
+TemperatureError temperature_error(const RunResult& rung, const RunResult& reference) {
+  TemperatureError e;
+  double squares = 0;
+  for (std::size_t i = 0; i < rung.temperature.size(); ++i) {
+    if (!(rung.alive[i] && reference.alive[i])) continue;
+    const double d = std::abs(rung.temperature[i] - reference.temperature[i]);
+    squares += d * d;
+    e.max = std::max(e.max, d);
+    ++e.compared;
+  }
+  e.l2 = e.compared > 0 ? std::sqrt(squares / double(e.compared)) : 0.0;
+  return e;
+}
+
 int converge_command(const RunOptions& options) {
   RunConfig base = load_run_config(options.sources);
   const auto threads = limit_threads(options.threads);
@@ -100,7 +102,7 @@ int converge_command(const RunOptions& options) {
       refuse_run_only_outputs(ladder.configs.back(), "converge");
     }
   std::string csv = "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
-                    "temperature_l2_error_K,temperature_max_error_K\n";
+                    "temperature_l2_error_K,temperature_max_error_K,temperature_particles\n";
   Chart chart{"error of the vaporised fraction against run time", "wall seconds",
               "|v_v - v_v(finest)|", true, true, {}};
   int code = 0;
@@ -112,15 +114,14 @@ int converge_command(const RunOptions& options) {
     for (const Rung& rung : ladder.rungs) {
       const RunResult& r = rung.result;
       const double vv_error = std::abs(r.figures.vaporized_fraction - ref.figures.vaporized_fraction);
+      const TemperatureError t = temperature_error(r, ref);
       std::ostringstream row;
       row << ladder.name << ',' << ladder.key << ',' << rung.value << ',' << exact(r.wall_seconds)
           << ',' << r.counts.steps << ',' << r.counts.rays << ',' << exact(r.figures.vaporized_fraction)
-          << ',' << exact(vv_error) << ',' << exact(l2_error(r.temperature, ref.temperature)) << ','
-          << exact(max_error(r.temperature, ref.temperature)) << '\n';
+          << ',' << exact(vv_error) << ',' << exact(t.l2) << ',' << exact(t.max) << ',' << t.compared << '\n';
       csv += row.str();
       std::printf("%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %.3g K\n", ladder.name.c_str(),
-                  rung.value.c_str(), r.wall_seconds, r.figures.vaporized_fraction, vv_error,
-                  l2_error(r.temperature, ref.temperature));
+                  rung.value.c_str(), r.wall_seconds, r.figures.vaporized_fraction, vv_error, t.l2);
       std::fflush(stdout);
       if (&rung != &ladder.rungs.front()) {
         series.x.push_back(r.wall_seconds);

@@ -333,6 +333,7 @@ RunResult run_scene(const RunConfig& config, bool quiet, const std::string& labe
   r.figures = sim.figures();
   r.counts = sim.counts();
   r.temperature = sim.particles().temperature;
+  r.alive = sim.particles().alive;
   r.interrupted = !sim.done();
   r.wall_seconds = seconds_since(start);
   return r;

@@ -45,6 +45,7 @@ struct RunResult {
   Counts counts;
   double wall_seconds = 0;
   std::vector<double> temperature;
+  std::vector<std::uint8_t> alive;  // per particle, 0 once vaporised
   bool interrupted = false;
 };
 // A command's --out folder, made (with any missing parents) and checked writable at once, so an
