@@ -333,7 +333,9 @@ class Tracer {
   std::size_t last_chunks_live_ = 0, last_chunks_run_ = 0;
 };
 
-// Distance from o along unit d to where the ray leaves the box (0 if it never is inside).
+// Distance from o along unit d to the first far face the ray crosses: where it leaves the box
+// when it passes through it. A ray beside the box gets the distance to the nearest far face's
+// plane instead (an escaping ray's last flight); 0 when that plane is behind o.
 double box_exit_distance(const Box& box, const Vec3& o, const Vec3& d);
 
 }  // namespace beampack

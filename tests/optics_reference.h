@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <complex>
 #include <cstdint>
 #include <limits>
 #include <span>
@@ -20,8 +21,9 @@ namespace beampack::test {
 
 // The reference: one ray against every live sphere in double precision, with the tracer's rules
 // (MODEL.md section 3): nearest outside hit (ray_sphere_entry), ties to the lower particle id,
-// the sphere just left skipped, (1 - R) E absorbed, specular reflection, cutoff (relative to the
-// ray's initial energy) and bounce limit. It shares only fresnel.h's reflectance with the tracer.
+// the sphere just left skipped, (1 - R) E absorbed (R of the complex index when k > 0), specular
+// reflection, cutoff (relative to the ray's initial energy; a ray left with 0 J ends) and bounce
+// limit. It shares only fresnel.h's reflectance with the tracer.
 struct ReferenceRay {
   std::vector<std::pair<std::uint32_t, double>> deposits;  // in hit order
   double escaped = 0.0, cutoff = 0.0;
@@ -74,14 +76,15 @@ inline ReferenceRay reference_trace(const Particles& p, const OpticsSpec& spec, 
     const Vec3 point = o + best * d;
     const Vec3 normal = ((o + best * d - p.centre[hit]) / p.radius[hit]).normalized();
     const MaterialOptics& m = spec.materials[p.material[hit]];
-    const double n = (p.phase[hit] == Phase::solid ? m.n_solid : m.n_liquid).real();
-    const double carried = reflectance(-d.dot(normal), n, m.mu_hat) * e;
+    const std::complex<double> n = p.phase[hit] == Phase::solid ? m.n_solid : m.n_liquid;
+    const double cos_i = -d.dot(normal);
+    const double carried = (n.imag() == 0.0 ? reflectance(cos_i, n.real(), m.mu_hat) : reflectance(cos_i, n, m.mu_hat)) * e;
     out.deposits.emplace_back(hit, e - carried);
     d = reflect(d, normal).normalized();
     o = point;
     e = carried;
     last = hit;
-    if (carried < spec.cutoff * e0 || ++bounces >= spec.max_bounces) {
+    if (carried == 0.0 || carried < spec.cutoff * e0 || ++bounces >= spec.max_bounces) {
       out.cutoff += carried;
       return out;
     }

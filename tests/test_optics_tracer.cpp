@@ -798,6 +798,14 @@ TEST(OpticsTracer, LiquidParticlesUseTheLiquidIndex) {
   EXPECT_LT(run.ledger.cutoff, 1e-20 * run.ledger.injected);
   EXPECT_NEAR(run.ledger.absorbed + run.ledger.escaped, run.ledger.injected,
               1e-12 * run.ledger.injected);
+  // Without a cutoff too: a ray that keeps nothing of its energy ends at that hit (it flew on
+  // with 0 J, bounce after bounce, and set the length of a "pulse" step).
+  OpticsSpec no_cutoff = optics_for(20.0);
+  no_cutoff.cutoff = 0.0;
+  const Traced uncut = trace(p, no_cutoff, BeamSpec{});
+  EXPECT_EQ(uncut.bounced, 0u);
+  EXPECT_EQ(uncut.hits, run.hits);
+  EXPECT_EQ(uncut.deposits, run.deposits);
 }
 
 TEST(OpticsTracerLong, LedgerClosesOn1e5PacketWithManyRays) {
