@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <complex>
 #include <cstdint>
 #include <numbers>
 
@@ -117,6 +118,30 @@ TEST(Fresnel, SilverReflectanceMatchesPublishedIndex) {
   const Reflectances r45 = reflectance_components(cos_deg(45), silver);
   EXPECT_NEAR(r45.parallel, r45.perpendicular * r45.perpendicular, 1e-14);
   EXPECT_GT(reflectance(cos_deg(60), silver), 0.97);
+}
+
+// Oblique incidence on absorbing media against (2.14) written out here in long double complex
+// arithmetic: with w = sqrt(n^2 - sin^2), r_par = (n^2 cos - mu w) / (n^2 cos + mu w) and
+// r_perp = (mu cos - w) / (mu cos + w). For k > 0 the principal root has Im w > 0, the wave that
+// decays into the metal; a root of the wrong sign turns r into 1 / r, which Abeles' identity and
+// normal incidence cannot see. Indices at 632.8 nm: gold 0.197 + 3.09i, aluminium 1.2 + 7.26i
+// (Rakic 1995), silver as above; and a weakly absorbing dielectric.
+TEST(Fresnel, ComplexIndexAtObliqueIncidenceMatchesTheFormulasInLongDouble) {
+  using C = std::complex<long double>;
+  const std::complex<double> media[] = {{0.197, 3.09}, {1.2, 7.26}, {0.056, 4.276}, {1.5, 0.1}};
+  for (const std::complex<double> n : media)
+    for (const double mu : {1.0, 2.0})
+      for (const double deg : {10.0, 30.0, 45.0, 60.0, 75.0, 85.0, 89.9}) {
+        const long double c = std::cos(static_cast<long double>(deg) * std::numbers::pi_v<long double> / 180);
+        const C n2 = C(n) * C(n), w = std::sqrt(n2 - (1 - c * c));
+        const long double m = mu;
+        const long double r_par = std::norm((n2 * c - m * w) / (n2 * c + m * w));
+        const long double r_perp = std::norm((m * c - w) / (m * c + w));
+        const Reflectances r = reflectance_components(double(c), n, mu);
+        EXPECT_NEAR(r.parallel, double(r_par), 1e-12) << n << " mu " << mu << " at " << deg;
+        EXPECT_NEAR(r.perpendicular, double(r_perp), 1e-12) << n << " mu " << mu << " at " << deg;
+        EXPECT_LT(r.perpendicular, 1.0) << n << " at " << deg;  // absorbing: never a mirror
+      }
 }
 
 TEST(Fresnel, AbelesIdentityHoldsForDielectrics) {
