@@ -16,6 +16,7 @@
 #include "engine/state_io.h"
 #include "engine/tracer.h"
 #include "geometry/packing.h"
+#include "geometry/ray_sphere.h"
 #include "tests/optics_reference.h"
 
 namespace beampack {
@@ -408,6 +409,48 @@ TEST(OpticsTracer, RemovedParticleIsNeverHitAgain) {
     const OpticsLedger& l = tracer.ledger();
     EXPECT_NEAR(l.absorbed + l.escaped + l.cutoff, l.injected, 1e-12 * l.injected);
   }
+}
+
+// After a removal in mid-flight, every segment a ray then travels ends where the brute-force
+// search among the survivors says: no surviving sphere is entered before its end (the spheres
+// its start lies on aside), and none ends on a removed sphere alone. Rays whose target was
+// removed fly on to the next sphere behind it.
+TEST(OpticsTracer, AfterARemovalInFlightEverySegmentEndsAtTheNearestSurvivor) {
+  const Particles& p = packing_1e4();
+  const auto victims = most_hit(trace(p, optics_for(20.0), BeamSpec{}).deposits, 50);
+  std::vector<char> gone(p.size(), 0);
+  for (auto v : victims) gone[v] = 1;
+  Tracer tracer(p, optics_for(20.0));
+  tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+  std::vector<double> deposits;
+  tracer.advance(4e-4, deposits);
+  tracer.remove_particles(victims);
+  tracer.record_segments(true);
+  while (tracer.advance(kAll, deposits) > 0) {
+  }
+  const std::vector<RaySegment> segments = tracer.take_segments();
+  ASSERT_GT(segments.size(), 1000u);
+  const double r = p.radius[0], slack = 1e-9 * r;
+  auto on_sphere = [&](const Vec3& x, std::size_t i) { return std::abs((x - p.centre[i]).norm() - p.radius[i]) < slack; };
+  std::size_t ends_on_survivor = 0;
+  for (const RaySegment& g : segments) {
+    const double length = (g.to - g.from).norm();
+    const Vec3 d = (g.to - g.from) / length;
+    bool on_survivor = false, on_removed = false;
+    for (std::size_t i = 0; i < p.size(); ++i) {
+      if (gone[i]) {
+        on_removed |= on_sphere(g.to, i);
+        continue;
+      }
+      on_survivor |= on_sphere(g.to, i);
+      if (on_sphere(g.from, i)) continue;
+      ASSERT_GE(ray_sphere_entry(g.from, d, p.centre[i], p.radius[i]), length - slack)
+          << "segment from " << g.from.transpose() << " passes into surviving particle " << i;
+    }
+    EXPECT_TRUE(on_survivor || !on_removed) << "segment ends on a removed particle at " << g.to.transpose();
+    ends_on_survivor += on_survivor;
+  }
+  EXPECT_GT(ends_on_survivor, segments.size() / 4);  // most end on a hit, not at the box
 }
 
 // A state saved before a removal, restored after it: its rays flying to the removed particles
