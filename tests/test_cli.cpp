@@ -866,47 +866,105 @@ TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
   EXPECT_EQ(file_text(dir / "particles.csv"), file_text(whole / "particles.csv"));
 }
 
-// A set-up of seconds (2e6 particles and their contacts) cannot stop between steps: a first
-// interrupt says it will stop after the step, a second ends the process at once (by the signal,
-// as a shell expects: status 130). Before, every further Ctrl-C waited for the set-up.
+namespace {
+
+// What an interrupt script saw: the command's exit status, the milliseconds from the first signal
+// to its end, and what it printed.
+struct Interrupted {
+  int status = -1;
+  long ms = -1;
+  std::string printed;
+};
+
+// Starts `beampack args` (its stdout and stderr to dir/stdout and dir/stderr), waits until one of
+// them shows `marker` (up to a minute), then sends `signals` (shell commands on the process $p,
+// "kill -INT $p; sleep 0.3; kill -INT $p") and waits for it to end.
+Interrupted interrupt(const fs::path& dir, const std::string& args, const std::string& marker,
+                      const std::string& signals) {
+  const std::string out = (dir / "stdout").string(), err = (dir / "stderr").string();
+  const std::string start = std::string(BEAMPACK_CLI) + " " + args + " >" + out + " 2>" + err +
+                            " & p=$!\n";
+  const std::string await = "for i in $(seq 3000); do grep -q '" + marker + "' " + out + " " + err +
+                            " && break; sleep 0.02; done\n";
+  const std::string send = "s=$(date +%s%N); " + signals + "; wait $p; status=$?\n";
+  const std::string report = "e=$(date +%s%N); echo \"$status $(( (e - s) / 1000000 ))\"\n";
+  const std::string script = write(dir / "interrupt.sh", start + await + send + report);
+  std::FILE* pipe = popen(("bash " + script).c_str(), "r");
+  Interrupted r;
+  if (std::fscanf(pipe, "%d %ld", &r.status, &r.ms) != 2) r.status = -1;
+  pclose(pipe);
+  r.printed = file_text(out) + file_text(err);
+  return r;
+}
+
+// A lattice set up in a fraction of a second whose steps take about a second per 1e6 rays a
+// pulse; its wall x-, which touches no particle, is announced once the set-up is done, before the
+// first step (kSetUpDone).
+std::string long_steps(const char* rays) {
+  return std::string("run --preset quick --set packing.source=lattice --set packing.count=1000 ") +
+         "--set beam.rays=" + rays + " --set pulses.count=3 --set thermal.walls=x- --quiet --out ";
+}
+const char* kSetUpDone = "touches no particle";
+
+}  // namespace
+
 // An interrupt sent to the process and to its process group (what `timeout -s INT` and batch
 // systems do) arrives twice: the run still stops cleanly with its results, it is not the user's
 // second interrupt (in a sanitizer build the two were delivered apart and ended the run at once).
 TEST(Cli, AnInterruptDeliveredTwiceAtOnceStopsCleanly) {
   const fs::path dir = fresh_dir("interrupt_doubled");
-  // Both arrive during the set-up of 5e5 particles (about 1.5 s), which a second interrupt ends.
-  const std::string script = write(dir / "doubled.sh", std::string(BEAMPACK_CLI) +
-      " run --preset zohdi2013 --set packing.count=500000 --set material.conductivity=100 --quiet --out " +
-      (dir / "out").string() + " >/dev/null 2>&1 & p=$!\n"
-      "sleep 0.5; kill -INT $p; sleep 0.02; kill -INT $p; wait $p; echo \"status $?\"\n");
-  std::FILE* pipe = popen(("bash " + script).c_str(), "r");
-  std::string out;
-  std::array<char, 256> buf;
-  while (std::fgets(buf.data(), buf.size(), pipe)) out += buf.data();
-  pclose(pipe);
-  EXPECT_EQ(out, "status 1\n");
-  ASSERT_TRUE(fs::exists(dir / "out" / "summary.json"));
+  // Both arrive during the first step, after which the run stops and writes what it has.
+  const Interrupted r = interrupt(dir, long_steps("300000") + (dir / "out").string(), kSetUpDone,
+                                  "sleep 0.1; kill -INT $p; sleep 0.02; kill -INT $p");
+  EXPECT_EQ(r.status, 1) << r.printed;
+  ASSERT_TRUE(fs::exists(dir / "out" / "summary.json")) << r.printed;
   EXPECT_TRUE(bool(read_json(dir / "out" / "summary.json")["interrupted"]));
 }
 
-TEST(Cli, ASecondInterruptEndsALongSetUpAtOnce) {
+// A step of seconds cannot stop before its end: a first interrupt says the run will stop after
+// the step, a second ends the process at once (by the signal, as a shell expects: status 130).
+TEST(Cli, ASecondInterruptEndsALongStepAtOnce) {
   const fs::path dir = fresh_dir("interrupt_twice");
-  const std::string script = write(dir / "twice.sh", std::string(BEAMPACK_CLI) +
-      " run --preset zohdi2013 --set packing.count=2000000 --set material.conductivity=100 --quiet --out " +
-      (dir / "out").string() + " 2>" + (dir / "stderr").string() + " & p=$!\n"
-      "sleep 0.5; kill -INT $p; sleep 0.5; kill -INT $p; wait $p; echo \"status $?\"\n");
-  const auto start = std::chrono::steady_clock::now();
-  std::FILE* pipe = popen(("bash " + script).c_str(), "r");
-  std::string out;
-  std::array<char, 256> buf;
-  while (std::fgets(buf.data(), buf.size(), pipe)) out += buf.data();
-  pclose(pipe);
-  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  if (out.find("status 0") != std::string::npos) GTEST_SKIP() << "the run finished before the interrupts";
-  EXPECT_NE(out.find("status 130"), std::string::npos) << out << file_text(dir / "stderr");
-  EXPECT_NE(file_text(dir / "stderr").find("interrupt again to quit at once"), std::string::npos);
-  EXPECT_LT(seconds, 3.0) << "the set-up alone takes about 7 s";
+  const Interrupted r = interrupt(dir, long_steps("3000000") + (dir / "out").string(), kSetUpDone,
+                                  "sleep 0.2; kill -INT $p; sleep 0.3; kill -INT $p");
+  if (r.status == 0) GTEST_SKIP() << "the run finished before the interrupts";
+  EXPECT_EQ(r.status, 130) << r.printed;
+  EXPECT_NE(r.printed.find("interrupt again to quit at once"), std::string::npos) << r.printed;
+  EXPECT_LT(r.ms, 1500) << "a step of 3e6 rays alone takes about 2 s";
   EXPECT_FALSE(fs::exists(dir / "out" / "summary.json"));
+}
+
+// A set-up of seconds (1e6 particles, their contacts and the ray scene: about 3.5 s) writes
+// nothing, so a first interrupt ends it at once, writing nothing and removing the --out folders
+// the run made; exit code 1, as any interrupted run. Before, the run waited for the whole set-up,
+// ran a step and wrote its results (only a second interrupt ended it sooner).
+TEST(Cli, AnInterruptDuringSetUpEndsTheRunAtOnceWritingNothing) {
+  const fs::path dir = fresh_dir("interrupt_set_up");
+  const std::string args = "run --preset zohdi2013 --set packing.count=1000000 --out " +
+                           (dir / "made" / "here").string();
+  const Interrupted r = interrupt(dir, args, "setting up", "sleep 0.3; kill -INT $p");
+  EXPECT_EQ(r.status, 1) << r.printed;
+  EXPECT_LT(r.ms, 2000) << r.printed;
+  EXPECT_NE(r.printed.find("beampack: interrupted during set-up; nothing written"),
+            std::string::npos) << r.printed;
+  EXPECT_EQ(r.printed.find("stopping after the current step"), std::string::npos) << r.printed;
+  EXPECT_FALSE(fs::exists(dir / "made"));
+}
+
+// A sweep interrupted during the set-up of a value ends at once too, and writes the rows of the
+// values before it (as one interrupted during a step does).
+TEST(Cli, AnInterruptDuringASweepValuesSetUpKeepsTheEarlierRows) {
+  const fs::path dir = fresh_dir("interrupt_sweep_set_up");
+  const std::string args = "sweep --preset zohdi2013 --param packing.count --values 1000,1000000 "
+                           "--quiet --out " + (dir / "out").string();
+  const Interrupted r = interrupt(dir, args, "packing.count = 1000 ", "sleep 0.3; kill -INT $p");
+  EXPECT_EQ(r.status, 1) << r.printed;
+  EXPECT_LT(r.ms, 2000) << r.printed;
+  EXPECT_NE(r.printed.find("sweep interrupted during packing.count = 1000000"), std::string::npos)
+      << r.printed;
+  const auto rows = read_csv(dir / "out" / "sweep.csv");
+  ASSERT_EQ(rows.size(), 1u) << r.printed;
+  EXPECT_EQ(rows[0].at("packing.count"), "1000");
 }
 
 // A thermal.dt far below light's crossing time of the sample is legal but makes millions of steps

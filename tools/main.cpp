@@ -114,10 +114,10 @@ int main(int argc, char** argv) {
     if (run_cmd->parsed()) {
       run.out_set = run_cmd->count("--out") > 0;
       run.checkpoint_set = run_cmd->count("--checkpoint-every") > 0;
-      return run_command(run);
+      return exit_code(run_command(run));
     }
-    if (sweep_cmd->parsed()) return sweep_command(sweep);
-    if (converge_cmd->parsed()) return converge_command(converge);
+    if (sweep_cmd->parsed()) return exit_code(sweep_command(sweep));
+    if (converge_cmd->parsed()) return exit_code(converge_command(converge));
     if (validate_cmd->parsed()) return stiff ? run_stability_report(quiet_validate) : run_validate(quiet_validate);
     if (app.got_subcommand("presets")) return list_presets();
     if (config_cmd->parsed()) return print_config(config.sources);

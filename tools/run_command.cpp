@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <condition_variable>
 #include <csignal>
 #include <ctime>
 #include <cstdlib>
@@ -13,9 +14,11 @@
 #include <optional>
 #include <regex>
 #include <memory>
+#include <mutex>
 #include <nlohmann/json.hpp>
 #include <sstream>
 #include <string_view>
+#include <thread>
 
 #include <signal.h>
 #include <unistd.h>
@@ -44,11 +47,20 @@ std::int64_t monotonic_ns() {
 // When the first interrupt arrived (0: none yet).
 std::atomic<std::int64_t> first_interrupt_ns{0};
 
-// The first SIGINT or SIGTERM asks the run to stop between steps and write what it has; a second
-// one ends the process at once, for a set-up or a step that would keep the user waiting. One
-// sent to the process and to its process group arrives twice, microseconds apart (`timeout -s
-// INT`, a batch system's SIGTERM): a second within 0.2 s is that same interrupt, not a second one
-// (it ended a sanitizer build's run at once, status 130, without its results).
+// Set while a simulation is set up on a worker thread (set_up_unless_interrupted): the first
+// interrupt then ends the command at once, and the main thread says so.
+std::atomic<bool> setting_up{false};
+
+// An interrupted set-up left running on its thread: the process ends without running its static
+// destructors (TBB's and Embree's state), which that thread may still be using.
+std::atomic<bool> set_up_left_running{false};
+
+// The first SIGINT or SIGTERM asks the run to stop between steps and write what it has (or ends a
+// set-up at once: set_up_unless_interrupted); a second one ends the process at once, for a step
+// that would keep the user waiting. One sent to the process and to its process group arrives
+// twice, microseconds apart (`timeout -s INT`, a batch system's SIGTERM): a second within 0.2 s is
+// that same interrupt, not a second one (it ended a sanitizer build's run at once, status 130,
+// without its results).
 void on_interrupt(int signal) {
   constexpr std::int64_t kSameInterruptNs = 200'000'000;
   const std::int64_t now = monotonic_ns();
@@ -61,6 +73,7 @@ void on_interrupt(int signal) {
     return;
   }
   stop_requested().store(true);
+  if (setting_up.load()) return;  // the set-up ends at once; the main thread says so
   static constexpr char kNote[] = "\nbeampack: stopping after the current step; interrupt again to quit at once\n";
   [[maybe_unused]] const auto written = ::write(STDERR_FILENO, kNote, sizeof kNote - 1);
 }
@@ -74,6 +87,53 @@ void install_interrupt_handler() {
   // Output piped into a reader that quits early (`| head`): the lines are lost, not the run's
   // files, which sweep and converge write after their per-run lines.
   std::signal(SIGPIPE, SIG_IGN);
+}
+
+std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config) {
+  struct SetUp {
+    std::mutex mutex;
+    std::condition_variable finished;
+    bool done = false;
+    std::unique_ptr<Simulation> sim;
+    std::exception_ptr error;
+  };
+  if (stop_requested().load()) return nullptr;
+  const auto shared = std::make_shared<SetUp>();
+  setting_up.store(true);
+  // The worker owns a copy of the configuration and its share of the result: when an interrupt
+  // leaves it running, the caller's frame is gone before it ends.
+  std::thread worker([shared, config] {
+    std::unique_ptr<Simulation> sim;
+    std::exception_ptr error;
+    try {
+      sim = start_simulation(config);
+    } catch (...) {
+      error = std::current_exception();
+    }
+    const std::lock_guard lock(shared->mutex);
+    shared->sim = std::move(sim), shared->error = error, shared->done = true;
+    shared->finished.notify_one();
+  });
+  std::unique_lock lock(shared->mutex);
+  constexpr auto kPoll = std::chrono::milliseconds(25);
+  while (!shared->finished.wait_for(lock, kPoll, [&] { return shared->done; })) {
+    if (!stop_requested().load()) continue;
+    set_up_left_running.store(true);
+    setting_up.store(false);
+    worker.detach();
+    return nullptr;
+  }
+  lock.unlock();
+  worker.join();
+  setting_up.store(false);
+  if (shared->error) std::rethrow_exception(shared->error);
+  return std::move(shared->sim);
+}
+
+int exit_code(int code) {
+  if (!set_up_left_running.load()) return code;
+  std::fflush(nullptr);
+  std::_Exit(code);
 }
 
 namespace {
@@ -322,7 +382,12 @@ std::unique_ptr<tbb::global_control> limit_threads(int threads) {
 
 RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label) {
   const auto start = Clock::now();
-  const std::unique_ptr<Simulation> owned = start_simulation(config);
+  const std::unique_ptr<Simulation> owned = set_up_unless_interrupted(config);
+  if (!owned) {  // interrupted during its set-up: no figures, and not a result
+    RunResult r;
+    r.interrupted = true;
+    return r;
+  }
   Simulation& sim = *owned;
   Progress progress(quiet, label);
   while (!sim.done() && !stop_requested().load()) {
@@ -657,7 +722,11 @@ int run_command(const RunOptions& options) {
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
   announce_long_set_up(config, options.quiet);
-  const std::unique_ptr<Simulation> owned = start_simulation(config);
+  const std::unique_ptr<Simulation> owned = set_up_unless_interrupted(config);
+  if (!owned) {  // nothing written yet: out_folder removes the folders this run made
+    std::fprintf(stderr, "beampack: interrupted during set-up; nothing written\n");
+    return 1;
+  }
   config.packing.reset();  // the simulation holds its own copy
   Simulation& sim = *owned;
   warn_if_beam_meets_nothing(sim);

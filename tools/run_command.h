@@ -28,6 +28,16 @@ struct RunOptions {
 std::atomic<bool>& stop_requested();
 void install_interrupt_handler();
 
+// The simulation of `config`, set up on a worker thread while this one watches stop_requested():
+// a set-up of millions of particles takes seconds and writes nothing, so Ctrl-C during it ends
+// it at once instead of after it. Null when interrupted; the set-up is then left running, and
+// the command's exit_code ends the process.
+std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config);
+// `code`, for main to return; when an interrupted set-up is still running on its thread, the
+// process ends here instead, with `code`, once stdout and stderr are flushed: the static
+// destructors (TBB's, Embree's) must not run under that thread.
+int exit_code(int code);
+
 // Runs one scene and writes summary.json, particles.csv, history.csv (and frames). Returns the
 // exit code: 0 done, 1 interrupted or failed.
 int run_command(const RunOptions& options);
