@@ -505,6 +505,16 @@ TEST(Cli, AnInputErrorFoundDuringSetUpLeavesNoEmptyFolder) {
   const Result kept = run("run" + lattice + dir.string());
   EXPECT_EQ(kept.code, 2) << kept.output;
   EXPECT_TRUE(fs::is_directory(dir));
+  // `a/../b` makes `a` on the way to `b` (it was left behind: only `b` was known as made).
+  const Result detour = run("run" + lattice + (dir / "a" / ".." / "b").string());
+  EXPECT_EQ(detour.code, 2) << detour.output;
+  EXPECT_FALSE(fs::exists(dir / "a"));
+  EXPECT_FALSE(fs::exists(dir / "b"));
+  // A run that writes its results keeps the folders its path leads through.
+  const Result written =
+      run("run --preset quick --quiet --set pulses.count=1 --out " + (dir / "c" / ".." / "d").string());
+  EXPECT_EQ(written.code, 0) << written.output;
+  EXPECT_TRUE(fs::exists(dir / "c" / ".." / "d" / "summary.json"));
   // converge stops a ladder whose reference rung fails (the others would have nothing to be
   // compared with): one error per ladder, not one per rung, and the table has no row.
   const Result converge = run("converge" + lattice + (dir / "conv").string());

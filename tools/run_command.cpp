@@ -343,35 +343,41 @@ int report_failed_run(const std::string& label, const std::exception& e, const c
   return input ? 2 : 1;
 }
 
-namespace {
-
-// `dir` as an absolute path without a trailing separator, so that its parents can be walked.
-fs::path folder_path(const std::string& dir) {
+OutDir::OutDir(const std::string& dir) {
   std::error_code ec;
-  fs::path p = fs::absolute(dir, ec).lexically_normal();
-  return p.has_filename() ? p : p.parent_path();
-}
-
-}  // namespace
-
-OutDir::OutDir(const std::string& dir) : dir_(folder_path(dir)) {
-  std::error_code ec;
-  for (fs::path p = dir_; p.has_relative_path() && !fs::exists(p, ec); p = p.parent_path()) first_made_ = p;
-  fs::create_directories(dir, ec);
-  if (ec || !fs::is_directory(dir))
-    throw InputError("--out " + dir + ": cannot create the output directory (" + ec.message() + ")");
+  // Folder by folder as the system walks the path, not its lexical normal form: `a/../b` makes
+  // `a` too, and only a record of each folder made here finds it again.
+  fs::path walked;
+  for (const fs::path& part : fs::absolute(dir, ec)) {
+    walked /= part;
+    if (part.empty() || fs::exists(walked, ec)) continue;
+    const bool made = fs::create_directory(walked, ec);
+    if (ec) break;
+    if (made) made_.push_back(walked);
+  }
+  if (ec || !fs::is_directory(dir)) {
+    const std::string why = ec.message();
+    remove_empty_made();
+    throw InputError("--out " + dir + ": cannot create the output directory (" + why + ")");
+  }
   const fs::path probe = fs::path(dir) / ".beampack-write-test";
   std::FILE* f = std::fopen(probe.c_str(), "w");
-  if (!f) throw InputError("--out " + dir + ": the output directory is not writable");
+  if (!f) {
+    remove_empty_made();
+    throw InputError("--out " + dir + ": the output directory is not writable");
+  }
   std::fclose(f);
   fs::remove(probe);
 }
 
-OutDir::~OutDir() {
-  if (first_made_.empty()) return;
+OutDir::~OutDir() { remove_empty_made(); }
+
+// Innermost first, and only while they are empty: a folder with results in it stays, and so do
+// the folders made on the way to it (`a` of `--out a/../b`), through which its path still leads.
+void OutDir::remove_empty_made() {
   std::error_code ec;
-  // fs::remove takes a folder only when it is empty: one with results in it stays.
-  for (fs::path p = dir_; fs::remove(p, ec) && p != first_made_;) p = p.parent_path();
+  for (auto it = made_.rbegin(); it != made_.rend(); ++it)
+    if (!fs::remove(*it, ec)) return;
 }
 
 std::unique_ptr<tbb::global_control> limit_threads(int threads) {

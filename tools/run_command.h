@@ -60,7 +60,8 @@ struct RunResult {
 };
 // A command's --out folder, made (with any missing parents) and checked writable at once, so an
 // unusable --out fails before any run. When the command leaves the folders it made empty (bad
-// input found while the runs are set up), they are removed again: no empty folder is left behind.
+// input found while the runs are set up, an interrupted set-up), they are removed again: no empty
+// folder is left behind.
 class OutDir {
  public:
   explicit OutDir(const std::string& dir);  // InputError naming --out when not creatable or writable
@@ -69,8 +70,8 @@ class OutDir {
   OutDir& operator=(const OutDir&) = delete;
 
  private:
-  std::filesystem::path dir_;
-  std::filesystem::path first_made_;  // the outermost folder made here; empty if none was
+  void remove_empty_made();
+  std::vector<std::filesystem::path> made_;  // every folder made here, in the order made
 };
 // The ledgers close within EnergyLedger::kOpticsTolerance of the injected energy and
 // EnergyLedger::heat_tolerance of the absorbed; one message per open one.
