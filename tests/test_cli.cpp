@@ -1156,6 +1156,54 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   EXPECT_TRUE(fs::exists(mine));
 }
 
+namespace {
+
+// `beampack args` with files limited to `blocks` (of 512 bytes under dash, 1024 under bash) and
+// SIGXFSZ ignored, inherited across exec: a write past the limit fails with EFBIG instead of
+// killing the process. Tests run as root, whom no permission stops; a size limit stops anyone.
+Result run_with_file_size_limit(int blocks, const std::string& args) {
+  const std::string limit = "trap '' XFSZ; ulimit -f " + std::to_string(blocks);
+  return run(args, "sh -c \"" + limit + R"(; exec \"\$0\" \"\$@\"")");
+}
+
+// The files in `dir`, by name.
+std::vector<std::string> names_in(const fs::path& dir) {
+  std::vector<std::string> names;
+  for (const auto& e : fs::directory_iterator(dir)) names.push_back(e.path().filename().string());
+  std::sort(names.begin(), names.end());
+  return names;
+}
+
+}  // namespace
+
+// A write that fails during a run (here: past the file-size limit) is a failed run, exit 1, that
+// names the file; the files written before it stay whole and no half-written file is left, final
+// or temporary. Mid-run: the checkpoint (368 kB) after two frames (45 kB each) and their .pvd;
+// at the end: particles.csv (25 kB) after history.csv (1 kB).
+TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
+  const fs::path dir = fresh_dir("file_size_limit");
+  const std::string frames = "--set beam.rays=2000 --set output.frames=true --checkpoint-every 2";
+  const Result mid = run_with_file_size_limit(
+      200, "run --preset quick --quiet " + frames + " --out " + (dir / "mid").string());
+  EXPECT_EQ(mid.code, 1) << mid.output;
+  const std::string checkpoint = (dir / "mid" / "checkpoint.bin").string();
+  EXPECT_NE(mid.output.find("run failed: output file \"" + checkpoint + "\": write failed"),
+            std::string::npos)
+      << mid.output;
+  const std::vector<std::string> before = {"particles.pvd", "particles_0000.vtp",
+                                           "particles_0001.vtp"};
+  EXPECT_EQ(names_in(dir / "mid"), before);
+  EXPECT_NE(file_text(dir / "mid" / "particles_0001.vtp").find("</VTKFile>"), std::string::npos);
+  const Result end =
+      run_with_file_size_limit(8, "run --preset quick --quiet --out " + (dir / "end").string());
+  EXPECT_EQ(end.code, 1) << end.output;
+  const std::string particles = (dir / "end" / "particles.csv").string();
+  EXPECT_NE(end.output.find("output file \"" + particles + "\": write failed"), std::string::npos)
+      << end.output;
+  EXPECT_EQ(names_in(dir / "end"), std::vector<std::string>{"history.csv"});
+  EXPECT_EQ(read_csv(dir / "end" / "history.csv").size(), 5u);
+}
+
 // Files of beampack's names in a folder that holds no beampack run (no summary.json of one, no
 // checkpoint) are the user's: a run leaves them. An input where the run writes an output is
 // refused before anything is written or removed.
