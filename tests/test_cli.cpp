@@ -403,6 +403,8 @@ TEST(Cli, NumbersBeyondTheArithmeticAreRefusedAndTheLimitsRun) {
       {"pulses.duration", "1e290", "must be <= 1e+12 s", "pulses.duration=1e12"},
       {"thermal.dt", "1e308", "must be <= 1e+12 s", "thermal.dt=1e12"},
       {"pulses.period", "1e308", "must be <= 1e+12 s", "pulses.period=1e12"},
+      {"material.density", "1e20", "must be <= 1e+12 kg/m^3", "material.density=1e12"},
+      {"thermal.time_scaling", "1e290", "must be <= 1e+12 (", "thermal.time_scaling=1e12"},
   };
   const fs::path dir = fresh_dir("limits");
   for (const Case& c : cases) {
@@ -422,6 +424,22 @@ TEST(Cli, NumbersBeyondTheArithmeticAreRefusedAndTheLimitsRun) {
     EXPECT_GT(absorbed, 0.0) << c.at_limit;
     EXPECT_LE(std::abs(absorbed - stored - vaporized - to_walls), 1e-6 * flows) << c.at_limit << ": " << e.dump();
   }
+  // Just above a limit is refused too, shown in full. A file packing's radius far beyond its limit
+  // was lost to the rays' float arithmetic (1e20 m: nothing absorbed, exit 0); at the limit the
+  // run says its heat ledger is open.
+  const std::string file = write(dir / "two.xyz", "5e-4 5e-4 5e-4\n3e-4 3e-4 3e-4\n");
+  const std::string file_packing = "--preset quick --set packing.source=file --set packing.file=" + file;
+  expect_input_error("just_above_density", "", "--preset quick --set material.density=1.0000001e12",
+                     {"`material.density` = 1000000100000: must be <= 1e+12 kg/m^3"});
+  expect_input_error("just_above_time_scaling", "", "--preset quick --set thermal.time_scaling=1.0000001e12",
+                     {"`thermal.time_scaling` = 1000000100000: must be <= 1e+12"});
+  expect_input_error("just_above_radius", "", file_packing + " --set packing.radius=1.0000001e6",
+                     {"`packing.radius` = 1000000.1: must be <= 1e+06 m"});
+  expect_input_error("far_above_radius", "", file_packing + " --set packing.radius=1e20",
+                     {"`packing.radius` = 1e+20: must be <= 1e+06 m"});
+  const Result radius = run("run " + file_packing + " --set packing.radius=1e6 --quiet --out " +
+                            (dir / "radius").string());
+  EXPECT_EQ(radius.code, 0) << radius.output;
 }
 
 // A FIFO or a device given as the run file or the packing file is refused before it is opened:

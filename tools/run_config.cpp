@@ -60,6 +60,18 @@ constexpr Cap kDuration{1e12, "s (30,000 years; far longer pulses overflow their
 // thermal.dt, and pulses.period: with thermal.dt = "pulse" the wait for the next pulse is one step.
 constexpr Cap kStep{1e12, "s (30,000 years; far longer steps overflow their heat flows, time step times "
                           "conductance times temperature)"};
+// Density multiplies the thermal mass rho V C as the heat capacities do, and M divides it (MODEL.md
+// section 4): the quick preset's heat ledger closed to 7e-8 at rho = 1e12, 7e-7 at 1e13, and was
+// open by 1.6e-4 at 1e15 (at 1e20 it booked none of the absorbed energy as stored); at M = 1e12 its
+// peak temperature was 1.2e8 K, and it grows as M: 1.2e286 K at M = 1e290, without a word.
+constexpr Cap kDensity{1e12, "kg/m^3 (4e7 times osmium's; beyond it a step's warming is lost to the temperatures' "
+                             "round-off: the heat ledger opens)"};
+constexpr Cap kTimeScaling{1e12, "(1e6 times the paper's M = 1e6; M multiplies every temperature rise, and far "
+                                 "beyond it they overflow)"};
+// packing.radius: Embree traces in floats; at 1e20 m no ray met a particle (nothing absorbed,
+// without a word), and from 1e3 m the heat ledger opened.
+constexpr Cap kFileRadius{1e6, "m (the largest sample.size; far larger particles are lost to the rays' float "
+                               "arithmetic)"};
 
 // `value` of `key`, refused above the cap with its reason (Params::number states a range only).
 // The value is shown in full: 1.0000001e+20 is not "1e+20" above a limit of 1e+20.
@@ -91,7 +103,7 @@ void read_packing(Params& p, PackingSpec& s) {
     for (const char* key : {"packing.file", "packing.radius"})
       if (p.set_later("packing.source", key)) p.forget(key);
   s.file = p.path("packing.file");
-  s.file_radius = p.number("packing.radius", 0.0, 0, kBig);
+  s.file_radius = number_up_to(p, "packing.radius", 0.0, 0, kFileRadius);
   if (s.source != "file" && !s.file.empty())  // it would be read by nobody
     p.fail("packing.file", "\"" + s.file + "\"", "needs packing.source = \"file\" (it is \"" + s.source + "\")");
   if (s.source != "file" && s.file_radius != 0.0)
@@ -141,7 +153,7 @@ void read_optics(Params& p, OpticsSpec& o) {
 }
 
 void read_material(Params& p, Material& m) {
-  m.density = p.number("material.density", 1000, 0, kBig, true);
+  m.density = number_up_to(p, "material.density", 1000, 0, kDensity, true);
   m.c_solid = number_up_to(p, "material.c_solid", 1000, 0, kHeatCapacity, true);
   m.c_liquid = number_up_to(p, "material.c_liquid", 2000, 0, kHeatCapacity, true);
   m.conductivity = number_up_to(p, "material.conductivity", 0, 0, kConductivity);
@@ -192,7 +204,7 @@ struct PaperStepUse {
 // (xi R / c, the paper's ray time step: derive_paper_step).
 void read_thermal(Params& p, SimulationSpec& s, PaperStepUse& use) {
   ThermalSpec& t = s.thermal;
-  t.time_scaling = p.number("thermal.time_scaling", 1e6, 0, kBig, true);
+  t.time_scaling = number_up_to(p, "thermal.time_scaling", 1e6, 0, kTimeScaling, true);
   t.phi = p.number("thermal.phi", 1.0, 0, 1);
   t.solver = p.choice("thermal.solver", "auto", {"fixed-point", "cg", "direct", "auto"});
   t.tolerance = p.number("thermal.tolerance", 1e-10, 0, 0.1, true);
