@@ -320,6 +320,9 @@ TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
       {"wall_reach", "--set thermal.wall_reach=1", "`thermal.wall_reach` = 1", "applies to walls only"},
       {"wall_conductance", "--set thermal.wall_conductance=1e6", "`thermal.wall_conductance` = 1e+06",
        "applies to walls only"},
+      {"xi", "--set pulses.xi=0.1", "`pulses.xi` = 0.1",
+       "applies to pulses.duration = \"auto\" or thermal.dt = \"paper\" only (pulses.duration is 3e-13, "
+       "thermal.dt is \"pulse\") and to `beampack converge`"},
   };
   for (const Case& c : cases) {
     const std::string set = std::string(c.args).substr(std::string(c.args).rfind("--set "));
@@ -336,6 +339,20 @@ TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
             std::string::npos)
       << sweep.output;
   EXPECT_FALSE(fs::exists(dir / "out" / "sweep.csv"));
+  const Result xi = run("sweep --preset quick --param pulses.xi --values 0.1,0.2 --quiet --out " +
+                        (dir / "xi").string());
+  EXPECT_EQ(xi.code, 2) << xi.output;
+  EXPECT_NE(xi.output.find("--param pulses.xi --values 0.1: `pulses.xi` = 0.1: applies to"), std::string::npos)
+      << xi.output;
+  // pulses.xi applies where the paper's step xi R / c is used: the pulse duration, the time step,
+  // and converge's time-step ladder (whatever the pulse duration), and in a sweep over thermal.dt;
+  // `config` may print converge's run file.
+  for (const char* args : {"run --set pulses.duration=auto", "run --set thermal.dt=paper", "converge",
+                           "sweep --param thermal.dt --values paper,pulse", "config"}) {
+    const Result r = run(std::string(args) + " --preset quick --set pulses.xi=0.1 --set pulses.count=1" +
+                         (std::string(args) == "config" ? "" : " --quiet --out " + (dir / "xi_used").string()));
+    EXPECT_EQ(r.code, 0) << args << ": " << r.output;
+  }
   // A preset's or a run file's keys are not the user's request in this run: switching the
   // zohdi2013 preset's exponential profile (beam.decay = 2) to flat runs, and so do a lattice
   // under the quick preset's packing.seed and a run file that holds every key.

@@ -87,14 +87,16 @@ TemperatureError temperature_error(const RunResult& rung, const RunResult& refer
 }
 
 int converge_command(const RunOptions& options) {
-  RunConfig base = load_run_config(options.sources);
+  RunSources read_xi = options.sources;
+  read_xi.xi_always_read = true;  // the time-step ladder is made of xi R / c
+  RunConfig base = load_run_config(read_xi);
   const auto threads = limit_threads(options.threads);
   const OutDir out_folder(options.out_dir);  // an unusable --out fails before the runs, not after
   std::vector<Ladder> all = ladders(base);
   base.packing.reset();  // each rung reads its packing when it runs: one copy at a time
   for (Ladder& ladder : all)
     for (const std::string& value : ladder.values) {  // a bad rung fails before any run starts
-      RunSources sources = options.sources;
+      RunSources sources = read_xi;
       sources.swept = ladder.key + "=" + value;
       sources.swept_origin = "converge's " + ladder.name + " ladder, " + ladder.key + " = " + value;
       ladder.configs.push_back(load_run_config(sources));

@@ -45,7 +45,8 @@ int list_presets() {
   return 0;
 }
 
-int print_config(const RunSources& sources) {
+int print_config(RunSources sources) {
+  sources.xi_always_read = true;  // the run file printed may be converge's
   const RunConfig config = load_run_config(sources);
   std::cout << "# beampack run file: every key with the value a run would use\n"
             << config.resolved << "\n";

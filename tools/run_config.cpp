@@ -290,8 +290,10 @@ struct KeyUse {
 // numbers of a run without it, without a word: refused. A preset or a run file may hold it
 // (`beampack config` prints every key; a user may switch a preset's profile away from its
 // beam.decay), and so may a sweep over the deciding key (beam.profile), whose other runs use it.
-// pulses.xi is not among them: converge's time-step ladder uses it whatever the pulse duration.
-void refuse_unread_keys(const Params& p, const SimulationSpec& s) {
+// pulses.xi is among them unless `xi_always_read` (converge's time-step ladder uses it whatever the
+// pulse duration); a sweep over thermal.dt, its other decider, may hold it too.
+void refuse_unread_keys(const Params& p, const SimulationSpec& s, const PaperStepUse& paper,
+                        bool xi_always_read) {
   const std::string& source = s.packing.source;
   const std::string is_source = " (it is " + p.shown("packing.source") + ")";
   const std::string is_profile = " (it is " + p.shown("beam.profile") + ")";
@@ -319,6 +321,9 @@ void refuse_unread_keys(const Params& p, const SimulationSpec& s) {
       {"thermal.wall_temperature", walls, "thermal.walls", wall_needs},
       {"thermal.wall_reach", walls, "thermal.walls", wall_needs},
       {"thermal.wall_conductance", walls, "thermal.walls", wall_needs},
+      {"pulses.xi", paper.duration || paper.dt || xi_always_read || p.swept("thermal.dt"), "pulses.duration",
+       "applies to pulses.duration = \"auto\" or thermal.dt = \"paper\" only (pulses.duration is " + duration +
+           ", thermal.dt is " + p.shown("thermal.dt") + ") and to `beampack converge`"},
   };
   for (const KeyUse& use : uses)
     if (!use.applies && p.set_on_command_line(use.key) && !p.swept(use.decider))
@@ -326,7 +331,8 @@ void refuse_unread_keys(const Params& p, const SimulationSpec& s) {
 }
 
 // Every key, read in the order the library needs them, and the library's own checks.
-RunConfig read_config(Params& p, const std::function<Particles(const SimulationSpec&)>& saved_packing) {
+RunConfig read_config(Params& p, const RunSources& sources) {
+  const auto& saved_packing = sources.saved_packing;
   RunConfig c;
   read_packing(p, c.sim.packing);
   c.sim.packing.initial_temperature = number_up_to(p, "material.initial_temperature", 300, 0, kTemperature, true);
@@ -350,7 +356,7 @@ RunConfig read_config(Params& p, const std::function<Particles(const SimulationS
   c.output.frames = p.flag("output.frames", false);
   c.output.rays = p.flag("output.rays", false);
   p.check_all_used();  // first: a misspelt key is named before what it would have changed
-  refuse_unread_keys(p, c.sim);
+  refuse_unread_keys(p, c.sim, use, sources.xi_always_read);
   derive_paper_step(c, use);
   check_steps_per_crossing(p, c.sim, use.dt);
   validate_beam(c.sim.beam, c.sim.packing.sample_size);
@@ -379,7 +385,7 @@ RunConfig load_run_config(const RunSources& sources) {
   for (const std::string& s : sources.sets) p.merge_assignment(s);
   if (!sources.swept.empty()) p.merge_assignment(sources.swept, sources.swept_origin, true);
   try {
-    return read_config(p, sources.saved_packing);
+    return read_config(p, sources);
   } catch (const InputError& e) {  // a library check of several keys: where were they set?
     throw InputError(locate(e.what(), p.origins()));
   }

@@ -40,6 +40,10 @@ struct RunSources {
   // a resumed run's, from its checkpoint (which holds them), so that the run continues without
   // its packing file. Called only for a file packing. Empty: read the file.
   std::function<Particles(const SimulationSpec&)> saved_packing;
+  // pulses.xi is read whatever the scene: converge's time-step ladder is made of xi R / c, and
+  // `beampack config` may print a run file for converge. Otherwise a --set of it is refused when
+  // neither pulses.duration = "auto" nor thermal.dt = "paper" uses it.
+  bool xi_always_read = false;
 };
 
 // InputError (exit code 2) for any bad key, type or value, naming file and line.
