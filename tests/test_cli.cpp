@@ -375,6 +375,39 @@ TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
   EXPECT_NE(rows[1].at("vaporized_fraction"), "");
 }
 
+// A run file's value for a key the scene ignores (beam.decay under a Gaussian profile) ran
+// without a word (a --set of it is refused: AKeySetForASceneThatDoesNotReadItIsRefused); it is
+// announced, naming the file and line and what decides it, and the run goes on. Not for a value
+// equal to the key's default (a file printed by `beampack config` carries every key), nor for a
+// key that applies, nor for a preset's keys; a sweep says it once, not once per value.
+TEST(Cli, ARunFileValueTheSceneIgnoresIsAnnounced) {
+  const fs::path dir = fresh_dir("ignored_in_file");
+  const std::string out = " --quiet --out " + (dir / "out").string();
+  const std::string gaussian = write(dir / "run.toml", "[beam]\nprofile = \"gaussian\"\ndecay = 5.0\n");
+  const Result ignored = run("run " + gaussian + " --preset quick" + out);
+  EXPECT_EQ(ignored.code, 0) << ignored.output;
+  EXPECT_NE(ignored.output.find("beampack: warning: " + gaussian + ":3: `beam.decay` = 5: applies to beam.profile "
+                                "= \"exponential\" only (it is \"gaussian\"), so this run ignores it"),
+            std::string::npos)
+      << ignored.output;
+  const Result sweep = run("sweep " + gaussian + " --preset quick --param material.conductivity --values 1,2" + out);
+  EXPECT_EQ(sweep.code, 0) << sweep.output;
+  EXPECT_EQ(sweep.output.find("warning"), sweep.output.rfind("warning")) << sweep.output;
+  EXPECT_NE(sweep.output.find("`beam.decay` = 5"), std::string::npos) << sweep.output;
+  const Result printed = run("config");
+  ASSERT_EQ(printed.code, 0) << printed.output;
+  std::string carried = printed.output;
+  carried.replace(carried.find("profile = 'exponential'"), 23, "profile = 'gaussian'");
+  const std::string edited = write(dir / "edited.toml", carried);
+  const std::string applies = write(dir / "applies.toml", "[beam]\nprofile = \"exponential\"\ndecay = 5.0\n");
+  for (const std::string& args : {"run " + edited, "run " + applies + " --preset quick",
+                                  std::string("run --preset quick --set packing.source=lattice --set packing.count=27")}) {
+    const Result r = run(args + " --set pulses.count=1" + out);
+    EXPECT_EQ(r.code, 0) << args << ": " << r.output;
+    EXPECT_EQ(r.output.find("ignores it"), std::string::npos) << args << ": " << r.output;
+  }
+}
+
 namespace {
 
 // Every number of a JSON document is finite (a NaN or an infinity would be written as null).

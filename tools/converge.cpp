@@ -90,6 +90,7 @@ int converge_command(const RunOptions& options) {
   RunSources read_xi = options.sources;
   read_xi.xi_always_read = true;  // the time-step ladder is made of xi R / c
   RunConfig base = load_run_config(read_xi);
+  warn_of_ignored_keys({&base});  // the rungs' runs read the same keys
   const auto threads = limit_threads(options.threads);
   const OutDir out_folder(options.out_dir);  // an unusable --out fails before the runs, not after
   std::vector<Ladder> all = ladders(base);

@@ -397,6 +397,20 @@ bool Params::swept(const std::string& key) const {
   return o && o->swept;
 }
 
+bool Params::set_in_run_file(const std::string& key) const {
+  const KeyOrigin* o = origin(key);
+  return o && !o->file.empty();
+}
+
+bool Params::differs_from_default(const std::string& key) const {
+  const auto fallback = number_defaults_.find(key);
+  const toml::node* node = resolved_.at_path(key).node();
+  if (fallback == number_defaults_.end() || !node) return true;
+  if (const auto* v = node->as_floating_point()) return v->get() != fallback->second;
+  if (const auto* i = node->as_integer()) return double(i->get()) != fallback->second;
+  return true;
+}
+
 std::string Params::shown(const std::string& key) const {
   const toml::node* node = resolved_.at_path(key).node();
   if (!node) return "";
@@ -460,6 +474,7 @@ double Params::number(const std::string& key, double fallback, double lo, double
     fail(key, fmt(v), range);
   }
   record(key, toml::value<double>(v));
+  number_defaults_[key] = fallback;
   return v;
 }
 
@@ -474,6 +489,7 @@ std::int64_t Params::integer(const std::string& key, std::int64_t fallback, std:
   if (v < lo || v > hi)
     fail(key, std::to_string(v), "must be >= " + std::to_string(lo) + " and <= " + std::to_string(hi));
   record(key, toml::value<std::int64_t>(v));
+  number_defaults_[key] = double(fallback);
   return v;
 }
 
@@ -524,6 +540,7 @@ std::string Params::number_or_word(const std::string& key, double& value, double
     fail(key, "\"" + w + "\"", "must be a number in " + unit + list);
   }
   value = number(key, 0.0, lo, hi, lo_open);
+  number_defaults_.erase(key);  // its default is the word: any number differs from it
   return "";
 }
 

@@ -53,6 +53,11 @@ class Params {
   bool set_on_command_line(const std::string& key) const;
   // Whether the key's value is a swept one (sweep's --param, a converge ladder).
   bool swept(const std::string& key) const;
+  // Whether a run file (not a preset, a checkpoint or --set) gave the key its value.
+  bool set_in_run_file(const std::string& key) const;
+  // Whether a number read by number() or integer() differs from the fallback it was read with
+  // (true for a key read otherwise): a value a file merely carries from `beampack config` does not.
+  bool differs_from_default(const std::string& key) const;
   // The value a key was read as (after its accessor), as messages show it: 7, "flat".
   std::string shown(const std::string& key) const;
   // Drops a key from the layers, as if none had set it.
@@ -86,6 +91,7 @@ class Params {
   int layers_ = 0;
   std::set<std::string> used_;
   toml::table resolved_;
+  std::map<std::string, double> number_defaults_;  // key -> fallback of number() and integer()
 };
 
 // Dotted keys of every leaf in a table ("material.conductivity").

@@ -719,6 +719,7 @@ int run_command(const RunOptions& options) {
     sources.saved_packing = [&saved](const SimulationSpec& spec) { return Simulation::saved_packing(*saved, spec); };
   }
   RunConfig config = load_run_config(sources);
+  warn_of_ignored_keys({&config});
   warn_of_many_steps(config.sim);
   warn_if_walls_take_no_heat(config.sim);
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
@@ -855,6 +856,9 @@ int sweep_command(const SweepOptions& options) {
     configs.back().packing.reset();  // each value reads its packing when it runs: one copy at a time
     refuse_run_only_outputs(configs.back(), "sweep");
   }
+  std::vector<const RunConfig*> resolved;
+  for (const RunConfig& c : configs) resolved.push_back(&c);
+  warn_of_ignored_keys(resolved);
   const std::string header = options.param + ',' + kFigureColumns + ",steps,wall_seconds";
   std::string csv = header + '\n';
   Series vv{"vaporized fraction", {}, {}};

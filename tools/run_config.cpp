@@ -5,10 +5,12 @@
 #include <cctype>
 #include <charconv>
 #include <cmath>
+#include <cstdio>
 #include <fstream>
 #include <iomanip>
 #include <limits>
 #include <numbers>
+#include <set>
 #include <sstream>
 
 #include <unistd.h>
@@ -290,10 +292,12 @@ struct KeyUse {
 // numbers of a run without it, without a word: refused. A preset or a run file may hold it
 // (`beampack config` prints every key; a user may switch a preset's profile away from its
 // beam.decay), and so may a sweep over the deciding key (beam.profile), whose other runs use it.
+// A run file's value other than the key's default was likely meant for this scene: a warning
+// (returned, for the command to print once) rather than a refusal.
 // pulses.xi is among them unless `xi_always_read` (converge's time-step ladder uses it whatever the
 // pulse duration); a sweep over thermal.dt, its other decider, may hold it too.
-void refuse_unread_keys(const Params& p, const SimulationSpec& s, const PaperStepUse& paper,
-                        bool xi_always_read) {
+std::vector<std::string> refuse_unread_keys(const Params& p, const SimulationSpec& s,
+                                            const PaperStepUse& paper, bool xi_always_read) {
   const std::string& source = s.packing.source;
   const std::string is_source = " (it is " + p.shown("packing.source") + ")";
   const std::string is_profile = " (it is " + p.shown("beam.profile") + ")";
@@ -321,13 +325,21 @@ void refuse_unread_keys(const Params& p, const SimulationSpec& s, const PaperSte
       {"thermal.wall_temperature", walls, "thermal.walls", wall_needs},
       {"thermal.wall_reach", walls, "thermal.walls", wall_needs},
       {"thermal.wall_conductance", walls, "thermal.walls", wall_needs},
-      {"pulses.xi", paper.duration || paper.dt || xi_always_read || p.swept("thermal.dt"), "pulses.duration",
-       "applies to pulses.duration = \"auto\" or thermal.dt = \"paper\" only (pulses.duration is " + duration +
-           ", thermal.dt is " + p.shown("thermal.dt") + ") and to `beampack converge`"},
+      {"pulses.xi", paper.duration || paper.dt || xi_always_read || p.swept("thermal.dt"),
+       "pulses.duration",
+       "applies to pulses.duration = \"auto\" or thermal.dt = \"paper\" only (pulses.duration is " +
+           duration + ", thermal.dt is " + p.shown("thermal.dt") + ") and to `beampack converge`"},
   };
-  for (const KeyUse& use : uses)
-    if (!use.applies && p.set_on_command_line(use.key) && !p.swept(use.decider))
+  std::vector<std::string> ignored;
+  for (const KeyUse& use : uses) {
+    if (use.applies || p.swept(use.decider)) continue;
+    if (p.set_on_command_line(use.key))
       p.fail(use.key, p.shown(use.key), use.needs + ", so this run would ignore it");
+    if (p.set_in_run_file(use.key) && p.differs_from_default(use.key))
+      ignored.push_back(p.origins().at(use.key) + ": `" + use.key + "` = " + p.shown(use.key) +
+                        ": " + use.needs + ", so this run ignores it");
+  }
+  return ignored;
 }
 
 // Every key, read in the order the library needs them, and the library's own checks.
@@ -356,7 +368,7 @@ RunConfig read_config(Params& p, const RunSources& sources) {
   c.output.frames = p.flag("output.frames", false);
   c.output.rays = p.flag("output.rays", false);
   p.check_all_used();  // first: a misspelt key is named before what it would have changed
-  refuse_unread_keys(p, c.sim, use, sources.xi_always_read);
+  c.ignored_keys = refuse_unread_keys(p, c.sim, use, sources.xi_always_read);
   derive_paper_step(c, use);
   check_steps_per_crossing(p, c.sim, use.dt);
   validate_beam(c.sim.beam, c.sim.packing.sample_size);
@@ -389,6 +401,13 @@ RunConfig load_run_config(const RunSources& sources) {
   } catch (const InputError& e) {  // a library check of several keys: where were they set?
     throw InputError(locate(e.what(), p.origins()));
   }
+}
+
+void warn_of_ignored_keys(const std::vector<const RunConfig*>& configs) {
+  std::set<std::string> said;
+  for (const RunConfig* c : configs)
+    for (const std::string& line : c->ignored_keys)
+      if (said.insert(line).second) std::fprintf(stderr, "beampack: warning: %s\n", line.c_str());
 }
 
 std::string locate(const std::string& message, const std::map<std::string, std::string>& origins) {

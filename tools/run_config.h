@@ -26,6 +26,9 @@ struct RunConfig {
   // xi R / c), so that the simulation does not read the file again; null otherwise.
   std::shared_ptr<const Particles> packing;
   std::map<std::string, std::string> origins;  // key -> where a layer set it ("run.toml:7")
+  // Keys a run file sets to other values than their defaults that this scene ignores: one line
+  // each, for the command to print as warnings (beampack: warning: ...).
+  std::vector<std::string> ignored_keys;
 };
 
 struct RunSources {
@@ -48,6 +51,10 @@ struct RunSources {
 
 // InputError (exit code 2) for any bad key, type or value, naming file and line.
 RunConfig load_run_config(const RunSources& sources);
+
+// The configurations' ignored_keys on stderr as warnings, each line once (a sweep's runs share
+// their run file).
+void warn_of_ignored_keys(const std::vector<const RunConfig*>& configs);
 
 // `message` with the place that set the first key it names ("run.toml:7: ..."), unless it
 // already starts with one: for errors found after the run file was read.
