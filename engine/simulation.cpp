@@ -32,13 +32,16 @@ class StageClock {
   std::chrono::steady_clock::time_point start_;
 };
 
-bool needs_conduction(const SimulationSpec& spec) {
-  return !spec.thermal.walls.empty() ||
-         std::any_of(spec.materials.begin(), spec.materials.end(),
+}  // namespace
+
+bool conducts_between_particles(const SimulationSpec& spec) {
+  return std::any_of(spec.materials.begin(), spec.materials.end(),
                      [](const Material& m) { return m.conductivity > 0; });
 }
 
-}  // namespace
+bool needs_conduction(const SimulationSpec& spec) {
+  return !spec.thermal.walls.empty() || conducts_between_particles(spec);
+}
 
 Simulation::Simulation(SimulationSpec spec) : Simulation(spec, make_packing(spec.packing)) {}
 

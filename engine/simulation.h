@@ -39,6 +39,12 @@ struct SimulationSpec {
   int max_staggers = 4;    // redo a step at most this often when a phase change alters optics
 };
 
+// Whether the scene conducts heat (a material's conductivity, or walls): only then are the
+// contacts found and the conduction system kept.
+bool needs_conduction(const SimulationSpec& spec);
+// Whether a material's conductivity is > 0: heat flows between particles, not only to walls.
+bool conducts_between_particles(const SimulationSpec& spec);
+
 // Energy ledger of a run, J (MODEL.md section 6).
 struct EnergyLedger {
   double injected = 0, absorbed = 0, escaped = 0, cutoff = 0;  // optics

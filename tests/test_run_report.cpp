@@ -125,6 +125,23 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
                                          "least 40 GB with beam.rays = 1000"),
               std::string::npos) << e.what();
   }
+  // The contacts conduction needs: 100 bytes more per particle with a conductivity (141 measured),
+  // 50 with walls alone (58 measured). 6 10^7 particles need 24 GB without them: they fit.
+  SimulationSpec conducting = paper;
+  conducting.packing.count = 60'000'000;
+  EXPECT_NO_THROW(refuse_beyond_memory(conducting, k24GiB));
+  conducting.thermal.walls = {Wall{}};
+  EXPECT_GE(least_memory_need(conducting), 2.7e10);
+  conducting.thermal.walls.clear();
+  conducting.materials.front().conductivity = 100;
+  try {
+    refuse_beyond_memory(conducting, k24GiB);
+    ADD_FAILURE() << "6 10^7 conducting particles fit in 24 GiB";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("at least 30 GB with beam.rays = 1000 (400 bytes per ray, 500 per particle "
+                                         "with its contacts)"),
+              std::string::npos) << e.what();
+  }
   rays.packing.source = "file";
   try {
     refuse_beyond_memory(rays, k24GiB);

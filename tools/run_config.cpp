@@ -429,9 +429,25 @@ std::string locate(const std::string& message, const std::map<std::string, std::
 
 // Peak resident set of `beampack run` (Release, one pulse, 2026-12-02): 448 MB with 10^6 rays,
 // 1760 MB with 4 10^6 (437 bytes per ray); 57 MB with 10^5 particles, 468 MB with 10^6 (457 bytes
-// per particle without conduction, 600 with). Rounded down: a bound that refuses only the hopeless.
+// per particle without conduction, 600 with). The contacts conduction needs: 141 bytes more per
+// particle with K = 100, 58 with walls and K = 0 (526 MB). Rounded down: a bound that refuses only
+// the hopeless.
 constexpr double kBytesPerRay = 400;
 constexpr double kBytesPerParticle = 400;
+constexpr double kContactBytesWithWalls = 50;        // per particle, walls alone (K = 0)
+constexpr double kContactBytesWithConduction = 100;  // per particle, conductivity > 0
+
+namespace {
+
+// The bytes a particle needs at least: itself, and the contacts when the scene conducts.
+double bytes_per_particle(const SimulationSpec& s) {
+  const double contacts = conducts_between_particles(s) ? kContactBytesWithConduction
+                          : needs_conduction(s)         ? kContactBytesWithWalls
+                                                        : 0.0;
+  return kBytesPerParticle + contacts;
+}
+
+}  // namespace
 
 double steps_per_crossing(const SimulationSpec& s) {
   return s.dt > 0 ? s.packing.sample_size / kSpeedOfLight / s.dt : 0.0;
@@ -443,7 +459,7 @@ double paper_step(const PackingSpec& packing, double xi, const Particles* partic
 
 double least_memory_need(const SimulationSpec& s, std::size_t file_particles) {
   const double particles = s.packing.source == "file" ? double(file_particles) : double(s.packing.count);
-  return kBytesPerRay * double(s.beam.rays) + kBytesPerParticle * particles;
+  return kBytesPerRay * double(s.beam.rays) + bytes_per_particle(s) * particles;
 }
 
 double machine_memory() {
@@ -467,7 +483,8 @@ void refuse_beyond_memory(const SimulationSpec& s, double available, std::size_t
   std::ostringstream m;
   m << "`" << (by_rays ? rays : particles) << "`: the run needs at least " << std::setprecision(3) << need / 1e9
     << " GB " << (need == ray_bytes ? "for its rays alone" : "with " + (by_rays ? particles : rays)) << " ("
-    << kBytesPerRay << " bytes per ray, " << kBytesPerParticle << " per particle), more than the "
+    << kBytesPerRay << " bytes per ray, " << bytes_per_particle(s) << " per particle"
+    << (needs_conduction(s) ? " with its contacts" : "") << "), more than the "
     << available / 1e9 << " GB of this machine; lower "
     << (by_rays ? "beam.rays" : file ? "the particle count" : "packing.count");
   throw InputError(m.str());
