@@ -161,10 +161,13 @@ void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>
                   const std::string& where) {
   require(centre.allFinite(), where + "its centre is not a finite number");
   require(r > 0, where + "radius r = " + str(r) + ": must be > 0");
+  require(r <= kMaxParticleRadius, where + "radius r = " + str(r) + ": must be <= " + str(kMaxParticleRadius) +
+                                       " m (the largest sample.size; far larger spheres are lost to the "
+                                       "ray scene's float bounds)");
   const double volume = 4.0 / 3.0 * std::numbers::pi * r * r * r;
   require(volume > 0 && std::isfinite(volume),
           where + "radius r = " + str(r) + ": its volume " + str(volume) +
-              " is not a positive finite double (|r| must be within ~1e-100 .. 1e100)");
+              " is not a positive finite double (|r| must be at least ~1e-100)");
   for (int k = 0; k < 3; ++k)
     require(
         std::isfinite(std::abs(centre[k]) + r),

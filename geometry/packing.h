@@ -28,8 +28,11 @@ Particles make_packing(const PackingSpec& spec);
 // for a file, the median of its radii (the paper's R when sizes differ, remark after (3.11)),
 // read from the file, 0 for an empty one.
 double packing_radius(const PackingSpec& spec);
-// The checks every sphere of a packing file passes (a checkpoint's too): a radius > 0 whose
-// volume is a positive finite double, and centre +- radius finite. InputError prefixed by
+// The largest radius a particle may have, m: the largest sample.size. Far larger spheres are lost
+// to the ray scene's float bounds (at 1e20 m no ray met one, without a word).
+constexpr double kMaxParticleRadius = 1e6;
+// The checks every sphere of a packing file passes (a checkpoint's too): a radius in
+// (0, kMaxParticleRadius], and centre +- radius finite. InputError prefixed by
 // `where`, naming the file's column of x, y or z (centre_columns) that overflows.
 void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>& centre_columns,
                   const std::string& where);

@@ -172,6 +172,10 @@ TEST(PackingFile, EachErrorNamesItsLine) {
   EXPECT_NE(read_error("neg", "1 2 3 1\n\n1 2 3 -1\n").find(":3: radius r = -1: must be > 0"),
             std::string::npos);
   EXPECT_NE(read_error("zero", "1 2 3 0\n").find(":1: radius r = 0"), std::string::npos);
+  // Far beyond any sample the ray scene's float bounds lose the sphere (at 1e20 m nothing was
+  // hit, without a word): the limit packing.radius has, for a file's own radii too.
+  EXPECT_NE(read_error("huge", "1 2 3 1e6\n1 2 3 1e20\n").find(":2: radius r = 1e+20: must be <= 1e+06 m"),
+            std::string::npos);
   EXPECT_NE(read_error("nan", "1 nan 3 1\n").find(":1: column 2 'nan' is not finite"), std::string::npos);
   EXPECT_NE(read_error("inf", "1 2 3 1\ninf 2 3 1\n").find(":2: column 1 'inf' is not finite"),
             std::string::npos);

@@ -87,6 +87,7 @@ TemperatureError temperature_error(const RunResult& rung, const RunResult& refer
 }
 
 int converge_command(const RunOptions& options) {
+  note_reading_input();
   RunSources read_xi = options.sources;
   read_xi.xi_always_read = true;  // the time-step ladder is made of xi R / c
   RunConfig base = load_run_config(read_xi);

@@ -125,10 +125,10 @@ int main(int argc, char** argv) {
     if (config_cmd->parsed()) return print_config(config.sources);
   } catch (const beampack::InputError& e) {
     std::fprintf(stderr, "beampack: error: %s\n", e.what());
-    return 2;
+    return exit_code(2);  // a set-up left running on its thread must not see the static destructors
   } catch (const std::exception& e) {
     std::fprintf(stderr, "beampack: run failed: %s\n", e.what());
-    return 1;
+    return exit_code(1);
   }
   return 0;
 }

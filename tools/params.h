@@ -56,7 +56,8 @@ class Params {
   // Whether a run file (not a preset, a checkpoint or --set) gave the key its value.
   bool set_in_run_file(const std::string& key) const;
   // Whether a number read by number() or integer() differs from the fallback it was read with
-  // (true for a key read otherwise): a value a file merely carries from `beampack config` does not.
+  // (true for a key read otherwise): a default a file merely carries from `beampack config` does
+  // not (a preset's own value, such as quick's seed 7, does differ).
   bool differs_from_default(const std::string& key) const;
   // The value a key was read as (after its accessor), as messages show it: 7, "flat".
   std::string shown(const std::string& key) const;

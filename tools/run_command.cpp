@@ -51,6 +51,10 @@ std::atomic<std::int64_t> first_interrupt_ns{0};
 // interrupt then ends the command at once, and the main thread says so.
 std::atomic<bool> setting_up{false};
 
+// Set while a command reads its input before its first set-up (a packing file for xi R / c, say):
+// that read is not cut short, and no step is there to stop after.
+std::atomic<bool> reading_input{false};
+
 // An interrupted set-up left running on its thread: the process ends without running its static
 // destructors (TBB's and Embree's state), which that thread may still be using.
 std::atomic<bool> set_up_left_running{false};
@@ -75,7 +79,10 @@ void on_interrupt(int signal) {
   stop_requested().store(true);
   if (setting_up.load()) return;  // the set-up ends at once; the main thread says so
   static constexpr char kNote[] = "\nbeampack: stopping after the current step; interrupt again to quit at once\n";
-  [[maybe_unused]] const auto written = ::write(STDERR_FILENO, kNote, sizeof kNote - 1);
+  static constexpr char kReading[] = "\nbeampack: interrupted while the input is read: the run ends when the "
+                                     "read does, before its set-up; interrupt again to quit at once\n";
+  [[maybe_unused]] const auto written =
+      reading_input.load() ? ::write(STDERR_FILENO, kReading, sizeof kReading - 1) : ::write(STDERR_FILENO, kNote, sizeof kNote - 1);
 }
 
 }  // namespace
@@ -100,6 +107,7 @@ std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config) {
   if (stop_requested().load()) return nullptr;
   const auto shared = std::make_shared<SetUp>();
   setting_up.store(true);
+  reading_input.store(false);
   // The worker owns a copy of the configuration and its share of the result: when an interrupt
   // leaves it running, the caller's frame is gone before it ends.
   std::thread worker([shared, config] {
@@ -127,8 +135,12 @@ std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config) {
   worker.join();
   setting_up.store(false);
   if (shared->error) std::rethrow_exception(shared->error);
+  // An interrupt between the set-up's end and here printed no note: it still ends the run here.
+  if (stop_requested().load()) return nullptr;
   return std::move(shared->sim);
 }
+
+void note_reading_input() { reading_input.store(true); }
 
 int exit_code(int code) {
   if (!set_up_left_running.load()) return code;
@@ -356,7 +368,7 @@ OutDir::OutDir(const std::string& dir) {
     if (made) made_.push_back(walked);
   }
   if (ec || !fs::is_directory(dir)) {
-    const std::string why = ec.message();
+    const std::string why = ec ? ec.message() : "it exists and is not a directory";
     remove_empty_made();
     throw InputError("--out " + dir + ": cannot create the output directory (" + why + ")");
   }
@@ -550,7 +562,7 @@ void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts) {
 void announce_long_set_up(const RunConfig& config, bool quiet) {
   const PackingSpec& s = config.sim.packing;
   const std::size_t particles = config.packing ? config.packing->size() : s.source == "file" ? 0 : s.count;
-  if (quiet || (particles < 200'000 && config.sim.beam.rays < 1'000'000)) return;
+  if (quiet || stop_requested().load() || (particles < 200'000 && config.sim.beam.rays < 1'000'000)) return;
   std::fprintf(stderr, "beampack: setting up %zu particles and %zu rays a pulse (packing, contacts, ray scene)\n",
                particles, config.sim.beam.rays);
 }
@@ -702,6 +714,7 @@ void carry_earlier_files(const fs::path& from, const fs::path& to, const RunReco
 }
 
 int run_command(const RunOptions& options) {
+  note_reading_input();
   if (!options.resume.empty() && (!options.sources.file.empty() || !options.sources.preset.empty() ||
                                   !options.sources.sets.empty()))
     throw InputError("--resume " + options.resume +
@@ -843,6 +856,7 @@ std::vector<std::string> sweep_values(const SweepOptions& options) {
 }
 
 int sweep_command(const SweepOptions& options) {
+  note_reading_input();
   const std::vector<std::string> values = sweep_values(options);
   const OutDir out_folder(options.run.out_dir);
   const auto threads = limit_threads(options.run.threads);

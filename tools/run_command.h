@@ -33,6 +33,9 @@ void install_interrupt_handler();
 // it at once instead of after it. Null when interrupted; the set-up is then left running, and
 // the command's exit_code ends the process.
 std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config);
+// A command that sets up runs calls this before it reads its input: an interrupt then says that
+// the run ends once the read does (it is not cut short), not "after the current step".
+void note_reading_input();
 // `code`, for main to return; when an interrupted set-up is still running on its thread, the
 // process ends here instead, with `code`, once stdout and stderr are flushed: the static
 // destructors (TBB's, Embree's) must not run under that thread.

@@ -72,7 +72,7 @@ constexpr Cap kTimeScaling{1e12, "(1e6 times the paper's M = 1e6; M multiplies e
                                  "beyond it they overflow)"};
 // packing.radius: Embree traces in floats; at 1e20 m no ray met a particle (nothing absorbed,
 // without a word), and from 1e3 m the heat ledger opened.
-constexpr Cap kFileRadius{1e6, "m (the largest sample.size; far larger particles are lost to the rays' float "
+constexpr Cap kFileRadius{kMaxParticleRadius, "m (the largest sample.size; far larger particles are lost to the rays' float "
                                "arithmetic)"};
 
 // `value` of `key`, refused above the cap with its reason (Params::number states a range only).
