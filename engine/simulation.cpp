@@ -252,14 +252,9 @@ bool Simulation::step() {
     // that would only alternate between two sets of phases (a particle melts when traced solid
     // and stays solid when traced liquid) stop at the second pass of the cycle, whatever the cap.
     if (!optics_changed(seen)) break;
-    const bool capped = pass >= spec_.max_staggers;
-    if (capped && pass == 0) {  // no redo allowed: no phases to compare (max_staggers = 0)
-      ++counts_.capped_stagger_steps;
-      break;
-    }
     PhaseOverride next = optics_after_step();
     const bool cycle = pass > 0 && next == seen_before;
-    if (cycle || capped) {
+    if (cycle || pass >= spec_.max_staggers) {
       ++(cycle ? counts_.stagger_cycles : counts_.capped_stagger_steps);
       break;
     }
