@@ -161,9 +161,8 @@ void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>
                   const std::string& where) {
   require(centre.allFinite(), where + "its centre is not a finite number");
   require(r > 0, where + "radius r = " + str(r) + ": must be > 0");
-  require(r <= kMaxParticleRadius, where + "radius r = " + str(r) + ": must be <= " + str(kMaxParticleRadius) +
-                                       " m (the largest sample.size; far larger spheres are lost to the "
-                                       "ray scene's float bounds)");
+  require(r <= kMaxParticleRadius,
+          where + "radius r = " + str(r) + ": must be <= " + str(kMaxParticleRadius) + " " + kMaxParticleRadiusWhy);
   const double volume = 4.0 / 3.0 * std::numbers::pi * r * r * r;
   require(volume > 0 && std::isfinite(volume),
           where + "radius r = " + str(r) + ": its volume " + str(volume) +

@@ -28,9 +28,11 @@ Particles make_packing(const PackingSpec& spec);
 // for a file, the median of its radii (the paper's R when sizes differ, remark after (3.11)),
 // read from the file, 0 for an empty one.
 double packing_radius(const PackingSpec& spec);
-// The largest radius a particle may have, m: the largest sample.size. Far larger spheres are lost
-// to the ray scene's float bounds (at 1e20 m no ray met one, without a word).
+// The largest radius a particle may have, m, and why, as error messages give it after
+// "must be <= 1e+06" (a file's radius and packing.radius alike): at 1e20 m no ray met one.
 constexpr double kMaxParticleRadius = 1e6;
+constexpr const char* kMaxParticleRadiusWhy =
+    "m (the largest sample.size; far larger spheres are lost to the ray scene's float bounds)";
 // The checks every sphere of a packing file passes (a checkpoint's too): a radius in
 // (0, kMaxParticleRadius], and centre +- radius finite. InputError prefixed by
 // `where`, naming the file's column of x, y or z (centre_columns) that overflows.

@@ -490,6 +490,7 @@ TEST(Cli, NumbersBeyondTheArithmeticAreRefusedAndTheLimitsRun) {
   const Result radius = run("run " + file_packing + " --set packing.radius=1e6 --quiet --out " +
                             (dir / "radius").string());
   EXPECT_EQ(radius.code, 0) << radius.output;
+  EXPECT_NE(radius.output.find("the heat ledger is open"), std::string::npos) << radius.output;
 }
 
 // A FIFO or a device given as the run file or the packing file is refused before it is opened:

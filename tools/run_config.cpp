@@ -70,10 +70,9 @@ constexpr Cap kDensity{1e12, "kg/m^3 (4e7 times osmium's; beyond it a step's war
                              "round-off: the heat ledger opens)"};
 constexpr Cap kTimeScaling{1e12, "(1e6 times the paper's M = 1e6; M multiplies every temperature rise, and far "
                                  "beyond it they overflow)"};
-// packing.radius: Embree traces in floats; at 1e20 m no ray met a particle (nothing absorbed,
-// without a word), and from 1e3 m the heat ledger opened.
-constexpr Cap kFileRadius{kMaxParticleRadius, "m (the largest sample.size; far larger particles are lost to the rays' float "
-                               "arithmetic)"};
+// packing.radius: the limit of every particle's radius (geometry/packing.h); from 1e3 m the heat
+// ledger opens already (a warning says so).
+constexpr Cap kFileRadius{kMaxParticleRadius, kMaxParticleRadiusWhy};
 
 // `value` of `key`, refused above the cap with its reason (Params::number states a range only).
 // The value is shown in full: 1.0000001e+20 is not "1e+20" above a limit of 1e+20.
