@@ -287,7 +287,7 @@ struct KeyUse {
   std::string needs;
 };
 
-// A key set in this run (--set, a swept value) that the scene does not read would give the
+// Keys the scene does not read. One set in this run (--set, a swept value) would give the
 // numbers of a run without it, without a word: refused. A preset or a run file may hold it
 // (`beampack config` prints every key; a user may switch a preset's profile away from its
 // beam.decay), and so may a sweep over the deciding key (beam.profile), whose other runs use it.
@@ -295,8 +295,8 @@ struct KeyUse {
 // (returned, for the command to print once) rather than a refusal.
 // pulses.xi is among them unless `xi_always_read` (converge's time-step ladder uses it whatever the
 // pulse duration); a sweep over thermal.dt, its other decider, may hold it too.
-std::vector<std::string> refuse_unread_keys(const Params& p, const SimulationSpec& s,
-                                            const PaperStepUse& paper, bool xi_always_read) {
+std::vector<std::string> check_unread_keys(const Params& p, const SimulationSpec& s,
+                                           const PaperStepUse& paper, bool xi_always_read) {
   const std::string& source = s.packing.source;
   const std::string is_source = " (it is " + p.shown("packing.source") + ")";
   const std::string is_profile = " (it is " + p.shown("beam.profile") + ")";
@@ -367,7 +367,7 @@ RunConfig read_config(Params& p, const RunSources& sources) {
   c.output.frames = p.flag("output.frames", false);
   c.output.rays = p.flag("output.rays", false);
   p.check_all_used();  // first: a misspelt key is named before what it would have changed
-  c.ignored_keys = refuse_unread_keys(p, c.sim, use, sources.xi_always_read);
+  c.ignored_keys = check_unread_keys(p, c.sim, use, sources.xi_always_read);
   derive_paper_step(c, use);
   check_steps_per_crossing(p, c.sim, use.dt);
   validate_beam(c.sim.beam, c.sim.packing.sample_size);
