@@ -32,8 +32,10 @@ PolarisedReflection reflect_polarised(const Vec3& d, const Vec3& n, const Vec3& 
   const double norm = field.norm();
   // At most 1: at a tangent hit both amplitudes are 1 and the field's split rounds up (by ~1e-15),
   // which made the absorbed share a tiny negative energy, refused mid-run.
-  const double reflectance = std::min(r_par * r_par * a_par * a_par + r_perp * r_perp * a_perp * a_perp, 1.0);
-  return {reflectance, norm > 0.0 ? Vec3(field / norm) : s};  // R = 0: nothing goes on; any unit field will do
+  const double reflectance =
+      std::min(r_par * r_par * a_par * a_par + r_perp * r_perp * a_perp * a_perp, 1.0);
+  // R = 0: nothing goes on; any unit field will do.
+  return {reflectance, norm > 0.0 ? Vec3(field / norm) : s};
 }
 
 Reflectances reflectance_components(double cos_i, std::complex<double> n_hat, double mu_hat) {

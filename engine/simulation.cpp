@@ -315,9 +315,10 @@ void Simulation::check_ledgers_close() const {
   for (std::size_t i = 0; i < particles_.size(); ++i)
     if (particles_.alive[i]) heat_content += thermal_->thermal_mass(i) * particles_.temperature[i];
   const double roundoff = 1e-12 * heat_content * double(counts_.steps);
-  BEAMPACK_DCHECK(std::abs(e.heat_imbalance()) <= EnergyLedger::heat_tolerance(spec_.thermal.tolerance) * scale + roundoff,
-                  "heat ledger open by %g J (absorbed %g, stored %g, vaporised %g, walls %g J)", e.heat_imbalance(),
-                  e.absorbed, e.stored, e.vaporized, e.walls);
+  BEAMPACK_DCHECK(std::abs(e.heat_imbalance()) <=
+                      EnergyLedger::heat_tolerance(spec_.thermal.tolerance) * scale + roundoff,
+                  "heat ledger open by %g J (absorbed %g, stored %g, vaporised %g, walls %g J)",
+                  e.heat_imbalance(), e.absorbed, e.stored, e.vaporized, e.walls);
 }
 
 // The phase whose index the rays see: a particle that vaporised in this step is still hit during

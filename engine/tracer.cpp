@@ -524,7 +524,8 @@ bool Tracer::step_ray(std::uint32_t r, double end_clock, Chunk& c) {
     s.bounces[r] += 1;
     // A ray left with nothing ends whatever the cutoff: with optics.cutoff = 0 it would bounce on
     // carrying 0 J, and its flight would lengthen a "pulse" step (and delay an "auto" pulse).
-    if (carried == 0.0 || carried < spec_.cutoff * s.initial_energy[r] || s.bounces[r] >= spec_.max_bounces) {
+    if (carried == 0.0 || carried < spec_.cutoff * s.initial_energy[r] ||
+        s.bounces[r] >= spec_.max_bounces) {
       c.events.push_back({r, kCutoffBin, carried});  // MODEL.md 3b, 3c
       end_ray(r, event, c);  // its direction and origin are not updated (fewer stores per ray)
       return false;

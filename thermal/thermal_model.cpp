@@ -665,15 +665,15 @@ bool ThermalModel::solve_change(const SparseMatrix& a, const Eigen::VectorXd& c,
 
 // Stiff steps (dt phi G >> c, e.g. K = 1e9 or a long cooling step): on a cluster that is
 // insulated, or touches walls of little conductance, A = C + dt phi (L + W) is nearly singular:
-// its constant vector has eigenvalue ~ c, next to others ~ dt phi G up to 1e18 times larger. A factorisation of A then loses the cluster's mean
-// temperature, i.e. its energy (heat appeared, the maximum principle broke by kelvins), and
-// meets zero pivots. Grounding one particle r per cluster, A' = A + a_rr e_r e_r^T, makes the
-// matrix as well conditioned as the contact graph. The exact solution is theta = y + alpha u with
-// A' y = rhs and A' u = e_r: every row but r holds for any alpha, and row r holds exactly when
-// the cluster's energy balance does, 1^T A theta = w^T theta = 1^T rhs, with w = c + dt phi W
-// (1^T L = 0 over a cluster). That fixes alpha = (1^T rhs - w^T y) / w^T u: Sherman-Morrison with
-// its ill-conditioned scalar replaced by the conservation law. One factorisation, two solves (all
-// clusters at once).
+// its constant vector has eigenvalue ~ c, next to others ~ dt phi G up to 1e18 times larger. A
+// factorisation of A then loses the cluster's mean temperature, i.e. its energy (heat appeared,
+// the maximum principle broke by kelvins), and meets zero pivots. Grounding one particle r per
+// cluster, A' = A + a_rr e_r e_r^T, makes the matrix as well conditioned as the contact graph.
+// The exact solution is theta = y + alpha u with A' y = rhs and A' u = e_r: every row but r holds
+// for any alpha, and row r holds exactly when the cluster's energy balance does,
+// 1^T A theta = w^T theta = 1^T rhs, with w = c + dt phi W (1^T L = 0 over a cluster). That fixes
+// alpha = (1^T rhs - w^T y) / w^T u: Sherman-Morrison with its ill-conditioned scalar replaced by
+// the conservation law. One factorisation, two solves (all clusters at once).
 void ThermalModel::solve_direct_grounded(const System& s, SparseMatrix& a, const Eigen::VectorXd& w,
                                          const Eigen::VectorXd& rhs, Eigen::VectorXd& theta1,
                                          StepReport& report) {

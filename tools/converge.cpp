@@ -121,8 +121,9 @@ int converge_command(const RunOptions& options) {
       const TemperatureError t = temperature_error(r, ref);
       std::ostringstream row;
       row << ladder.name << ',' << ladder.key << ',' << rung.value << ',' << exact(r.wall_seconds)
-          << ',' << r.counts.steps << ',' << r.counts.rays << ',' << exact(r.figures.vaporized_fraction)
-          << ',' << exact(vv_error) << ',' << exact(t.l2) << ',' << exact(t.max) << ',' << t.compared << '\n';
+          << ',' << r.counts.steps << ',' << r.counts.rays << ','
+          << exact(r.figures.vaporized_fraction) << ',' << exact(vv_error) << ',' << exact(t.l2)
+          << ',' << exact(t.max) << ',' << t.compared << '\n';
       csv += row.str();
       std::printf("%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %.3g K\n", ladder.name.c_str(),
                   rung.value.c_str(), r.wall_seconds, r.figures.vaporized_fraction, vv_error, t.l2);

@@ -79,10 +79,12 @@ void on_interrupt(int signal) {
   stop_requested().store(true);
   if (setting_up.load()) return;  // the set-up ends at once; the main thread says so
   static constexpr char kNote[] = "\nbeampack: stopping after the current step; interrupt again to quit at once\n";
-  static constexpr char kReading[] = "\nbeampack: interrupted while the input is read: the run ends when the "
-                                     "read does, before its set-up; interrupt again to quit at once\n";
-  [[maybe_unused]] const auto written =
-      reading_input.load() ? ::write(STDERR_FILENO, kReading, sizeof kReading - 1) : ::write(STDERR_FILENO, kNote, sizeof kNote - 1);
+  static constexpr char kReading[] =
+      "\nbeampack: interrupted while the input is read: the run ends when the read does, before its "
+      "set-up; interrupt again to quit at once\n";
+  [[maybe_unused]] const auto written = reading_input.load()
+                                            ? ::write(STDERR_FILENO, kReading, sizeof kReading - 1)
+                                            : ::write(STDERR_FILENO, kNote, sizeof kNote - 1);
 }
 
 }  // namespace
