@@ -14,6 +14,7 @@
 #include "tools/run_command.h"
 #include "tools/run_config.h"
 #include "tools/svg_plot.h"
+#include "tools/writers.h"
 
 namespace beampack::tools {
 namespace {
@@ -23,6 +24,21 @@ EnergyLedger closed_ledger() {
   e.injected = 1.0, e.absorbed = 0.6, e.escaped = 0.3, e.cutoff = 0.1;
   e.stored = 0.5, e.vaporized = 0.1;
   return e;
+}
+
+// An output file is written beside itself and renamed into place; a fill that throws (an error or
+// an interrupt mid-write) leaves neither the file nor its temporary behind.
+TEST(RunReport, AWriteThatThrowsLeavesNoFileBehind) {
+  const auto dir = beampack::testing::process_dir() / "throwing_write";
+  std::filesystem::create_directories(dir);
+  const auto path = dir / "summary.json";
+  EXPECT_THROW(write_atomically(path.string(),
+                                [](std::ostream& o) {
+                                  o << "half";
+                                  throw std::runtime_error("stopped");
+                                }),
+               std::runtime_error);
+  EXPECT_TRUE(std::filesystem::is_empty(dir)) << "a temporary file was left in " << dir;
 }
 
 // converge's temperature errors: a particle vaporised in either run keeps the temperature it left

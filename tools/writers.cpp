@@ -23,7 +23,13 @@ void write_atomically(const std::string& path, const std::function<void(std::ost
     std::ofstream out(tmp, std::ios::binary);
     // A failed run, not bad input: the command checked --out was writable before it started.
     if (!out) throw RunError("output file \"" + path + "\": cannot write in its directory");
-    fill(out);
+    try {
+      fill(out);
+    } catch (...) {  // an error or an interrupt while filling: leave no half-written file behind
+      out.close();
+      std::filesystem::remove(tmp);
+      throw;
+    }
     out.flush();
     if (!out) {
       std::filesystem::remove(tmp);
