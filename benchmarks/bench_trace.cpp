@@ -12,6 +12,7 @@
 //   trace/scene_mode, trace/cluster, trace/grid_cell: design choices; trace/grid_batch: the grid
 //       walk alone, one ray at a time or interleaved.
 //   scene_update/<mode>/<pattern>/<N>: removing 1% of the spheres, random or under the beam.
+//   trace/far_frame/<offset>/<N>/<rays>: the workload on a packing moved far from the origin.
 // Counters: primary and bounced segments per second (whole-workload time).
 #include <benchmark/benchmark.h>
 #include <embree3/rtcore.h>  // the baselines call Embree directly on purpose
@@ -122,6 +123,29 @@ void run_tracer(benchmark::State& state, const OpticsSpec& spec) {
   for (auto _ : state) {
     const auto [p, b] = run.pulse();
     primary += p, bounced += b;
+  }
+  set_counters(state, primary, bounced);
+}
+
+// ---- a packing far from the origin -----------------------------------------------------------
+// trace/far_frame/<offset m>/<N>/<rays>: the workload (n = 1.4, all bounces) on the packing moved
+// by `offset` along every axis, lit from 1000 m upstream when moved (float spacing at 500 m is
+// 6e-5 m, a radius at 10^5 spheres). The scene works relative to the packing's centre and takes
+// each ray from where it enters the packing's box, so both rows should trace alike.
+
+void run_far_frame(benchmark::State& state, double offset) {
+  Particles p = packing(spheres_of(state));
+  const Vec3 shift = Vec3::Constant(offset);
+  for (Vec3& c : p.centre) c += shift;
+  Beam beam = paper_beam(rays_of(state));
+  const Vec3 upstream = shift - (offset > 0 ? 1000.0 : 0.0) * beam.direction;
+  beam.centre += upstream;
+  for (Vec3& o : beam.origin) o += upstream;
+  TracerPulses run(p, tracer_spec(true, 1.4, 1000), beam);
+  double primary = 0, bounced = 0;
+  for (auto _ : state) {
+    const auto [a, b] = run.pulse();
+    primary += a, bounced += b;
   }
   set_counters(state, primary, bounced);
 }
@@ -620,6 +644,11 @@ void register_all() {
           [n_hat, reuse](benchmark::State& s) { run_paired(s, n_hat, 1000, reuse); })
           ->Apply(paired_sizes)->Iterations(9);
   }
+  for (double offset : {0.0, 500.0})
+    benchmark::RegisterBenchmark(("trace/far_frame/" + std::to_string(static_cast<int>(offset))).c_str(),
+                                 [offset](benchmark::State& s) { run_far_frame(s, offset); })
+        ->Args({100000, static_cast<long>(kRays)})->Unit(benchmark::kMillisecond)->MinTime(min_time())
+        ->UseRealTime();
   benchmark::RegisterBenchmark("trace/primary/tracer_packets",
                                [](benchmark::State& s) { run_tracer(s, tracer_spec(true, 1.4, 1)); })->Apply(sizes);
   benchmark::RegisterBenchmark("trace/primary/tracer_single", [](benchmark::State& s) {

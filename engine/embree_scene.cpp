@@ -40,6 +40,7 @@ bool is_removed(const SphereRecord& s) { return !(s.radius > 0.0); }  // also r 
 // pointers start at the geometry's first sphere; a primitive is a cluster of `per_prim`
 // consecutive spheres (1 by default; the last cluster may be shorter).
 struct SphereSet {
+  Vec3 frame;  // Embree's float coordinates are taken relative to it (the scene's centre)
   const SphereRecord* spheres;
   const std::uint32_t* particle;  // particle id of each sphere
   std::uint32_t first;            // Morton rank of sphere 0
@@ -57,6 +58,7 @@ struct QueryContext {
   double slack;                 // absolute pad of the float culling distance
   float prefilter_pad;          // 10 slack: the packet prefilter's margin
   std::uint32_t skip_rank[16];  // per lane: Morton rank of the sphere just left (no id lookup)
+  double shift[16];             // per lane: Embree's t = the double t - shift (clip_to_scene)
 };
 
 float round_down(double x) {
@@ -86,7 +88,8 @@ void sphere_bounds(const RTCBoundsFunctionArguments* args) {
   for (std::uint32_t k = set->begin(args->primID); k < set->end(args->primID); ++k) {
     const SphereRecord& s = set->spheres[k];
     if (is_removed(s)) continue;
-    box.grow(s.centre, s.radius + kFloatPad * (s.radius + s.centre.cwiseAbs().maxCoeff()));
+    const Vec3 centre = s.centre - set->frame;
+    box.grow(centre, s.radius + kFloatPad * (s.radius + centre.cwiseAbs().maxCoeff()));
   }
   RTCBounds* b = args->bounds_o;
   if (box.empty()) {
@@ -114,10 +117,11 @@ bool improves(const RayQuery& q, unsigned id, double t, std::uint32_t p) {
 #if defined(__SSE2__) && !defined(BEAMPACK_NO_SSE)
 template <unsigned W>
 std::uint32_t packet_candidates(const int* valid, RTCRayN* rays, const SphereRecord& sphere,
-                                float pad) {
-  const __m128 cx = _mm_set1_ps(static_cast<float>(sphere.centre.x()));
-  const __m128 cy = _mm_set1_ps(static_cast<float>(sphere.centre.y()));
-  const __m128 cz = _mm_set1_ps(static_cast<float>(sphere.centre.z()));
+                                const Vec3& frame, float pad) {
+  const Vec3 c = sphere.centre - frame;
+  const __m128 cx = _mm_set1_ps(static_cast<float>(c.x()));
+  const __m128 cy = _mm_set1_ps(static_cast<float>(c.y()));
+  const __m128 cz = _mm_set1_ps(static_cast<float>(c.z()));
   const float r = static_cast<float>(sphere.radius) + pad;
   const __m128 reach2 = _mm_set1_ps(r * r), minus_reach = _mm_set1_ps(-r);
   std::uint32_t bits = 0;
@@ -147,9 +151,10 @@ std::uint32_t packet_candidates(const int* valid, RTCRayN* rays, const SphereRec
 // built on x86 with -DBEAMPACK_NO_SSE to test it).
 template <unsigned W>
 std::uint32_t packet_candidates(const int* valid, RTCRayN* rays, const SphereRecord& sphere,
-                                float pad) {
-  const float cx = static_cast<float>(sphere.centre.x()), cy = static_cast<float>(sphere.centre.y()),
-              cz = static_cast<float>(sphere.centre.z());
+                                const Vec3& frame, float pad) {
+  const Vec3 c = sphere.centre - frame;
+  const float cx = static_cast<float>(c.x()), cy = static_cast<float>(c.y()),
+              cz = static_cast<float>(c.z());
   const float r = static_cast<float>(sphere.radius) + pad;
   std::uint32_t bits = 0;
   for (unsigned i = 0; i < W; ++i) {
@@ -166,10 +171,10 @@ std::uint32_t packet_candidates(const int* valid, RTCRayN* rays, const SphereRec
 #endif
 
 std::uint32_t candidates(const RTCIntersectFunctionNArguments* args, const SphereRecord& sphere,
-                         float pad) {
+                         const Vec3& frame, float pad) {
   RTCRayN* rays = RTCRayHitN_RayN(args->rayhit, args->N);
-  if (args->N == 16) return packet_candidates<16>(args->valid, rays, sphere, pad);
-  if (args->N == 8) return packet_candidates<8>(args->valid, rays, sphere, pad);
+  if (args->N == 16) return packet_candidates<16>(args->valid, rays, sphere, frame, pad);
+  if (args->N == 8) return packet_candidates<8>(args->valid, rays, sphere, frame, pad);
   std::uint32_t bits = 0;
   for (unsigned i = 0; i < args->N; ++i) bits |= static_cast<std::uint32_t>(args->valid[i] == -1) << i;
   return bits;
@@ -190,7 +195,8 @@ void intersect_sphere(const RTCIntersectFunctionNArguments* args, const SphereSe
   RTCRayN* rays = RTCRayHitN_RayN(args->rayhit, args->N);
   unsigned lanes[16], ids[16], m = 0;
   double t[16];
-  for (std::uint32_t bits = candidates(args, sphere, ctx.prefilter_pad); bits != 0; bits &= bits - 1) {
+  for (std::uint32_t bits = candidates(args, sphere, set.frame, ctx.prefilter_pad); bits != 0;
+       bits &= bits - 1) {
     const unsigned i = static_cast<unsigned>(__builtin_ctz(bits));
     lanes[m] = i, ids[m] = RTCRayN_id(rays, args->N, i);
     m += ctx.skip_rank[i] != rank;  // never the sphere the ray has just left
@@ -205,7 +211,8 @@ void intersect_sphere(const RTCIntersectFunctionNArguments* args, const SphereSe
     q.particle[id] = p;
     // The normal now, while the sphere is in cache; the tracer needs it in double.
     if (q.normal) q.normal[id] = entry_normal(q.origin[id], q.direction[id], t[j], sphere.centre, sphere.radius);
-    RTCRayN_tfar(rays, args->N, lanes[j]) = culling_distance(t[j], ctx.slack);
+    const double from_clip = std::max(t[j] - ctx.shift[lanes[j]], 0.0);  // >= 0 but for round-off
+    RTCRayN_tfar(rays, args->N, lanes[j]) = culling_distance(from_clip, ctx.slack);
   }
 }
 
@@ -257,7 +264,33 @@ struct EmbreeScene::Impl {
   std::size_t brick_size = 0;              // spheres per geometry (bricks mode: contiguous runs)
   std::vector<SphereSet> sets;             // one per geometry
   std::vector<RTCGeometry> geometries;
+  // Embree sees coordinates relative to `frame`, the centre of the live spheres' box, and rays
+  // clipped to `reach`, that box padded (clip_to_scene): float spacing then scales with the
+  // packing's size, not with its distance from the origin or the rays' from it.
+  Vec3 frame = Vec3::Zero();
+  Box reach;
   double slack = 0.0;
+
+  // Embree's frame and float margins from the live spheres' box. A sample far from the origin (a
+  // DEM frame in metres, spheres of microns) has float spacing of many radii in world
+  // coordinates: bounds padded for it overlapped by hundreds of radii, and tracing was 26 times
+  // slower. Relative to the box's centre, and with rays clipped to the box (clip_to_scene), float
+  // error scales with the box; the slack covers it, and the double round-off of world
+  // coordinates besides.
+  void set_frame(const Box& box) {
+    if (box.empty()) return;
+    frame = 0.5 * (box.lower + box.upper);
+    const Vec3 half = 0.5 * (box.upper - box.lower);
+    const double world = box.lower.cwiseAbs().cwiseMax(box.upper.cwiseAbs()).maxCoeff();
+    slack = kFloatPad * (2.0 * half.norm() + half.maxCoeff()) + 1e-12 * world;
+    reach = box;
+    reach.lower.array() -= 4.0 * slack;
+    reach.upper.array() += 4.0 * slack;
+  }
+
+  // Ray `id` clipped to the scene, as Embree's single ray with its context: false when no sphere
+  // can improve on the ray's nearest hit (nothing to trace).
+  bool single_ray(const RayQuery& query, std::uint32_t id, QueryContext& ctx, RTCRay& ray) const;
 
   std::uint32_t rank_of(std::uint32_t p) const { return p < rank.size() ? rank[p] : kNoParticle; }
 
@@ -347,19 +380,13 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
   im.brick_size = update == SceneUpdate::bricks
                       ? per_prim * std::max<std::size_t>(1, particles_per_brick / per_prim)
                       : std::max<std::size_t>(1, n);
-  const Box box = particles.bounds();
-  // Float error of a ray or a centre scales with the size of its coordinates, not of the box:
-  // a sample far from the origin (a DEM frame at metres, spheres of microns) has float spacing
-  // of many radii, and a pad sized to the box alone let the packet prefilter drop real hits.
-  im.slack = box.empty() ? 0.0
-                         : kFloatPad * ((box.upper - box.lower).norm() +
-                                        box.lower.cwiseAbs().cwiseMax(box.upper.cwiseAbs()).maxCoeff());
+  im.set_frame(particles.bounds());
   const std::size_t geometries = std::max<std::size_t>(1, (n + im.brick_size - 1) / im.brick_size);
   im.sets.reserve(geometries);
   for (std::size_t b = 0; b < geometries; ++b) {
     const std::size_t first = b * im.brick_size;
     const std::size_t count = std::min(n, first + im.brick_size) - std::min(n, first);
-    im.sets.push_back({im.spheres.data() + first, im.particle.data() + first,
+    im.sets.push_back({im.frame, im.spheres.data() + first, im.particle.data() + first,
                        static_cast<std::uint32_t>(first), static_cast<std::uint32_t>(count),
                        static_cast<std::uint32_t>(per_prim)});
     RTCGeometry g = rtcNewGeometry(im.device, RTC_GEOMETRY_TYPE_USER);
@@ -431,21 +458,46 @@ QueryContext make_context(const RayQuery& query, double slack, bool coherent) {
   return ctx;
 }
 
-// The float ray Embree traverses for ray `id`: the double ray rounded, its far end padded so that
-// no sphere the double test accepts is culled.
-RTCRay float_ray(const RayQuery& query, std::uint32_t id, double slack) {
-  const Vec3& o = query.origin[id];
-  const Vec3& d = query.direction[id];
+// Where a ray enters `reach`, the padded box of the live spheres: the distance t0 >= 0 from which
+// Embree traverses it, or -1 when it misses the box or meets it only beyond t_hit, its nearest
+// hit so far (no sphere can then improve on it). A primary ray starting far from the packing is
+// thus handed to Embree at the packing, not across the float spacing of its distance.
+double clip_to_scene(const Box& reach, const Vec3& o, const Vec3& d, double t_hit) {
+  if (reach.empty()) return -1.0;
+  double t0 = 0.0, t1 = t_hit;
+  for (int a = 0; a < 3; ++a) {
+    if (d[a] == 0.0) {
+      if (o[a] < reach.lower[a] || o[a] > reach.upper[a]) return -1.0;
+      continue;
+    }
+    const double ta = (reach.lower[a] - o[a]) / d[a], tb = (reach.upper[a] - o[a]) / d[a];
+    t0 = std::max(t0, std::min(ta, tb));
+    t1 = std::min(t1, std::max(ta, tb));
+  }
+  // Backed off by far more than the round-off of t0 (a few ulps of a ray's distance from the box).
+  return t0 <= t1 ? t0 * (1.0 - 1e-12) : -1.0;
+}
+
+// The float ray Embree traverses for a double ray clipped at t0: its origin o + t0 d relative to
+// the frame, rounded; its far end the nearest hit so far, less t0, padded so that no sphere the
+// double test accepts is culled.
+struct FloatRay {
+  float org[3], dir[3], tfar;
+};
+FloatRay float_ray(const Vec3& o, const Vec3& d, double t_hit, double t0, const Vec3& frame,
+                   double slack) {
+  const Vec3 start = o + t0 * d - frame;
+  return {{static_cast<float>(start.x()), static_cast<float>(start.y()), static_cast<float>(start.z())},
+          {static_cast<float>(d.x()), static_cast<float>(d.y()), static_cast<float>(d.z())},
+          t_hit < kInf ? culling_distance(t_hit - t0, slack) : std::numeric_limits<float>::infinity()};
+}
+
+RTCRay rtc_ray(const FloatRay& f, std::uint32_t id) {
   RTCRay ray;
-  ray.org_x = static_cast<float>(o.x());
-  ray.org_y = static_cast<float>(o.y());
-  ray.org_z = static_cast<float>(o.z());
-  ray.dir_x = static_cast<float>(d.x());
-  ray.dir_y = static_cast<float>(d.y());
-  ray.dir_z = static_cast<float>(d.z());
+  ray.org_x = f.org[0], ray.org_y = f.org[1], ray.org_z = f.org[2];
+  ray.dir_x = f.dir[0], ray.dir_y = f.dir[1], ray.dir_z = f.dir[2];
   ray.tnear = 0.0f;
-  ray.tfar = query.t_hit[id] < kInf ? culling_distance(query.t_hit[id], slack)
-                                    : std::numeric_limits<float>::infinity();
+  ray.tfar = f.tfar;
   ray.time = 0.0f;
   ray.mask = 0xFFFFFFFFu;
   ray.id = id;
@@ -455,11 +507,23 @@ RTCRay float_ray(const RayQuery& query, std::uint32_t id, double slack) {
 
 }  // namespace
 
+bool EmbreeScene::Impl::single_ray(const RayQuery& query, std::uint32_t id, QueryContext& ctx,
+                                   RTCRay& ray) const {
+  const Vec3& o = query.origin[id];
+  const Vec3& d = query.direction[id];
+  const double t0 = clip_to_scene(reach, o, d, query.t_hit[id]);
+  if (t0 < 0.0) return false;
+  ctx = make_context(query, slack, false);
+  ctx.skip_rank[0] = rank_of(query.skip[id]);
+  ctx.shift[0] = t0;
+  ray = rtc_ray(float_ray(o, d, query.t_hit[id], t0, frame, slack), id);
+  return true;
+}
+
 void EmbreeScene::intersect1(const RayQuery& query, std::uint32_t id) const {
-  QueryContext ctx = make_context(query, impl_->slack, false);
-  ctx.skip_rank[0] = impl_->rank_of(query.skip[id]);
+  QueryContext ctx;
   RTCRayHit rh;
-  rh.ray = float_ray(query, id, impl_->slack);
+  if (!impl_->single_ray(query, id, ctx, rh.ray)) return;
   rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
   rtcIntersect1(impl_->scene, &ctx.base, &rh);
@@ -467,41 +531,42 @@ void EmbreeScene::intersect1(const RayQuery& query, std::uint32_t id) const {
 
 void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, int count,
                               bool coherent) const {
-  QueryContext ctx = make_context(query, impl_->slack, coherent);
+  const Impl& im = *impl_;
+  QueryContext ctx = make_context(query, im.slack, coherent);
   alignas(64) RTCRayHit16 rh;
   alignas(64) int valid[16];
+  bool any = false;
   // The lanes' own values first, then the fields every lane shares, field by field (stores the
-  // compiler can make whole vectors of).
+  // compiler can make whole vectors of). A lane that cannot meet a sphere is left out.
   for (int i = 0; i < 16; ++i) {
-    valid[i] = i < count ? -1 : 0;
     const std::uint32_t id = i < count ? ids[i] : ids[0];
-    ctx.skip_rank[i] = impl_->rank_of(query.skip[id]);
     const Vec3& o = query.origin[id];
     const Vec3& d = query.direction[id];
-    rh.ray.org_x[i] = static_cast<float>(o.x());
-    rh.ray.org_y[i] = static_cast<float>(o.y());
-    rh.ray.org_z[i] = static_cast<float>(o.z());
-    rh.ray.dir_x[i] = static_cast<float>(d.x());
-    rh.ray.dir_y[i] = static_cast<float>(d.y());
-    rh.ray.dir_z[i] = static_cast<float>(d.z());
-    rh.ray.tfar[i] = query.t_hit[id] < kInf
-                         ? culling_distance(query.t_hit[id], impl_->slack)
-                         : std::numeric_limits<float>::infinity();
+    const double t0 = i < count ? clip_to_scene(im.reach, o, d, query.t_hit[id]) : -1.0;
+    valid[i] = t0 >= 0.0 ? -1 : 0;
+    any |= t0 >= 0.0;
+    ctx.skip_rank[i] = im.rank_of(query.skip[id]);
+    ctx.shift[i] = std::max(t0, 0.0);
+    const FloatRay f = float_ray(o, d, query.t_hit[id], ctx.shift[i], im.frame, im.slack);
+    rh.ray.org_x[i] = f.org[0], rh.ray.org_y[i] = f.org[1], rh.ray.org_z[i] = f.org[2];
+    rh.ray.dir_x[i] = f.dir[0], rh.ray.dir_y[i] = f.dir[1], rh.ray.dir_z[i] = f.dir[2];
+    rh.ray.tfar[i] = f.tfar;
     rh.ray.id[i] = id;
   }
+  if (!any) return;
   std::fill(std::begin(rh.ray.tnear), std::end(rh.ray.tnear), 0.0f);
   std::fill(std::begin(rh.ray.time), std::end(rh.ray.time), 0.0f);
   std::fill(std::begin(rh.ray.mask), std::end(rh.ray.mask), 0xFFFFFFFFu);
   std::fill(std::begin(rh.ray.flags), std::end(rh.ray.flags), 0u);
   std::fill(std::begin(rh.hit.geomID), std::end(rh.hit.geomID), RTC_INVALID_GEOMETRY_ID);
   std::fill(std::begin(rh.hit.instID[0]), std::end(rh.hit.instID[0]), RTC_INVALID_GEOMETRY_ID);
-  rtcIntersect16(valid, impl_->scene, &ctx.base, &rh);
+  rtcIntersect16(valid, im.scene, &ctx.base, &rh);
 }
 
 bool EmbreeScene::occluded1(const RayQuery& query, std::uint32_t id) const {
-  QueryContext ctx = make_context(query, impl_->slack, false);
-  ctx.skip_rank[0] = impl_->rank_of(query.skip[id]);
-  RTCRay ray = float_ray(query, id, impl_->slack);
+  QueryContext ctx;
+  RTCRay ray;
+  if (!impl_->single_ray(query, id, ctx, ray)) return false;
   rtcOccluded1(impl_->scene, &ctx.base, &ray);
   return ray.tfar < 0.0f;
 }

@@ -10,7 +10,10 @@
 // Precision: Embree rays are float, the physics is double. Every query carries ray ids into
 // double side arrays (RayQuery); the intersect callback runs the real test (ray_sphere_entry) in
 // double and keeps the best double t per ray. Float bounds are rounded outward and the float
-// culling distance is padded, so Embree never culls a sphere the double test would accept.
+// culling distance is padded, so Embree never culls a sphere the double test would accept. Its
+// float coordinates are relative to the packing's centre, and each ray is handed to it from where
+// the ray enters the packing's box: float spacing follows the packing's size, not its distance
+// from the origin or the beam's from it (26 times slower tracing for a bed 500 m out, before).
 #include <cstdint>
 #include <limits>
 #include <memory>

@@ -452,6 +452,42 @@ TEST(Extreme, SpheresAMillionthOfTheBoxAreNeitherMissedNorPhantom) {
   }
 }
 
+// A packing far from the origin, lit from far upstream (a bed at x = y = z = 500 m, rays starting
+// 1000 m before it, where float spacing is 6e-5 m, a radius): Embree sees the spheres relative to
+// their box's centre and each ray from where it enters the box, which keeps tracing as fast as
+// near the origin (26 times faster than world coordinates; README), and must cost no hit. Rays
+// aimed across sphere edges (inside and outside by 1e-6 R), random ones, along x and obliquely,
+// hit exactly what the double loop hits, in packets and one by one.
+TEST(Extreme, APackingFarFromTheOriginLitFromFarUpstreamMissesNoHit) {
+  const Vec3 frame(500.0, 500.0, 500.0);
+  Particles p = random_overlap_packing(300, kD, 0.325, 5);
+  for (Vec3& c : p.centre) c += frame;
+  std::mt19937_64 rng(23);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  for (const Vec3& d : {Vec3(Vec3::UnitX()), Vec3(Vec3(1.0, 0.3, -0.2).normalized())}) {
+    Vec3 a, b;  // the plane across d
+    disk_axes(d, a, b);
+    std::vector<Vec3> origins;
+    for (std::size_t i = 0; i < p.size(); ++i) {
+      for (double f : {0.0, 0.5, 1.0 - 1e-6, 1.0 + 1e-6}) {
+        const double phi = 2 * kPi * u(rng);
+        const Vec3 aim = p.centre[i] + f * p.radius[i] * (std::cos(phi) * a + std::sin(phi) * b);
+        origins.push_back(aim - (1000.0 + (aim - frame).dot(d)) * d);
+      }
+    }
+    for (int k = 0; k < 200; ++k)
+      origins.push_back(frame - 1000.0 * d + kD * (u(rng) * a + u(rng) * b));
+    for (bool packets : {true, false}) {
+      OpticsSpec spec;
+      spec.packets = packets;
+      std::uint64_t hits = 0;
+      expect_rays_match_reference(p, spec, origins, d, hits);
+      EXPECT_GE(hits, 3 * p.size()) << d.transpose();  // f = 0, 0.5, 1 - 1e-6 each hit
+      expect_beam_matches_reference(p, spec, origins, d);
+    }
+  }
+}
+
 // A thermal mass that underflows (density 1e-300) made the first solve return infinities, reported
 // as "thermal direct solver: non-finite temperature" after the run had started. It is input, and
 // refused as such, naming the keys; a small but normal mass still runs.
