@@ -294,7 +294,10 @@ struct AtomColumns {
 
 std::string joined(const std::vector<std::string_view>& words) {
   std::string s;
-  for (auto w : words) s += (s.empty() ? "" : " ") + std::string(w);
+  for (auto w : words) {
+    if (!s.empty()) s += ' ';
+    s.append(w);
+  }
   return s;
 }
 

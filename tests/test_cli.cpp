@@ -1092,6 +1092,40 @@ TEST(Cli, ALongSetUpIsAnnounced) {
   EXPECT_EQ(small.output.find("setting up"), std::string::npos) << small.output;
 }
 
+// sweep and converge announce a long set-up too, after the name of their run; a file's particles
+// are announced once it is read (the announcement came before the read, and said 0 for a file).
+TEST(Cli, EveryLongSetUpIsAnnouncedWithItsRunAndItsParticles) {
+  const fs::path dir = fresh_dir("announced_set_ups");
+  const Interrupted sweep =
+      interrupt(dir,
+                "sweep --preset zohdi2013 --param packing.count --values 200000 "
+                "--set pulses.count=0 --out " +
+                    (dir / "sweep").string(),
+                "setting up", "kill -INT $p");
+  EXPECT_NE(
+      sweep.printed.find("beampack: sweep packing.count = 200000: setting up 200000 particles and "
+                         "1000 rays a pulse"),
+      std::string::npos)
+      << sweep.printed;
+  const Interrupted converge = interrupt(
+      dir,
+      "converge --preset zohdi2013 --set packing.count=200000 --out " + (dir / "converge").string(),
+      "setting up", "kill -INT $p");
+  EXPECT_NE(converge.printed.find("beampack: time step "), std::string::npos) << converge.printed;
+  EXPECT_NE(converge.printed.find(": setting up 200000 particles and 1000 rays a pulse"),
+            std::string::npos)
+      << converge.printed;
+  const std::string file =
+      write(dir / "three.xyz", "1e-4 5e-4 5e-4 1e-5\n2e-4 5e-4 5e-4 1e-5\n3e-4 5e-4 5e-4 1e-5\n");
+  const Result read =
+      run("run --preset quick --set packing.source=file --set packing.file=" + file +
+          " --set beam.rays=1000000 --set pulses.count=0 --out " + (dir / "file").string());
+  ASSERT_EQ(read.code, 0) << read.output;
+  EXPECT_NE(read.output.find("beampack: setting up 3 particles and 1000000 rays a pulse"),
+            std::string::npos)
+      << read.output;
+}
+
 TEST(Cli, ABeamThatMeetsNoParticleIsAnnounced) {
   const fs::path out = fresh_dir("beam_misses");
   const std::string base = "run --preset quick --quiet --set pulses.count=1 --set packing.source=file ";
@@ -1360,8 +1394,11 @@ TEST(Cli, ABeamBeyondTheMachinesMemoryIsRefusedAtOnce) {
   const auto start = std::chrono::steady_clock::now();
   const Result r = run("run --preset quick --quiet --set beam.rays=100000000 --out " + fresh_dir("huge_beam").string());
   EXPECT_EQ(r.code, 2) << r.output;
-  EXPECT_NE(r.output.find("--set beam.rays=100000000: `beam.rays = 100000000`: the run needs at least"),
-            std::string::npos) << r.output;
+  EXPECT_NE(
+      r.output.find("--set beam.rays=100000000: `beam.rays` = 100000000: the run needs at least"),
+      std::string::npos)
+      << r.output;
+  EXPECT_NE(r.output.find("GB of this machine; lower `beam.rays`"), std::string::npos) << r.output;
   EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(), 5.0);
   // A run file for a larger machine can still be written.
   const Result config = run("config --preset quick --set beam.rays=100000000");

@@ -117,9 +117,13 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
     refuse_beyond_memory(rays, k24GiB);
     ADD_FAILURE() << "10^8 rays fit in 24 GiB";
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("`beam.rays = 100000000`:"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("`beam.rays` = 100000000:"), std::string::npos)
+        << e.what();
     EXPECT_NE(std::string(e.what()).find("at least 40 GB"), std::string::npos) << e.what();
-    EXPECT_NE(std::string(e.what()).find("more than the 25.8 GB of this machine"), std::string::npos) << e.what();
+    EXPECT_NE(
+        std::string(e.what()).find("more than the 25.8 GB of this machine; lower `beam.rays`"),
+        std::string::npos)
+        << e.what();
   }
   SimulationSpec particles = paper;
   particles.packing.count = 100'000'000;
@@ -127,8 +131,12 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
     refuse_beyond_memory(particles, k24GiB);
     ADD_FAILURE() << "10^8 particles fit in 24 GiB";
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("`packing.count = 100000000`: the run needs at least 40 GB with beam.rays = 1000 ("), std::string::npos)
+    EXPECT_NE(
+        std::string(e.what()).find(
+            "`packing.count` = 100000000: the run needs at least 40 GB with `beam.rays` = 1000 ("),
+        std::string::npos)
         << e.what();
+    EXPECT_NE(std::string(e.what()).find("; lower `packing.count`"), std::string::npos) << e.what();
   }
   particles.packing.source = "file";  // counted when the file is read: only the rays are known
   EXPECT_NO_THROW(refuse_beyond_memory(particles, k24GiB));
@@ -137,9 +145,13 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
     refuse_beyond_memory(particles, k24GiB, 100'000'000);  // once it is read: its particles count
     ADD_FAILURE() << "a file of 10^8 particles fits in 24 GiB";
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("`packing.file = \"bed.xyz\" (100000000 particles)`: the run needs at "
-                                         "least 40 GB with beam.rays = 1000"),
-              std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find(
+                  "`packing.file` = \"bed.xyz\" (100000000 particles): the run needs at "
+                  "least 40 GB with `beam.rays` = 1000"),
+              std::string::npos)
+        << e.what();
+    EXPECT_NE(std::string(e.what()).find("; lower the particle count"), std::string::npos)
+        << e.what();
   }
   // The contacts conduction needs: 100 bytes more per particle with a conductivity (141 measured),
   // 50 with walls alone (58 measured). 6 10^7 particles need 24 GB without them: they fit.
@@ -154,16 +166,22 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
     refuse_beyond_memory(conducting, k24GiB);
     ADD_FAILURE() << "6 10^7 conducting particles fit in 24 GiB";
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("at least 30 GB with beam.rays = 1000 (400 bytes per ray, 500 per particle "
-                                         "with its contacts)"),
-              std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find(
+                  "at least 30 GB with `beam.rays` = 1000 (400 bytes per ray, 500 per particle "
+                  "with its contacts)"),
+              std::string::npos)
+        << e.what();
   }
   rays.packing.source = "file";
   try {
     refuse_beyond_memory(rays, k24GiB);
     ADD_FAILURE() << "10^8 rays fit in 24 GiB";
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("at least 40 GB for its rays alone"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find(
+                  "`beam.rays` = 100000000: the run needs at least 40 GB for its rays alone "
+                  "(400 bytes per ray"),
+              std::string::npos)
+        << e.what();
   }
   EXPECT_GT(machine_memory(), 1e8);
 }

@@ -87,6 +87,19 @@ void on_interrupt(int signal) {
                                             : ::write(STDERR_FILENO, kNote, sizeof kNote - 1);
 }
 
+// A set-up of seconds (the packing, its contacts, the ray scene: ~11 s at 3e6 particles) passes
+// without a word before the first progress line: say what is being set up.
+bool set_up_takes_seconds(std::size_t particles, std::size_t rays) {
+  return particles >= 200'000 || rays >= 1'000'000;
+}
+
+void announce_set_up(std::size_t particles, std::size_t rays, const std::string& label) {
+  std::fprintf(
+      stderr,
+      "beampack: %ssetting up %zu particles and %zu rays a pulse (packing, contacts, ray scene)\n",
+      label.c_str(), particles, rays);
+}
+
 }  // namespace
 
 void install_interrupt_handler() {
@@ -98,7 +111,8 @@ void install_interrupt_handler() {
   std::signal(SIGPIPE, SIG_IGN);
 }
 
-std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config) {
+std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config, bool quiet,
+                                                      const std::string& label) {
   struct SetUp {
     std::mutex mutex;
     std::condition_variable finished;
@@ -112,11 +126,15 @@ std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config) {
   reading_input.store(false);
   // The worker owns a copy of the configuration and its share of the result: when an interrupt
   // leaves it running, the caller's frame is gone before it ends.
-  std::thread worker([shared, config] {
+  const auto counted = [quiet, label, rays = config.sim.beam.rays](std::size_t particles) {
+    if (!quiet && !stop_requested().load() && set_up_takes_seconds(particles, rays))
+      announce_set_up(particles, rays, label);
+  };
+  std::thread worker([shared, config, counted] {
     std::unique_ptr<Simulation> sim;
     std::exception_ptr error;
     try {
-      sim = start_simulation(config);
+      sim = start_simulation(config, counted);
     } catch (...) {
       error = std::current_exception();
     }
@@ -402,7 +420,7 @@ std::unique_ptr<tbb::global_control> limit_threads(int threads) {
 
 RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label) {
   const auto start = Clock::now();
-  const std::unique_ptr<Simulation> owned = set_up_unless_interrupted(config);
+  const std::unique_ptr<Simulation> owned = set_up_unless_interrupted(config, quiet, label);
   if (!owned) {  // interrupted during its set-up: no figures, and not a result
     RunResult r;
     r.interrupted = true;
@@ -557,16 +575,6 @@ void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts) {
                spec.pulses.period, counts.max_pulse_delay,
                spec.dt > 0 ? "`thermal.dt` does not divide the period"
                            : "with `thermal.dt` = \"pulse\" a step is a whole pulse flight, longer than the period");
-}
-
-// A set-up of seconds (the packing, its contacts, the ray scene: ~11 s at 3e6 particles) passed
-// without a word before the first progress line: say what is being set up.
-void announce_long_set_up(const RunConfig& config, bool quiet) {
-  const PackingSpec& s = config.sim.packing;
-  const std::size_t particles = config.packing ? config.packing->size() : s.source == "file" ? 0 : s.count;
-  if (quiet || stop_requested().load() || (particles < 200'000 && config.sim.beam.rays < 1'000'000)) return;
-  std::fprintf(stderr, "beampack: setting up %zu particles and %zu rays a pulse (packing, contacts, ray scene)\n",
-               particles, config.sim.beam.rays);
 }
 
 // A wall within whose reach no particle lies takes no heat: legal, but not what naming it asks.
@@ -743,8 +751,7 @@ int run_command(const RunOptions& options) {
   refuse_outputs_over_inputs(out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
-  announce_long_set_up(config, options.quiet);
-  const std::unique_ptr<Simulation> owned = set_up_unless_interrupted(config);
+  const std::unique_ptr<Simulation> owned = set_up_unless_interrupted(config, options.quiet);
   if (!owned) {  // nothing written yet: out_folder removes the folders this run made
     std::fprintf(stderr, "beampack: interrupted during set-up; nothing written\n");
     return 1;

@@ -31,8 +31,10 @@ void install_interrupt_handler();
 // The simulation of `config`, set up on a worker thread while this one watches stop_requested():
 // a set-up of millions of particles takes seconds and writes nothing, so Ctrl-C during it ends
 // it at once instead of after it. Null when interrupted; the set-up is then left running, and
-// the command's exit_code ends the process.
-std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config);
+// the command's exit_code ends the process. A set-up of seconds is announced on stderr, after
+// `label`, unless `quiet`, once the particles are counted and the memory check passes.
+std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config, bool quiet,
+                                                      const std::string& label = "");
 // A command that sets up runs calls this before it reads its input: an interrupt then says that
 // the run ends once the read does (it is not cut short), not "after the current step".
 void note_reading_input();

@@ -473,37 +473,44 @@ void refuse_beyond_memory(const SimulationSpec& s, double available, std::size_t
   const double need = least_memory_need(s, file_particles);
   if (need <= available) return;
   const bool file = s.packing.source == "file";
-  const std::string particles = file ? "packing.file = \"" + s.packing.file + "\" (" + std::to_string(file_particles) +
-                                           " particles)"
-                                     : "packing.count = " + std::to_string(s.packing.count);
-  const std::string rays = "beam.rays = " + std::to_string(s.beam.rays);
+  const std::string particles = file ? "`packing.file` = \"" + s.packing.file + "\" (" +
+                                           std::to_string(file_particles) + " particles)"
+                                     : "`packing.count` = " + std::to_string(s.packing.count);
+  const std::string rays = "`beam.rays` = " + std::to_string(s.beam.rays);
   const double ray_bytes = kBytesPerRay * double(s.beam.rays);
   const bool by_rays = ray_bytes >= need - ray_bytes;
   std::ostringstream m;
-  m << "`" << (by_rays ? rays : particles) << "`: the run needs at least " << std::setprecision(3) << need / 1e9
-    << " GB " << (need == ray_bytes ? "for its rays alone" : "with " + (by_rays ? particles : rays)) << " ("
+  m << (by_rays ? rays : particles) << ": the run needs at least " << std::setprecision(3)
+    << need / 1e9 << " GB "
+    << (need == ray_bytes ? "for its rays alone" : "with " + (by_rays ? particles : rays)) << " ("
     << kBytesPerRay << " bytes per ray, " << bytes_per_particle(s) << " per particle"
-    << (needs_conduction(s) ? " with its contacts" : "") << "), more than the "
-    << available / 1e9 << " GB of this machine; lower "
-    << (by_rays ? "beam.rays" : file ? "the particle count" : "packing.count");
+    << (needs_conduction(s) ? " with its contacts" : "") << "), more than the " << available / 1e9
+    << " GB of this machine; lower "
+    << (by_rays ? "`beam.rays`"
+        : file  ? "the particle count"
+                : "`packing.count`");
   throw InputError(m.str());
 }
 
-std::unique_ptr<Simulation> start_simulation(const RunConfig& config) {
+std::unique_ptr<Simulation> start_simulation(const RunConfig& config,
+                                             const std::function<void(std::size_t)>& counted) {
+  auto checked = [&](std::size_t particles) {
+    refuse_beyond_memory(config.sim, machine_memory(), particles);
+    if (counted) counted(particles);
+  };
   try {
     // A file's particles are counted once read: here, unless the configuration read them.
     if (!config.packing && config.sim.packing.source == "file") {
       Particles read = make_packing(config.sim.packing);
-      refuse_beyond_memory(config.sim, machine_memory(), read.size());
+      checked(read.size());
       return std::make_unique<Simulation>(config.sim, std::move(read));
     }
-    refuse_beyond_memory(config.sim, machine_memory(), config.packing ? config.packing->size() : 0);
+    checked(config.packing ? config.packing->size() : config.sim.packing.count);
     if (config.packing) return std::make_unique<Simulation>(config.sim, *config.packing);
     return std::make_unique<Simulation>(config.sim);
   } catch (const InputError& e) {
     throw InputError(locate(e.what(), config.origins));
   }
 }
-
 
 }  // namespace beampack::tools

@@ -62,7 +62,10 @@ std::string locate(const std::string& message, const std::map<std::string, std::
 
 // The simulation of a configuration (refused beyond this machine's memory); an InputError from
 // its set-up (the packing file, the thermal masses) names where the key it mentions was set.
-std::unique_ptr<Simulation> start_simulation(const RunConfig& config);
+// `counted`, when given, hears the particle count once it is known and passes the memory check
+// (a file's once it is read), before the packing, its contacts and the ray scene are built.
+std::unique_ptr<Simulation> start_simulation(const RunConfig& config,
+                                             const std::function<void(std::size_t)>& counted = {});
 
 // xi R / c, the paper's ray time step, with R the packing's radius: for a file, the median of
 // `particles`' radii (read from the file when null).
