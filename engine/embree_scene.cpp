@@ -1,4 +1,5 @@
-// The only file that includes Embree (STYLE.md point 2).
+// The only file of the library that includes Embree (STYLE.md point 2; the benchmarks'
+// baselines in bench_trace.cpp call it directly).
 #include "engine/embree_scene.h"
 
 #include "engine/float_mode.h"

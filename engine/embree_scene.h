@@ -1,6 +1,8 @@
 #pragma once
 // The ray-tracing scene: the particles as Embree user-geometry spheres, behind a small interface.
-// This header does not include Embree (pimpl); engine/embree_scene.cpp is the only file that does.
+// This header does not include Embree (pimpl); engine/embree_scene.cpp is the only file of the
+// library that does. The benchmarks are the exception: bench_trace.cpp's baselines (Embree's
+// built-in spheres) must call Embree directly.
 //
 // Layout: the user data of each geometry points at a packed copy of the particles' centres and
 // radii in Morton order (not straight into the Particles arrays): measured, the callback was
