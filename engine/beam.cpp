@@ -2,7 +2,9 @@
 
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <bit>
 #include <cmath>
+#include <cstdint>
 #include <numbers>
 #include <sstream>
 
@@ -72,8 +74,16 @@ std::vector<Eigen::Vector2d> stratified_disk(std::size_t n) {
   return p;
 }
 
+// sum_k I_k A_r, in ray order (as the tracer's ledger sums the rays' energies).
+double delivered_power(const std::vector<double>& intensity, double ray_area) {
+  double sum = 0.0;
+  for (double i : intensity) sum += i * ray_area;
+  return sum;
+}
+
 // Scale I_k = I_0 f_k with I_0 = P / (A_r sum f): sum I_k A_r = P (MODEL.md section 2). The
-// largest ray then absorbs the round-off residual so the sum, taken in ray order, is P to the ulp.
+// largest ray then absorbs the round-off residual so the sum, taken in ray order, is P exactly, or
+// an ulp of P from it where no intensity of that ray gives P (below).
 // The shape is first scaled by a power of two that brings its largest value to [0.5, 1): rays
 // only in a profile's far tail (f ~ 1e-307) made A_r sum f underflow and I_0 infinite, a NaN at
 // the first hit. A power of two scales exactly, so every other beam keeps its bits.
@@ -92,12 +102,36 @@ void normalise(const BeamSpec& spec, std::vector<double>& intensity, double ray_
     intensity[k] *= i0;
     if (intensity[k] > intensity[largest]) largest = k;
   }
+  // The residual steps land the sum on P in most beams, but not in one in nine of a few random
+  // rays: the roundings of the partial sums after the largest ray (ties to even where a partial
+  // sum enters a coarser binade) can move the sum two ulps at a time, and the steps jumped over P
+  // and back, leaving it an ulp or two off. The sum is monotone in that ray's intensity: the two
+  // sides of the jump bracket P, and a bisection over the doubles between them finds the intensity
+  // that gives P, when one does, or else the one whose sum is nearest, an ulp off. (The steps run
+  // first, as before: the beams they normalise keep their bits.)
+  double& top = intensity[largest];
+  double below = 0.0, above = 0.0, sum_below = 0.0, sum_above = 0.0;  // 0: that side not met yet
   for (int pass = 0; pass < 4; ++pass) {
-    double sum = 0.0;
-    for (double i : intensity) sum += i * ray_area;
-    if (sum == power) break;
-    intensity[largest] += (power - sum) / ray_area;
+    const double sum = delivered_power(intensity, ray_area);
+    if (sum == power) return;
+    (sum < power ? below : above) = top;
+    (sum < power ? sum_below : sum_above) = sum;
+    top += (power - sum) / ray_area;
   }
+  if (below == 0.0 || above == 0.0) return;  // never across P: left where the steps ended
+  // Positive doubles are ordered as their bit patterns.
+  using Bits = std::uint64_t;
+  for (;;) {
+    const Bits low = std::bit_cast<Bits>(below), high = std::bit_cast<Bits>(above);
+    const double middle = std::bit_cast<double>(low + (high - low) / 2);
+    if (middle == below) break;
+    top = middle;
+    const double sum = delivered_power(intensity, ray_area);
+    if (sum == power) return;
+    (sum < power ? below : above) = middle;
+    (sum < power ? sum_below : sum_above) = sum;
+  }
+  top = power - sum_below <= sum_above - power ? below : above;
 }
 
 constexpr std::size_t kTile = 16;  // rays per packet in the tracer
