@@ -10,8 +10,10 @@
 #endif
 
 #include <algorithm>
+#include <atomic>
 #include <bit>
 #include <cmath>
+#include <cstdint>
 #include <mutex>
 #include <numeric>
 #include <string>
@@ -244,19 +246,72 @@ void sphere_occluded(const RTCOccludedFunctionNArguments* args) {
   }
 }
 
-void record_error(void* user, RTCError code, const char* message) {
-  auto* impl_error = static_cast<std::pair<std::mutex, std::string>*>(user);
-  std::lock_guard lock(impl_error->first);
-  impl_error->second += "Embree error " + std::to_string(static_cast<int>(code)) + ": " +
-                        (message ? message : "(no message)") + "; ";
+const char* error_name(RTCError code) {
+  switch (code) {
+    case RTC_ERROR_NONE:
+      return "RTC_ERROR_NONE";
+    case RTC_ERROR_UNKNOWN:
+      return "RTC_ERROR_UNKNOWN";
+    case RTC_ERROR_INVALID_ARGUMENT:
+      return "RTC_ERROR_INVALID_ARGUMENT";
+    case RTC_ERROR_INVALID_OPERATION:
+      return "RTC_ERROR_INVALID_OPERATION";
+    case RTC_ERROR_OUT_OF_MEMORY:
+      return "RTC_ERROR_OUT_OF_MEMORY";
+    case RTC_ERROR_UNSUPPORTED_CPU:
+      return "RTC_ERROR_UNSUPPORTED_CPU";
+    case RTC_ERROR_CANCELLED:
+      return "RTC_ERROR_CANCELLED";
+  }
+  return "an RTCError unknown to this build";
+}
+
+// What Embree's device reports through its callbacks, on whatever thread raised it (a build's
+// workers, a tracing thread): its errors, kept here for the calling thread to throw (no
+// exception may unwind through Embree's C interface), and the bytes its allocations hold.
+struct DeviceReport {
+  std::mutex mutex;            // guards the three below; taken only once something failed
+  std::string errors;          // reported since the last check, each ending in "; "
+  std::size_t new_errors = 0;  // how many (a message may be lost for want of memory)
+  std::string broken;          // the failed build that left the scene without a structure
+  // Errors pending, or the scene broken. Every query reads it after Embree returns: a relaxed
+  // load of a line no one writes while all goes well, so queries pay no lock.
+  std::atomic<bool> failed{false};
+  std::atomic<RTCError> last_code{RTC_ERROR_NONE};
+  std::atomic<std::int64_t> bytes_held{0};
+  std::atomic<std::int64_t> byte_limit{std::numeric_limits<std::int64_t>::max()};
+};
+
+// Embree's error callback: runs inside Embree, so it must not throw (noexcept: a failure to lock
+// ends the program rather than unwind through C).
+void record_error(void* user, RTCError code, const char* message) noexcept {
+  auto& report = *static_cast<DeviceReport*>(user);
+  report.last_code.store(code, std::memory_order_relaxed);
+  std::lock_guard lock(report.mutex);
+  ++report.new_errors;
+  try {
+    report.errors += std::string("Embree error ") + error_name(code) + " (" +
+                     std::to_string(static_cast<int>(code)) +
+                     "): " + (message ? message : "(no message)") + "; ";
+  } catch (...) {  // no room for the message: check() names the code alone
+  }
+  report.failed.store(true, std::memory_order_release);
+}
+
+// Embree's allocations are counted (bytes < 0: a free); one asked for (post = false) beyond the
+// byte limit is refused, and Embree fails the build or update with RTC_ERROR_OUT_OF_MEMORY.
+bool monitor_memory(void* user, ssize_t bytes, bool post) noexcept {
+  auto& report = *static_cast<DeviceReport*>(user);
+  const std::int64_t held = report.bytes_held.fetch_add(bytes, std::memory_order_relaxed) + bytes;
+  if (post || bytes <= 0 || held <= report.byte_limit.load(std::memory_order_relaxed)) return true;
+  report.bytes_held.fetch_sub(bytes, std::memory_order_relaxed);  // refused: never allocated
+  return false;
 }
 
 }  // namespace
 
 struct EmbreeScene::Impl {
-  // Errors are recorded by the callback and thrown by check() on the calling thread, so no
-  // exception ever unwinds through Embree's C interface.
-  std::pair<std::mutex, std::string> error;
+  DeviceReport report;
   RTCDevice device = nullptr;
   RTCScene scene = nullptr;
   std::vector<SphereRecord> spheres;      // Morton order
@@ -296,13 +351,44 @@ struct EmbreeScene::Impl {
 
   std::uint32_t rank_of(std::uint32_t p) const { return p < rank.size() ? rank[p] : kNoParticle; }
 
-  void check(const char* what) {
-    std::lock_guard lock(error.first);
-    if (!error.second.empty()) {
-      std::string message = std::string(what) + ": " + error.second;
-      error.second.clear();
-      throw RunError(message);
+  // Throws the errors Embree reported since the last check, naming what was being done. Called
+  // after every build and update (build = true) and after every query (check_query). A failed
+  // build leaves Embree without a structure, and its queries then miss every sphere without an
+  // error (Embree 3.13): the scene stays failed, every later query throws, until a build succeeds.
+  void check(const char* what, bool build) {
+    if (!report.failed.load(std::memory_order_acquire)) return;
+    std::string message = std::string(what) + ": ";
+    {
+      std::lock_guard lock(report.mutex);
+      const bool reported = report.new_errors > 0;
+      if (reported && report.errors.empty())  // no room for the messages
+        report.errors = std::string("Embree error ") +
+                        error_name(report.last_code.load(std::memory_order_relaxed)) + "; ";
+      if (!report.errors.empty()) report.errors.resize(report.errors.size() - 2);  // the last "; "
+      message += report.errors;
+      report.errors.clear();
+      report.new_errors = 0;
+      const std::int64_t limit = report.byte_limit.load(std::memory_order_relaxed);
+      if (reported && limit < std::numeric_limits<std::int64_t>::max())
+        message += " (Embree's allocations limited to " + std::to_string(limit) +
+                   " bytes by limit_memory)";
+      if (build) {
+        report.broken = reported ? message : std::string();
+      } else if (!report.broken.empty()) {
+        message +=
+            std::string(reported ? "; " : "") + "no structure to trace since " + report.broken;
+      } else if (!reported) {  // a concurrent query took the errors: this one saw them too
+        message += std::string("Embree error ") +
+                   error_name(report.last_code.load(std::memory_order_relaxed));
+      }
+      report.failed.store(!report.broken.empty(), std::memory_order_relaxed);
+      if (build && !reported) return;
     }
+    throw RunError(message);
+  }
+  void check_query(const char* what) {
+    if (report.failed.load(std::memory_order_relaxed)) [[unlikely]]
+      check(what, false);
   }
 
   ~Impl() {
@@ -370,7 +456,8 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
   if (!im.device)
     throw RunError("Embree: rtcNewDevice failed (error " +
                    std::to_string(static_cast<int>(rtcGetDeviceError(nullptr))) + ")");
-  rtcSetDeviceErrorFunction(im.device, record_error, &im.error);
+  rtcSetDeviceErrorFunction(im.device, record_error, &im.report);
+  rtcSetDeviceMemoryMonitorFunction(im.device, monitor_memory, &im.report);
   im.scene = rtcNewScene(im.device);
   // Per-geometry build quality (refit, bricks) is honoured only under a LOW-quality scene,
   // which builds two levels: one BVH per geometry and a top level over them.
@@ -407,10 +494,16 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
     const KeepFloatMode keep;  // Embree's build may set FTZ/DAZ on this thread
     rtcCommitScene(im.scene);
   }
-  im.check("building the particle scene");
+  im.check("building the particle scene", true);
 }
 
 EmbreeScene::~EmbreeScene() = default;
+
+void EmbreeScene::limit_memory(std::size_t bytes) {
+  impl_->report.byte_limit.store(static_cast<std::int64_t>(std::min<std::size_t>(
+                                     bytes, std::numeric_limits<std::int64_t>::max())),
+                                 std::memory_order_relaxed);
+}
 
 void EmbreeScene::remove(std::span<const std::uint32_t> ids) {
   Impl& im = *impl_;
@@ -443,7 +536,7 @@ void EmbreeScene::remove(std::span<const std::uint32_t> ids) {
     const KeepFloatMode keep;  // Embree's build may set FTZ/DAZ on this thread
     rtcCommitScene(im.scene);
   }
-  im.check("updating the particle scene");
+  im.check("updating the particle scene", true);
 }
 
 namespace {
@@ -553,6 +646,7 @@ void EmbreeScene::intersect1(const RayQuery& query, std::uint32_t id) const {
   rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
   rtcIntersect1(impl_->scene, &ctx.base, &rh);
+  impl_->check_query("tracing a ray (rtcIntersect1)");
 }
 
 void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, int count,
@@ -587,6 +681,7 @@ void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, i
   std::fill(std::begin(rh.hit.geomID), std::end(rh.hit.geomID), RTC_INVALID_GEOMETRY_ID);
   std::fill(std::begin(rh.hit.instID[0]), std::end(rh.hit.instID[0]), RTC_INVALID_GEOMETRY_ID);
   rtcIntersect16(valid, im.scene, &ctx.base, &rh);
+  impl_->check_query("tracing a packet of rays (rtcIntersect16)");
 }
 
 bool EmbreeScene::occluded1(const RayQuery& query, std::uint32_t id) const {
@@ -594,6 +689,7 @@ bool EmbreeScene::occluded1(const RayQuery& query, std::uint32_t id) const {
   RTCRay ray;
   if (!impl_->single_ray(query, id, ctx, ray)) return false;
   rtcOccluded1(impl_->scene, &ctx.base, &ray);
+  impl_->check_query("a shadow query (rtcOccluded1)");
   return ray.tfar < 0.0f;
 }
 

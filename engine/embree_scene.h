@@ -77,6 +77,16 @@ class EmbreeScene {
                    bool coherent = true) const;
   // True when some particle is hit before query.t_hit[ray_id] (rtcOccluded1).
   bool occluded1(const RayQuery& query, std::uint32_t ray_id) const;
+  // Errors: construction and remove() throw RunError when Embree reports one during their build,
+  // and the queries when it reports one during them (on the calling thread, once Embree has
+  // returned), naming Embree's error code and what was being done. After a failed build every
+  // query throws (Embree has no structure left, and would miss every sphere without an error)
+  // until a remove() builds one.
+
+  // From now on Embree's allocations for this scene beyond `bytes` held are refused: the next
+  // build (remove()) fails with RTC_ERROR_OUT_OF_MEMORY. No limit by default; tests raise real
+  // Embree errors with it.
+  void limit_memory(std::size_t bytes);
 
  private:
   struct Impl;

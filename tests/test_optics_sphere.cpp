@@ -452,6 +452,65 @@ TEST(OpticsSphere, GridHitsEqualBruteForceBeforeAndAfterRemoval) {
   }
 }
 
+// Embree's errors are RunErrors on the calling thread, naming Embree's error code and what was
+// being done. A real one: with Embree's allocations limited to 1 kB, the rebuild after a removal
+// runs out of memory. Embree is then left without a structure and would answer every query with
+// no hit and no error (every ray escaping, in silence): every later query, single ray, packet or
+// shadow ray, throws instead, naming the failed update, until a build succeeds.
+TEST(OpticsSphere, EmbreeErrorsAreThrownNamingTheCodeAndTheTask) {
+  const Particles p = random_overlap_packing(500, 1e-3, 0.325, 3);
+  const RandomRays rays(p, 16, 4);
+  std::vector<double> t_hit(16, kNoHit);
+  std::vector<std::uint32_t> particle(16, kNoParticle), ids(16);
+  for (std::uint32_t r = 0; r < 16; ++r) ids[r] = r;
+  const RayQuery q{rays.org.data(), rays.dir.data(), rays.skip.data(), t_hit.data(),
+                   particle.data()};
+  auto expect_run_error = [](auto&& call, std::initializer_list<const char*> parts) {
+    try {
+      call();
+      ADD_FAILURE() << "no RunError; expected one naming " << *parts.begin();
+    } catch (const RunError& e) {
+      for (const char* part : parts)
+        EXPECT_NE(std::string(e.what()).find(part), std::string::npos) << e.what();
+    }
+  };
+  EmbreeScene scene(p, SceneUpdate::rebuild);
+  scene.intersect1(q, 0);  // no error before the limit
+  scene.intersect16(q, ids.data(), 16);
+  EXPECT_FALSE(scene.occluded1(q, 0));  // t_hit: the nearest hit itself
+  scene.limit_memory(1024);
+  const std::vector<std::uint32_t> victims = {1, 2, 3};
+  expect_run_error([&] { scene.remove(victims); },
+                   {"updating the particle scene: Embree error RTC_ERROR_OUT_OF_MEMORY (4)",
+                    "limited to 1024 bytes"});
+  constexpr const char* kFailedUpdate =
+      "no structure to trace since updating the particle scene: Embree error "
+      "RTC_ERROR_OUT_OF_MEMORY (4)";
+  for (int again = 0; again < 2; ++again) {
+    expect_run_error([&] { scene.intersect1(q, 0); },
+                     {"tracing a ray (rtcIntersect1): ", kFailedUpdate});
+    expect_run_error([&] { scene.intersect16(q, ids.data(), 16); },
+                     {"tracing a packet of rays (rtcIntersect16): ", kFailedUpdate});
+    t_hit[0] = kNoHit;
+    expect_run_error([&] { scene.occluded1(q, 0); },
+                     {"a shadow query (rtcOccluded1): ", kFailedUpdate});
+  }
+  // Room again: the next removal builds a structure, and the queries answer right.
+  scene.limit_memory(std::numeric_limits<std::size_t>::max());
+  const std::vector<std::uint32_t> more = {4};
+  scene.remove(more);
+  std::vector<std::uint8_t> gone(p.size(), 0);
+  gone[1] = gone[2] = gone[3] = gone[4] = 1;
+  std::size_t hits = 0;
+  for (std::uint32_t r = 0; r < 16; ++r) {
+    t_hit[r] = kNoHit, particle[r] = kNoParticle;
+    scene.intersect1(q, r);
+    EXPECT_EQ(particle[r], brute_force_nearest(p, gone, rays, r).particle) << "ray " << r;
+    hits += particle[r] != kNoParticle;
+  }
+  EXPECT_GE(hits, 4u);  // (7 of the 16)
+}
+
 }  // namespace
 }  // namespace beampack
 
