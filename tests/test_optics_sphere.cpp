@@ -452,6 +452,72 @@ TEST(OpticsSphere, GridHitsEqualBruteForceBeforeAndAfterRemoval) {
   }
 }
 
+// Shadow queries (occluded1, rtcOccluded1 and sphere_occluded): occluded exactly when the nearest
+// outside hit is nearer than query.t_hit, for limits just below, at and just above that hit,
+// half and twice as far, and infinite; and again after removing every tenth sphere, in every
+// update mode (rebuild_fraction 0.5: deferred keeps the removed spheres in its structure, as
+// mask_only does, so only the callback's mask keeps them from occluding). Besides the random
+// rays, rays leaving a sphere inwards from 1e-12 R outside it: its own entry is then ~1e-12 R
+// ahead, and only the skip keeps it from occluding them.
+TEST(OpticsSphere, OccludedExactlyWhenTheNearestHitIsBeforeTheLimit) {
+  const Particles p = random_overlap_packing(2000, 1e-3, 0.325, 13);
+  RandomRays rays(p, 3000, 8);
+  Rng rng(9);
+  for (int k = 0; k < 1000; ++k) {
+    const auto i = static_cast<std::uint32_t>(rng.next() % p.size());
+    const Vec3 u = Vec3(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1)).normalized();
+    rays.org.push_back(p.centre[i] + p.radius[i] * (1.0 + 1e-12) * u);
+    rays.dir.push_back(-u);
+    rays.skip.push_back(i);
+    const double own = ray_sphere_entry(rays.org.back(), rays.dir.back(), p.centre[i], p.radius[i]);
+    ASSERT_LT(own, 1e-9 * p.radius[i])
+        << "ray " << rays.org.size() - 1 << " would not meet the sphere it leaves";
+  }
+  const std::size_t n = rays.org.size();
+  std::vector<std::uint8_t> gone(p.size(), 0);
+  std::vector<std::uint32_t> victims;
+  for (std::uint32_t i = 0; i < p.size(); i += 10) victims.push_back(i);
+  std::vector<NearestHit> truth[2];
+  for (int pass = 0; pass < 2; ++pass) {
+    if (pass == 1)
+      for (std::uint32_t i : victims) gone[i] = 1;
+    for (std::size_t r = 0; r < n; ++r)
+      truth[pass].push_back(brute_force_nearest(p, gone, rays, r));
+  }
+  std::vector<double> t_hit(n);
+  std::vector<std::uint32_t> particle(n);
+  const RayQuery q{rays.org.data(), rays.dir.data(), rays.skip.data(), t_hit.data(),
+                   particle.data()};
+  std::size_t occluded = 0, queries = 0;
+  for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::mask_only, SceneUpdate::rebuild,
+                           SceneUpdate::refit, SceneUpdate::bricks}) {
+    EmbreeScene scene(p, mode, 256, 0.5);
+    for (int pass = 0; pass < 2; ++pass) {
+      if (pass == 1) scene.remove(victims);
+      for (std::uint32_t r = 0; r < n; ++r) {
+        const double t = truth[pass][r].t;
+        t_hit[r] = kNoHit, particle[r] = kNoParticle;
+        scene.intersect1(q, r);
+        ASSERT_EQ(t_hit[r], t) << "mode " << int(mode) << " pass " << pass << " ray " << r;
+        const double inf = std::numeric_limits<double>::infinity();
+        std::vector<double> limits = {1e-3, inf};
+        if (t < kNoHit)
+          limits = {std::nextafter(t, 0.0), t, std::nextafter(t, inf), 0.5 * t, 2.0 * t, inf};
+        for (double limit : limits) {
+          t_hit[r] = limit, particle[r] = kNoParticle;
+          const bool answer = scene.occluded1(q, r);
+          ASSERT_EQ(answer, t < limit)
+              << "mode " << int(mode) << " pass " << pass << " ray " << r << ": nearest hit " << t
+              << " (particle " << truth[pass][r].particle << "), limit " << limit;
+          occluded += answer, ++queries;
+        }
+      }
+    }
+  }
+  EXPECT_GT(occluded, queries / 4);  // both answers are well represented
+  EXPECT_LT(occluded, 3 * queries / 4);
+}
+
 // Embree's errors are RunErrors on the calling thread, naming Embree's error code and what was
 // being done. A real one: with Embree's allocations limited to 1 kB, the rebuild after a removal
 // runs out of memory. Embree is then left without a structure and would answer every query with
