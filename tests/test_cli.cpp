@@ -546,6 +546,26 @@ TEST(Cli, RunFileLayersPathsAndArgumentsAreReadAsWritten) {
   const Result unknown = run("frob");
   EXPECT_EQ(unknown.code, 2);
   EXPECT_NE(unknown.output.find("unknown command `frob`"), std::string::npos) << unknown.output;
+  // An option of another command, and a space-separated --values list, are named as such (CLI11
+  // read their values as the run file: "run_file: File does not exist: 1"). Negative numbers and
+  // `--out=DIR` are values and options, not unknown ones.
+  const Result foreign =
+      run("sweep --preset quick --param material.conductivity --values 1 --checkpoint-every 1");
+  EXPECT_EQ(foreign.code, 2);
+  EXPECT_NE(foreign.output.find(
+                "`sweep` has no option --checkpoint-every (its options: --help, --preset"),
+            std::string::npos)
+      << foreign.output;
+  const Result spaced_values =
+      run("sweep --preset quick --param material.conductivity --values 0 10 100");
+  EXPECT_EQ(spaced_values.code, 2);
+  EXPECT_NE(
+      spaced_values.output.find("--values takes one comma-separated argument (--values 0,10,...)"),
+      std::string::npos)
+      << spaced_values.output;
+  const Result negative = run("sweep --preset quick --param beam.direction_x --values -1 --out=" +
+                              (dir / "negative").string() + " --quiet");
+  EXPECT_EQ(negative.code, 0) << negative.output;
 }
 
 TEST(Cli, UnwritableOutputDirectoryIsBadInput) {
@@ -897,6 +917,41 @@ TEST(Cli, SigkillAtRandomMomentsLeavesALoadableCheckpoint) {
   EXPECT_GE(refreshed, 1);
 }
 
+// A run that fails after pulses have ended (here pulse 1362's resampled beam cannot sample a
+// profile this narrow; the set-up checks the first 64 draws) keeps them: history.csv, and a
+// summary.json of the last one's end that names the failure. Not particles.csv, which would show
+// a step half done, nor the earlier run's files. A periodic checkpoint stays resumable.
+TEST(Cli, ARunThatFailsLateKeepsThePulsesItEnded) {
+  const fs::path dir = fresh_dir("cli_fails_late");
+  ASSERT_EQ(run("run --preset quick --quiet --out " + dir.string()).code, 0);
+  ASSERT_TRUE(fs::exists(dir / "particles.csv"));
+  const std::string failing =
+      "run --preset quick --quiet --set beam.rays=1 --set beam.decay=746 "
+      "--set beam.resample=true --set pulses.count=3000 ";
+  const Result r = run(failing + "--checkpoint-every 1000 --out " + dir.string());
+  EXPECT_EQ(r.code, 1) << r.output;
+  EXPECT_NE(r.output.find("after 1361 pulses had ended"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("run failed: pulse 1361 (`beam.resample`)"), std::string::npos)
+      << r.output;
+  EXPECT_FALSE(fs::exists(dir / "particles.csv"));
+  const auto history = read_csv(dir / "history.csv");
+  ASSERT_EQ(history.size(), 1361u);
+  EXPECT_EQ(history.back().at("pulse"), "1361");
+  const nlohmann::json summary = read_json(dir / "summary.json");
+  EXPECT_NE(summary["failed"]["message"].get<std::string>().find("too narrow a profile"),
+            std::string::npos);
+  EXPECT_EQ(summary["pulses"], 1361);
+  EXPECT_EQ(summary["vaporized_fraction"].get<double>(),
+            std::stod(history.back().at("vaporized_fraction")));
+  EXPECT_GT(summary["vaporized_fraction"].get<double>(), 0.0);
+  ASSERT_TRUE(fs::exists(dir / "checkpoint.bin"));  // pulse 1000's
+  const Result resumed = run("run --quiet --resume " + dir.string());
+  EXPECT_EQ(resumed.code, 1) << resumed.output;  // the same draw fails again, not "finished"
+  EXPECT_NE(resumed.output.find("after 1361 pulses had ended"), std::string::npos)
+      << resumed.output;
+  EXPECT_EQ(read_csv(dir / "history.csv").size(), 1361u);
+}
+
 TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
   const fs::path dir = fresh_dir("ck_damaged");
   ASSERT_EQ(run("run --preset quick --quiet --checkpoint-every 2 --out " + dir.string()).code, 0);
@@ -1191,10 +1246,12 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
     EXPECT_EQ(empty.code, 2) << values << ": " << empty.output;
     EXPECT_NE(empty.output.find("is empty"), std::string::npos) << empty.output;
   }
-  const Result swept = run("sweep --preset quick --set material.conductivity=3 --param material.conductivity "
-                           "--values 1 --out " + out.string());
-  EXPECT_EQ(swept.code, 2) << swept.output;
-  EXPECT_NE(swept.output.find("is the swept --param"), std::string::npos) << swept.output;
+  for (const char* set : {"material.conductivity=3", " material.conductivity =3"}) {
+    const Result swept = run("sweep --preset quick --set '" + std::string(set) +
+                             "' --param material.conductivity --values 1 --out " + out.string());
+    EXPECT_EQ(swept.code, 2) << set << ": " << swept.output;
+    EXPECT_NE(swept.output.find("is the swept --param"), std::string::npos) << swept.output;
+  }
   const Result frames = run("sweep --preset quick --set output.frames=true --param material.conductivity "
                             "--values 1 --out " + out.string());
   EXPECT_EQ(frames.code, 2) << frames.output;
@@ -1294,7 +1351,8 @@ std::vector<std::string> names_in(const fs::path& dir) {
 // A write that fails during a run (here: past the file-size limit) is a failed run, exit 1, that
 // names the file; the files written before it stay whole and no half-written file is left, final
 // or temporary. Mid-run: the checkpoint (368 kB) after two frames (45 kB each) and their .pvd;
-// at the end: particles.csv (25 kB) after history.csv (1 kB).
+// the run then keeps its two pulses (history.csv, summary.json, 1-3 kB, within the limit). At the
+// end: particles.csv (25 kB) after history.csv (1 kB).
 TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
   const fs::path dir = fresh_dir("file_size_limit");
   const std::string frames = "--set beam.rays=2000 --set output.frames=true --checkpoint-every 2";
@@ -1305,9 +1363,12 @@ TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
   EXPECT_NE(mid.output.find("run failed: output file \"" + checkpoint + "\": write failed"),
             std::string::npos)
       << mid.output;
-  const std::vector<std::string> before = {"particles.pvd", "particles_0000.vtp",
-                                           "particles_0001.vtp"};
+  const std::vector<std::string> before = {"history.csv", "particles.pvd", "particles_0000.vtp",
+                                           "particles_0001.vtp", "summary.json"};
   EXPECT_EQ(names_in(dir / "mid"), before);
+  const nlohmann::json kept = read_json(dir / "mid" / "summary.json");
+  EXPECT_EQ(kept["pulses"], 2);
+  EXPECT_NE(kept["failed"]["message"].get<std::string>().find(checkpoint), std::string::npos);
   EXPECT_NE(file_text(dir / "mid" / "particles_0001.vtp").find("</VTKFile>"), std::string::npos);
   const Result end =
       run_with_file_size_limit(8, "run --preset quick --quiet --out " + (dir / "end").string());

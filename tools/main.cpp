@@ -1,8 +1,9 @@
 // beampack: the command line (INTERFACE.md). Exit codes: 0 success, 1 failed run, 2 bad input.
 #include <CLI/CLI.hpp>
-
+#include <cctype>
 #include <cstdio>
 #include <exception>
+#include <filesystem>
 #include <iostream>
 
 #include "geometry/error.h"
@@ -38,6 +39,46 @@ bool unknown_command(const CLI::App& app, int argc, char** argv) {
   }
   std::fprintf(stderr, "beampack: error: unknown command `%s` (commands: %s)\n", argv[1], names.c_str());
   return true;
+}
+
+// CLI11 hands an option the command does not have to the parent, and its value then fails as the
+// run file ("run_file: File does not exist: 1"): name the option instead. Likewise a
+// space-separated
+// --values list (`--values 0 10 100`), whose second value would be read as the run file.
+bool misread_arguments(const CLI::App& app, int argc, char** argv) {
+  if (argc < 2) return false;
+  const CLI::App* sub = nullptr;
+  for (const CLI::App* s : app.get_subcommands({}))
+    if (s->get_name() == argv[1]) sub = s;
+  if (!sub) return false;
+  for (int k = 2; k < argc; ++k) {
+    const std::string token = argv[k];
+    const bool number =
+        token.size() > 1 && (std::isdigit(static_cast<unsigned char>(token[1])) || token[1] == '.');
+    if (token == "--") break;
+    if (token.size() > 1 && token[0] == '-' && !number) {
+      const std::string name = token.substr(0, token.find('='));
+      if (name == "-h" || name == "--help" || sub->get_option_no_throw(name)) continue;
+      std::string options;
+      for (const CLI::Option* o : sub->get_options())
+        if (!o->get_lnames().empty())
+          options += (options.empty() ? "--" : ", --") + o->get_lnames().front();
+      std::fprintf(stderr, "beampack: error: `%s` has no option %s (its options: %s)\n", argv[1],
+                   name.c_str(), options.c_str());
+      return true;
+    }
+    const bool after_values = k >= 4 && std::string(argv[k - 2]) == "--values";
+    if (after_values && !token.empty() && token[0] != '-' &&
+        std::isdigit(static_cast<unsigned char>(token[0])) && !std::filesystem::exists(token)) {
+      std::fprintf(
+          stderr,
+          "beampack: error: --values takes one comma-separated argument (--values %s,%s,...): "
+          "`%s` would be read as the run file\n",
+          argv[k - 1], token.c_str(), token.c_str());
+      return true;
+    }
+  }
+  return false;
 }
 
 int list_presets() {
@@ -105,7 +146,7 @@ int main(int argc, char** argv) {
   config_cmd->add_option("run_file", config.sources.file, "run file to resolve")->check(CLI::ExistingFile);
   config_cmd->add_option("--set", config.sources.sets, "override one key")->allow_extra_args(false);
 
-  if (unknown_command(app, argc, argv)) return 2;
+  if (unknown_command(app, argc, argv) || misread_arguments(app, argc, argv)) return 2;
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

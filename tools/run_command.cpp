@@ -704,7 +704,9 @@ void remove_earlier_run(const fs::path& dir) {
 // periodic one (--checkpoint-every), and resuming it would run the tail again over the results.
 void refuse_to_resume_a_finished_run(const fs::path& dir) {
   const nlohmann::json j = summary_in(dir);
-  if (!j.is_object() || !j.contains("interrupted") || j["interrupted"] != false) return;
+  if (!j.is_object() || !j.contains("interrupted") || j["interrupted"] != false ||
+      j.contains("failed"))
+    return;  // a failed run's periodic checkpoint may be resumed (a disk that was full)
   throw InputError("--resume " + dir.string() + ": the run there finished (summary.json, " +
                    j.value("pulses", nlohmann::json(0)).dump() + " pulses): nothing to resume; to run it " +
                    "again from its last periodic checkpoint, give --out another folder");
@@ -721,6 +723,38 @@ void carry_earlier_files(const fs::path& from, const fs::path& to, const RunReco
   };
   for (const auto& [name, time] : record.frames) carry(name);
   for (int k = 0; output.rays && k < pulses_ended; ++k) carry(pulse_file("rays", k));
+}
+
+// The figures at the end of the run's last pulse: what a run that fails later still has, whole.
+struct PulsesEnded {
+  int count = 0;  // in this run (a resumed one: since the checkpoint)
+  Figures figures;
+  Counts counts;
+  void note(const Simulation& sim) { ++count, figures = sim.figures(), counts = sim.counts(); }
+};
+
+// A step that throws leaves the particles part way through it: they are not written (nor a
+// checkpoint), but the pulses the run ended are, as history.csv and a summary.json of the last
+// one's end that says what failed. Hours of pulses are not lost to one that fails (a beam drawn
+// too narrow in pulse 1361, a step needing more sub-steps than allowed).
+void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, const RunRecord& record,
+                                const PulsesEnded& ended, const RunConfig& config,
+                                const char* failure, double wall_seconds) {
+  if (ended.count == 0) return;
+  RunResult r;
+  r.figures = ended.figures;
+  r.counts = ended.counts;
+  r.wall_seconds = wall_seconds;
+  nlohmann::json j = summary_json(sim, r, config);
+  j["failed"] = {{"message", failure}, {"time_s", sim.figures().time}};
+  write_atomically((out / "history.csv").string(), [&](std::ostream& o) { o << record.history; });
+  write_atomically((out / "summary.json").string(),
+                   [&](std::ostream& o) { o << j.dump(2) << '\n'; });
+  std::fprintf(stderr,
+               "beampack: the run failed at t = %.6g s, after %d pulses had ended; %s holds them "
+               "(history.csv, and summary.json as at the last one's end, with the failure; no "
+               "particles.csv: the particles are part way through a step)\n",
+               sim.figures().time, ended.figures.pulse, out.c_str());
 }
 
 int run_command(const RunOptions& options) {
@@ -769,9 +803,12 @@ int run_command(const RunOptions& options) {
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);
   bool checkpoint_due = false;
+  PulsesEnded ended;
   sim.on_pulse_end([&](int pulse) {
+    ended.note(sim);
     record.history += history_row(sim.figures());
-    if (config.output.rays) write_rays_vtp((out / pulse_file("rays", pulse)).string(), sim.take_ray_paths());
+    if (config.output.rays)
+      write_rays_vtp((out / pulse_file("rays", pulse)).string(), sim.take_ray_paths());
     if (config.output.frames) {
       const std::string name = pulse_file("particles", pulse);
       write_particles_vtp((out / name).string(), sim.particles(), sim.absorbed());
@@ -780,7 +817,7 @@ int run_command(const RunOptions& options) {
     }
     checkpoint_due = record.checkpoint_every > 0 && (pulse + 1) % record.checkpoint_every == 0;
   });
-  {
+  try {
     Progress progress(options.quiet, "");
     while (!sim.done() && !stop_requested().load()) {
       sim.step();
@@ -790,6 +827,15 @@ int run_command(const RunOptions& options) {
       checkpoint_due = false;
       progress.update(sim);
     }
+  } catch (const std::exception& failure) {
+    try {
+      keep_pulses_before_failure(out, sim, record, ended, config, failure.what(),
+                                 record.earlier_seconds + seconds_since(start));
+    } catch (const std::exception& e) {  // a full disk, say: the failure itself is what to report
+      std::fprintf(stderr, "beampack: the pulses before the failure could not be written: %s\n",
+                   e.what());
+    }
+    throw;
   }
   RunResult r;
   r.figures = sim.figures();
@@ -839,6 +885,14 @@ std::string empty_cells(const std::string& header) {
   return std::string(static_cast<std::size_t>(std::count(header.begin(), header.end(), ',')), ',');
 }
 
+// The key of a --set KEY=VALUE as the run file reads it (spaces around it dropped).
+std::string assigned_key(const std::string& assignment) {
+  std::string key = assignment.substr(0, assignment.find('='));
+  key.erase(0, key.find_first_not_of(" \t"));
+  key.erase(key.find_last_not_of(" \t") + 1);
+  return key;
+}
+
 }  // namespace
 
 // The swept values, trimmed; an empty one ("1,,2", a stray comma) is refused, not dropped, and so
@@ -859,7 +913,7 @@ std::vector<std::string> sweep_values(const SweepOptions& options) {
   }
   if (values.empty()) throw InputError("--values: give at least one value");
   for (const std::string& s : options.run.sources.sets)
-    if (s.rfind(options.param + "=", 0) == 0)
+    if (assigned_key(s) == options.param)
       throw InputError("--set " + s + ": `" + options.param + "` is the swept --param; its values come from --values");
   return values;
 }
