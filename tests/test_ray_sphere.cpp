@@ -145,3 +145,19 @@ TEST(RaySphere, NearUnitNormalisesNearAndFarFromUnitLength) {
     }
   }
 }
+
+// On the surface counts as inside (MODEL.md section 3: hits are entered from outside): a ray whose
+// origin lies exactly on a sphere is leaving it whichever way it points, and has no hit there at
+// t = 0, however far into the sphere it aims. Integer coordinates put the origins exactly on it.
+TEST(RaySphere, NoHitFromAnOriginExactlyOnTheSurface) {
+  const Vec3 c(1, -2, 3);
+  const double r = 5.0;
+  for (const Vec3& offset : {Vec3(5, 0, 0), Vec3(0, -5, 0), Vec3(3, 4, 0), Vec3(0, -3, -4)}) {
+    const Vec3 o = c + offset;
+    ASSERT_EQ((o - c).squaredNorm(), r * r);
+    const Vec3 inward = -offset / r;
+    for (const Vec3& d : {inward, Vec3((inward + Vec3(0.1, 0.2, -0.1)).normalized())})
+      EXPECT_EQ(ray_sphere_entry(o, d, c, r), kNoHit)
+          << offset.transpose() << " along " << d.transpose();
+  }
+}

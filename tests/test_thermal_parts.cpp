@@ -76,6 +76,27 @@ TEST(ThermalGraph, PairAverageConductivityByMaterial) {
   EXPECT_NEAR((Eigen::MatrixXd(l) * Eigen::Vector3d::Ones()).norm(), 0.0, 1e-18);
 }
 
+// A vaporised particle has left the graph: a contact still listed with it carries no heat, into
+// or out of it. Three spheres in a row, the last removed: the flux (L theta)_i is the first
+// contact's alone, whatever the removed one's temperature.
+TEST(ThermalGraph, AContactWithARemovedParticleConductsNothing) {
+  Particles p;
+  p.add(Vec3::Zero(), 1e-4, 0);
+  p.add(Vec3(1.5e-4, 0, 0), 1e-4, 0);
+  p.add(Vec3(3.0e-4, 0, 0), 1e-4, 0);
+  Material m;
+  m.conductivity = 10;
+  const auto contacts = find_contacts(p);  // before the removal: (0, 1) and (1, 2)
+  ASSERT_EQ(contacts.size(), 2u);
+  p.remove(2);
+  const auto g = contact_conductances(p, {m}, contacts);
+  const SparseMatrix l = conduction_matrix(p, contacts, g, {});
+  const Eigen::VectorXd flux = l * Eigen::Vector3d(400.0, 300.0, 5000.0);
+  EXPECT_DOUBLE_EQ(flux[0], g[0] * 100.0);
+  EXPECT_DOUBLE_EQ(flux[1], -g[0] * 100.0);
+  EXPECT_EQ(flux[2], 0.0);
+}
+
 TEST(ThermalGraph, WallsTouchOnlyParticlesWithinReach) {
   Particles p;
   p.add(Vec3(1.0e-4, 0, 0), 1e-4, 0);   // touches x = 0
