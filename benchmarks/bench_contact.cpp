@@ -22,5 +22,9 @@ void contact_search(benchmark::State& state) {
 
 }  // namespace
 
-BENCHMARK(contact_search)->Name("contact/search")->RangeMultiplier(10)->Range(10'000, 1'000'000)
-    ->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK(contact_search)
+    ->Name("contact/search")
+    ->RangeMultiplier(10)
+    ->Range(10'000, 1'000'000)
+    ->Unit(benchmark::kMillisecond)
+    ->UseRealTime();

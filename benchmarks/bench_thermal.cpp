@@ -118,16 +118,17 @@ void thermal_beam_zone(benchmark::State& state, bool skip) {
 
 [[maybe_unused]] const bool registered = [] {
   for (bool skip : {true, false})
-    benchmark::RegisterBenchmark(skip ? "thermal/beam_zone/skip_resting/K:100" : "thermal/beam_zone/whole/K:100",
-                                 thermal_beam_zone, skip)
+    benchmark::RegisterBenchmark(
+        skip ? "thermal/beam_zone/skip_resting/K:100" : "thermal/beam_zone/whole/K:100",
+        thermal_beam_zone, skip)
         ->RangeMultiplier(10)
         ->Range(10000, 1000000)
         ->Unit(benchmark::kMillisecond)
         ->UseRealTime();
   for (double k : {100.0, 1e5})
     for (const char* solver : {"fixed-point", "cg", "direct", "auto"}) {
-      const std::string name = std::string("thermal/step/") + solver + "/K:" +
-                               (k == 100.0 ? "100" : "1e5");
+      const std::string name =
+          std::string("thermal/step/") + solver + "/K:" + (k == 100.0 ? "100" : "1e5");
       benchmark::RegisterBenchmark(name.c_str(), thermal_step, std::string(solver), k)
           ->Arg(1000000)
           ->Unit(benchmark::kMillisecond)

@@ -69,8 +69,12 @@ std::size_t paper_resolution_rays(std::size_t spheres) {
   return static_cast<std::size_t>(std::lround(1000.0 * std::cbrt(std::pow(spheres / 1000.0, 2.0))));
 }
 
-std::size_t spheres_of(const benchmark::State& state) { return static_cast<std::size_t>(state.range(0)); }
-std::size_t rays_of(const benchmark::State& state) { return static_cast<std::size_t>(state.range(1)); }
+std::size_t spheres_of(const benchmark::State& state) {
+  return static_cast<std::size_t>(state.range(0));
+}
+std::size_t rays_of(const benchmark::State& state) {
+  return static_cast<std::size_t>(state.range(1));
+}
 
 void set_counters(benchmark::State& state, double primary, double bounced) {
   state.counters["primary_seg/s"] = benchmark::Counter(primary, benchmark::Counter::kIsRate);
@@ -176,9 +180,8 @@ struct BuiltinScene {
     device = rtcNewDevice(nullptr);
     scene = rtcNewScene(device);
     RTCGeometry g = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_SPHERE_POINT);
-    auto* v = static_cast<float*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0,
-                                                          RTC_FORMAT_FLOAT4, 4 * sizeof(float),
-                                                          p.size()));
+    auto* v = static_cast<float*>(rtcSetNewGeometryBuffer(
+        g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT4, 4 * sizeof(float), p.size()));
     for (std::size_t i = 0; i < p.size(); ++i) {
       v[4 * i + 0] = static_cast<float>(p.centre[i].x());
       v[4 * i + 1] = static_cast<float>(p.centre[i].y());
@@ -278,8 +281,13 @@ struct BuiltinPulses {
   double n_hat;
   int max_bounces;
   BuiltinPulses(const Particles& p, const Beam& beam, double n_hat, int max_bounces)
-      : p(p), scene(p), beam(beam), energy(beam.ray_energies(1e-9)), upstream(-2.0 * p.max_radius()),
-        n_hat(n_hat), max_bounces(max_bounces) {}
+      : p(p),
+        scene(p),
+        beam(beam),
+        energy(beam.ray_energies(1e-9)),
+        upstream(-2.0 * p.max_radius()),
+        n_hat(n_hat),
+        max_bounces(max_bounces) {}
   Tally ray(std::size_t k) const {
     return trace_builtin_ray(scene, p, beam.origin[k] + upstream * beam.direction, beam.direction,
                              energy[k], n_hat, max_bounces);
@@ -290,7 +298,8 @@ struct BuiltinPulses {
 };
 
 void run_builtin(benchmark::State& state, double n_hat, int max_bounces) {
-  const BuiltinPulses run(packing(spheres_of(state)), paper_beam(rays_of(state)), n_hat, max_bounces);
+  const BuiltinPulses run(packing(spheres_of(state)), paper_beam(rays_of(state)), n_hat,
+                          max_bounces);
   run_rays(state, run.beam, [&](std::size_t k) { return run.ray(k); });
 }
 
@@ -312,7 +321,8 @@ double median(std::vector<double> v) {
   return v[v.size() / 2];
 }
 
-void run_paired(benchmark::State& state, double n_hat, int max_bounces, bool reuse_primaries = false) {
+void run_paired(benchmark::State& state, double n_hat, int max_bounces,
+                bool reuse_primaries = false) {
   const Particles& p = packing(spheres_of(state));
   const Beam& beam = paper_beam(rays_of(state));
   OpticsSpec spec = tracer_spec(true, n_hat, max_bounces);
@@ -367,7 +377,8 @@ void run_brute(benchmark::State& state, double n_hat) {
   const auto energy = beam.ray_energies(1e-9);
   const double upstream = -2.0 * p.max_radius();
   run_rays(state, beam, [&](std::size_t k) {
-    return trace_brute_ray(p, beam.origin[k] + upstream * beam.direction, beam.direction, energy[k], n_hat);
+    return trace_brute_ray(p, beam.origin[k] + upstream * beam.direction, beam.direction, energy[k],
+                           n_hat);
   });
 }
 
@@ -451,12 +462,14 @@ double min_time() {
 void sizes(benchmark::internal::Benchmark* b) {
   for (long n : {1000L, 10000L, 100000L, 1000000L}) {
     b->Args({n, static_cast<long>(kRays)});
-    if (paper_resolution_rays(n) != kRays) b->Args({n, static_cast<long>(paper_resolution_rays(n))});
+    if (paper_resolution_rays(n) != kRays)
+      b->Args({n, static_cast<long>(paper_resolution_rays(n))});
   }
   b->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
   // With --benchmark_repetitions: the least repetition besides mean, median and stddev. On a
   // shared VM the noise only ever adds time, so the least is the estimate of the undisturbed run.
-  b->ComputeStatistics("min", [](const std::vector<double>& v) { return *std::min_element(v.begin(), v.end()); });
+  b->ComputeStatistics(
+      "min", [](const std::vector<double>& v) { return *std::min_element(v.begin(), v.end()); });
 }
 
 // The size ladder with 10^4 rays only: the slower design alternatives.
@@ -482,7 +495,10 @@ void paired_sizes(benchmark::internal::Benchmark* b) {
 // 1e7 spheres (about 3 GB with the scene and the grid): the top of the size ladder, a few
 // iterations only, so a full run stays within minutes.
 void huge(benchmark::internal::Benchmark* b) {
-  b->Args({10'000'000, static_cast<long>(kRays)})->Unit(benchmark::kMillisecond)->Iterations(3)->UseRealTime();
+  b->Args({10'000'000, static_cast<long>(kRays)})
+      ->Unit(benchmark::kMillisecond)
+      ->Iterations(3)
+      ->UseRealTime();
 }
 
 // ---- grid walk: one ray at a time against interleaved walks ---------------------------------
@@ -535,7 +551,7 @@ void run_grid_batch(benchmark::State& state, bool many) {
   std::vector<Vec3> normal(kRays);
   std::iota(ids.begin(), ids.end(), 0u);
   const RayQuery q{rays.origin.data(), rays.direction.data(), rays.skip.data(), t.data(),
-                   hit.data(), normal.data()};
+                   hit.data(),         normal.data()};
   constexpr std::size_t kBatch = 256;
   for (auto _ : state) {
     std::fill(t.begin(), t.end(), kNoHit);
@@ -550,132 +566,162 @@ void run_grid_batch(benchmark::State& state, bool many) {
     benchmark::ClobberMemory();
   }
   state.counters["time/ray"] =
-      benchmark::Counter(static_cast<double>(kRays),
-                         benchmark::Counter::kIsIterationInvariantRate | benchmark::Counter::kInvert);
-  state.counters["hit_fraction"] = static_cast<double>(std::count_if(
-      hit.begin(), hit.end(), [](std::uint32_t p) { return p != kNoParticle; })) / kRays;
+      benchmark::Counter(static_cast<double>(kRays), benchmark::Counter::kIsIterationInvariantRate |
+                                                         benchmark::Counter::kInvert);
+  state.counters["hit_fraction"] =
+      static_cast<double>(
+          std::count_if(hit.begin(), hit.end(), [](std::uint32_t p) { return p != kNoParticle; })) /
+      kRays;
 }
 
 void register_grid_batch() {
   for (bool many : {false, true})
     benchmark::RegisterBenchmark(many ? "trace/grid_batch/many" : "trace/grid_batch/single",
                                  [many](benchmark::State& s) { run_grid_batch(s, many); })
-        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMicrosecond)->MinTime(min_time())->UseRealTime();
+        ->Arg(100000)
+        ->Arg(1000000)
+        ->Unit(benchmark::kMicrosecond)
+        ->MinTime(min_time())
+        ->UseRealTime();
 }
 
 void register_all() {
   for (double n_hat : {1.4, 20.0}) {
     const std::string large = "/n" + std::to_string(static_cast<int>(std::lround(n_hat * 10)));
     benchmark::RegisterBenchmark(("trace/workload/tracer_packets" + large).c_str(),
-                                 [=](benchmark::State& s) { run_tracer(s, tracer_spec(true, n_hat, 1000)); })
-        ->Apply(huge);
+                                 [=](benchmark::State& s) {
+      run_tracer(s, tracer_spec(true, n_hat, 1000));
+    })->Apply(huge);
     benchmark::RegisterBenchmark(("trace/workload/builtin_sphere" + large).c_str(),
-                                 [=](benchmark::State& s) { run_builtin(s, n_hat, 1000); })
-        ->Apply(huge);
+                                 [=](benchmark::State& s) {
+      run_builtin(s, n_hat, 1000);
+    })->Apply(huge);
   }
   for (double n_hat : {1.4, 20.0}) {
     const std::string tag = "/n" + std::to_string(static_cast<int>(std::lround(n_hat * 10)));
     benchmark::RegisterBenchmark(("trace/workload/tracer_packets" + tag).c_str(),
-                                 [=](benchmark::State& s) { run_tracer(s, tracer_spec(true, n_hat, 1000)); })
-        ->Apply(sizes);
+                                 [=](benchmark::State& s) {
+      run_tracer(s, tracer_spec(true, n_hat, 1000));
+    })->Apply(sizes);
     benchmark::RegisterBenchmark(("trace/workload/tracer_packets_embree_bounces" + tag).c_str(),
                                  [=](benchmark::State& s) {
-                                   run_tracer(s, tracer_spec(true, n_hat, 1000, OpticsSpec{}.scene_update, 1,
-                                                             BounceSearch::embree));
-                                 })
-        ->Apply(sizes_fixed_rays);
+      run_tracer(
+          s, tracer_spec(true, n_hat, 1000, OpticsSpec{}.scene_update, 1, BounceSearch::embree));
+    })->Apply(sizes_fixed_rays);
     benchmark::RegisterBenchmark(("trace/workload/tracer_packets_packet_bounces" + tag).c_str(),
                                  [=](benchmark::State& s) {
-                                   run_tracer(s, tracer_spec(true, n_hat, 1000, OpticsSpec{}.scene_update, 1,
-                                                             BounceSearch::packets));
-                                 })
-        ->Apply(sizes_fixed_rays);
+      run_tracer(
+          s, tracer_spec(true, n_hat, 1000, OpticsSpec{}.scene_update, 1, BounceSearch::packets));
+    })->Apply(sizes_fixed_rays);
     benchmark::RegisterBenchmark(("trace/workload/tracer_single" + tag).c_str(),
                                  [=](benchmark::State& s) {
-                                   run_tracer(s, tracer_spec(false, n_hat, 1000, OpticsSpec{}.scene_update, 1,
-                                                             BounceSearch::embree));
-                                 })
-        ->Apply(sizes_fixed_rays);
+      run_tracer(
+          s, tracer_spec(false, n_hat, 1000, OpticsSpec{}.scene_update, 1, BounceSearch::embree));
+    })->Apply(sizes_fixed_rays);
     benchmark::RegisterBenchmark(("trace/workload/builtin_sphere" + tag).c_str(),
-                                 [=](benchmark::State& s) { run_builtin(s, n_hat, 1000); })
-        ->Apply(sizes);
+                                 [=](benchmark::State& s) {
+      run_builtin(s, n_hat, 1000);
+    })->Apply(sizes);
     benchmark::RegisterBenchmark(("trace/workload/brute_force" + tag).c_str(),
                                  [=](benchmark::State& s) { run_brute(s, n_hat); })
-        ->Args({1000, static_cast<long>(kRays)})->Unit(benchmark::kMillisecond)->MinTime(min_time())->UseRealTime();
+        ->Args({1000, static_cast<long>(kRays)})
+        ->Unit(benchmark::kMillisecond)
+        ->MinTime(min_time())
+        ->UseRealTime();
   }
   // The scene's update mode decides its build (static SAH for mask_only/rebuild, two-level
   // low quality for refit/bricks), hence its tracing speed too.
-  for (const auto& [name, mode] : {std::pair{"deferred", SceneUpdate::deferred},
-                                   std::pair{"refit", SceneUpdate::refit},
-                                   std::pair{"bricks", SceneUpdate::bricks}})
+  for (const auto& [name, mode] :
+       {std::pair{"deferred", SceneUpdate::deferred}, std::pair{"refit", SceneUpdate::refit},
+        std::pair{"bricks", SceneUpdate::bricks}})
     benchmark::RegisterBenchmark(("trace/scene_mode/" + std::string(name) + "/n200").c_str(),
-                                 [mode = mode](benchmark::State& s) { run_tracer(s, tracer_spec(true, 20.0, 1000, mode)); })
-        ->Apply(large);
+                                 [mode = mode](benchmark::State& s) {
+      run_tracer(s, tracer_spec(true, 20.0, 1000, mode));
+    })->Apply(large);
   // Embree primitive = a cluster of K consecutive (Morton) spheres: fewer callbacks, looser boxes.
   for (unsigned k : {1u, 2u, 4u, 8u}) {
     benchmark::RegisterBenchmark(("trace/cluster/k" + std::to_string(k) + "/n200").c_str(),
                                  [k](benchmark::State& s) {
-                                   run_tracer(s, tracer_spec(true, 20.0, 1000, SceneUpdate::deferred, k));
-                                 })
-        ->Apply(large);
+      run_tracer(s, tracer_spec(true, 20.0, 1000, SceneUpdate::deferred, k));
+    })->Apply(large);
     benchmark::RegisterBenchmark(("trace/cluster/k" + std::to_string(k) + "/primary").c_str(),
                                  [k](benchmark::State& s) {
-                                   run_tracer(s, tracer_spec(true, 20.0, 1, SceneUpdate::deferred, k));
-                                 })
-        ->Apply(large);
+      run_tracer(s, tracer_spec(true, 20.0, 1, SceneUpdate::deferred, k));
+    })->Apply(large);
   }
   for (double f : {1.5, 2.0, 3.0, 4.0})
-    benchmark::RegisterBenchmark(("trace/grid_cell/" + std::to_string(f).substr(0, 3) + "R/n200").c_str(),
+    benchmark::RegisterBenchmark(("trace/grid_cell/" + std::to_string(f).substr(0, 3) + "R/n200")
+                                     .c_str(),
                                  [f](benchmark::State& s) {
-                                   run_tracer(s, tracer_spec(true, 20.0, 1000, OpticsSpec{}.scene_update, 1,
-                                                             BounceSearch::grid, f));
-                                 })
-        ->Apply(large);
+      run_tracer(
+          s, tracer_spec(true, 20.0, 1000, OpticsSpec{}.scene_update, 1, BounceSearch::grid, f));
+    })->Apply(large);
   // Primaries traced every pulse (the tracing speed), and reused from the pulse before (what a
   // run with a repeated beam pays: OpticsSpec::reuse_primaries).
   for (bool reuse : {false, true}) {
     const std::string tag = reuse ? "_reused" : "";
     benchmark::RegisterBenchmark(("trace/paired/primary" + tag).c_str(),
                                  [reuse](benchmark::State& s) { run_paired(s, 1.4, 1, reuse); })
-        ->Apply(paired_sizes)->Iterations(41);
+        ->Apply(paired_sizes)
+        ->Iterations(41);
     for (double n_hat : {1.4, 20.0})
       benchmark::RegisterBenchmark(
-          ("trace/paired/n" + std::to_string(static_cast<int>(std::lround(n_hat * 10))) + tag).c_str(),
+          ("trace/paired/n" + std::to_string(static_cast<int>(std::lround(n_hat * 10))) + tag)
+              .c_str(),
           [n_hat, reuse](benchmark::State& s) { run_paired(s, n_hat, 1000, reuse); })
-          ->Apply(paired_sizes)->Iterations(9);
+          ->Apply(paired_sizes)
+          ->Iterations(9);
   }
   for (double offset : {0.0, 500.0})
-    benchmark::RegisterBenchmark(("trace/far_frame/" + std::to_string(static_cast<int>(offset))).c_str(),
-                                 [offset](benchmark::State& s) { run_far_frame(s, offset); })
-        ->Args({100000, static_cast<long>(kRays)})->Unit(benchmark::kMillisecond)->MinTime(min_time())
+    benchmark::RegisterBenchmark(
+        ("trace/far_frame/" + std::to_string(static_cast<int>(offset))).c_str(),
+        [offset](benchmark::State& s) { run_far_frame(s, offset); })
+        ->Args({100000, static_cast<long>(kRays)})
+        ->Unit(benchmark::kMillisecond)
+        ->MinTime(min_time())
         ->UseRealTime();
-  benchmark::RegisterBenchmark("trace/primary/tracer_packets",
-                               [](benchmark::State& s) { run_tracer(s, tracer_spec(true, 1.4, 1)); })->Apply(sizes);
+  benchmark::RegisterBenchmark("trace/primary/tracer_packets", [](benchmark::State& s) {
+    run_tracer(s, tracer_spec(true, 1.4, 1));
+  })->Apply(sizes);
   benchmark::RegisterBenchmark("trace/primary/tracer_single", [](benchmark::State& s) {
     run_tracer(s, tracer_spec(false, 1.4, 1, OpticsSpec{}.scene_update, 1, BounceSearch::embree));
   })->Apply(sizes);
-  benchmark::RegisterBenchmark("trace/primary/builtin_sphere",
-                               [](benchmark::State& s) { run_builtin(s, 1.4, 1); })->Apply(sizes);
+  benchmark::RegisterBenchmark("trace/primary/builtin_sphere", [](benchmark::State& s) {
+    run_builtin(s, 1.4, 1);
+  })->Apply(sizes);
   const std::pair<const char*, SceneUpdate> modes[] = {{"deferred", SceneUpdate::deferred},
                                                        {"mask_only", SceneUpdate::mask_only},
                                                        {"rebuild", SceneUpdate::rebuild},
                                                        {"refit", SceneUpdate::refit},
                                                        {"bricks", SceneUpdate::bricks}};
   for (bool beam : {false, true})
-    benchmark::RegisterBenchmark(
-        (std::string("scene_update/tracer_remove_particles") + (beam ? "/beam_1pct" : "/random_1pct")).c_str(),
-        [beam](benchmark::State& s) { run_tracer_remove(s, beam); })
-        ->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->Iterations(5)->UseRealTime();
+    benchmark::RegisterBenchmark((std::string("scene_update/tracer_remove_particles") +
+                                  (beam ? "/beam_1pct" : "/random_1pct"))
+                                     .c_str(),
+                                 [beam](benchmark::State& s) { run_tracer_remove(s, beam); })
+        ->Arg(100000)
+        ->Arg(1000000)
+        ->Unit(benchmark::kMillisecond)
+        ->Iterations(5)
+        ->UseRealTime();
   for (const auto& [name, mode] : modes) {
     for (bool beam : {false, true}) {
-      const std::string label = std::string("scene_update/") + name + (beam ? "/beam_1pct" : "/random_1pct");
-      benchmark::RegisterBenchmark(label.c_str(), [mode = mode, beam](benchmark::State& s) {
-        run_update(s, mode, beam);
-      })->Arg(100000)->Arg(1000000)->Unit(benchmark::kMillisecond)->Iterations(5)->UseRealTime();
+      const std::string label =
+          std::string("scene_update/") + name + (beam ? "/beam_1pct" : "/random_1pct");
+      benchmark::RegisterBenchmark(
+          label.c_str(), [mode = mode, beam](benchmark::State& s) { run_update(s, mode, beam); })
+          ->Arg(100000)
+          ->Arg(1000000)
+          ->Unit(benchmark::kMillisecond)
+          ->Iterations(5)
+          ->UseRealTime();
     }
     benchmark::RegisterBenchmark((std::string("scene_update/build/") + name).c_str(),
                                  [mode = mode](benchmark::State& s) { run_build(s, mode); })
-        ->Arg(1000000)->Unit(benchmark::kMillisecond)->Iterations(3)->UseRealTime();
+        ->Arg(1000000)
+        ->Unit(benchmark::kMillisecond)
+        ->Iterations(3)
+        ->UseRealTime();
   }
   register_grid_batch();
 }

@@ -24,17 +24,20 @@ template <class T>
 }  // namespace
 
 void validate_beam(const BeamSpec& s, double sample_size) {
-  if (!(s.power > 0.0) || !std::isfinite(s.power)) bad("beam.power", s.power, "must be > 0 and finite");
+  if (!(s.power > 0.0) || !std::isfinite(s.power))
+    bad("beam.power", s.power, "must be > 0 and finite");
   if (!(s.diameter_fraction > 0.0) || !std::isfinite(s.diameter_fraction))
     bad("beam.diameter_fraction", s.diameter_fraction, "must be > 0 and finite");
-  if (s.rays < 1 || s.rays > (std::size_t{1} << 31)) bad("beam.rays", s.rays, "must be in [1, 2^31]");
+  if (s.rays < 1 || s.rays > (std::size_t{1} << 31))
+    bad("beam.rays", s.rays, "must be in [1, 2^31]");
   if (s.sampling != "random" && s.sampling != "stratified")
     bad("beam.sampling", s.sampling, "must be `random` or `stratified`");
   if (s.resample && s.sampling != "random")
     bad("beam.resample", "true", "needs `beam.sampling` = `random` (stratified rays are fixed)");
   if (s.profile != "exponential" && s.profile != "flat" && s.profile != "gaussian")
     bad("beam.profile", s.profile, "must be `exponential`, `flat` or `gaussian`");
-  if (!(s.decay >= 0.0) || !std::isfinite(s.decay)) bad("beam.decay", s.decay, "must be >= 0 and finite");
+  if (!(s.decay >= 0.0) || !std::isfinite(s.decay))
+    bad("beam.decay", s.decay, "must be >= 0 and finite");
   if (!(s.gaussian_width > 0.0) || !std::isfinite(s.gaussian_width))
     bad("beam.gaussian_width", s.gaussian_width, "must be > 0 and finite");
   const double norm = s.direction.norm();
@@ -87,10 +90,13 @@ double delivered_power(const std::vector<double>& intensity, double ray_area) {
 // The shape is first scaled by a power of two that brings its largest value to [0.5, 1): rays
 // only in a profile's far tail (f ~ 1e-307) made A_r sum f underflow and I_0 infinite, a NaN at
 // the first hit. A power of two scales exactly, so every other beam keeps its bits.
-void normalise(const BeamSpec& spec, std::vector<double>& intensity, double ray_area, double power) {
-  const double f_max = intensity.empty() ? 0.0 : *std::max_element(intensity.begin(), intensity.end());
+void normalise(const BeamSpec& spec, std::vector<double>& intensity, double ray_area,
+               double power) {
+  const double f_max =
+      intensity.empty() ? 0.0 : *std::max_element(intensity.begin(), intensity.end());
   constexpr const char* kZero = "too narrow a profile: it underflows to zero on every ray";
-  if (!(f_max > 0.0) && spec.profile == "gaussian") bad("beam.gaussian_width", spec.gaussian_width, kZero);
+  if (!(f_max > 0.0) && spec.profile == "gaussian")
+    bad("beam.gaussian_width", spec.gaussian_width, kZero);
   if (!(f_max > 0.0)) bad("beam.decay", spec.decay, kZero);
   int exponent = 0;
   std::frexp(f_max, &exponent);
@@ -173,7 +179,9 @@ std::vector<Eigen::Vector2d> disk_points(const BeamSpec& spec, std::uint64_t pul
 }
 
 // r_b = d_b / 2 with d_b = beam.diameter_fraction D, and A_r = pi r_b^2 / N_r.
-double radius_of(const BeamSpec& spec, double sample_size) { return 0.5 * spec.diameter_fraction * sample_size; }
+double radius_of(const BeamSpec& spec, double sample_size) {
+  return 0.5 * spec.diameter_fraction * sample_size;
+}
 
 double ray_area(const BeamSpec& spec, double radius) {
   return std::numbers::pi * radius * radius / static_cast<double>(spec.rays);
@@ -201,7 +209,8 @@ void check_pulse_draw(const BeamSpec& spec, double sample_size, std::uint64_t pu
   const double radius = radius_of(spec, sample_size);
   std::vector<double> intensity;
   intensity.reserve(spec.rays);
-  for (const auto& q : disk_points(spec, pulse)) intensity.push_back(beam_profile(spec, radius * q.norm(), radius));
+  for (const auto& q : disk_points(spec, pulse))
+    intensity.push_back(beam_profile(spec, radius * q.norm(), radius));
   normalise(spec, intensity, ray_area(spec, radius), spec.power);
 }
 

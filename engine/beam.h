@@ -9,28 +9,28 @@
 namespace beampack {
 
 struct BeamSpec {
-  double power = 6000.0;             // beam.power, W: sum_k I_k A_r = P
-  double diameter_fraction = 0.3;    // beam.diameter_fraction: d_b / D
-  std::size_t rays = 1000;           // beam.rays: N_r
-  std::string sampling = "random";   // beam.sampling: random | stratified
+  double power = 6000.0;                // beam.power, W: sum_k I_k A_r = P
+  double diameter_fraction = 0.3;       // beam.diameter_fraction: d_b / D
+  std::size_t rays = 1000;              // beam.rays: N_r
+  std::string sampling = "random";      // beam.sampling: random | stratified
   std::string profile = "exponential";  // beam.profile: exponential | flat | gaussian
-  double decay = 2.0;                // beam.decay: a of (5.1), I = I_0 exp(-a d / r_b)
+  double decay = 2.0;                   // beam.decay: a of (5.1), I = I_0 exp(-a d / r_b)
   // beam.gaussian_width: w / r_b of I = I_0 exp(-2 d^2 / w^2). Default 1: the disk edge is the
   // 1/e^2 radius, the usual laser "beam radius", so the disk holds 86% of the untruncated beam.
   double gaussian_width = 1.0;
-  std::uint64_t seed = 1;            // beam.seed (random sampling)
+  std::uint64_t seed = 1;  // beam.seed (random sampling)
   // beam.resample: random sampling draws new rays for every pulse (pulse k: stream k of the
   // seed), so the sampling error averages out over the pulses; false: every pulse is pulse 0's.
   bool resample = false;
-  Vec3 direction{1.0, 0.0, 0.0};     // beam.direction, unit (paper: +x)
+  Vec3 direction{1.0, 0.0, 0.0};  // beam.direction, unit (paper: +x)
 };
 
 struct Beam {
-  Vec3 direction;               // unit
-  Vec3 centre;                  // centre of the entry disk: sample centre - (D/2) direction
-  double radius = 0.0;          // r_b
-  double ray_area = 0.0;        // A_r = A_b / N_r
-  double power = 0.0;           // P
+  Vec3 direction;         // unit
+  Vec3 centre;            // centre of the entry disk: sample centre - (D/2) direction
+  double radius = 0.0;    // r_b
+  double ray_area = 0.0;  // A_r = A_b / N_r
+  double power = 0.0;     // P
   // On the entry disk (the tracer moves them upstream of all spheres), in spatial tiles: 16
   // consecutive rays form a small patch (coherent packets).
   std::vector<Vec3> origin;

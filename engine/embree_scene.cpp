@@ -37,7 +37,10 @@ struct alignas(32) SphereRecord {
   Vec3 centre;
   double radius;  // negated once the particle is removed: the callback needs no other load
 };
-bool is_removed(const SphereRecord& s) { return !(s.radius > 0.0); }  // also r = 0 or NaN
+// Also r = 0 or NaN.
+bool is_removed(const SphereRecord& s) {
+  return !(s.radius > 0.0);
+}
 
 // One user geometry: a run of spheres in Morton order (the whole packing, or one brick). Its
 // pointers start at the geometry's first sphere; a primitive is a cluster of `per_prim`
@@ -81,7 +84,9 @@ float round_up_distance(double x) {
 }
 // Embree's float tfar for a double hit distance t: padded upward, so Embree never culls a sphere
 // the double test would find nearer.
-float culling_distance(double t, double slack) { return round_up_distance(t * (1.0 + kFloatPad) + slack); }
+float culling_distance(double t, double slack) {
+  return round_up_distance(t * (1.0 + kFloatPad) + slack);
+}
 
 // Bounds of a cluster's live spheres, rounded outward; empty when all are removed (dropped by
 // builds and refits).
@@ -135,16 +140,18 @@ std::uint32_t packet_candidates(const int* valid, RTCRayN* rays, const SphereRec
     const __m128 fx = _mm_sub_ps(_mm_loadu_ps(&RTCRayN_org_x(rays, W, g)), cx);
     const __m128 fy = _mm_sub_ps(_mm_loadu_ps(&RTCRayN_org_y(rays, W, g)), cy);
     const __m128 fz = _mm_sub_ps(_mm_loadu_ps(&RTCRayN_org_z(rays, W, g)), cz);
-    const __m128 b = _mm_sub_ps(_mm_setzero_ps(),
-                                _mm_add_ps(_mm_add_ps(_mm_mul_ps(fx, dx), _mm_mul_ps(fy, dy)),
-                                           _mm_mul_ps(fz, dz)));
+    const __m128 b = _mm_sub_ps(
+        _mm_setzero_ps(),
+        _mm_add_ps(_mm_add_ps(_mm_mul_ps(fx, dx), _mm_mul_ps(fy, dy)), _mm_mul_ps(fz, dz)));
     const __m128 px = _mm_add_ps(fx, _mm_mul_ps(b, dx));
     const __m128 py = _mm_add_ps(fy, _mm_mul_ps(b, dy));
     const __m128 pz = _mm_add_ps(fz, _mm_mul_ps(b, dz));
-    const __m128 p2 = _mm_add_ps(_mm_add_ps(_mm_mul_ps(px, px), _mm_mul_ps(py, py)), _mm_mul_ps(pz, pz));
+    const __m128 p2 =
+        _mm_add_ps(_mm_add_ps(_mm_mul_ps(px, px), _mm_mul_ps(py, py)), _mm_mul_ps(pz, pz));
     const __m128 on = _mm_castsi128_ps(_mm_cmpeq_epi32(
         _mm_loadu_si128(reinterpret_cast<const __m128i*>(valid + g)), _mm_set1_epi32(-1)));
-    const __m128 keep = _mm_and_ps(on, _mm_and_ps(_mm_cmple_ps(p2, reach2), _mm_cmpgt_ps(b, minus_reach)));
+    const __m128 keep =
+        _mm_and_ps(on, _mm_and_ps(_mm_cmple_ps(p2, reach2), _mm_cmpgt_ps(b, minus_reach)));
     bits |= static_cast<std::uint32_t>(_mm_movemask_ps(keep)) << g;
   }
   return bits;
@@ -161,7 +168,8 @@ std::uint32_t packet_candidates(const int* valid, RTCRayN* rays, const SphereRec
   const float r = static_cast<float>(sphere.radius) + pad;
   std::uint32_t bits = 0;
   for (unsigned i = 0; i < W; ++i) {
-    const float dx = RTCRayN_dir_x(rays, W, i), dy = RTCRayN_dir_y(rays, W, i), dz = RTCRayN_dir_z(rays, W, i);
+    const float dx = RTCRayN_dir_x(rays, W, i), dy = RTCRayN_dir_y(rays, W, i),
+                dz = RTCRayN_dir_z(rays, W, i);
     const float fx = RTCRayN_org_x(rays, W, i) - cx, fy = RTCRayN_org_y(rays, W, i) - cy,
                 fz = RTCRayN_org_z(rays, W, i) - cz;
     const float b = -(fx * dx + fy * dy + fz * dz);
@@ -179,7 +187,8 @@ std::uint32_t candidates(const RTCIntersectFunctionNArguments* args, const Spher
   if (args->N == 16) return packet_candidates<16>(args->valid, rays, sphere, frame, pad);
   if (args->N == 8) return packet_candidates<8>(args->valid, rays, sphere, frame, pad);
   std::uint32_t bits = 0;
-  for (unsigned i = 0; i < args->N; ++i) bits |= static_cast<std::uint32_t>(args->valid[i] == -1) << i;
+  for (unsigned i = 0; i < args->N; ++i)
+    bits |= static_cast<std::uint32_t>(args->valid[i] == -1) << i;
   return bits;
 }
 
@@ -213,7 +222,9 @@ void intersect_sphere(const RTCIntersectFunctionNArguments* args, const SphereSe
     q.t_hit[id] = t[j];
     q.particle[id] = p;
     // The normal now, while the sphere is in cache; the tracer needs it in double.
-    if (q.normal) q.normal[id] = entry_normal(q.origin[id], q.direction[id], t[j], sphere.centre, sphere.radius);
+    if (q.normal)
+      q.normal[id] =
+          entry_normal(q.origin[id], q.direction[id], t[j], sphere.centre, sphere.radius);
     const double from_clip = std::max(t[j] - ctx.shift[lanes[j]], 0.0);  // >= 0 but for round-off
     RTCRayN_tfar(rays, args->N, lanes[j]) = culling_distance(from_clip, ctx.slack);
   }
@@ -237,7 +248,8 @@ void sphere_occluded(const RTCOccludedFunctionNArguments* args) {
     for (unsigned i = 0; i < n; ++i) {
       if (args->valid[i] != -1 || ctx.skip_rank[i] == set->first + k) continue;
       const unsigned id = RTCRayN_id(args->ray, n, i);
-      const double t = ray_sphere_entry(q.origin[id], q.direction[id], sphere.centre, sphere.radius);
+      const double t =
+          ray_sphere_entry(q.origin[id], q.direction[id], sphere.centre, sphere.radius);
       if (t < q.t_hit[id]) {
         q.particle[id] = set->particle[k];
         RTCRayN_tfar(args->ray, n, i) = -std::numeric_limits<float>::infinity();
@@ -314,11 +326,11 @@ struct EmbreeScene::Impl {
   DeviceReport report;
   RTCDevice device = nullptr;
   RTCScene scene = nullptr;
-  std::vector<SphereRecord> spheres;      // Morton order
-  std::vector<std::uint32_t> particle;     // particle id of each sphere
-  std::vector<std::uint32_t> rank;         // sphere (Morton rank) of each particle
-  std::size_t brick_size = 0;              // spheres per geometry (bricks mode: contiguous runs)
-  std::vector<SphereSet> sets;             // one per geometry
+  std::vector<SphereRecord> spheres;    // Morton order
+  std::vector<std::uint32_t> particle;  // particle id of each sphere
+  std::vector<std::uint32_t> rank;      // sphere (Morton rank) of each particle
+  std::size_t brick_size = 0;           // spheres per geometry (bricks mode: contiguous runs)
+  std::vector<SphereSet> sets;          // one per geometry
   std::vector<RTCGeometry> geometries;
   // Embree sees coordinates relative to `frame`, the centre of the live spheres' box, and rays
   // clipped to `reach`, that box padded (clip_to_scene): float spacing then scales with the
@@ -484,8 +496,8 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
     rtcSetGeometryBoundsFunction(g, sphere_bounds, nullptr);
     rtcSetGeometryIntersectFunction(g, sphere_intersect);
     rtcSetGeometryOccludedFunction(g, sphere_occluded);
-    rtcSetGeometryBuildQuality(g, update == SceneUpdate::refit ? RTC_BUILD_QUALITY_REFIT
-                                                               : RTC_BUILD_QUALITY_LOW);
+    rtcSetGeometryBuildQuality(
+        g, update == SceneUpdate::refit ? RTC_BUILD_QUALITY_REFIT : RTC_BUILD_QUALITY_LOW);
     rtcCommitGeometry(g);
     rtcAttachGeometry(im.scene, g);
     im.geometries.push_back(g);
@@ -545,8 +557,8 @@ QueryContext make_context(const RayQuery& query, double slack, bool coherent) {
   QueryContext ctx;
   std::fill(std::begin(ctx.skip_rank), std::end(ctx.skip_rank), kNoParticle);
   rtcInitIntersectContext(&ctx.base);
-  ctx.base.flags = coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT
-                            : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
+  ctx.base.flags =
+      coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
   ctx.query = query;
   ctx.slack = slack;
   ctx.prefilter_pad = static_cast<float>(10.0 * slack);
@@ -606,9 +618,10 @@ struct FloatRay {
 FloatRay float_ray(const Vec3& o, const Vec3& d, double t_hit, double t0, const Vec3& frame,
                    double slack) {
   const Vec3 start = clipped_start(o, d, t0, frame);
-  return {{static_cast<float>(start.x()), static_cast<float>(start.y()), static_cast<float>(start.z())},
-          {static_cast<float>(d.x()), static_cast<float>(d.y()), static_cast<float>(d.z())},
-          t_hit < kInf ? culling_distance(t_hit - t0, slack) : std::numeric_limits<float>::infinity()};
+  return {
+      {static_cast<float>(start.x()), static_cast<float>(start.y()), static_cast<float>(start.z())},
+      {static_cast<float>(d.x()), static_cast<float>(d.y()), static_cast<float>(d.z())},
+      t_hit < kInf ? culling_distance(t_hit - t0, slack) : std::numeric_limits<float>::infinity()};
 }
 
 RTCRay rtc_ray(const FloatRay& f, std::uint32_t id) {

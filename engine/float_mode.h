@@ -17,8 +17,12 @@ namespace float_mode {
 using Word = unsigned;
 // MXCSR: flush-to-zero (bit 15) and denormals-are-zero (bit 6).
 constexpr Word kFlushBits = (1u << 15) | (1u << 6);
-inline Word read() { return _mm_getcsr(); }
-inline void write(Word w) { _mm_setcsr(w); }
+inline Word read() {
+  return _mm_getcsr();
+}
+inline void write(Word w) {
+  _mm_setcsr(w);
+}
 #else
 using Word = unsigned long;
 // FPCR: flush-to-zero (bit 24) covers both inputs and results.
@@ -28,14 +32,18 @@ inline Word read() {
   asm volatile("mrs %0, fpcr" : "=r"(w));
   return w;
 }
-inline void write(Word w) { asm volatile("msr fpcr, %0" : : "r"(w)); }
+inline void write(Word w) {
+  asm volatile("msr fpcr, %0" : : "r"(w));
+}
 #endif
 
 }  // namespace float_mode
 
 class IeeeFloatMode {
  public:
-  IeeeFloatMode() : saved_(float_mode::read()) { float_mode::write(saved_ & ~float_mode::kFlushBits); }
+  IeeeFloatMode() : saved_(float_mode::read()) {
+    float_mode::write(saved_ & ~float_mode::kFlushBits);
+  }
   ~IeeeFloatMode() { float_mode::write(saved_); }
   IeeeFloatMode(const IeeeFloatMode&) = delete;
   IeeeFloatMode& operator=(const IeeeFloatMode&) = delete;

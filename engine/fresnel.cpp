@@ -42,7 +42,7 @@ Reflectances reflectance_components(double cos_i, std::complex<double> n_hat, do
   using C = std::complex<double>;
   cos_i = std::clamp(cos_i, 0.0, 1.0);
   const C n2 = n_hat * n_hat;
-  // Principal branch: Im >= 0, the decaying wave; for n = 1 exactly cos_i itself (as in the real case).
+  // Principal branch: Im >= 0, the decaying wave; for n = 1 exactly cos_i itself (as real n does).
   const C root = n2 == C(1.0) ? C(cos_i) : std::sqrt((n2 - 1.0) + cos_i * cos_i);
   const C a = n2 / mu_hat * cos_i;
   const C b = root / mu_hat;

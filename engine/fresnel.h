@@ -80,6 +80,8 @@ Reflectances reflectance_components(double cos_i, std::complex<double> n_hat, do
 double reflectance(double cos_i, std::complex<double> n_hat, double mu_hat = 1.0);
 
 // Specular reflection d' = d - 2 (d.n) n.
-inline Vec3 reflect(const Vec3& d, const Vec3& n) { return d - 2.0 * d.dot(n) * n; }
+inline Vec3 reflect(const Vec3& d, const Vec3& n) {
+  return d - 2.0 * d.dot(n) * n;
+}
 
 }  // namespace beampack

@@ -49,7 +49,8 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
     : spec_(std::move(spec)), particles_(std::move(particles)) {
   if (spec_.pulses.count < 0) throw InputError("`pulses.count` must be >= 0");
   if (!(spec_.pulses.duration > 0) || !std::isfinite(spec_.pulses.duration))
-    throw InputError("`pulses.duration` = " + std::to_string(spec_.pulses.duration) + ": must be > 0");
+    throw InputError("`pulses.duration` = " + std::to_string(spec_.pulses.duration) +
+                     ": must be > 0");
   use_beam(make_beam(spec_.beam, spec_.packing.sample_size));
   // With new rays per pulse, the first pulses' draws are checked now, as input.
   for (int k = 1; spec_.beam.resample && k < std::min(spec_.pulses.count, 64); ++k) {
@@ -64,15 +65,17 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
   for (double e : ray_energy_) pulse_energy += e;
   if (!std::isfinite(pulse_energy) || !std::isfinite(pulse_energy * spec_.pulses.count)) {
     std::ostringstream m;
-    m << "`beam.power` = " << spec_.beam.power << " with `pulses.duration` = "
-      << spec_.pulses.duration << " s: the pulse energy overflows double precision";
+    m << "`beam.power` = " << spec_.beam.power
+      << " with `pulses.duration` = " << spec_.pulses.duration
+      << " s: the pulse energy overflows double precision";
     throw InputError(m.str());
   }
   check_thermal_masses(pulse_energy * std::max(spec_.pulses.count, 1));
   OpticsSpec optics = spec_.optics;
   optics.chunk_rays = spec_.dt > 0 ? 64 : 256;  // short budgets leave small chunks alone
   // The same rays every pulse: their first hits are reused (not with one pulse, or new rays each).
-  optics.reuse_primaries = spec_.optics.reuse_primaries && spec_.pulses.count > 1 && !spec_.beam.resample;
+  optics.reuse_primaries =
+      spec_.optics.reuse_primaries && spec_.pulses.count > 1 && !spec_.beam.resample;
   tracer_ = std::make_unique<Tracer>(particles_, optics);
   tracer_->keep_undo(spec_.max_staggers > 0);  // the stagger's redo takes a step back
   thermal_ = std::make_unique<ThermalModel>(particles_, spec_.materials, spec_.thermal);
@@ -102,11 +105,13 @@ void Simulation::check_thermal_masses(double run_energy) const {
     const std::size_t k = particles_.material[i];
     if (k >= spec_.materials.size()) continue;  // the thermal model reports a missing material
     const Material& m = spec_.materials[k];
-    const double mass_heat = least_thermal_mass(m, particles_.volume(i), spec_.thermal.time_scaling);
+    const double mass_heat =
+        least_thermal_mass(m, particles_.volume(i), spec_.thermal.time_scaling);
     if (mass_heat >= std::numeric_limits<double>::min() && std::isfinite(mass_heat) &&
         std::isfinite(run_energy / mass_heat))
       continue;
-    const std::string key = spec_.materials.size() == 1 ? "material" : "material[" + std::to_string(k) + "]";
+    const std::string key =
+        spec_.materials.size() == 1 ? "material" : "material[" + std::to_string(k) + "]";
     std::ostringstream msg;
     msg << "particle " << i << " (radius " << particles_.radius[i] << " m) has a thermal mass `"
         << key << ".density` x volume x min(`" << key << ".c_solid`, `" << key << ".c_liquid`) / "
@@ -150,8 +155,8 @@ bool Simulation::done() const {
 
 void Simulation::launch_pulse_if_due() {
   if (launched_ >= spec_.pulses.count) return;
-  const bool due = spec_.pulses.period > 0 ? time_ >= next_pulse_time_ * (1 - 1e-12)
-                                           : !tracer_->has_live_rays();
+  const bool due =
+      spec_.pulses.period > 0 ? time_ >= next_pulse_time_ * (1 - 1e-12) : !tracer_->has_live_rays();
   if (!due) return;
   if (launched_ > 0 && on_pulse_end_) on_pulse_end_(launched_ - 1);
   if (spec_.beam.resample && launched_ > 0) use_beam(resampled_beam(launched_));
@@ -212,9 +217,10 @@ bool Simulation::step() {
   if (done()) return false;
   if constexpr (BEAMPACK_CHECKS_ON) name_step_for_checks();
   launch_pulse_if_due();
-  const double budget = spec_.dt > 0 ? kSpeedOfLight * spec_.dt : std::numeric_limits<double>::infinity();
+  const double budget =
+      spec_.dt > 0 ? kSpeedOfLight * spec_.dt : std::numeric_limits<double>::infinity();
   tracer_->compact_if_sparse();  // ended rays would be scanned by every chunk that runs
-  PhaseOverride seen;  // where the phases the rays see differ from the particles' (a redo)
+  PhaseOverride seen;         // where the phases the rays see differ from the particles' (a redo)
   PhaseOverride seen_before;  // the pass before's
   StepReport report;
   double dt = 0;
@@ -233,8 +239,10 @@ bool Simulation::step() {
     }
     dt = step_length(traced);
     // A step of no length cannot take the heat its trace deposited: it would leave the ledger.
-    if (!(dt > 0) && std::any_of(heated_.begin(), heated_.end(), [&](std::uint32_t i) { return deposits_[i] > 0; }))
-      throw RunError("step " + std::to_string(counts_.steps) + ": rays deposited energy in a step of "
+    if (!(dt > 0) && std::any_of(heated_.begin(), heated_.end(),
+                                 [&](std::uint32_t i) { return deposits_[i] > 0; }))
+      throw RunError("step " + std::to_string(counts_.steps) +
+                     ": rays deposited energy in a step of "
                      "length 0 (the rays travelled no path); please report the run file");
     // Heat and phases: the implicit step (3.10) with dH, then the latent-heat bands (section 4).
     if (dt > 0) {
@@ -295,11 +303,12 @@ bool Simulation::step() {
 
 // What a failed check (geometry/check.h) prints to say how to reproduce it.
 void Simulation::name_step_for_checks() const {
-  set_check_context(check_facts("step %llu (t = %.17g s, pulse %d) of a run of %zu particles, packing.seed %llu, "
-                                "beam.seed %llu",
-                                static_cast<unsigned long long>(counts_.steps), time_, launched_, particles_.size(),
-                                static_cast<unsigned long long>(spec_.packing.seed),
-                                static_cast<unsigned long long>(spec_.beam.seed)));
+  set_check_context(
+      check_facts("step %llu (t = %.17g s, pulse %d) of a run of %zu particles, packing.seed %llu, "
+                  "beam.seed %llu",
+                  static_cast<unsigned long long>(counts_.steps), time_, launched_,
+                  particles_.size(), static_cast<unsigned long long>(spec_.packing.seed),
+                  static_cast<unsigned long long>(spec_.beam.seed)));
 }
 
 // After every step, in BEAMPACK_CHECKS builds: the optics ledger closes to round-off (it does by
@@ -323,11 +332,14 @@ void Simulation::check_ledgers_close() const {
 
 // The phase whose index the rays see: a particle that vaporised in this step is still hit during
 // it, as liquid (it leaves the scene from the next step, the paper's Remark 10).
-Phase Simulation::optical(Phase phase) { return phase == Phase::vapor ? Phase::liquid : phase; }
+Phase Simulation::optical(Phase phase) {
+  return phase == Phase::vapor ? Phase::liquid : phase;
+}
 
 namespace {
 // PhaseOverride entries ordered by particle.
-bool by_particle(const std::pair<std::uint32_t, Phase>& a, const std::pair<std::uint32_t, Phase>& b) {
+bool by_particle(const std::pair<std::uint32_t, Phase>& a,
+                 const std::pair<std::uint32_t, Phase>& b) {
   return a.first < b.first;
 }
 }  // namespace
@@ -339,8 +351,10 @@ bool by_particle(const std::pair<std::uint32_t, Phase>& a, const std::pair<std::
 bool Simulation::optics_changed(const PhaseOverride& seen) const {
   for (std::uint32_t i : heated_) {
     if (!(deposits_[i] > 0)) continue;
-    const auto it = std::lower_bound(seen.begin(), seen.end(), std::pair{i, Phase::solid}, by_particle);
-    const Phase traced_as = it != seen.end() && it->first == i ? it->second : thermal_->phase_before_step(i);
+    const auto it =
+        std::lower_bound(seen.begin(), seen.end(), std::pair{i, Phase::solid}, by_particle);
+    const Phase traced_as =
+        it != seen.end() && it->first == i ? it->second : thermal_->phase_before_step(i);
     if (optical(particles_.phase[i]) != traced_as) return true;
   }
   return false;
@@ -355,7 +369,8 @@ Simulation::PhaseOverride Simulation::optics_after_step() const {
     if (p != thermal_->phase_before_step(i)) after.emplace_back(static_cast<std::uint32_t>(i), p);
   });
   std::sort(after.begin(), after.end(), by_particle);
-  after.erase(std::unique(after.begin(), after.end(), [](const auto& a, const auto& b) { return a.first == b.first; }),
+  after.erase(std::unique(after.begin(), after.end(),
+                          [](const auto& a, const auto& b) { return a.first == b.first; }),
               after.end());
   return after;
 }
@@ -395,13 +410,15 @@ std::array<StageTime, Simulation::kStages> Simulation::stages() const {
 
 // Why stage k has not run so far: the condition under which the loop of step() leaves it out.
 std::string Simulation::skip_reason(int stage) const {
-  if (stage == kRebuild) return "no contact graph (no conductivity, no walls) and no particle vaporised";
+  if (stage == kRebuild)
+    return "no contact graph (no conductivity, no walls) and no particle vaporised";
   if (launched_ == 0)
     return spec_.pulses.count == 0 ? "`pulses.count` = 0: no pulse" : "no step taken yet";
   if (stage == kTrace) return "no ray was live in any step";
   if (stage == kHeat)
     return particles_.size() == 0 ? "no particles" : "no step had a positive length";
-  if (stage == kPhases) return "no particle whose temperature changed was at the melting temperature";
+  if (stage == kPhases)
+    return "no particle whose temperature changed was at the melting temperature";
   if (spec_.max_staggers == 0) return "`thermal.max_staggers` = 0";
   return "no phase change altered the optics of a particle the rays met";
 }
@@ -424,8 +441,8 @@ Figures Simulation::figures() const {
   f.particles = particles_.size();
   const OpticsLedger& o = tracer_->ledger();
   const ThermalLedger& h = thermal_->ledger();
-  f.energy = {o.injected, o.absorbed, o.escaped, o.cutoff, tracer_->energy_in_flight(),
-              h.stored, h.vaporized, h.walls};
+  f.energy = {o.injected, o.absorbed,  o.escaped, o.cutoff, tracer_->energy_in_flight(),
+              h.stored,   h.vaporized, h.walls};
   return f;
 }
 
@@ -433,7 +450,7 @@ namespace {
 // 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks; 7: reused first
 // hits; 8: the ray paths recorded since the last pulse ended (output.rays); 9: the stagger's counts
 constexpr std::uint32_t kStateVersion = 9;
-}
+}  // namespace
 
 void Simulation::write_state(StateWriter& out) const {
   out.value(kStateVersion);
@@ -473,9 +490,9 @@ void require_in_state(bool ok, const std::string& what) {
 }
 
 void require_material(std::size_t particle, std::uint16_t material, const SimulationSpec& spec) {
-  require_in_state(material < spec.materials.size(), "particle " + std::to_string(particle) + " has material " +
-                                                         std::to_string(material) + " of " +
-                                                         std::to_string(spec.materials.size()));
+  require_in_state(material < spec.materials.size(),
+                   "particle " + std::to_string(particle) + " has material " +
+                       std::to_string(material) + " of " + std::to_string(spec.materials.size()));
 }
 
 // A checksum guards the bytes, not a writer's mistake or an edit: every value must be one a run
@@ -487,25 +504,31 @@ void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
     require_material(i, p.material[i], spec);
     require_in_state(std::isfinite(p.temperature[i]) && p.temperature[i] >= 0,
                      particle + "temperature " + std::to_string(p.temperature[i]) + " K");
-    require_in_state(p.phase[i] <= Phase::vapor && p.alive[i] <= 1, particle + "a phase or live flag out of range");
+    require_in_state(p.phase[i] <= Phase::vapor && p.alive[i] <= 1,
+                     particle + "a phase or live flag out of range");
     require_in_state(std::isfinite(s.absorbed[i]) && s.absorbed[i] >= 0,
                      particle + "absorbed " + std::to_string(s.absorbed[i]) + " J");
-    require_in_state(std::isfinite(s.heat.stored[i]), particle + "stored heat " + std::to_string(s.heat.stored[i]) + " J");
+    require_in_state(std::isfinite(s.heat.stored[i]),
+                     particle + "stored heat " + std::to_string(s.heat.stored[i]) + " J");
   }
   require_in_state(std::isfinite(s.time) && s.time >= 0 && std::isfinite(s.next_pulse_time) &&
                        s.next_pulse_time >= 0 && !std::isnan(s.max_temperature),
                    "its time, next pulse time or peak temperature is not a number a run reaches");
   require_in_state(s.launched >= 0 && s.launched <= spec.pulses.count,
-                   std::to_string(s.launched) + " pulses launched, of pulses.count = " + std::to_string(spec.pulses.count));
-  require_in_state(s.counts.particles == p.size(), "its counts are of " + std::to_string(s.counts.particles) + " particles");
+                   std::to_string(s.launched) +
+                       " pulses launched, of pulses.count = " + std::to_string(spec.pulses.count));
+  require_in_state(s.counts.particles == p.size(),
+                   "its counts are of " + std::to_string(s.counts.particles) + " particles");
   const ThermalLedger& h = s.heat.ledger;
   for (const double v : {h.absorbed, h.stored, h.vaporized, h.walls})
     require_in_state(std::isfinite(v), "a heat ledger entry is " + std::to_string(v));
-  for (const StageTime& t : s.stages) require_in_state(std::isfinite(t.seconds) && t.seconds >= 0, "a stage time is not finite");
+  for (const StageTime& t : s.stages)
+    require_in_state(std::isfinite(t.seconds) && t.seconds >= 0, "a stage time is not finite");
   s.rays.check_values(p.size(), "checkpoint");
   for (const RaySegment& r : s.ray_paths)
-    require_in_state(r.from.allFinite() && r.to.allFinite() && std::isfinite(r.energy) && r.energy >= 0,
-                     "a recorded ray path holds a value that is not a finite number");
+    require_in_state(
+        r.from.allFinite() && r.to.allFinite() && std::isfinite(r.energy) && r.energy >= 0,
+        "a recorded ray path holds a value that is not a finite number");
 }
 
 }  // namespace
@@ -521,7 +544,8 @@ Particles Simulation::saved_packing(StateReader in, const SimulationSpec& spec) 
   p.reserve(saved.radius.size());
   for (std::size_t i = 0; i < saved.radius.size(); ++i) {
     // The checks a packing file's rows pass: the scene and the grid are built from these.
-    check_sphere(saved.centre[i], saved.radius[i], {0, 1, 2}, "checkpoint: particle " + std::to_string(i) + ": ");
+    check_sphere(saved.centre[i], saved.radius[i], {0, 1, 2},
+                 "checkpoint: particle " + std::to_string(i) + ": ");
     require_material(i, saved.material[i], spec);
     p.add(saved.centre[i], saved.radius[i], saved.material[i], spec.packing.initial_temperature);
   }
@@ -563,7 +587,8 @@ void Simulation::read_state(StateReader& in) {
   check_saved_values(s, spec_);
   time_ = s.time, next_pulse_time_ = s.next_pulse_time, max_temperature_ = s.max_temperature;
   launched_ = s.launched, counts_ = s.counts;
-  for (int k = 0; k < kStages; ++k) stages_[k].seconds = s.stages[k].seconds, stages_[k].calls = s.stages[k].calls;
+  for (int k = 0; k < kStages; ++k)
+    stages_[k].seconds = s.stages[k].seconds, stages_[k].calls = s.stages[k].calls;
   absorbed_ = std::move(s.absorbed);
   ray_paths_ = std::move(s.ray_paths);
   std::copy(p.material.begin(), p.material.end(), particles_.material.begin());

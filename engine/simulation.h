@@ -23,9 +23,9 @@ namespace beampack {
 constexpr double kSpeedOfLight = 2.99792458e8;  // m/s
 
 struct PulseSpec {
-  int count = 20;         // pulses.count
-  double duration = 0;    // tau, s: E_k = I_k A_r tau
-  double period = 0;      // s between pulse starts; 0: "auto", when the previous pulse has ended
+  int count = 20;       // pulses.count
+  double duration = 0;  // tau, s: E_k = I_k A_r tau
+  double period = 0;    // s between pulse starts; 0: "auto", when the previous pulse has ended
 };
 
 struct SimulationSpec {
@@ -35,8 +35,8 @@ struct SimulationSpec {
   std::vector<Material> materials{Material{}};
   ThermalSpec thermal;
   PulseSpec pulses;
-  double dt = 0;           // thermal.dt, s; 0: one step per pulse flight ("pulse")
-  int max_staggers = 4;    // redo a step at most this often when a phase change alters optics
+  double dt = 0;         // thermal.dt, s; 0: one step per pulse flight ("pulse")
+  int max_staggers = 4;  // redo a step at most this often when a phase change alters optics
 };
 
 // Whether the scene conducts heat (a material's conductivity, or walls): only then are the
@@ -49,13 +49,15 @@ bool conducts_between_particles(const SimulationSpec& spec);
 struct EnergyLedger {
   double injected = 0, absorbed = 0, escaped = 0, cutoff = 0;  // optics
   double in_flight = 0;  // carried by rays still live (a run stopped mid-pulse)
-  double stored = 0, vaporized = 0, walls = 0;                 // heat
+  double stored = 0, vaporized = 0, walls = 0;  // heat
   double optics_imbalance() const { return injected - absorbed - escaped - cutoff - in_flight; }
   double heat_imbalance() const { return absorbed - stored - vaporized - walls; }
   // How far a ledger may be open, relative: the optics one to round-off (it closes by
   // construction), the heat one to the solver's tolerance, max(1e-6, 1e4 thermal.tolerance).
   static constexpr double kOpticsTolerance = 1e-9;
-  static double heat_tolerance(double solver_tolerance) { return std::max(1e-6, 1e4 * solver_tolerance); }
+  static double heat_tolerance(double solver_tolerance) {
+    return std::max(1e-6, 1e4 * solver_tolerance);
+  }
 };
 
 struct StageTime {
@@ -66,8 +68,8 @@ struct StageTime {
 
 // The figures a run reports (INTERFACE.md summary.json, history.csv).
 struct Figures {
-  double time = 0;              // s, simulated
-  int pulse = 0;                // pulses launched so far
+  double time = 0;                // s, simulated
+  int pulse = 0;                  // pulses launched so far
   double vaporized_fraction = 0;  // v_v, volume of vaporised / volume of all particles
   double melted_fraction = 0;     // volume liquid now / volume of all particles
   double max_temperature = 0;     // K, peak over the run so far (none without particles)
@@ -103,8 +105,8 @@ class Simulation {
   static constexpr const char* kStageNames[] = {"trace", "heat", "phases", "stagger", "rebuild"};
   static constexpr int kStages = 5;
 
-  explicit Simulation(SimulationSpec spec);                       // packing from spec.packing
-  Simulation(SimulationSpec spec, Particles particles);           // packing given
+  explicit Simulation(SimulationSpec spec);              // packing from spec.packing
+  Simulation(SimulationSpec spec, Particles particles);  // packing given
   ~Simulation();
 
   // One time step of MODEL.md section 5; false once every pulse has been launched and ended.
@@ -112,7 +114,9 @@ class Simulation {
   // Steps until done or until `stop` becomes true.
   void run(const std::atomic<bool>* stop = nullptr);
   // Called with k when pulse k is over: before pulse k+1 launches, or after the last step.
-  void on_pulse_end(std::function<void(int pulse)> callback) { on_pulse_end_ = std::move(callback); }
+  void on_pulse_end(std::function<void(int pulse)> callback) {
+    on_pulse_end_ = std::move(callback);
+  }
   bool done() const;
 
   const Particles& particles() const { return particles_; }
@@ -167,8 +171,8 @@ class Simulation {
   std::vector<double> ray_energy_;  // E_k of beam_'s rays in a pulse (computed with the beam)
   std::unique_ptr<Tracer> tracer_;
   std::unique_ptr<ThermalModel> thermal_;
-  std::vector<double> absorbed_;   // cumulative J per particle
-  std::vector<double> deposits_;   // this step's dH
+  std::vector<double> absorbed_;       // cumulative J per particle
+  std::vector<double> deposits_;       // this step's dH
   std::vector<std::uint32_t> heated_;  // the particles with a deposit this step (zero elsewhere)
   std::vector<RaySegment> ray_paths_;
   double time_ = 0, next_pulse_time_ = 0, max_temperature_ = 0, total_volume_ = 0;

@@ -27,7 +27,8 @@ SphereGrid::SphereGrid(const Particles& particles, double cell_factor) {
   // can still meet the sphere in the double test, where |perp|^2 rounds to R^2. Such a ray must
   // be inside the grid's box, or the walk would skip a hit Embree and the brute force find.
   const double pad = 1e-9 * ((box_.upper - box_.lower).norm() + box_.lower.cwiseAbs().maxCoeff() +
-                             box_.upper.cwiseAbs().maxCoeff()) + 1e-300;
+                             box_.upper.cwiseAbs().maxCoeff()) +
+                     1e-300;
   box_.lower -= Vec3::Constant(pad);
   box_.upper += Vec3::Constant(pad);
   const Vec3 extent = (box_.upper - box_.lower).cwiseMax(Vec3::Constant(1e-300));
@@ -37,8 +38,7 @@ SphereGrid::SphereGrid(const Particles& particles, double cell_factor) {
   // Memory bound: no more than ~4 cells per sphere (and at least one cell).
   const double max_cells = 4.0 * static_cast<double>(std::max<std::size_t>(n, 1)) + 64.0;
   auto padded = [&](double e) { return 4.0 * std::ceil(std::ceil(e / h_) / 4.0); };
-  while (padded(extent.x()) * padded(extent.y()) * padded(extent.z()) > max_cells)
-    h_ *= 1.25;
+  while (padded(extent.x()) * padded(extent.y()) * padded(extent.z()) > max_cells) h_ *= 1.25;
   inv_h_ = 1.0 / h_;
   for (int a = 0; a < 3; ++a) {
     dims_[a] = std::max(1L, static_cast<long>(std::ceil(extent[a] * inv_h_)));
@@ -48,11 +48,14 @@ SphereGrid::SphereGrid(const Particles& particles, double cell_factor) {
   // Every entry a copy of its sphere in double: the exact test needs no second, random load.
   spheres_.resize(n);
   for (std::size_t p = 0; p < n; ++p)
-    spheres_[p] = {particles.centre[p], particles.alive[p] ? particles.radius[p] : -particles.radius[p]};
+    spheres_[p] = {particles.centre[p],
+                   particles.alive[p] ? particles.radius[p] : -particles.radius[p]};
   // CSR fill in two passes: count, then place.
-  const std::size_t cell_count = static_cast<std::size_t>(blocks_[0] * blocks_[1] * blocks_[2] * 64);
+  const std::size_t cell_count =
+      static_cast<std::size_t>(blocks_[0] * blocks_[1] * blocks_[2] * 64);
   start_.assign(cell_count + 1, 0);
-  for (std::size_t p = 0; p < n; ++p) for_cells(spheres_[p], [&](std::size_t c) { ++start_[c + 1]; });
+  for (std::size_t p = 0; p < n; ++p)
+    for_cells(spheres_[p], [&](std::size_t c) { ++start_[c + 1]; });
   for (std::size_t c = 0; c < cell_count; ++c) start_[c + 1] += start_[c];
   entries_.resize(start_[cell_count]);
   std::vector<std::uint32_t> fill(start_.begin(), start_.end() - 1);
@@ -63,7 +66,8 @@ SphereGrid::SphereGrid(const Particles& particles, double cell_factor) {
 }
 
 long SphereGrid::cell_of(double x, int axis) const {
-  return std::clamp(static_cast<long>(std::floor((x - box_.lower[axis]) * inv_h_)), 0L, dims_[axis] - 1);
+  return std::clamp(static_cast<long>(std::floor((x - box_.lower[axis]) * inv_h_)), 0L,
+                    dims_[axis] - 1);
 }
 
 // Calls visit(cell) for every cell that the sphere's box, grown by kRegisterPad cells, touches.
@@ -71,7 +75,8 @@ template <class Visit>
 void SphereGrid::for_cells(const Sphere& sphere, Visit&& visit) const {
   const double r = std::abs(sphere.radius) + kRegisterPad * h_;
   long lo[3], hi[3];
-  for (int a = 0; a < 3; ++a) lo[a] = cell_of(sphere.centre[a] - r, a), hi[a] = cell_of(sphere.centre[a] + r, a);
+  for (int a = 0; a < 3; ++a)
+    lo[a] = cell_of(sphere.centre[a] - r, a), hi[a] = cell_of(sphere.centre[a] + r, a);
   for (long z = lo[2]; z <= hi[2]; ++z)
     for (long y = lo[1]; y <= hi[1]; ++y)
       for (long x = lo[0]; x <= hi[0]; ++x) visit(static_cast<std::size_t>(cell_index(x, y, z)));
@@ -103,12 +108,12 @@ struct SphereGrid::Walk {
   double t1;  // end of the ray's interval clipped to the box
   double best;
   std::uint32_t who, best_entry, skip, ray;  // skip: the particle the ray has just left
-  long cell[3];       // the DDA: the last cell queued, and where the ray crosses its walls
+  long cell[3];  // the DDA: the last cell queued, and where the ray crosses its walls
   double t_max[3];
-  int exit_axis;      // the wall through which the ray leaves that cell
-  bool more;          // the DDA can still queue a cell
-  long queue[3];      // queue[0]: the cell to test now
-  double exit[3];     // where the ray leaves each queued cell
+  int exit_axis;   // the wall through which the ray leaves that cell
+  bool more;       // the DDA can still queue a cell
+  long queue[3];   // queue[0]: the cell to test now
+  double exit[3];  // where the ray leaves each queued cell
   int queued;
 };
 
@@ -161,7 +166,8 @@ bool SphereGrid::start_walk(const RayQuery& q, std::uint32_t id, Walk& w) const 
   w.more = true;
   w.queued = 0;
   enqueue(w, cell_index(w.cell[0], w.cell[1], w.cell[2]));
-  while (w.queued < 3 && step_dda(w)) {}
+  while (w.queued < 3 && step_dda(w)) {
+  }
   return true;
 }
 
@@ -206,7 +212,8 @@ void SphereGrid::test_cell(Walk& w, std::size_t c) const {
 // Prefetches the first entries of a cell whose start_ row was prefetched a visit earlier (a
 // cell holds about four: three cache lines).
 void SphereGrid::prefetch_entries(long cell) const {
-  const auto* first = reinterpret_cast<const char*>(&entries_[start_[static_cast<std::size_t>(cell)]]);
+  const auto* first =
+      reinterpret_cast<const char*>(&entries_[start_[static_cast<std::size_t>(cell)]]);
   for (int line = 0; line < 3; ++line) __builtin_prefetch(first + 64 * line);
 }
 
@@ -235,7 +242,8 @@ void SphereGrid::record_hit(const RayQuery& q, const Walk& w) const {
 void SphereGrid::intersect1(const RayQuery& q, std::uint32_t id) const {
   Walk w;
   if (!start_walk(q, id, w)) return;
-  while (visit_cell(w)) {}
+  while (visit_cell(w)) {
+  }
   record_hit(q, w);
 }
 

@@ -40,11 +40,13 @@ StateReader::StateReader(std::string data, std::string source)
     std::string swapped = tag;
     std::reverse(swapped.begin(), swapped.begin() + 4);
     if (data_.compare(0, tag.size(), swapped) == 0)
-      throw InputError(source_ + ": checkpoint written on a machine of the other byte order; "
-                                 "checkpoints are read only where their byte order is native");
+      throw InputError(source_ +
+                       ": checkpoint written on a machine of the other byte order; "
+                       "checkpoints are read only where their byte order is native");
     if (data_.compare(0, 4, tag, 0, 4) == 0)
-      throw InputError(source_ + ": checkpoint written with other sizes of double, size_t or long "
-                                 "double than this build's");
+      throw InputError(source_ +
+                       ": checkpoint written with other sizes of double, size_t or long "
+                       "double than this build's");
     damaged();
   }
   std::uint64_t stored = 0;

@@ -10,10 +10,10 @@
 #include <tbb/task_arena.h>
 #include <tbb/task_group.h>
 
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <array>
 #include <bitset>
-#include <Eigen/Geometry>
 #include <cmath>
 #include <numbers>
 #include <numeric>
@@ -43,8 +43,8 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
   if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
     throw InputError("`optics.cutoff` = " + std::to_string(spec.cutoff) + ": must be in [0, 1)");
   if (spec.chunk_rays < 1 || spec.chunk_rays > kMaxChunkRays)
-    throw InputError("optics chunk_rays = " + std::to_string(spec.chunk_rays) + ": must be in [1, " +
-                     std::to_string(kMaxChunkRays) + "]");
+    throw InputError("optics chunk_rays = " + std::to_string(spec.chunk_rays) +
+                     ": must be in [1, " + std::to_string(kMaxChunkRays) + "]");
   if (spec.max_bounces < 1)
     throw InputError("`optics.max_bounces` = " + std::to_string(spec.max_bounces) +
                      ": must be >= 1");
@@ -63,13 +63,16 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
     throw InputError("`optics.polarisation` = " + std::to_string(psi * 180.0 / std::numbers::pi) +
                      " degrees: the field's angle in the beam disk must be in [0, 180]");
   for (const auto& m : spec.materials) {
-    if (!index_ok(m.n_solid) || !index_ok(m.n_liquid) || !(m.mu_hat > 0.0 && std::isfinite(m.mu_hat)))
-      throw InputError("`optics.n_solid`, `optics.n_liquid` and mu_hat must be finite and > 0, and "
-                       "`optics.k_solid`, `optics.k_liquid` finite and >= 0 (k < 0 would be a gain medium)");
+    if (!index_ok(m.n_solid) || !index_ok(m.n_liquid) ||
+        !(m.mu_hat > 0.0 && std::isfinite(m.mu_hat)))
+      throw InputError(
+          "`optics.n_solid`, `optics.n_liquid` and mu_hat must be finite and > 0, and "
+          "`optics.k_solid`, `optics.k_liquid` finite and >= 0 (k < 0 would be a gain medium)");
     if (spec.polarisation.linear && !(keeps_linear(m.n_solid) && keeps_linear(m.n_liquid)))
-      throw InputError("`optics.polarisation` with `optics.k_solid`/`k_liquid` > 0 or an index "
-                       "below 1: the reflected light is elliptical there, which is not followed; "
-                       "use optics.polarisation = \"unpolarised\"");
+      throw InputError(
+          "`optics.polarisation` with `optics.k_solid`/`k_liquid` > 0 or an index "
+          "below 1: the reflected light is elliptical there, which is not followed; "
+          "use optics.polarisation = \"unpolarised\"");
   }
 }
 
@@ -81,15 +84,17 @@ void check_hit(const RayState& s, const Particles& p, const EmbreeScene& scene, 
   const double t = s.t_next[r];
   BEAMPACK_DCHECK(std::isfinite(t) && t >= 0.0, "ray %u: hit at t = %g m on particle %u", r, t, i);
   BEAMPACK_DCHECK(i < p.size() && i != s.last_particle[r] && !scene.removed(i),
-                  "ray %u: hit particle %u of %zu, the one it just left (%u) or a removed one", r, i, p.size(),
-                  s.last_particle[r]);
+                  "ray %u: hit particle %u of %zu, the one it just left (%u) or a removed one", r,
+                  i, p.size(), s.last_particle[r]);
   const Vec3 point = s.origin[r] + t * s.direction[r];
   const double off = std::abs((point - p.centre[i]).norm() - p.radius[i]);
   BEAMPACK_DCHECK(off <= 1e-6 * p.radius[i] + 1e-12 * point.norm(),
-                  "ray %u: hit point %g m off the surface of particle %u (R = %g m)", r, off, i, p.radius[i]);
+                  "ray %u: hit point %g m off the surface of particle %u (R = %g m)", r, off, i,
+                  p.radius[i]);
   const double d_dot_n = s.direction[r].dot(s.normal[r]);
   BEAMPACK_DCHECK(d_dot_n <= 1e-6 * s.normal[r].norm(),
-                  "ray %u: hit particle %u from inside (d.n = %g, |n| = %g)", r, i, d_dot_n, s.normal[r].norm());
+                  "ray %u: hit particle %u from inside (d.n = %g, |n| = %g)", r, i, d_dot_n,
+                  s.normal[r].norm());
 }
 
 // Unpolarised Fresnel reflectance (2.25) with the particle's current index (solid or liquid).
@@ -154,7 +159,8 @@ void Tracer::keep_before(std::uint32_t r, Chunk& c) const {
   if (c.remembered[r - c.first]) return;
   c.remembered[r - c.first] = true;
   c.changed.push_back(r);
-  RayState::for_each_member(state_.polarised, [&](auto member) { (c.before.*member).push_back((state_.*member)[r]); });
+  RayState::for_each_member(
+      state_.polarised, [&](auto member) { (c.before.*member).push_back((state_.*member)[r]); });
 }
 
 Tracer::Tracer(const Particles& particles, OpticsSpec spec)
@@ -206,7 +212,8 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   });
   std::vector<std::size_t> traced(blocks);
   try {
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, blocks, 1), [&](const tbb::blocked_range<std::size_t>& range) {
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, blocks, 1),
+                      [&](const tbb::blocked_range<std::size_t>& range) {
       const IeeeFloatMode ieee;  // the queries' double tests, on whatever thread
       for (std::size_t b = range.begin(); b != range.end(); ++b) {
         const std::size_t end = std::min(count, (b + 1) * kBatchRays);
@@ -259,7 +266,8 @@ Vec3 Tracer::beam_field(const Vec3& direction) const {
 // another beam are dropped, there is nothing to reuse.
 void Tracer::reset_first_hits_for(const Vec3& direction, double upstream, std::size_t count) {
   FirstHits& f = first_hits_;
-  if (!spec_.reuse_primaries || (f.t.size() == count && f.direction == direction && f.upstream == upstream))
+  if (!spec_.reuse_primaries ||
+      (f.t.size() == count && f.direction == direction && f.upstream == upstream))
     return;
   f.direction = direction, f.upstream = upstream;
   f.origin.assign(count, Vec3::Constant(std::numeric_limits<double>::quiet_NaN()));
@@ -310,7 +318,8 @@ void Tracer::start_ray(std::size_t r, const Vec3& origin, const Vec3& direction,
 // The first hits of the launched rays [first + begin, first + end) (ray first + k is the beam's
 // ray k): reused from the beam's last launch where they can be, the others traced in coherent
 // packets (or one by one without packets). Returns how many were traced.
-std::size_t Tracer::find_first_hits(const Beam& beam, std::size_t first, std::size_t begin, std::size_t end) {
+std::size_t Tracer::find_first_hits(const Beam& beam, std::size_t first, std::size_t begin,
+                                    std::size_t end) {
   std::array<std::uint32_t, kBatchRays> ids;
   std::size_t m = 0;
   for (std::size_t k = begin; k < end; ++k) {
@@ -401,7 +410,8 @@ double Tracer::next_event_of_chunk(std::size_t begin, std::size_t end) const {
 // Chunk k's next event, from its rays.
 void Tracer::update_next_event(std::size_t k) {
   const std::size_t begin = k * spec_.chunk_rays;
-  next_event_[k] = next_event_of_chunk(begin, std::min(state_.live.size(), begin + spec_.chunk_rays));
+  next_event_[k] =
+      next_event_of_chunk(begin, std::min(state_.live.size(), begin + spec_.chunk_rays));
 }
 
 // The chunks from first_chunk on take their next events from their rays; the list follows the
@@ -414,8 +424,8 @@ void Tracer::refresh_next_events(std::size_t first_chunk, std::size_t end_chunk)
 
 namespace {
 RayQuery query_of(RayState& s) {
-  return {s.origin.data(), s.direction.data(), s.last_particle.data(), s.t_next.data(),
-          s.next_particle.data(), s.normal.data()};
+  return {s.origin.data(), s.direction.data(),     s.last_particle.data(),
+          s.t_next.data(), s.next_particle.data(), s.normal.data()};
 }
 }  // namespace
 
@@ -449,7 +459,8 @@ void Tracer::trace_ids(const std::uint32_t* ids, std::size_t count, bool coheren
   const RayQuery q = query_of(state_);
   for (std::size_t k = 0; k < count; ++k) open_query(ids[k]);
   for (std::size_t k = 0; k < count; k += kPacket)
-    scene_->intersect16(q, ids + k, static_cast<int>(std::min<std::size_t>(kPacket, count - k)), coherent);
+    scene_->intersect16(q, ids + k, static_cast<int>(std::min<std::size_t>(kPacket, count - k)),
+                        coherent);
   for (std::size_t k = 0; k < count; ++k)
     if (close_query(ids[k]))  // the phase is read when the hit is processed
       __builtin_prefetch(&particles_.phase[state_.next_particle[ids[k]]]);
@@ -472,8 +483,7 @@ void Tracer::trace_wave(const std::vector<std::uint32_t>& rays, Chunk& c) {
     if (s.bounces[r] > 0) walkers.push_back(r);
     else scene_->intersect1(q, r);
   }
-  if (grid_)
-    grid_->intersect_many(q, walkers);
+  if (grid_) grid_->intersect_many(q, walkers);
   else  // no grid (max_bounces = 1): no bounced ray should get here; Embree answers if one does
     for (std::uint32_t r : walkers) scene_->intersect1(q, r);
   for (std::uint32_t r : rays) close_query(r);
@@ -500,7 +510,8 @@ bool Tracer::step_ray(std::uint32_t r, double end_clock, Chunk& c) {
       return true;
     }
     if (record_segments_)
-      c.segments.push_back({r, {s.origin[r], s.origin[r] + s.t_next[r] * s.direction[r], s.energy[r]}});
+      c.segments.push_back(
+          {r, {s.origin[r], s.origin[r] + s.t_next[r] * s.direction[r], s.energy[r]}});
     if (p == kNoParticle) {  // left the box: escaped (MODEL.md 3a)
       c.events.push_back({r, kEscapedBin, s.energy[r]});
       end_ray(r, event, c);
@@ -516,8 +527,8 @@ bool Tracer::step_ray(std::uint32_t r, double end_clock, Chunk& c) {
                                  : particle_reflectance(m, particles_.phase[p], cos_i);
     const double carried = R * s.energy[r];
     BEAMPACK_DCHECK(R >= 0.0 && R <= 1.0 && std::isfinite(carried),
-                    "ray %u at particle %u: reflectance %.17g (cos_i %.17g), energy %.17g J", r, p, R, cos_i,
-                    s.energy[r]);
+                    "ray %u at particle %u: reflectance %.17g (cos_i %.17g), energy %.17g J", r, p,
+                    R, cos_i, s.energy[r]);
     c.events.push_back({r, p, s.energy[r] - carried});  // absorbed + carried == E exactly
     ++c.hits;
     s.energy[r] = carried;
@@ -546,10 +557,12 @@ void Tracer::end_ray(std::uint32_t r, double at, Chunk& c) {
 }
 
 // Ray r's reflectance at a hit with its own field, which turns into the reflected ray's field.
-double Tracer::reflect_field(std::uint32_t r, const Vec3& normal, const MaterialOptics& m, Phase phase) {
+double Tracer::reflect_field(std::uint32_t r, const Vec3& normal, const MaterialOptics& m,
+                             Phase phase) {
   RayState& s = state_;
   const double n_hat = (phase == Phase::solid ? m.n_solid : m.n_liquid).real();
-  const PolarisedReflection out = reflect_polarised(s.direction[r], normal, s.field[r], n_hat, m.mu_hat);
+  const PolarisedReflection out =
+      reflect_polarised(s.direction[r], normal, s.field[r], n_hat, m.mu_hat);
   s.field[r] = out.field;
   return out.reflectance;
 }
@@ -564,7 +577,8 @@ void Tracer::run_chunk(Chunk& c, std::size_t begin, std::size_t end, double end_
 }
 
 // Advances rays [begin, end) to the path clock's end_clock (their launch traced their first
-// segments): the next segments one ray at a time (BounceSearch::embree) or in waves (packets, grid).
+// segments): the next segments one ray at a time (BounceSearch::embree) or in waves (packets,
+// grid).
 void Tracer::trace_chunk(Chunk& c, std::size_t begin, std::size_t end, double end_clock) {
   const RayState& s = state_;
   if (spec_.bounce_search == BounceSearch::embree) {
@@ -623,7 +637,8 @@ void RayState::read(StateReader& in) {
   for_each_array([&](auto& v) { in.vector(v); });
   ledger = in.value<OpticsLedger>(), primary_segments = in.value<std::uint64_t>();
   bounced_segments = in.value<std::uint64_t>(), hits = in.value<std::uint64_t>();
-  reused_primaries = in.value<std::uint64_t>(), live_count = in.value<std::size_t>(), clock = in.value<double>();
+  reused_primaries = in.value<std::uint64_t>(), live_count = in.value<std::size_t>(),
+  clock = in.value<double>();
   for_each_array([&](const auto& v) {
     if (v.size() != origin.size()) throw InputError("checkpoint: ray arrays of unequal length");
   });
@@ -632,7 +647,8 @@ void RayState::read(StateReader& in) {
 
 // The tracer trusts live_count (a compaction with none live drops every ray without looking).
 void RayState::check_live_count(const std::string& source) const {
-  const auto live_rays = static_cast<std::size_t>(std::count_if(live.begin(), live.end(), [](auto l) { return l != 0; }));
+  const auto live_rays = static_cast<std::size_t>(
+      std::count_if(live.begin(), live.end(), [](auto l) { return l != 0; }));
   if (live_rays != live_count)
     throw InputError(source + ": live_count = " + std::to_string(live_count) + " but " +
                      std::to_string(live_rays) + " rays are live");
@@ -646,16 +662,22 @@ void RayState::check_values(std::size_t particles, const std::string& source) co
   for (std::size_t r = 0; r < live.size(); ++r) {
     for (const std::uint32_t p : {last_particle[r], next_particle[r]})
       if (p != kNoParticle && p >= particles)
-        bad("particle " + std::to_string(p) + ", beyond the " + std::to_string(particles) + " particles", r);
+        bad("particle " + std::to_string(p) + ", beyond the " + std::to_string(particles) +
+                " particles",
+            r);
     if (!(energy[r] >= 0 && energy[r] <= initial_energy[r] && std::isfinite(initial_energy[r])))
-      bad("energy " + std::to_string(energy[r]) + " J of " + std::to_string(initial_energy[r]) + " J", r);
-    if (!(finite(origin[r]) && finite(direction[r]) && std::isfinite(start_clock[r]) && !std::isnan(t_next[r])))
+      bad("energy " + std::to_string(energy[r]) + " J of " + std::to_string(initial_energy[r]) +
+              " J",
+          r);
+    if (!(finite(origin[r]) && finite(direction[r]) && std::isfinite(start_clock[r]) &&
+          !std::isnan(t_next[r])))
       bad("a position, direction or clock that is not a finite number", r);
     if (live[r] > 1 || bounces[r] < 0) bad("a live flag or bounce count out of range", r);
   }
   const OpticsLedger& l = ledger;
   for (const double v : {l.injected, l.absorbed, l.escaped, l.cutoff, clock})
-    if (!(std::isfinite(v) && v >= 0)) throw InputError(source + ": a ledger entry or the clock is " + std::to_string(v));
+    if (!(std::isfinite(v) && v >= 0))
+      throw InputError(source + ": a ledger entry or the clock is " + std::to_string(v));
 }
 
 void Tracer::write_first_hits(StateWriter& out) const {
@@ -684,7 +706,8 @@ Tracer::FirstHits Tracer::read_first_hits(StateReader& in) const {
 
 // Adds a traced chunk to the deposits, the ledger and the counters: ray order inside the chunk,
 // each ray's event order (the chunks come in chunk order).
-void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits, std::vector<std::uint32_t>* deposited) {
+void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits,
+                       std::vector<std::uint32_t>* deposited) {
   Totals& t = totals_;
   t.flight = std::max(t.flight, c.flight);
   if (record_segments_) {  // ray order inside the chunk, whatever order the rays were stepped in
@@ -693,8 +716,8 @@ void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits, std::vector<std:
     for (const auto& seg : c.segments) segments_.push_back(seg.second);
   }
   for (const Event& e : c.events) {
-    BEAMPACK_DCHECK(std::isfinite(e.energy) && e.energy >= 0.0, "ray %u: an event of %g J into bin %u", e.ray,
-                    e.energy, e.bin);
+    BEAMPACK_DCHECK(std::isfinite(e.energy) && e.energy >= 0.0,
+                    "ray %u: an event of %g J into bin %u", e.ray, e.energy, e.bin);
     if (e.bin == kEscapedBin) {
       t.ledger.escaped += e.energy;
     } else if (e.bin == kCutoffBin) {
@@ -727,7 +750,8 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
   due.clear();
   std::size_t idle = 0;  // chunks with live rays in free flight throughout: each flies the budget
   for (std::size_t k = 0; k < next_event_.size(); ++k) {
-    if (next_event_[k] <= end_clock && next_event_[k] < kInf) due.push_back(static_cast<std::uint32_t>(k));
+    if (next_event_[k] <= end_clock && next_event_[k] < kInf)
+      due.push_back(static_cast<std::uint32_t>(k));
     else idle += next_event_[k] < kInf;
   }
   bool in_flight = idle > 0;
@@ -736,18 +760,28 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
   totals_ = Totals{};
   totals_.ledger = s.ledger;  // summed on in the same order as ever: bit-identical ledgers
   if (undo_.on)
-    undo_ = {true,         true,         s.ledger,           s.primary_segments, s.bounced_segments, s.hits,
-             s.live_count, s.clock,      last_advance_path_, last_chunks_live_,  last_chunks_run_,
+    undo_ = {true,
+             true,
+             s.ledger,
+             s.primary_segments,
+             s.bounced_segments,
+             s.hits,
+             s.live_count,
+             s.clock,
+             last_advance_path_,
+             last_chunks_live_,
+             last_chunks_run_,
              segments_.size()};
   last_chunks_live_ = due.size() + idle;
   last_chunks_run_ = due.size();
   // Chunks per pipeline item: kBatchRays rays at least, and about kItemsPerThread items per thread
   // when there are more chunks (an item costs the pipeline about a microsecond: with 256 rays per
   // item, a 10^5-ray pulse spent a fifth of its stepping on them).
-  const std::size_t threads = std::min(static_cast<std::size_t>(tbb::this_task_arena::max_concurrency()),
-                                       tbb::global_control::active_value(tbb::global_control::max_allowed_parallelism));
-  const std::size_t per_batch = std::max({std::size_t{1}, kBatchRays / spec_.chunk_rays,
-                                          due.size() / (kItemsPerThread * threads)});
+  const std::size_t threads =
+      std::min(static_cast<std::size_t>(tbb::this_task_arena::max_concurrency()),
+               tbb::global_control::active_value(tbb::global_control::max_allowed_parallelism));
+  const std::size_t per_batch = std::max(
+      {std::size_t{1}, kBatchRays / spec_.chunk_rays, due.size() / (kItemsPerThread * threads)});
   const std::size_t batches = (due.size() + per_batch - 1) / per_batch;
   std::size_t next = 0;
   tbb::parallel_pipeline(
@@ -760,21 +794,21 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
           tbb::make_filter<std::size_t, std::size_t>(
               tbb::filter_mode::parallel,
               [this, n, end_clock, per_batch](std::size_t b) {  // by value: no shared stack line
-                const IeeeFloatMode ieee;  // whatever thread TBB runs this batch on (engine/float_mode.h)
-                for (std::size_t j = b * per_batch; j < std::min(due_chunks_.size(), (b + 1) * per_batch); ++j) {
-                  Chunk& chunk = chunks_[j];
-                  const std::size_t begin = due_chunks_[j] * spec_.chunk_rays;
-                  chunk.clear(begin, state_.polarised);
-                  run_chunk(chunk, begin, std::min(n, begin + spec_.chunk_rays), end_clock);
-                }
-                return b;
+    const IeeeFloatMode ieee;  // whatever thread TBB runs this batch on (engine/float_mode.h)
+    for (std::size_t j = b * per_batch; j < std::min(due_chunks_.size(), (b + 1) * per_batch);
+         ++j) {
+      Chunk& chunk = chunks_[j];
+      const std::size_t begin = due_chunks_[j] * spec_.chunk_rays;
+      chunk.clear(begin, state_.polarised);
+      run_chunk(chunk, begin, std::min(n, begin + spec_.chunk_rays), end_clock);
+    }
+    return b;
               }) &
-          tbb::make_filter<std::size_t, void>(
-              tbb::filter_mode::serial_in_order, [&](std::size_t b) {
-                const IeeeFloatMode ieee;  // the sums must not flush denormals on some threads only
-                for (std::size_t j = b * per_batch; j < std::min(due.size(), (b + 1) * per_batch); ++j)
-                  add_chunk(chunks[j], deposits, deposited);
-              }));
+      tbb::make_filter<std::size_t, void>(tbb::filter_mode::serial_in_order, [&](std::size_t b) {
+        const IeeeFloatMode ieee;  // the sums must not flush denormals on some threads only
+        for (std::size_t j = b * per_batch; j < std::min(due.size(), (b + 1) * per_batch); ++j)
+          add_chunk(chunks[j], deposits, deposited);
+      }));
   for (std::uint32_t k : due) in_flight |= next_event_[k] < kInf;
   s.ledger = totals_.ledger;
   s.primary_segments += totals_.primary;
@@ -797,7 +831,8 @@ void Tracer::undo_advance() {
   for (std::size_t j = 0; j < due_chunks_.size(); ++j) {
     const Chunk& c = chunks_[j];
     for (std::size_t w = 0; w < c.changed.size(); ++w)
-      RayState::for_each_member(s.polarised, [&](auto member) { (s.*member)[c.changed[w]] = (c.before.*member)[w]; });
+      RayState::for_each_member(
+          s.polarised, [&](auto member) { (s.*member)[c.changed[w]] = (c.before.*member)[w]; });
     update_next_event(due_chunks_[j]);
   }
   s.ledger = undo_.ledger;

@@ -25,8 +25,8 @@
 
 #include "engine/beam.h"
 #include "engine/embree_scene.h"
-#include "engine/state_io.h"
 #include "engine/sphere_grid.h"
+#include "engine/state_io.h"
 #include "geometry/particles.h"
 
 namespace beampack {
@@ -59,10 +59,10 @@ struct RaySegment {
 
 struct OpticsSpec {
   std::vector<MaterialOptics> materials = std::vector<MaterialOptics>(1);  // by Particles::material
-  double cutoff = 1e-10;    // optics.cutoff: epsilon, relative to the ray's initial energy
-  int max_bounces = 1000;   // optics.max_bounces
+  double cutoff = 1e-10;      // optics.cutoff: epsilon, relative to the ray's initial energy
+  int max_bounces = 1000;     // optics.max_bounces
   Polarisation polarisation;  // optics.polarisation
-  bool packets = true;      // primary rays in coherent 16-ray packets (false: single rays)
+  bool packets = true;        // primary rays in coherent 16-ray packets (false: single rays)
   BounceSearch bounce_search = BounceSearch::grid;
   double grid_cell_factor = 3.0;  // grid cell edge / largest radius (measured best of 1.5-4)
   SceneUpdate scene_update = SceneUpdate::deferred;  // docs/bench/optics.md: fastest measured
@@ -146,7 +146,8 @@ struct RayState {
   static void for_each_member(bool polarised, F&& f) {
     f(&RayState::origin), f(&RayState::direction), f(&RayState::normal), f(&RayState::energy);
     f(&RayState::initial_energy), f(&RayState::start_clock), f(&RayState::t_next);
-    f(&RayState::last_particle), f(&RayState::next_particle), f(&RayState::bounces), f(&RayState::live);
+    f(&RayState::last_particle), f(&RayState::next_particle), f(&RayState::bounces),
+        f(&RayState::live);
     if (polarised) f(&RayState::field);
   }
   template <class F>
@@ -264,7 +265,8 @@ class Tracer {
   std::size_t start_rays(const Launch& launch, std::size_t begin, std::size_t end);
   void start_ray(std::size_t r, const Vec3& origin, const Vec3& direction, double energy);
   bool rebase_clock();
-  std::size_t find_first_hits(const Beam& beam, std::size_t first, std::size_t begin, std::size_t end);
+  std::size_t find_first_hits(const Beam& beam, std::size_t first, std::size_t begin,
+                              std::size_t end);
   bool reuse_first_hit(const Beam& beam, std::size_t k, std::uint32_t ray);
   void keep_first_hit(const Beam& beam, std::size_t k, std::uint32_t ray);
   double reflect_field(std::uint32_t r, const Vec3& normal, const MaterialOptics& m, Phase phase);
@@ -280,7 +282,8 @@ class Tracer {
   void refresh_next_events(std::size_t first_chunk, std::size_t end_chunk = SIZE_MAX);
   void update_next_event(std::size_t chunk);
   double next_event_of_chunk(std::size_t begin, std::size_t end) const;
-  void add_chunk(Chunk& chunk, std::vector<double>& deposits, std::vector<std::uint32_t>* deposited);
+  void add_chunk(Chunk& chunk, std::vector<double>& deposits,
+                 std::vector<std::uint32_t>* deposited);
   void trace_chunk(Chunk& chunk, std::size_t begin, std::size_t end, double end_clock);
   void trace_in_waves(Chunk& chunk, std::size_t begin, std::size_t end, double end_clock);
   static void sort_events_by_ray(Chunk& chunk, std::size_t begin, std::size_t end);

@@ -17,7 +17,7 @@ int main() {
   spec.beam.sampling = "stratified";
   spec.materials[0].conductivity = 50;  // W/(m K)
   spec.pulses.count = 5;
-  spec.pulses.duration = 1e-13;          // s: E_k = I_k A_r tau
+  spec.pulses.duration = 1e-13;  // s: E_k = I_k A_r tau
   Simulation sim(spec, std::move(particles));
   sim.on_pulse_end([&](int pulse) {  // pulse: 0-based index; printed from 1 as history.csv does
     const Figures f = sim.figures();

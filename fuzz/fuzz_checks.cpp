@@ -39,7 +39,8 @@ std::string scratch_file(const char* kind, std::span<const std::uint8_t> bytes) 
   if (std::find(written.paths.begin(), written.paths.end(), path) == written.paths.end())
     written.paths.push_back(path);
   std::ofstream out(path, std::ios::binary | std::ios::trunc);
-  out.write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
+  out.write(reinterpret_cast<const char*>(bytes.data()),
+            static_cast<std::streamsize>(bytes.size()));
   out.close();
   if (!out) throw std::runtime_error("fuzz harness: cannot write " + path.string());
   return path.string();
@@ -100,7 +101,8 @@ std::string check_spec(const SimulationSpec& s) {
   if (!bug.empty()) return "non-finite value in the resolved spec: " + bug;
   // Values the library divides by or takes as a length of time: accepted means usable.
   if (!(s.pulses.duration > 0)) return "accepted pulses.duration <= 0";
-  if (!(std::abs(s.beam.direction.norm() - 1.0) <= 1e-9)) return "beam.direction is not a unit vector";
+  if (!(std::abs(s.beam.direction.norm() - 1.0) <= 1e-9))
+    return "beam.direction is not a unit vector";
   return "";
 }
 
@@ -109,8 +111,7 @@ std::string check_resolved(const toml::table& table, const std::string& prefix =
   std::string bug;
   for (const auto& [key, node] : table) {
     const std::string name = prefix + std::string(key.str());
-    if (const toml::table* sub = node.as_table())
-      bug = check_resolved(*sub, name + ".");
+    if (const toml::table* sub = node.as_table()) bug = check_resolved(*sub, name + ".");
     else if (const auto* v = node.as_floating_point(); v && !std::isfinite(v->get()))
       bug = "resolved `" + name + "` is not finite";
     if (!bug.empty()) break;
@@ -163,10 +164,8 @@ Outcome check_run_file(std::span<const std::uint8_t> bytes) {
     std::string rest(reinterpret_cast<const char*>(bytes.data()) + nul + 1, bytes.size() - nul - 1);
     std::istringstream lines(rest);
     for (std::string line; std::getline(lines, line);) {
-      if (line.rfind("--preset ", 0) == 0)
-        sources.preset = line.substr(9);
-      else
-        sources.sets.push_back(line);
+      if (line.rfind("--preset ", 0) == 0) sources.preset = line.substr(9);
+      else sources.sets.push_back(line);
     }
   }
   return guarded([&] {

@@ -13,9 +13,9 @@
 namespace beampack::fuzz {
 
 struct Outcome {
-  bool accepted = false;     // parsed without error
-  std::string input_error;   // InputError message when refused (a fine outcome)
-  std::string bug;           // non-empty: what is wrong (the target aborts on it)
+  bool accepted = false;    // parsed without error
+  std::string input_error;  // InputError message when refused (a fine outcome)
+  std::string bug;          // non-empty: what is wrong (the target aborts on it)
 };
 
 // The bytes as a run file through tools::load_run_config (via a temporary file). Bytes after the

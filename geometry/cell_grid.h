@@ -22,8 +22,7 @@ class CellGrid {
     const auto c = cell_of(p);
     for (long z = std::max<long>(c[2] - 1, 0); z <= std::min<long>(c[2] + 1, dims_[2] - 1); ++z)
       for (long y = std::max<long>(c[1] - 1, 0); y <= std::min<long>(c[1] + 1, dims_[1] - 1); ++y)
-        for (long x = std::max<long>(c[0] - 1, 0); x <= std::min<long>(c[0] + 1, dims_[0] - 1);
-             ++x)
+        for (long x = std::max<long>(c[0] - 1, 0); x <= std::min<long>(c[0] + 1, dims_[0] - 1); ++x)
           visit_cell(index(x, y, z), visit);
   }
   void insert(const Vec3& p, std::uint32_t id);
@@ -65,10 +64,10 @@ class CellGrid {
   Vec3 origin_;
   double inv_cell_ = 0.0;
   std::array<long, 3> dims_{1, 1, 1};
-  std::vector<std::uint32_t> start_, ids_;               // static grid (CSR)
-  std::vector<Vec3> centres_;                            // static grid, in slot order
+  std::vector<std::uint32_t> start_, ids_;  // static grid (CSR)
+  std::vector<Vec3> centres_;               // static grid, in slot order
   std::vector<double> radii_;
-  std::vector<std::vector<std::uint32_t>> dynamic_;      // insert-as-you-go grid
+  std::vector<std::vector<std::uint32_t>> dynamic_;  // insert-as-you-go grid
 };
 
 }  // namespace beampack

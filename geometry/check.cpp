@@ -34,11 +34,13 @@ std::string check_facts(const char* format, ...) {
 
 void check_failed(const char* condition, const char* file, int line, const std::string& facts) {
   const std::string context = check_context();
-  std::fprintf(stderr,
-               "beampack: internal check failed at %s:%d: %s\n  %s\n  to reproduce: %s, with a build "
-               "made with -DBEAMPACK_CHECKS=ON; please report it with the run file\n",
-               file, line, condition, facts.c_str(),
-               context.empty() ? "the same run file or call (before a simulation's first step)" : context.c_str());
+  std::fprintf(
+      stderr,
+      "beampack: internal check failed at %s:%d: %s\n  %s\n  to reproduce: %s, with a build "
+      "made with -DBEAMPACK_CHECKS=ON; please report it with the run file\n",
+      file, line, condition, facts.c_str(),
+      context.empty() ? "the same run file or call (before a simulation's first step)"
+                      : context.c_str());
   std::fflush(stderr);
   std::abort();
 }

@@ -17,7 +17,8 @@ namespace beampack {
 void set_check_context(std::string text);
 std::string check_context();
 
-[[noreturn]] void check_failed(const char* condition, const char* file, int line, const std::string& facts);
+[[noreturn]] void check_failed(const char* condition, const char* file, int line,
+                               const std::string& facts);
 
 // printf-style facts for a failed check, formatted only when it fails.
 std::string check_facts(const char* format, ...) __attribute__((format(printf, 1, 2)));
@@ -26,10 +27,11 @@ std::string check_facts(const char* format, ...) __attribute__((format(printf, 1
 
 #ifdef BEAMPACK_CHECKS
 #define BEAMPACK_CHECKS_ON 1
-#define BEAMPACK_DCHECK(condition, ...)                                                          \
-  do {                                                                                           \
-    if (!(condition)) ::beampack::check_failed(#condition, __FILE__, __LINE__,                   \
-                                               ::beampack::check_facts(__VA_ARGS__));            \
+#define BEAMPACK_DCHECK(condition, ...)                               \
+  do {                                                                \
+    if (!(condition))                                                 \
+      ::beampack::check_failed(#condition, __FILE__, __LINE__,        \
+                               ::beampack::check_facts(__VA_ARGS__)); \
   } while (0)
 #else
 #define BEAMPACK_CHECKS_ON 0

@@ -26,7 +26,8 @@ ContactGeometry contact_geometry(double d, double ri, double rj) {
   // The contact disk is never wider than the smaller sphere's equator.
   // (sum - d) and (d - diff) round by ~eps r_large, which r_small^2 need not dwarf.
   BEAMPACK_DCHECK(a2 <= r_small * r_small + 1e-14 * r_large * sum,
-                  "contact of radii %.17g and %.17g m at distance %.17g m: a^2 = %.17g", ri, rj, d, a2);
+                  "contact of radii %.17g and %.17g m at distance %.17g m: a^2 = %.17g", ri, rj, d,
+                  a2);
   return {std::numbers::pi * std::max(a2, 0.0), std::max(d, kMinContactDistanceFraction * r_small)};
 }
 

@@ -14,7 +14,8 @@ inline bool unsafe_input_file(const std::string& path) {
   std::error_code ec;
   const std::filesystem::file_status st = std::filesystem::status(path, ec);
   if (!std::filesystem::exists(st) || std::filesystem::is_regular_file(st)) return false;
-  return !(std::filesystem::is_fifo(st) && (path.starts_with("/dev/fd/") || path.starts_with("/proc/self/fd/")));
+  return !(std::filesystem::is_fifo(st) &&
+           (path.starts_with("/dev/fd/") || path.starts_with("/proc/self/fd/")));
 }
 
 }  // namespace beampack

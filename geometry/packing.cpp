@@ -13,8 +13,8 @@
 #include <vector>
 
 #include "geometry/cell_grid.h"
-#include "geometry/input_file.h"
 #include "geometry/error.h"
+#include "geometry/input_file.h"
 #include "geometry/random.h"
 
 namespace beampack {
@@ -64,7 +64,8 @@ void sort_spatially(Particles& p, double size) {
   std::sort(keys.begin(), keys.end());
   Particles sorted;
   sorted.reserve(n);
-  for (const auto& [key, i] : keys) sorted.add(p.centre[i], p.radius[i], p.material[i], p.temperature[i]);
+  for (const auto& [key, i] : keys)
+    sorted.add(p.centre[i], p.radius[i], p.material[i], p.temperature[i]);
   p = std::move(sorted);
 }
 
@@ -121,9 +122,9 @@ Particles rsa_packing(std::size_t count, double size, double solid_fraction, std
     });
     if (overlaps) {
       if (++failures >= max_failures_in_a_row) {
-        throw InputError("packing.solid_fraction = " + str(solid_fraction) +
-                         ": rsa placed only " + std::to_string(p.size()) + " of " +
-                         std::to_string(count) + " spheres (reached " +
+        throw InputError("packing.solid_fraction = " + str(solid_fraction) + ": rsa placed only " +
+                         std::to_string(p.size()) + " of " + std::to_string(count) +
+                         " spheres (reached " +
                          str(solid_fraction * double(p.size()) / double(count)) + ") before " +
                          std::to_string(max_failures_in_a_row) +
                          " failed tries in a row; use a lower fraction (RSA jams near 0.38)");
@@ -162,8 +163,8 @@ void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>
                   const std::string& where) {
   require(centre.allFinite(), where + "its centre is not a finite number");
   require(r > 0, where + "radius r = " + str(r) + ": must be > 0");
-  require(r <= kMaxParticleRadius,
-          where + "radius r = " + str(r) + ": must be <= " + str(kMaxParticleRadius) + " " + kMaxParticleRadiusWhy);
+  require(r <= kMaxParticleRadius, where + "radius r = " + str(r) + ": must be <= " +
+                                       str(kMaxParticleRadius) + " " + kMaxParticleRadiusWhy);
   const double volume = 4.0 / 3.0 * std::numbers::pi * r * r * r;
   require(volume > 0 && std::isfinite(volume),
           where + "radius r = " + str(r) + ": its volume " + str(volume) +
@@ -176,7 +177,9 @@ void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>
 
 namespace {
 
-bool is_separator(char c) { return c == ' ' || c == '\t' || c == ',' || c == ';' || c == '\r'; }
+bool is_separator(char c) {
+  return c == ' ' || c == '\t' || c == ',' || c == ';' || c == '\r';
+}
 
 std::vector<std::string_view> split_columns(std::string_view line) {
   std::vector<std::string_view> cols;
@@ -201,7 +204,8 @@ bool parse_number(std::string_view text, double& value) {
 // column is not one, and is reported instead of skipped.
 bool is_header(const std::vector<std::string_view>& cols) {
   double probe;
-  return std::none_of(cols.begin(), cols.end(), [&](std::string_view c) { return parse_number(c, probe); });
+  return std::none_of(cols.begin(), cols.end(),
+                      [&](std::string_view c) { return parse_number(c, probe); });
 }
 
 std::string file_key(const std::string& path) {
@@ -250,7 +254,8 @@ double finite_column(const std::vector<std::string_view>& cols, std::size_t k,
 }
 
 void add_checked_sphere(Particles& p, const Vec3& centre, double r,
-                        const std::array<std::size_t, 3>& centre_columns, const std::string& where) {
+                        const std::array<std::size_t, 3>& centre_columns,
+                        const std::string& where) {
   check_sphere(centre, r, centre_columns, where);
   p.add(centre, r);
 }
@@ -271,10 +276,11 @@ Particles read_plain_columns(PackingLines& lines, double default_radius) {
       continue;
     }
     seen_data = true;
-    require(cols.size() == need, where + "expected " + std::to_string(need) + " columns (" + layout + "), found " +
-                                     std::to_string(cols.size()) +
-                                     (need == 4 && cols.size() == 3 ? "; for x y z rows give the radius with packing.radius"
-                                                                    : ""));
+    require(cols.size() == need, where + "expected " + std::to_string(need) + " columns (" +
+                                     layout + "), found " + std::to_string(cols.size()) +
+                                     (need == 4 && cols.size() == 3
+                                          ? "; for x y z rows give the radius with packing.radius"
+                                          : ""));
     double v[4] = {0, 0, 0, default_radius};
     for (std::size_t k = 0; k < need; ++k) v[k] = finite_column(cols, k, where);
     add_checked_sphere(p, {v[0], v[1], v[2]}, v[3], {0, 1, 2}, where);
@@ -430,7 +436,9 @@ class DumpReader {
     item_ = name;
     rows_ = 0;
     if (name == "BOX BOUNDS")  // lo hi; a tilt factor (triclinic); a vector and an origin (general)
-      box_columns_ = text.find(" abc origin") != std::string::npos ? 4 : text.find(" xy") != std::string::npos ? 3 : 2;
+      box_columns_ = text.find(" abc origin") != std::string::npos ? 4
+                     : text.find(" xy") != std::string::npos       ? 3
+                                                                   : 2;
     if (name == "ATOMS") {
       require(first_line_.count("NUMBER OF ATOMS"),
               where + "ITEM: ATOMS before ITEM: NUMBER OF ATOMS; a dump gives the count first");
@@ -451,9 +459,10 @@ class DumpReader {
     } else if (item_ == "BOX BOUNDS") {
       require(cols.size() == box_columns_,
               where + "expected " + std::to_string(box_columns_) + " columns (" +
-                  (box_columns_ == 4 ? "a vector and an origin" : box_columns_ == 3 ? "lo hi tilt" : "lo hi") +
-                  ", as ITEM: BOX BOUNDS names), found " +
-                  std::to_string(cols.size()));
+                  (box_columns_ == 4   ? "a vector and an origin"
+                   : box_columns_ == 3 ? "lo hi tilt"
+                                       : "lo hi") +
+                  ", as ITEM: BOX BOUNDS names), found " + std::to_string(cols.size()));
       for (std::size_t k = 0; k < cols.size(); ++k) finite_column(cols, k, where);
     }  // UNITS and TIME: a name and a time the simulation does not use
   }
@@ -480,8 +489,7 @@ class DumpReader {
     while (lines_.next())
       if (is_item_line(lines_.cols()) && dump_item(item_text(lines_.cols())) == "TIMESTEP")
         ++snapshots;
-    throw InputError(where + "a second snapshot: the dump holds " +
-                     std::to_string(snapshots) +
+    throw InputError(where + "a second snapshot: the dump holds " + std::to_string(snapshots) +
                      " snapshots; keep one (the one to simulate) in the file, e.g. with "
                      "LAMMPS write_dump or by cutting the file at its ITEM: TIMESTEP lines");
   }
@@ -538,7 +546,8 @@ double median_radius(const Particles& particles) {
 
 double packing_radius(const PackingSpec& s) {
   const double n = double(std::max<std::size_t>(s.count, 1));
-  if (s.source == "rsa") return s.sample_size * std::cbrt(3.0 * s.solid_fraction / (4.0 * std::numbers::pi * n));
+  if (s.source == "rsa")
+    return s.sample_size * std::cbrt(3.0 * s.solid_fraction / (4.0 * std::numbers::pi * n));
   if (s.source == "file") return median_radius(read_packing_file(s.file, s.file_radius));
   return s.radius_ratio * s.sample_size / std::cbrt(n);
 }
@@ -551,8 +560,7 @@ Particles make_packing(const PackingSpec& spec) {
     p = rsa_packing(spec.count, spec.sample_size, spec.solid_fraction, spec.seed);
   else if (spec.source == "lattice")
     p = lattice_packing(spec.count, spec.sample_size, spec.radius_ratio);
-  else if (spec.source == "file")
-    p = read_packing_file(spec.file, spec.file_radius);
+  else if (spec.source == "file") p = read_packing_file(spec.file, spec.file_radius);
   else
     throw InputError("packing.source = \"" + spec.source +
                      "\": must be one of random-overlap, rsa, lattice, file");

@@ -13,11 +13,11 @@ struct PackingSpec {
   std::string source = "random-overlap";  // random-overlap | rsa | lattice | file
   std::size_t count = 1000;               // N_p
   double sample_size = 1e-3;              // D, edge of the cube [0, D]^3
-  double radius_ratio = 0.325;            // L of the paper: R = L (D^3 / N_p)^(1/3) = L D / N_p^(1/3)
-  double solid_fraction = 0.3;            // rsa target: N (4/3) pi R^3 / D^3
+  double radius_ratio = 0.325;  // L of the paper: R = L (D^3 / N_p)^(1/3) = L D / N_p^(1/3)
+  double solid_fraction = 0.3;  // rsa target: N (4/3) pi R^3 / D^3
   std::uint64_t seed = 1;
-  std::string file;                       // x y z r columns or a LAMMPS dump (source = file)
-  double file_radius = 0.0;               // radius for x y z files; 0: the file must give r
+  std::string file;          // x y z r columns or a LAMMPS dump (source = file)
+  double file_radius = 0.0;  // radius for x y z files; 0: the file must give r
   double initial_temperature = 300.0;
 };
 
@@ -44,7 +44,8 @@ double median_radius(const Particles& particles);
 
 // Generated packings are numbered along a Morton curve (neighbours in space are neighbours in
 // memory); files keep their order.
-// Paper, section 5: centres uniform in [0, D]^3, equal radii R = L (D^3 / N)^(1/3), overlaps allowed.
+// Paper, section 5: centres uniform in [0, D]^3, equal radii R = L (D^3 / N)^(1/3), overlaps
+// allowed.
 Particles random_overlap_packing(std::size_t count, double size, double radius_ratio,
                                  std::uint64_t seed);
 // Random sequential addition of non-overlapping equal spheres inside [0, D]^3 to the target solid

@@ -7,9 +7,12 @@ namespace beampack {
 
 const char* phase_name(Phase phase) {
   switch (phase) {
-    case Phase::solid: return "solid";
-    case Phase::liquid: return "liquid";
-    case Phase::vapor: return "vapor";
+    case Phase::solid:
+      return "solid";
+    case Phase::liquid:
+      return "liquid";
+    case Phase::vapor:
+      return "vapor";
   }
   return "unknown";
 }

@@ -4,7 +4,7 @@ set -euo pipefail
 packages=(build-essential cmake ninja-build pkg-config
           libembree-dev libeigen3-dev libtbb-dev libgtest-dev libbenchmark-dev
           libcli11-dev libtomlplusplus-dev nlohmann-json3-dev python3-vtk9
-          clang libclang-rt-14-dev)
+          clang libclang-rt-14-dev clang-format)
 missing=()
 for p in "${packages[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -78,7 +78,9 @@ inline ReferenceRay reference_trace(const Particles& p, const OpticsSpec& spec, 
     const MaterialOptics& m = spec.materials[p.material[hit]];
     const std::complex<double> n = p.phase[hit] == Phase::solid ? m.n_solid : m.n_liquid;
     const double cos_i = -d.dot(normal);
-    const double carried = (n.imag() == 0.0 ? reflectance(cos_i, n.real(), m.mu_hat) : reflectance(cos_i, n, m.mu_hat)) * e;
+    const double carried = (n.imag() == 0.0 ? reflectance(cos_i, n.real(), m.mu_hat)
+                                            : reflectance(cos_i, n, m.mu_hat)) *
+                           e;
     out.deposits.emplace_back(hit, e - carried);
     d = reflect(d, normal).normalized();
     o = point;

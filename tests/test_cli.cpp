@@ -102,9 +102,11 @@ TEST(Cli, SmallSceneLedgerClosesAndFilesAgree) {
   // history.csv: one row per pulse; its last row is the summary.
   const auto history = read_csv(out / "history.csv");
   ASSERT_EQ(history.size(), std::size_t(summary["pulses"]));
-  EXPECT_EQ(std::stod(history.back().at("vaporized_fraction")), double(summary["vaporized_fraction"]));
+  EXPECT_EQ(std::stod(history.back().at("vaporized_fraction")),
+            double(summary["vaporized_fraction"]));
   EXPECT_EQ(std::stod(history.back().at("absorbed_J")), absorbed);
-  EXPECT_EQ(std::stod(history.back().at("max_temperature_K")), double(summary["max_temperature_K"]));
+  EXPECT_EQ(std::stod(history.back().at("max_temperature_K")),
+            double(summary["max_temperature_K"]));
   for (std::size_t k = 1; k < history.size(); ++k)
     EXPECT_GE(std::stod(history[k].at("injected_J")), std::stod(history[k - 1].at("injected_J")));
   EXPECT_TRUE(fs::exists(out / "particles.pvd"));
@@ -128,7 +130,8 @@ TEST(Cli, OneAndTenStepsPerPulseAgree) {
   // The quick preset's pulse crosses the 1 mm sample in ~3.3e-12 s plus its bounces: a step of
   // 4e-13 s gives about ten steps per pulse flight.
   const fs::path a = fresh_dir("dt1"), b = fresh_dir("dt10");
-  ASSERT_EQ(run("run --preset quick --quiet --set thermal.dt=\"pulse\" --out " + a.string()).code, 0);
+  ASSERT_EQ(run("run --preset quick --quiet --set thermal.dt=\"pulse\" --out " + a.string()).code,
+            0);
   const Result fine = run("run --preset quick --quiet --set thermal.dt=4e-13 --out " + b.string());
   ASSERT_EQ(fine.code, 0) << fine.output;
   const auto ja = read_json(a / "summary.json"), jb = read_json(b / "summary.json");
@@ -139,7 +142,8 @@ TEST(Cli, OneAndTenStepsPerPulseAgree) {
   const double ea = ja["energy_J"]["absorbed"], eb = jb["energy_J"]["absorbed"];
   EXPECT_NEAR(ea, eb, 0.05 * ea);
   EXPECT_NEAR(double(ja["vaporized_fraction"]), double(jb["vaporized_fraction"]), 0.01);
-  EXPECT_NEAR(double(ja["max_temperature_K"]), double(jb["max_temperature_K"]), 0.1 * double(ja["max_temperature_K"]));
+  EXPECT_NEAR(double(ja["max_temperature_K"]), double(jb["max_temperature_K"]),
+              0.1 * double(ja["max_temperature_K"]));
 }
 
 TEST(Cli, VaporizedFractionDoesNotIncreaseWithConductivity) {
@@ -147,13 +151,16 @@ TEST(Cli, VaporizedFractionDoesNotIncreaseWithConductivity) {
   // theta_v keeps its excess heat to the end of the step, and a high K hands that excess to its
   // neighbours, which can then vaporise too: v_v may rise with K there (README, model choices).
   const fs::path out = fresh_dir("sweep");
-  const Result r = run("sweep --preset quick --set thermal.dt=5e-14 --param material.conductivity "
-                       "--values 0,200,2000,5000 --out " + out.string());
+  const Result r =
+      run("sweep --preset quick --set thermal.dt=5e-14 --param material.conductivity "
+          "--values 0,200,2000,5000 --out " +
+          out.string());
   ASSERT_EQ(r.code, 0) << r.output;
   const auto rows = read_csv(out / "sweep.csv");
   ASSERT_EQ(rows.size(), 4u);
   for (std::size_t k = 1; k < rows.size(); ++k)
-    EXPECT_LE(std::stod(rows[k].at("vaporized_fraction")), std::stod(rows[k - 1].at("vaporized_fraction")))
+    EXPECT_LE(std::stod(rows[k].at("vaporized_fraction")),
+              std::stod(rows[k - 1].at("vaporized_fraction")))
         << "K = " << rows[k].at("material.conductivity");
   EXPECT_GT(std::stod(rows[0].at("vaporized_fraction")), 0.0);
   // And conduction does lower it (MODEL.md section 7, Table 1): at K = 5000 at least one of the
@@ -168,15 +175,18 @@ TEST(Cli, VaporizedFractionDoesNotIncreaseWithConductivity) {
 // v_v = 1 / (1 + 1.5^3) = 8 / 35.
 TEST(Cli, VaporizedFractionWeighsParticlesByVolume) {
   const fs::path dir = fresh_dir("volume_fraction");
-  const std::string bed = write(dir / "bed.xyz", "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n0.5e-3 0.5e-3 0.82e-3 1.5e-4\n");
-  const Result r = run("run --preset quick --quiet --set packing.source=file --set packing.file=" + bed +
-                       " --out " + (dir / "out").string());
+  const std::string bed =
+      write(dir / "bed.xyz", "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n0.5e-3 0.5e-3 0.82e-3 1.5e-4\n");
+  const Result r =
+      run("run --preset quick --quiet --set packing.source=file --set packing.file=" + bed +
+          " --out " + (dir / "out").string());
   ASSERT_EQ(r.code, 0) << r.output;
   const auto rows = read_csv(dir / "out" / "particles.csv");
   ASSERT_EQ(rows.size(), 2u);
   ASSERT_EQ(rows[0].at("phase"), "vapor") << r.output;
   ASSERT_EQ(rows[1].at("phase"), "solid") << r.output;
-  EXPECT_NEAR(double(read_json(dir / "out" / "summary.json")["vaporized_fraction"]), 8.0 / 35.0, 1e-15);
+  EXPECT_NEAR(double(read_json(dir / "out" / "summary.json")["vaporized_fraction"]), 8.0 / 35.0,
+              1e-15);
 }
 
 namespace {
@@ -187,29 +197,38 @@ void expect_input_error(const std::string& name, const std::string& toml, const 
   const std::string file = toml.empty() ? "" : write(dir / "run.toml", toml);
   const Result r = run("run " + file + " " + args + " --quiet --out " + (dir / "out").string());
   EXPECT_EQ(r.code, 2) << name << ": " << r.output;
-  for (const char* f : fragments) EXPECT_NE(r.output.find(f), std::string::npos) << name << ": " << r.output;
+  for (const char* f : fragments)
+    EXPECT_NE(r.output.find(f), std::string::npos) << name << ": " << r.output;
 }
 
 }  // namespace
 
 TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
-  expect_input_error("unknown", "[material]\nconductivty = 3\n", "",
-                     {"run.toml:2", "material.conductivty", "did you mean `material.conductivity`"});
-  expect_input_error("type", "[beam]\nrays = \"many\"\n", "", {"run.toml:2", "beam.rays", "must be an integer"});
-  expect_input_error("negative", "[sample]\n\nsize = -1e-3\n", "", {"run.toml:3", "sample.size", "must be >= 1e-12 and <= 1e+06"});
-  expect_input_error("nan", "[material]\nconductivity = nan\n", "", {"run.toml:2", "material.conductivity", "finite"});
-  expect_input_error("missing_file", "[packing]\nsource = \"file\"\nfile = \"/nonexistent/bed.xyz\"\n", "",
+  expect_input_error(
+      "unknown", "[material]\nconductivty = 3\n", "",
+      {"run.toml:2", "material.conductivty", "did you mean `material.conductivity`"});
+  expect_input_error("type", "[beam]\nrays = \"many\"\n", "",
+                     {"run.toml:2", "beam.rays", "must be an integer"});
+  expect_input_error("negative", "[sample]\n\nsize = -1e-3\n", "",
+                     {"run.toml:3", "sample.size", "must be >= 1e-12 and <= 1e+06"});
+  expect_input_error("nan", "[material]\nconductivity = nan\n", "",
+                     {"run.toml:2", "material.conductivity", "finite"});
+  expect_input_error("missing_file",
+                     "[packing]\nsource = \"file\"\nfile = \"/nonexistent/bed.xyz\"\n", "",
                      {"run.toml:3", "packing.file", "/nonexistent/bed.xyz", "cannot open"});
   // Checks of one key against another, made by the library after reading: the line is found.
-  expect_input_error("melt_above_vapour", "[material]\nmelt_temperature = 800\n", "",
-                     {"run.toml:2", "material.vapor_temperature", "must be > material.melt_temperature = 800"});
+  expect_input_error(
+      "melt_above_vapour", "[material]\nmelt_temperature = 800\n", "",
+      {"run.toml:2", "material.vapor_temperature", "must be > material.melt_temperature = 800"});
   expect_input_error("table_for_number", "[material]\nconductivity = {a = 1}\n", "",
                      {"run.toml:2", "`material.conductivity` = { a = 1 }", "must be a number"});
-  expect_input_error("resample_stratified", "[beam]\nsampling = \"stratified\"\nresample = true\n", "",
-                     {"run.toml:3", "beam.resample", "needs `beam.sampling` = `random`"});
-  expect_input_error("blank_key", "", "--preset quick --set ' =5'", {"--set  =5", "expected KEY=VALUE"});
+  expect_input_error("resample_stratified", "[beam]\nsampling = \"stratified\"\nresample = true\n",
+                     "", {"run.toml:3", "beam.resample", "needs `beam.sampling` = `random`"});
+  expect_input_error("blank_key", "", "--preset quick --set ' =5'",
+                     {"--set  =5", "expected KEY=VALUE"});
   // Two --set that contradict each other are refused in either order.
-  expect_input_error("file_then_source", "", "--preset quick --set packing.file=x.csv --set packing.source=rsa",
+  expect_input_error("file_then_source", "",
+                     "--preset quick --set packing.file=x.csv --set packing.source=rsa",
                      {"--set packing.file=x.csv", "needs packing.source = \"file\""});
   expect_input_error("thermal_mass", "", "--preset quick --set material.density=1e-300",
                      {"--set material.density=1e-300", "thermal mass"});
@@ -219,36 +238,45 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
   expect_input_error("preset", "", "--preset nosuch", {"nosuch", "zohdi2013"});
   expect_input_error("walls_twice", "[thermal]\nwalls = \"x-,z+,x-\"\n", "",
                      {"run.toml:2", "thermal.walls", "face x- is listed twice"});
-  expect_input_error("walls_face", "[thermal]\n\nwalls = \"q\"\n", "", {"run.toml:3", "thermal.walls", "x-, x+"});
+  expect_input_error("walls_face", "[thermal]\n\nwalls = \"q\"\n", "",
+                     {"run.toml:3", "thermal.walls", "x-, x+"});
   expect_input_error("zero_direction", "[beam]\ndirection_x = 0.0\n", "",
                      {"run.toml:2", "beam.direction_x", "must not be zero"});
-  expect_input_error("cutoff_one", "[optics]\ncutoff = 1.0\n", "", {"run.toml:2", "optics.cutoff", "must be < 1"});
-  expect_input_error("gaussian", "", "--preset quick --set beam.profile=gaussian --set beam.gaussian_width=1e-9",
+  expect_input_error("cutoff_one", "[optics]\ncutoff = 1.0\n", "",
+                     {"run.toml:2", "optics.cutoff", "must be < 1"});
+  expect_input_error("gaussian", "",
+                     "--preset quick --set beam.profile=gaussian --set beam.gaussian_width=1e-9",
                      {"beam.gaussian_width", "1e-09", "underflows"});
   expect_input_error("resume_empty", "", "--resume ''", {"--resume", "does not exist"});
-  expect_input_error("substeps", "[thermal]\nmax_substeps = 0\n", "", {"run.toml:2", "thermal.max_substeps", "must be >= 1"});
-  expect_input_error("initial_vapour", "[material]\ninitial_temperature = 900\n", "",
-                     {"run.toml:2", "material.initial_temperature", "900", "< material.vapor_temperature = 700"});
+  expect_input_error("substeps", "[thermal]\nmax_substeps = 0\n", "",
+                     {"run.toml:2", "thermal.max_substeps", "must be >= 1"});
+  expect_input_error(
+      "initial_vapour", "[material]\ninitial_temperature = 900\n", "",
+      {"run.toml:2", "material.initial_temperature", "900", "< material.vapor_temperature = 700"});
   expect_input_error("file_unused", "[packing]\nfile = \"bed.xyz\"\n", "",
                      {"run.toml:2", "packing.file", "needs packing.source = \"file\""});
   // Asked for in this run, a count the file overrides is refused. A preset or run file may hold
   // it (`beampack config` prints every key): ABeamThatMeetsNoParticleIsAnnounced runs a file
   // packing under the quick preset's packing.count = 200.
-  expect_input_error("count_with_file", "[packing]\nsource = \"file\"\nfile = \"bed.xyz\"\n",
-                     "--set packing.count=500",
-                     {"--set packing.count=500", "packing.count", "500", "the file gives the count"});
+  expect_input_error(
+      "count_with_file", "[packing]\nsource = \"file\"\nfile = \"bed.xyz\"\n",
+      "--set packing.count=500",
+      {"--set packing.count=500", "packing.count", "500", "the file gives the count"});
   expect_input_error("polarisation", "", "--preset quick --set optics.polarisation=200",
                      {"optics.polarisation", "200", "<= 180"});
-  expect_input_error("polarisation_metal", "", "--preset quick --set optics.polarisation=30 --set optics.k_solid=4",
+  expect_input_error("polarisation_metal", "",
+                     "--preset quick --set optics.polarisation=30 --set optics.k_solid=4",
                      {"optics.polarisation", "elliptical"});
-  expect_input_error("polarisation_word", "[optics]\npolarisation = \"linear\"\n", "",
-                     {"run.toml:2", "optics.polarisation", "\"linear\"", "number in degrees or \"unpolarised\""});
+  expect_input_error(
+      "polarisation_word", "[optics]\npolarisation = \"linear\"\n", "",
+      {"run.toml:2", "optics.polarisation", "\"linear\"", "number in degrees or \"unpolarised\""});
   expect_input_error("overflow", "", "--preset quick --set beam.power=1e308",
                      {"beam.power", "pulses.duration", "overflows"});
   // Found by an adversarial review (twelfth session): each ran, hung or fell back before.
   expect_input_error("index_huge", "", "--preset quick --set optics.n_solid=1e155",
                      {"optics.n_solid", "1e+155", "<= 1e+06"});  // NaN deposits, exit 1
-  expect_input_error("preset_empty", "", "--preset ''", {"--preset", "must name a preset"});  // defaults
+  expect_input_error("preset_empty", "", "--preset ''",
+                     {"--preset", "must name a preset"});  // defaults
   expect_input_error("dt_absurd", "", "--preset quick --set thermal.dt=1e-300",
                      {"thermal.dt", "1e-300", "sample.size / c / 1e9"});  // never finished
   expect_input_error("seed_range", "", "--preset quick --set beam.seed=18446744073709551615",
@@ -259,34 +287,43 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"material.conductivity", "underflows to 0"});  // was 0, silently
   expect_input_error("below_double_file", "[material]\nconductivity = [1.0, 2e-999]\n", "",
                      {"run.toml:2", "2e-999: underflows to 0"});
-  expect_input_error("wall_conductance", "", "--preset quick --set thermal.walls=z- --set thermal.wall_conductance=-0.5",
+  expect_input_error("wall_conductance", "",
+                     "--preset quick --set thermal.walls=z- --set thermal.wall_conductance=-0.5",
                      {"thermal.wall_conductance", "-0.5", "or -1"});
   // Steps beyond phi < 1's sub-step cap are blamed on the key that made them (not thermal.dt).
-  expect_input_error("period_substeps", "", "--preset quick --set thermal.phi=0.5 --set pulses.period=1e-6",
-                     {"--set pulses.period=1e-6", "`pulses.period` = 1e-06 s", "thermal.max_substeps = 1000"});
-  expect_input_error("flight_substeps", "",
-                     "--preset quick --set thermal.phi=0.5 --set material.conductivity=1e4 --set thermal.max_substeps=1",
-                     {"`thermal.dt` = \"pulse\" (step 0 lasts the rays' flight", "thermal.max_substeps = 1"});
+  expect_input_error(
+      "period_substeps", "", "--preset quick --set thermal.phi=0.5 --set pulses.period=1e-6",
+      {"--set pulses.period=1e-6", "`pulses.period` = 1e-06 s", "thermal.max_substeps = 1000"});
+  expect_input_error(
+      "flight_substeps", "",
+      "--preset quick --set thermal.phi=0.5 --set material.conductivity=1e4 --set "
+      "thermal.max_substeps=1",
+      {"`thermal.dt` = \"pulse\" (step 0 lasts the rays' flight", "thermal.max_substeps = 1"});
 }
 
 // A --set of `material.conductivity.x` turns the number an earlier layer gave into a table: the
 // error names that --set, not the layer whose number it replaced (found by an adversarial review:
 // the run file's line, "preset quick" and the first --set were named).
 TEST(Cli, AKeyTurnedIntoATableIsBlamedOnTheSetThatDidIt) {
-  const char* table = "--set material.conductivity.x=5: `material.conductivity` = { x = 5 }: must be a number";
-  expect_input_error("table_over_file", "[material]\nconductivity = 3\n", "--set material.conductivity.x=5",
+  const char* table =
+      "--set material.conductivity.x=5: `material.conductivity` = { x = 5 }: must be a number";
+  expect_input_error("table_over_file", "[material]\nconductivity = 3\n",
+                     "--set material.conductivity.x=5", {table});
+  expect_input_error("table_over_preset", "", "--preset quick --set material.conductivity.x=5",
                      {table});
-  expect_input_error("table_over_preset", "", "--preset quick --set material.conductivity.x=5", {table});
   expect_input_error("table_over_set", "",
-                     "--preset quick --set material.conductivity=1 --set material.conductivity.x=5", {table});
+                     "--preset quick --set material.conductivity=1 --set material.conductivity.x=5",
+                     {table});
   // Of two entries, the one that made the table (the earlier), whatever their names' order.
-  expect_input_error("table_two_sets", "",
-                     "--preset quick --set material.conductivity.b=1 --set material.conductivity.a=2",
-                     {"--set material.conductivity.b=1: `material.conductivity` = { a = 2, b = 1 }"});
+  expect_input_error(
+      "table_two_sets", "",
+      "--preset quick --set material.conductivity.b=1 --set material.conductivity.a=2",
+      {"--set material.conductivity.b=1: `material.conductivity` = { a = 2, b = 1 }"});
   // A number over a table: the number's --set, as before.
-  expect_input_error("number_over_table", "",
-                     "--preset quick --set material.conductivity.x=5 --set material.conductivity=-1",
-                     {"--set material.conductivity=-1: `material.conductivity` = -1: must be >= 0"});
+  expect_input_error(
+      "number_over_table", "",
+      "--preset quick --set material.conductivity.x=5 --set material.conductivity=-1",
+      {"--set material.conductivity=-1: `material.conductivity` = -1: must be >= 0"});
 }
 
 // A key given in this run that the scene does not read is refused, naming the key, its value and
@@ -306,22 +343,27 @@ TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
        "applies to beam.profile = \"exponential\" only (it is \"flat\")"},
       {"solid_fraction", "--set packing.solid_fraction=0.45", "`packing.solid_fraction` = 0.45",
        "applies to packing.source = \"rsa\" only (it is \"random-overlap\")"},
-      {"radius_ratio", "--set packing.source=rsa --set packing.solid_fraction=0.2 --set packing.radius_ratio=5",
+      {"radius_ratio",
+       "--set packing.source=rsa --set packing.solid_fraction=0.2 --set packing.radius_ratio=5",
        "`packing.radius_ratio` = 5",
        "applies to packing.source = \"random-overlap\" or \"lattice\" only (it is \"rsa\")"},
       {"packing_seed", "--set packing.source=lattice --set packing.count=8 --set packing.seed=3",
-       "`packing.seed` = 3", "applies to packing.source = \"random-overlap\" or \"rsa\" only (it is \"lattice\")"},
+       "`packing.seed` = 3",
+       "applies to packing.source = \"random-overlap\" or \"rsa\" only (it is \"lattice\")"},
       {"beam_seed", "--set beam.sampling=stratified --set beam.seed=4", "`beam.seed` = 4",
        "applies to beam.sampling = \"random\" only"},
       {"energy", "--set pulses.energy=5", "`pulses.energy` = 5",
        "applies to pulses.duration = \"energy\" only (it is 3e-13)"},
-      {"wall_temperature", "--set thermal.wall_temperature=3000", "`thermal.wall_temperature` = 3000",
+      {"wall_temperature", "--set thermal.wall_temperature=3000",
+       "`thermal.wall_temperature` = 3000",
        "applies to walls only (thermal.walls = \"\" names none"},
-      {"wall_reach", "--set thermal.wall_reach=1", "`thermal.wall_reach` = 1", "applies to walls only"},
-      {"wall_conductance", "--set thermal.wall_conductance=1e6", "`thermal.wall_conductance` = 1e+06",
+      {"wall_reach", "--set thermal.wall_reach=1", "`thermal.wall_reach` = 1",
        "applies to walls only"},
+      {"wall_conductance", "--set thermal.wall_conductance=1e6",
+       "`thermal.wall_conductance` = 1e+06", "applies to walls only"},
       {"xi", "--set pulses.xi=0.1", "`pulses.xi` = 0.1",
-       "applies to pulses.duration = \"auto\" or thermal.dt = \"paper\" only (pulses.duration is 3e-13, "
+       "applies to pulses.duration = \"auto\" or thermal.dt = \"paper\" only (pulses.duration is "
+       "3e-13, "
        "thermal.dt is \"pulse\") and to `beampack converge`"},
   };
   for (const Case& c : cases) {
@@ -331,26 +373,30 @@ TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
   }
   // A sweep of such a key wrote identical rows and exited 0; now it stops before any run.
   const fs::path dir = fresh_dir("unread_sweep");
-  const Result sweep = run("sweep --preset quick --param beam.gaussian_width --values 0.1,10 --quiet --out " +
-                           (dir / "out").string());
+  const Result sweep =
+      run("sweep --preset quick --param beam.gaussian_width --values 0.1,10 --quiet --out " +
+          (dir / "out").string());
   EXPECT_EQ(sweep.code, 2) << sweep.output;
-  EXPECT_NE(sweep.output.find("--param beam.gaussian_width --values 0.1: `beam.gaussian_width` = 0.1: applies "
-                              "to beam.profile = \"gaussian\" only"),
+  EXPECT_NE(sweep.output.find(
+                "--param beam.gaussian_width --values 0.1: `beam.gaussian_width` = 0.1: applies "
+                "to beam.profile = \"gaussian\" only"),
             std::string::npos)
       << sweep.output;
   EXPECT_FALSE(fs::exists(dir / "out" / "sweep.csv"));
   const Result xi = run("sweep --preset quick --param pulses.xi --values 0.1,0.2 --quiet --out " +
                         (dir / "xi").string());
   EXPECT_EQ(xi.code, 2) << xi.output;
-  EXPECT_NE(xi.output.find("--param pulses.xi --values 0.1: `pulses.xi` = 0.1: applies to"), std::string::npos)
+  EXPECT_NE(xi.output.find("--param pulses.xi --values 0.1: `pulses.xi` = 0.1: applies to"),
+            std::string::npos)
       << xi.output;
   // pulses.xi applies where the paper's step xi R / c is used: the pulse duration, the time step,
   // and converge's time-step ladder (whatever the pulse duration), and in a sweep over thermal.dt;
   // `config` may print converge's run file.
-  for (const char* args : {"run --set pulses.duration=auto", "run --set thermal.dt=paper", "converge",
-                           "sweep --param thermal.dt --values paper,pulse", "config"}) {
-    const Result r = run(std::string(args) + " --preset quick --set pulses.xi=0.1 --set pulses.count=1" +
-                         (std::string(args) == "config" ? "" : " --quiet --out " + (dir / "xi_used").string()));
+  for (const char* args : {"run --set pulses.duration=auto", "run --set thermal.dt=paper",
+                           "converge", "sweep --param thermal.dt --values paper,pulse", "config"}) {
+    const Result r =
+        run(std::string(args) + " --preset quick --set pulses.xi=0.1 --set pulses.count=1" +
+            (std::string(args) == "config" ? "" : " --quiet --out " + (dir / "xi_used").string()));
     EXPECT_EQ(r.code, 0) << args << ": " << r.output;
   }
   // A preset's or a run file's keys are not the user's request in this run: switching the
@@ -358,16 +404,20 @@ TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
   // under the quick preset's packing.seed and a run file that holds every key.
   for (const char* args : {"--preset zohdi2013 --set beam.profile=flat",
                            "--preset quick --set packing.source=lattice --set packing.count=8"}) {
-    const Result r =
-        run(std::string("run ") + args + " --set pulses.count=1 --quiet --out " + (dir / "preset").string());
+    const Result r = run(std::string("run ") + args + " --set pulses.count=1 --quiet --out " +
+                         (dir / "preset").string());
     EXPECT_EQ(r.code, 0) << args << ": " << r.output;
   }
-  const std::string file = write(dir / "run.toml", "[beam]\ngaussian_width = 7.0\n[thermal]\nwall_reach = 1.0\n");
-  const Result from_file = run("run " + file + " --preset quick --quiet --out " + (dir / "file").string());
+  const std::string file =
+      write(dir / "run.toml", "[beam]\ngaussian_width = 7.0\n[thermal]\nwall_reach = 1.0\n");
+  const Result from_file =
+      run("run " + file + " --preset quick --quiet --out " + (dir / "file").string());
   EXPECT_EQ(from_file.code, 0) << from_file.output;
   // A sweep over the deciding key uses the key in some of its runs: both rows are written.
-  const Result profiles = run("sweep --preset quick --set beam.decay=5 --param beam.profile --values flat,exponential "
-                              "--quiet --out " + (dir / "profiles").string());
+  const Result profiles =
+      run("sweep --preset quick --set beam.decay=5 --param beam.profile --values flat,exponential "
+          "--quiet --out " +
+          (dir / "profiles").string());
   ASSERT_EQ(profiles.code, 0) << profiles.output;
   const auto rows = read_csv(dir / "profiles" / "sweep.csv");
   ASSERT_EQ(rows.size(), 2u);
@@ -383,14 +433,18 @@ TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
 TEST(Cli, ARunFileValueTheSceneIgnoresIsAnnounced) {
   const fs::path dir = fresh_dir("ignored_in_file");
   const std::string out = " --quiet --out " + (dir / "out").string();
-  const std::string gaussian = write(dir / "run.toml", "[beam]\nprofile = \"gaussian\"\ndecay = 5.0\n");
+  const std::string gaussian =
+      write(dir / "run.toml", "[beam]\nprofile = \"gaussian\"\ndecay = 5.0\n");
   const Result ignored = run("run " + gaussian + " --preset quick" + out);
   EXPECT_EQ(ignored.code, 0) << ignored.output;
-  EXPECT_NE(ignored.output.find("beampack: warning: " + gaussian + ":3: `beam.decay` = 5: applies to beam.profile "
-                                "= \"exponential\" only (it is \"gaussian\"), so this run ignores it"),
-            std::string::npos)
+  EXPECT_NE(
+      ignored.output.find("beampack: warning: " + gaussian +
+                          ":3: `beam.decay` = 5: applies to beam.profile "
+                          "= \"exponential\" only (it is \"gaussian\"), so this run ignores it"),
+      std::string::npos)
       << ignored.output;
-  const Result sweep = run("sweep " + gaussian + " --preset quick --param material.conductivity --values 1,2" + out);
+  const Result sweep =
+      run("sweep " + gaussian + " --preset quick --param material.conductivity --values 1,2" + out);
   EXPECT_EQ(sweep.code, 0) << sweep.output;
   EXPECT_EQ(sweep.output.find("warning"), sweep.output.rfind("warning")) << sweep.output;
   EXPECT_NE(sweep.output.find("`beam.decay` = 5"), std::string::npos) << sweep.output;
@@ -399,9 +453,11 @@ TEST(Cli, ARunFileValueTheSceneIgnoresIsAnnounced) {
   std::string carried = printed.output;
   carried.replace(carried.find("profile = 'exponential'"), 23, "profile = 'gaussian'");
   const std::string edited = write(dir / "edited.toml", carried);
-  const std::string applies = write(dir / "applies.toml", "[beam]\nprofile = \"exponential\"\ndecay = 5.0\n");
-  for (const std::string& args : {"run " + edited, "run " + applies + " --preset quick",
-                                  std::string("run --preset quick --set packing.source=lattice --set packing.count=27")}) {
+  const std::string applies =
+      write(dir / "applies.toml", "[beam]\nprofile = \"exponential\"\ndecay = 5.0\n");
+  for (const std::string& args :
+       {"run " + edited, "run " + applies + " --preset quick",
+        std::string("run --preset quick --set packing.source=lattice --set packing.count=27")}) {
     const Result r = run(args + " --set pulses.count=1" + out);
     EXPECT_EQ(r.code, 0) << args << ": " << r.output;
     EXPECT_EQ(r.output.find("ignores it"), std::string::npos) << args << ": " << r.output;
@@ -434,11 +490,12 @@ TEST(Cli, NumbersBeyondTheArithmeticAreRefusedAndTheLimitsRun) {
   struct Case {
     std::string key, too_large, limit, at_limit;  // at_limit: the --set of a run at the limit
   };
-  const std::string big_heat = "must be <= 1e+12 J/(kg K)", big_latent = "must be <= 1e+12 J/kg (", hot = "must be <= 1e+12 K", hot_run =
-      " --set material.vapor_temperature=1e12";
+  const std::string big_heat = "must be <= 1e+12 J/(kg K)", big_latent = "must be <= 1e+12 J/kg (",
+                    hot = "must be <= 1e+12 K", hot_run = " --set material.vapor_temperature=1e12";
   const Case cases[] = {
       {"material.conductivity", "1e308", "must be <= 1e+20 W/(m K)", "material.conductivity=1e20"},
-      {"thermal.wall_conductance", "1e306", "must be <= 1e+20 W/K", "thermal.wall_conductance=1e20" + walls},
+      {"thermal.wall_conductance", "1e306", "must be <= 1e+20 W/K",
+       "thermal.wall_conductance=1e20" + walls},
       {"material.latent_vapor", "1e308", big_latent, "material.latent_vapor=1e12"},
       {"material.latent_melt", "1e25", big_latent, "material.latent_melt=1e12"},
       {"material.latent_solidify", "1e308", big_latent,
@@ -459,29 +516,35 @@ TEST(Cli, NumbersBeyondTheArithmeticAreRefusedAndTheLimitsRun) {
   const fs::path dir = fresh_dir("limits");
   for (const Case& c : cases) {
     const std::string set = "--set " + c.key + "=" + c.too_large;
-    const std::string shown = "`" + c.key + "` = " + c.too_large.substr(0, 1) + "e+" + c.too_large.substr(2);
-    expect_input_error("limit_" + c.key, "", "--preset quick " + set + walls, {set.c_str(), shown.c_str(),
-                                                                                  c.limit.c_str()});
+    const std::string shown =
+        "`" + c.key + "` = " + c.too_large.substr(0, 1) + "e+" + c.too_large.substr(2);
+    expect_input_error("limit_" + c.key, "", "--preset quick " + set + walls,
+                       {set.c_str(), shown.c_str(), c.limit.c_str()});
     const fs::path out = dir / c.key;
-    const Result r = run("run --preset quick --set " + c.at_limit + " --quiet --out " + out.string());
+    const Result r =
+        run("run --preset quick --set " + c.at_limit + " --quiet --out " + out.string());
     ASSERT_EQ(r.code, 0) << c.at_limit << ": " << r.output;
     EXPECT_EQ(r.output.find("ledger is open"), std::string::npos) << c.at_limit << ": " << r.output;
     const auto summary = read_json(out / "summary.json");
     EXPECT_TRUE(all_finite(summary)) << c.at_limit << ": " << summary.dump();
     const auto& e = summary["energy_J"];
-    const double absorbed = e["absorbed"], stored = e["stored"], vaporized = e["vaporized"], to_walls = e["walls"];
+    const double absorbed = e["absorbed"], stored = e["stored"], vaporized = e["vaporized"],
+                 to_walls = e["walls"];
     const double flows = absorbed + std::abs(stored) + vaporized + std::abs(to_walls);
     EXPECT_GT(absorbed, 0.0) << c.at_limit;
-    EXPECT_LE(std::abs(absorbed - stored - vaporized - to_walls), 1e-6 * flows) << c.at_limit << ": " << e.dump();
+    EXPECT_LE(std::abs(absorbed - stored - vaporized - to_walls), 1e-6 * flows)
+        << c.at_limit << ": " << e.dump();
   }
   // Just above a limit is refused too, shown in full. A file packing's radius far beyond its limit
   // was lost to the rays' float arithmetic (1e20 m: nothing absorbed, exit 0); at the limit the
   // run says its heat ledger is open.
   const std::string file = write(dir / "two.xyz", "5e-4 5e-4 5e-4\n3e-4 3e-4 3e-4\n");
-  const std::string file_packing = "--preset quick --set packing.source=file --set packing.file=" + file;
+  const std::string file_packing =
+      "--preset quick --set packing.source=file --set packing.file=" + file;
   expect_input_error("just_above_density", "", "--preset quick --set material.density=1.0000001e12",
                      {"`material.density` = 1000000100000: must be <= 1e+12 kg/m^3"});
-  expect_input_error("just_above_time_scaling", "", "--preset quick --set thermal.time_scaling=1.0000001e12",
+  expect_input_error("just_above_time_scaling", "",
+                     "--preset quick --set thermal.time_scaling=1.0000001e12",
                      {"`thermal.time_scaling` = 1000000100000: must be <= 1e+12"});
   expect_input_error("just_above_radius", "", file_packing + " --set packing.radius=1.0000001e6",
                      {"`packing.radius` = 1000000.1: must be <= 1e+06 m"});
@@ -501,9 +564,9 @@ TEST(Cli, SpecialFilesAsInputsAreRefusedBeforeTheyAreRead) {
   ASSERT_EQ(std::system(("mkfifo " + fifo.string()).c_str()), 0);
   const std::string out = " --quiet --out " + (dir / "out").string();
   const std::string file_packing = "--preset quick --set packing.source=file --set packing.file=";
-  for (const std::string& args : {"run " + fifo.string() + out, "run /dev/zero" + out,
-                                  "run " + file_packing + fifo.string() + out,
-                                  "run " + file_packing + "/dev/zero" + out}) {
+  for (const std::string& args :
+       {"run " + fifo.string() + out, "run /dev/zero" + out,
+        "run " + file_packing + fifo.string() + out, "run " + file_packing + "/dev/zero" + out}) {
     const auto [code, text] = run(args, "timeout -s KILL 20");
     EXPECT_EQ(code, 2) << args << ": " << text;
     EXPECT_NE(text.find("not a regular file"), std::string::npos) << args << ": " << text;
@@ -515,22 +578,27 @@ TEST(Cli, RunFileLayersPathsAndArgumentsAreReadAsWritten) {
   const fs::path dir = fresh_dir("layers");
   fs::create_directories(dir / "sub");
   write(dir / "sub" / "one.xyz", "5e-4 5e-4 5e-4\n");
-  const std::string file = write(dir / "sub" / "bed.toml",
-                                 "[packing]\nsource = \"file\"\nfile = \"one.xyz\"\nradius = 1e-4\n");
+  const std::string file =
+      write(dir / "sub" / "bed.toml",
+            "[packing]\nsource = \"file\"\nfile = \"one.xyz\"\nradius = 1e-4\n");
   // A relative packing.file is read from the run file's folder, whatever the working directory.
-  const Result from_file = run("run " + file + " --set pulses.count=1 --quiet --out " + (dir / "a").string());
+  const Result from_file =
+      run("run " + file + " --set pulses.count=1 --quiet --out " + (dir / "a").string());
   ASSERT_EQ(from_file.code, 0) << from_file.output;
   EXPECT_NE(file_text(dir / "a" / "summary.json").find("\"particles\": 1"), std::string::npos);
   // The resolved run file holds the path made absolute: it runs from any folder.
   const Result printed = run("config " + file);
   ASSERT_EQ(printed.code, 0) << printed.output;
-  EXPECT_NE(printed.output.find(fs::absolute(dir / "sub" / "one.xyz").lexically_normal().string()), std::string::npos)
+  EXPECT_NE(printed.output.find(fs::absolute(dir / "sub" / "one.xyz").lexically_normal().string()),
+            std::string::npos)
       << printed.output;
   fs::create_directories(dir / "elsewhere");
   const std::string full = write(dir / "elsewhere" / "full.toml", printed.output);
-  EXPECT_EQ(run("run " + full + " --set pulses.count=1 --quiet --out " + (dir / "b").string()).code, 0);
+  EXPECT_EQ(run("run " + full + " --set pulses.count=1 --quiet --out " + (dir / "b").string()).code,
+            0);
   // A later --set of another source drops the file's packing keys instead of refusing them.
-  const Result other = run("config " + file + " --set packing.source=lattice --set packing.count=8");
+  const Result other =
+      run("config " + file + " --set packing.source=lattice --set packing.count=8");
   ASSERT_EQ(other.code, 0) << other.output;
   EXPECT_NE(other.output.find("file = ''"), std::string::npos) << other.output;
   // One value per --set and per --values: a run file after them is the run file.
@@ -579,7 +647,8 @@ TEST(Cli, UnwritableOutputDirectoryIsBadInput) {
   for (const std::string& out : {blocker.string(), blocker.string() + "/"}) {
     const Result at_file = run("run --preset quick --quiet --out " + out);
     EXPECT_EQ(at_file.code, 2) << at_file.output;
-    EXPECT_NE(at_file.output.find("--out " + out + ": cannot create the output directory (it exists and is not "
+    EXPECT_NE(at_file.output.find("--out " + out +
+                                  ": cannot create the output directory (it exists and is not "
                                   "a directory)"),
               std::string::npos)
         << at_file.output;
@@ -590,13 +659,16 @@ TEST(Cli, UnwritableOutputDirectoryIsBadInput) {
 // removed again; a folder that was there before stays.
 TEST(Cli, AnInputErrorFoundDuringSetUpLeavesNoEmptyFolder) {
   const fs::path dir = fresh_dir("no_empty_out");
-  const std::string lattice = " --preset quick --quiet --set packing.source=lattice --set packing.count=10 --out ";
+  const std::string lattice =
+      " --preset quick --quiet --set packing.source=lattice --set packing.count=10 --out ";
   const Result r = run("run" + lattice + (dir / "made" / "here").string());
   EXPECT_EQ(r.code, 2) << r.output;
   EXPECT_NE(r.output.find("a lattice needs a cube number"), std::string::npos) << r.output;
   EXPECT_FALSE(fs::exists(dir / "made"));
-  const Result rsa = run("run --preset quick --quiet --set packing.source=rsa --set packing.solid_fraction=0.45 "
-                         "--out " + (dir / "rsa/").string());
+  const Result rsa =
+      run("run --preset quick --quiet --set packing.source=rsa --set packing.solid_fraction=0.45 "
+          "--out " +
+          (dir / "rsa/").string());
   EXPECT_EQ(rsa.code, 2) << rsa.output;
   EXPECT_NE(rsa.output.find("RSA jams near 0.38"), std::string::npos) << rsa.output;
   EXPECT_FALSE(fs::exists(dir / "rsa"));
@@ -609,8 +681,8 @@ TEST(Cli, AnInputErrorFoundDuringSetUpLeavesNoEmptyFolder) {
   EXPECT_FALSE(fs::exists(dir / "a"));
   EXPECT_FALSE(fs::exists(dir / "b"));
   // A run that writes its results keeps the folders its path leads through.
-  const Result written =
-      run("run --preset quick --quiet --set pulses.count=1 --out " + (dir / "c" / ".." / "d").string());
+  const Result written = run("run --preset quick --quiet --set pulses.count=1 --out " +
+                             (dir / "c" / ".." / "d").string());
   EXPECT_EQ(written.code, 0) << written.output;
   EXPECT_TRUE(fs::exists(dir / "c" / ".." / "d" / "summary.json"));
   // converge stops a ladder whose reference rung fails (the others would have nothing to be
@@ -618,9 +690,12 @@ TEST(Cli, AnInputErrorFoundDuringSetUpLeavesNoEmptyFolder) {
   const Result converge = run("converge" + lattice + (dir / "conv").string());
   EXPECT_EQ(converge.code, 2) << converge.output;
   std::size_t errors = 0;
-  for (std::size_t at = 0; (at = converge.output.find("a lattice needs", at)) != std::string::npos; ++at) ++errors;
+  for (std::size_t at = 0; (at = converge.output.find("a lattice needs", at)) != std::string::npos;
+       ++at)
+    ++errors;
   EXPECT_EQ(errors, 3u) << converge.output;
-  EXPECT_NE(converge.output.find("time step 2.51593e-14: error:"), std::string::npos) << converge.output;
+  EXPECT_NE(converge.output.find("time step 2.51593e-14: error:"), std::string::npos)
+      << converge.output;
   EXPECT_NE(converge.output.find("its other rungs not run"), std::string::npos) << converge.output;
   EXPECT_TRUE(read_csv(dir / "conv" / "convergence.csv").empty());
 }
@@ -631,13 +706,16 @@ TEST(Cli, AnInputErrorFoundDuringSetUpLeavesNoEmptyFolder) {
 // 893.112 K and 890.268 K), and such steps are counted and announced.
 TEST(Cli, StaggerCyclesStopTheSameWayWhateverTheCap) {
   const fs::path dir = fresh_dir("stagger_cycle");
-  const std::string scene = "run --preset zohdi2013 --quiet --set pulses.duration=3e-13 --set optics.n_liquid=3 ";
+  const std::string scene =
+      "run --preset zohdi2013 --quiet --set pulses.duration=3e-13 --set optics.n_liquid=3 ";
   std::string reference;
   for (const int cap : {3, 4, 9}) {
     const fs::path out = dir / std::to_string(cap);
-    const Result r = run(scene + "--set thermal.max_staggers=" + std::to_string(cap) + " --out " + out.string());
+    const Result r =
+        run(scene + "--set thermal.max_staggers=" + std::to_string(cap) + " --out " + out.string());
     ASSERT_EQ(r.code, 0) << r.output;
-    EXPECT_NE(r.output.find("alternated between two sets of phases"), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find("alternated between two sets of phases"), std::string::npos)
+        << r.output;
     const auto counts = read_json(out / "summary.json")["counts"];
     EXPECT_GT(counts["stagger_cycles"].get<int>(), 0) << cap;
     EXPECT_EQ(counts["capped_stagger_steps"].get<int>(), 0) << cap;
@@ -646,7 +724,8 @@ TEST(Cli, StaggerCyclesStopTheSameWayWhateverTheCap) {
   }
   const Result capped = run(scene + "--set thermal.max_staggers=1 --out " + (dir / "1").string());
   ASSERT_EQ(capped.code, 0) << capped.output;
-  EXPECT_NE(capped.output.find("reached `thermal.max_staggers` = 1 redos"), std::string::npos) << capped.output;
+  EXPECT_NE(capped.output.find("reached `thermal.max_staggers` = 1 redos"), std::string::npos)
+      << capped.output;
   EXPECT_GT(read_json(dir / "1" / "summary.json")["counts"]["capped_stagger_steps"].get<int>(), 0);
 }
 
@@ -654,8 +733,9 @@ TEST(Cli, StaggerCyclesStopTheSameWayWhateverTheCap) {
 // it wrote its table.
 TEST(Cli, ASweepPipedIntoAnEarlyQuitterKeepsItsTable) {
   const fs::path dir = fresh_dir("pipe_and_ladders");
-  const Result piped = run("sweep --preset quick --quiet --param material.conductivity --values 0,1,2,3 --out " +
-                           (dir / "sweep").string() + " | head -c 1");
+  const Result piped =
+      run("sweep --preset quick --quiet --param material.conductivity --values 0,1,2,3 --out " +
+          (dir / "sweep").string() + " | head -c 1");
   const auto rows = read_csv(dir / "sweep" / "sweep.csv");
   ASSERT_EQ(rows.size(), 4u) << piped.output;
   for (const auto& row : rows) EXPECT_NE(row.at("vaporized_fraction"), "");
@@ -665,13 +745,17 @@ TEST(Cli, ASweepPipedIntoAnEarlyQuitterKeepsItsTable) {
 // reach too short for the packing (a DEM bed's top face lies below the cube's).
 TEST(Cli, AWallThatTouchesNoParticleIsAnnounced) {
   const fs::path dir = fresh_dir("lonely_wall");
-  const std::string lattice = "run --preset quick --quiet --set packing.source=lattice --set packing.count=27 "
-                              "--set packing.radius_ratio=0.3 --set material.conductivity=100 --set thermal.walls=x-,x+ ";
+  const std::string lattice =
+      "run --preset quick --quiet --set packing.source=lattice --set packing.count=27 "
+      "--set packing.radius_ratio=0.3 --set material.conductivity=100 --set thermal.walls=x-,x+ ";
   const Result far = run(lattice + "--set thermal.wall_reach=1e-6 --out " + (dir / "far").string());
   ASSERT_EQ(far.code, 0) << far.output;
-  EXPECT_NE(far.output.find("the wall x- (`thermal.walls`) touches no particle"), std::string::npos) << far.output;
-  EXPECT_NE(far.output.find("the wall x+ (`thermal.walls`) touches no particle"), std::string::npos) << far.output;
-  const Result near = run(lattice + "--set thermal.wall_reach=1e-3 --out " + (dir / "near").string());
+  EXPECT_NE(far.output.find("the wall x- (`thermal.walls`) touches no particle"), std::string::npos)
+      << far.output;
+  EXPECT_NE(far.output.find("the wall x+ (`thermal.walls`) touches no particle"), std::string::npos)
+      << far.output;
+  const Result near =
+      run(lattice + "--set thermal.wall_reach=1e-3 --out " + (dir / "near").string());
   ASSERT_EQ(near.code, 0) << near.output;
   EXPECT_EQ(near.output.find("touches no particle"), std::string::npos) << near.output;
 }
@@ -695,8 +779,11 @@ TEST(Cli, ParaViewFilesHoldTheValuesOfParticlesCsv) {
   if (std::system("/usr/bin/python3 -c 'import vtk' >/dev/null 2>&1") != 0)
     GTEST_SKIP() << "python3-vtk9 not installed (scripts/setup.sh installs it)";
   const fs::path out = fresh_dir("vtk");
-  ASSERT_EQ(run("run --preset quick --set output.frames=true --set output.rays=true --quiet --out " +
-                out.string()).code, 0);
+  ASSERT_EQ(
+      run("run --preset quick --set output.frames=true --set output.rays=true --quiet --out " +
+          out.string())
+          .code,
+      0);
   const std::string script = write(out / "check.py", R"(import sys, csv, vtk
 import xml.etree.ElementTree as ET
 out = sys.argv[1]
@@ -728,7 +815,8 @@ for f in files:
 print('rays ok', len(files))
 )");
   const Result py = [&] {
-    std::FILE* pipe = popen(("/usr/bin/python3 " + script + " " + out.string() + " 2>&1").c_str(), "r");
+    std::FILE* pipe =
+        popen(("/usr/bin/python3 " + script + " " + out.string() + " 2>&1").c_str(), "r");
     std::string text;
     std::array<char, 4096> buf;
     while (std::fgets(buf.data(), buf.size(), pipe)) text += buf.data();
@@ -764,14 +852,17 @@ TEST(Cli, ConvergeWritesLaddersWithTheFinestAsReference) {
   for (const auto& row : rows) {
     const bool rays_ladder = row.at("ladder") == "rays per pulse";
     const double per_pulse = rays_ladder ? std::stod(row.at("resolution")) : 50.0;
-    EXPECT_EQ(std::stod(row.at("rays")), 5 * per_pulse) << row.at("ladder") << " " << row.at("resolution");
+    EXPECT_EQ(std::stod(row.at("rays")), 5 * per_pulse)
+        << row.at("ladder") << " " << row.at("resolution");
   }
   // Every coarser rung differs from its reference, and the coarsest by more than the rung next
   // to the reference: errors measured against anything but the finest rung would not.
   std::map<std::string, std::vector<double>> l2s;
-  for (const auto& row : rows) l2s[row.at("ladder")].push_back(std::stod(row.at("temperature_l2_error_K")));
+  for (const auto& row : rows)
+    l2s[row.at("ladder")].push_back(std::stod(row.at("temperature_l2_error_K")));
   for (const auto& [ladder, errors] : l2s) {
-    for (std::size_t k = 1; k < errors.size(); ++k) EXPECT_GT(errors[k], 0.0) << ladder << " rung " << k;
+    for (std::size_t k = 1; k < errors.size(); ++k)
+      EXPECT_GT(errors[k], 0.0) << ladder << " rung " << k;
     EXPECT_GT(errors.back(), errors[1]) << ladder;
   }
   EXPECT_TRUE(fs::exists(out / "convergence.svg"));
@@ -794,7 +885,10 @@ const char* kCheckpointScene =
 
 TEST(Cli, ResumeFromACheckpointEndsBitIdentical) {
   const fs::path whole = fresh_dir("ck_whole"), part = fresh_dir("ck_part");
-  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --checkpoint-every 4 --out " + whole.string()).code, 0);
+  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --checkpoint-every 4 --out " +
+                whole.string())
+                .code,
+            0);
   // The last checkpoint of the whole run resumed in another directory: written after the step
   // that ended pulse 8 of 10 and launched pulse 9, so the resumed run launches pulse 10.
   fs::copy_file(whole / "checkpoint.bin", part / "checkpoint.bin");
@@ -804,8 +898,10 @@ TEST(Cli, ResumeFromACheckpointEndsBitIdentical) {
   EXPECT_EQ(file_text(whole / "history.csv"), file_text(part / "history.csv"));
   // With new rays every pulse, a resume before the last launch draws the same rays for it.
   const fs::path whole_r = fresh_dir("ck_whole_resampled"), part_r = fresh_dir("ck_part_resampled");
-  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --set beam.resample=true --quiet --checkpoint-every 4 --out " +
-                whole_r.string()).code, 0);
+  ASSERT_EQ(run(std::string("run ") + kCheckpointScene +
+                " --set beam.resample=true --quiet --checkpoint-every 4 --out " + whole_r.string())
+                .code,
+            0);
   fs::copy_file(whole_r / "checkpoint.bin", part_r / "checkpoint.bin");
   ASSERT_EQ(run("run --resume " + part_r.string() + " --quiet").code, 0);
   EXPECT_EQ(file_text(whole_r / "particles.csv"), file_text(part_r / "particles.csv"));
@@ -831,14 +927,17 @@ TEST(Cli, ResumeFromACheckpointEndsBitIdentical) {
 // Every file equals the uninterrupted run's.
 TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
   const fs::path whole = fresh_dir("series_whole"), other = fresh_dir("series_other");
-  const std::string scene = "--preset quick --set thermal.dt=4e-13 --set pulses.period=1e-12 "
-                            "--set output.rays=true --set output.frames=true --quiet";
+  const std::string scene =
+      "--preset quick --set thermal.dt=4e-13 --set pulses.period=1e-12 "
+      "--set output.rays=true --set output.frames=true --quiet";
   ASSERT_EQ(run("run " + scene + " --checkpoint-every 2 --out " + whole.string()).code, 0);
   const std::string summary = file_text(whole / "summary.json");
   const Result finished = run("run --resume " + whole.string() + " --quiet");
   EXPECT_EQ(finished.code, 2) << finished.output;
-  EXPECT_NE(finished.output.find("the run there finished (summary.json, 5 pulses): nothing to resume"),
-            std::string::npos) << finished.output;
+  EXPECT_NE(
+      finished.output.find("the run there finished (summary.json, 5 pulses): nothing to resume"),
+      std::string::npos)
+      << finished.output;
   EXPECT_EQ(file_text(whole / "summary.json"), summary);
   write(other / "summary.json", R"({"vaporized_fraction": 0, "config": {}})");
   const std::string stale = write(other / "particles_0011.vtp", "a frame of an earlier run");
@@ -848,7 +947,8 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
   std::size_t compared = 0;
   for (const fs::directory_entry& e : fs::directory_iterator(whole)) {
     const std::string name = e.path().filename().string();
-    if (name == "summary.json" || name == "checkpoint.bin") continue;  // wall times; kept only in `whole`
+    if (name == "summary.json" || name == "checkpoint.bin")
+      continue;  // wall times; kept only in `whole`
     EXPECT_TRUE(file_text(e.path()) == file_text(other / name)) << name << " differs";
     ++compared;
   }
@@ -862,11 +962,14 @@ TEST(Cli, AResumedRunNeedsNoPackingFile) {
   const fs::path dir = fresh_dir("resume_without_file"), whole = dir / "whole", part = dir / "part";
   std::string rows = "x y z r\n";
   for (int i = 0; i < 60; ++i)
-    rows += std::to_string(0.3e-3 + 0.01e-3 * (i % 7)) + " " + std::to_string(0.42e-3 + 0.027e-3 * (i % 6)) + " " +
-            std::to_string(0.42e-3 + 0.031e-3 * (i / 6 % 6)) + " " + std::to_string(2e-5 + 1e-6 * (i % 5)) + "\n";
+    rows += std::to_string(0.3e-3 + 0.01e-3 * (i % 7)) + " " +
+            std::to_string(0.42e-3 + 0.027e-3 * (i % 6)) + " " +
+            std::to_string(0.42e-3 + 0.031e-3 * (i / 6 % 6)) + " " +
+            std::to_string(2e-5 + 1e-6 * (i % 5)) + "\n";
   const std::string bed = write(dir / "bed.xyz", rows);
-  const std::string scene = "--preset quick --set packing.source=file --set packing.file=" + bed +
-                            " --set pulses.duration='\"auto\"' --set pulses.xi=1 --set material.conductivity=50 --quiet";
+  const std::string scene =
+      "--preset quick --set packing.source=file --set packing.file=" + bed +
+      " --set pulses.duration='\"auto\"' --set pulses.xi=1 --set material.conductivity=50 --quiet";
   ASSERT_EQ(run("run " + scene + " --checkpoint-every 2 --out " + whole.string()).code, 0);
   fs::create_directories(part);
   fs::copy_file(whole / "checkpoint.bin", part / "checkpoint.bin");
@@ -881,7 +984,10 @@ TEST(Cli, AResumedRunNeedsNoPackingFile) {
 TEST(Cli, SigkillAtRandomMomentsLeavesALoadableCheckpoint) {
   const fs::path whole = fresh_dir("kill_whole");
   const auto start = std::chrono::steady_clock::now();
-  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --checkpoint-every 1 --out " + whole.string()).code, 0);
+  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --checkpoint-every 1 --out " +
+                whole.string())
+                .code,
+            0);
   // Kill moments as fractions of this machine's own run time (a sanitizer build or a loaded
   // machine is several times slower; fixed delays in ms then all fell before the first pulse).
   const double run_ms =
@@ -896,7 +1002,8 @@ TEST(Cli, SigkillAtRandomMomentsLeavesALoadableCheckpoint) {
     const int delay_ms = std::max(1, int(fraction * run_ms));
     const std::string cmd = "timeout -s KILL " + std::to_string(delay_ms / 1000.0) + " " +
                             BEAMPACK_CLI + " run " + kCheckpointScene +
-                            " --quiet --checkpoint-every 1 --out " + dir.string() + " >/dev/null 2>&1";
+                            " --quiet --checkpoint-every 1 --out " + dir.string() +
+                            " >/dev/null 2>&1";
     std::system(cmd.c_str());
     // A kill mid-write leaves at most a checkpoint.bin.tmp.PID; checkpoint.bin is always whole.
     if (!fs::exists(dir / "checkpoint.bin")) continue;  // killed before the first pulse ended
@@ -905,7 +1012,8 @@ TEST(Cli, SigkillAtRandomMomentsLeavesALoadableCheckpoint) {
     if (fs::exists(dir / "summary.json")) continue;
     const auto killed_at = fs::last_write_time(dir / "checkpoint.bin");
     const Result r = run("run --resume " + dir.string() + " --quiet");
-    ASSERT_EQ(r.code, 0) << "trial " << trial << " (killed after " << delay_ms << " ms): " << r.output;
+    ASSERT_EQ(r.code, 0) << "trial " << trial << " (killed after " << delay_ms
+                         << " ms): " << r.output;
     EXPECT_EQ(file_text(dir / "particles.csv"), reference) << "trial " << trial;
     ++resumed;
     // The resumed run keeps checkpointing every pulse, as its checkpoint says (it stopped: a kill
@@ -958,14 +1066,16 @@ TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
   const std::string bytes = file_text(dir / "checkpoint.bin");
   // Resumed from a folder of its own: the finished run's folder has nothing to resume.
   const fs::path copy = fresh_dir("ck_damaged_copy");
-  std::ofstream(copy / "checkpoint.bin", std::ios::binary).write(bytes.data(), std::streamsize(bytes.size() / 2));
+  std::ofstream(copy / "checkpoint.bin", std::ios::binary)
+      .write(bytes.data(), std::streamsize(bytes.size() / 2));
   const Result r = run("run --resume " + copy.string() + " --quiet");
   EXPECT_EQ(r.code, 2) << r.output;
   EXPECT_NE(r.output.find("damaged or truncated"), std::string::npos) << r.output;
   // As if written on a machine of the other byte order: the layout tag's first word reversed.
   std::string swapped = bytes;
   std::reverse(swapped.begin(), swapped.begin() + 4);
-  std::ofstream(copy / "checkpoint.bin", std::ios::binary).write(swapped.data(), std::streamsize(swapped.size()));
+  std::ofstream(copy / "checkpoint.bin", std::ios::binary)
+      .write(swapped.data(), std::streamsize(swapped.size()));
   const Result other = run("run --resume " + copy.string() + " --quiet");
   EXPECT_EQ(other.code, 2) << other.output;
   EXPECT_NE(other.output.find("other byte order"), std::string::npos) << other.output;
@@ -975,9 +1085,11 @@ TEST(Cli, WallsTakeHeatAndTheLedgerStillCloses) {
   // A hot sample against a cold wall: with walls on all six faces at 200 K below the 300 K start,
   // every particle near a face loses heat to it, so `walls` is positive and large.
   const fs::path out = fresh_dir("walls");
-  const Result r = run("run --preset quick --quiet --set material.conductivity=100 "
-                       "--set thermal.walls='\"x-,x+,y-,y+,z-,z+\"' --set thermal.wall_temperature=200 "
-                       "--set pulses.period=1e-9 --out " + out.string());
+  const Result r =
+      run("run --preset quick --quiet --set material.conductivity=100 "
+          "--set thermal.walls='\"x-,x+,y-,y+,z-,z+\"' --set thermal.wall_temperature=200 "
+          "--set pulses.period=1e-9 --out " +
+          out.string());
   ASSERT_EQ(r.code, 0) << r.output;
   const auto e = read_json(out / "summary.json")["energy_J"];
   const double absorbed = e["absorbed"], walls = e["walls"], stored = e["stored"];
@@ -988,9 +1100,11 @@ TEST(Cli, WallsTakeHeatAndTheLedgerStillCloses) {
 
 TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
   const fs::path whole = fresh_dir("int_whole"), dir = fresh_dir("int_part");
-  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --out " + whole.string()).code, 0);
-  const std::string cmd = "timeout --preserve-status -s INT 0.8 " + std::string(BEAMPACK_CLI) + " run " +
-                          kCheckpointScene + " --quiet --out " + dir.string() + " >/dev/null 2>&1";
+  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --out " + whole.string()).code,
+            0);
+  const std::string cmd = "timeout --preserve-status -s INT 0.8 " + std::string(BEAMPACK_CLI) +
+                          " run " + kCheckpointScene + " --quiet --out " + dir.string() +
+                          " >/dev/null 2>&1";
   const int status = std::system(cmd.c_str());
   ASSERT_TRUE(WIFEXITED(status));
   if (WEXITSTATUS(status) == 0) GTEST_SKIP() << "the run finished before the interrupt";
@@ -1002,8 +1116,10 @@ TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
   // Its ledger closes with the energy of the rays it stopped in flight.
   const auto e = summary["energy_J"];
   const double injected = e["injected"];
-  EXPECT_NEAR(injected, double(e["absorbed"]) + double(e["escaped"]) + double(e["cutoff"]) +
-                            double(e["in_flight"]), 1e-12 * injected);
+  EXPECT_NEAR(
+      injected,
+      double(e["absorbed"]) + double(e["escaped"]) + double(e["cutoff"]) + double(e["in_flight"]),
+      1e-12 * injected);
   const Result r = run("run --resume " + dir.string() + " --quiet");
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_EQ(file_text(dir / "particles.csv"), file_text(whole / "particles.csv"));
@@ -1025,8 +1141,8 @@ struct Interrupted {
 Interrupted interrupt(const fs::path& dir, const std::string& args, const std::string& marker,
                       const std::string& signals) {
   const std::string out = (dir / "stdout").string(), err = (dir / "stderr").string();
-  const std::string start = std::string(BEAMPACK_CLI) + " " + args + " >" + out + " 2>" + err +
-                            " & p=$!\n";
+  const std::string start =
+      std::string(BEAMPACK_CLI) + " " + args + " >" + out + " 2>" + err + " & p=$!\n";
   const std::string await = "for i in $(seq 3000); do grep -q '" + marker + "' " + out + " " + err +
                             " && break; sleep 0.02; done\n";
   const std::string send = "s=$(date +%s%N); " + signals + "; wait $p; status=$?\n";
@@ -1092,7 +1208,8 @@ TEST(Cli, AnInterruptDuringSetUpEndsTheRunAtOnceWritingNothing) {
   EXPECT_EQ(r.status, 1) << r.printed;
   EXPECT_LT(r.ms, 2000) << r.printed;
   EXPECT_NE(r.printed.find("beampack: interrupted during set-up; nothing written"),
-            std::string::npos) << r.printed;
+            std::string::npos)
+      << r.printed;
   EXPECT_EQ(r.printed.find("stopping after the current step"), std::string::npos) << r.printed;
   EXPECT_FALSE(fs::exists(dir / "made"));
 }
@@ -1101,8 +1218,10 @@ TEST(Cli, AnInterruptDuringSetUpEndsTheRunAtOnceWritingNothing) {
 // values before it (as one interrupted during a step does).
 TEST(Cli, AnInterruptDuringASweepValuesSetUpKeepsTheEarlierRows) {
   const fs::path dir = fresh_dir("interrupt_sweep_set_up");
-  const std::string args = "sweep --preset zohdi2013 --param packing.count --values 1000,1000000 "
-                           "--quiet --out " + (dir / "out").string();
+  const std::string args =
+      "sweep --preset zohdi2013 --param packing.count --values 1000,1000000 "
+      "--quiet --out " +
+      (dir / "out").string();
   const Interrupted r = interrupt(dir, args, "packing.count = 1000 ", "sleep 0.3; kill -INT $p");
   EXPECT_EQ(r.status, 1) << r.printed;
   EXPECT_LT(r.ms, 2000) << r.printed;
@@ -1117,31 +1236,41 @@ TEST(Cli, AnInterruptDuringASweepValuesSetUpKeepsTheEarlierRows) {
 // per pulse: the run says so before it starts; a step of a thousandth of the crossing does not.
 TEST(Cli, ATimeStepOfMillionsOfStepsPerCrossingIsAnnounced) {
   const fs::path out = fresh_dir("tiny_dt");
-  const Result tiny = run("run --preset quick --quiet --set pulses.count=0 --set thermal.dt=1e-20 --out " +
-                          out.string());
+  const Result tiny =
+      run("run --preset quick --quiet --set pulses.count=0 --set thermal.dt=1e-20 --out " +
+          out.string());
   ASSERT_EQ(tiny.code, 0) << tiny.output;
   EXPECT_NE(tiny.output.find("warning: `thermal.dt` = 1e-20 s"), std::string::npos) << tiny.output;
   EXPECT_NE(tiny.output.find("3.34e+08 steps"), std::string::npos) << tiny.output;
-  const Result fine = run("run --preset quick --quiet --set pulses.count=0 --set thermal.dt=1e-15 --out " +
-                          out.string());
+  const Result fine =
+      run("run --preset quick --quiet --set pulses.count=0 --set thermal.dt=1e-15 --out " +
+          out.string());
   ASSERT_EQ(fine.code, 0) << fine.output;
   EXPECT_EQ(fine.output.find("warning"), std::string::npos) << fine.output;
   // A period stepped through at a short dt: the second pulse starts after 1e-3 s / 1e-13 s steps,
   // announced before the run (which the test cuts short).
-  const Result slow = run("run --preset quick --quiet --set pulses.count=2 --set pulses.period=1e-3 "
-                          "--set thermal.dt=1e-13 --out " + out.string(), "timeout --preserve-status -s INT 1");
-  EXPECT_NE(slow.output.find("in steps of `thermal.dt` = 1e-13 s: 1e+10 steps at least"), std::string::npos)
+  const Result slow =
+      run("run --preset quick --quiet --set pulses.count=2 --set pulses.period=1e-3 "
+          "--set thermal.dt=1e-13 --out " +
+              out.string(),
+          "timeout --preserve-status -s INT 1");
+  EXPECT_NE(slow.output.find("in steps of `thermal.dt` = 1e-13 s: 1e+10 steps at least"),
+            std::string::npos)
       << slow.output;
 }
 
 // A set-up of seconds is announced before it starts (the progress line comes only with the steps).
 TEST(Cli, ALongSetUpIsAnnounced) {
   const fs::path out = fresh_dir("long_set_up");
-  const Result big = run("run --preset zohdi2013 --set packing.count=200000 --set pulses.count=0 --out " + out.string());
+  const Result big =
+      run("run --preset zohdi2013 --set packing.count=200000 --set pulses.count=0 --out " +
+          out.string());
   ASSERT_EQ(big.code, 0) << big.output;
-  EXPECT_NE(big.output.find("setting up 200000 particles and 1000 rays a pulse"), std::string::npos) << big.output;
-  const Result quiet = run("run --preset zohdi2013 --set packing.count=200000 --set pulses.count=0 --quiet --out " +
-                           out.string());
+  EXPECT_NE(big.output.find("setting up 200000 particles and 1000 rays a pulse"), std::string::npos)
+      << big.output;
+  const Result quiet =
+      run("run --preset zohdi2013 --set packing.count=200000 --set pulses.count=0 --quiet --out " +
+          out.string());
   EXPECT_EQ(quiet.output.find("setting up"), std::string::npos) << quiet.output;
   const Result small = run("run --preset quick --set pulses.count=0 --out " + out.string());
   EXPECT_EQ(small.output.find("setting up"), std::string::npos) << small.output;
@@ -1183,10 +1312,12 @@ TEST(Cli, EveryLongSetUpIsAnnouncedWithItsRunAndItsParticles) {
 
 TEST(Cli, ABeamThatMeetsNoParticleIsAnnounced) {
   const fs::path out = fresh_dir("beam_misses");
-  const std::string base = "run --preset quick --quiet --set pulses.count=1 --set packing.source=file ";
+  const std::string base =
+      "run --preset quick --quiet --set pulses.count=1 --set packing.source=file ";
   // Default sample: the cube [0, 1e-3]^3 m, beam along +x centred at y = z = 5e-4 m.
   const std::string outside = write(out / "outside.xyz", "5e-4 0.5 0.5 1e-5\n");
-  const Result missed = run(base + "--set packing.file=" + outside + " --out " + (out / "a").string());
+  const Result missed =
+      run(base + "--set packing.file=" + outside + " --out " + (out / "a").string());
   ASSERT_EQ(missed.code, 0) << missed.output;
   EXPECT_NE(missed.output.find("warning: the beam"), std::string::npos) << missed.output;
   EXPECT_NE(missed.output.find("meets no particle"), std::string::npos) << missed.output;
@@ -1199,9 +1330,11 @@ TEST(Cli, ABeamThatMeetsNoParticleIsAnnounced) {
 
 TEST(Cli, AnEmptyBedHasNoPeakTemperatureRatherThanZeroKelvin) {
   const fs::path out = fresh_dir("empty_bed");
-  const Result r = run("run --preset quick --set packing.count=0 --set pulses.count=2 --out " + out.string());
+  const Result r =
+      run("run --preset quick --set packing.count=0 --set pulses.count=2 --out " + out.string());
   ASSERT_EQ(r.code, 0) << r.output;
-  EXPECT_NE(r.output.find("peak temperature             - (no particles)"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("peak temperature             - (no particles)"), std::string::npos)
+      << r.output;
   EXPECT_EQ(r.output.find(" 0 K"), std::string::npos) << r.output;
   const nlohmann::json summary = read_json(out / "summary.json");
   EXPECT_TRUE(summary["max_temperature_K"].is_null()) << summary.dump();
@@ -1214,8 +1347,10 @@ TEST(Cli, AnEmptyBedHasNoPeakTemperatureRatherThanZeroKelvin) {
   // time at 0; the run says so. With a period, time advances by it and nothing is said.
   EXPECT_EQ(history.back().at("time_s"), "0");
   EXPECT_NE(r.output.find("no step has a length and time stays 0"), std::string::npos) << r.output;
-  const Result timed = run("run --preset quick --set packing.count=0 --set pulses.count=3 "
-                           "--set pulses.period=1e-12 --out " + (out / "timed").string());
+  const Result timed =
+      run("run --preset quick --set packing.count=0 --set pulses.count=3 "
+          "--set pulses.period=1e-12 --out " +
+          (out / "timed").string());
   ASSERT_EQ(timed.code, 0) << timed.output;
   EXPECT_EQ(timed.output.find("time stays 0"), std::string::npos) << timed.output;
   const auto timed_history = read_csv(out / "timed" / "history.csv");
@@ -1230,10 +1365,12 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
   const std::string bed = write(out / "bed.xyz", "5e-4 5e-4 5e-4 1e-4\n");
   // Its radius is refused when the run reads the file, not before.
   const std::string flawed = write(out / "flawed.xyz", "5e-4 5e-4 5e-4 -1\n");
-  const Result r = run("sweep --preset quick --quiet --set packing.source=file --param packing.file --values " +
-                       bed + "," + flawed + "," + bed + " --out " + out.string());
+  const Result r =
+      run("sweep --preset quick --quiet --set packing.source=file --param packing.file --values " +
+          bed + "," + flawed + "," + bed + " --out " + out.string());
   EXPECT_EQ(r.code, 2) << r.output;
-  EXPECT_NE(r.output.find("flawed.xyz:1: radius r = -1: must be > 0"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("flawed.xyz:1: radius r = -1: must be > 0"), std::string::npos)
+      << r.output;
   const auto rows = read_csv(out / "sweep.csv");
   ASSERT_EQ(rows.size(), 3u);
   EXPECT_EQ(rows[1].at("vaporized_fraction"), "");
@@ -1241,8 +1378,8 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
   EXPECT_EQ(rows[0].at("absorbed_J"), rows[2].at("absorbed_J"));
   EXPECT_GT(std::stod(rows[0].at("absorbed_J")), 0.0);
   for (const char* values : {"1,,2", "1,2,", " "}) {
-    const Result empty = run("sweep --preset quick --param material.conductivity --values '" + std::string(values) +
-                             "' --out " + out.string());
+    const Result empty = run("sweep --preset quick --param material.conductivity --values '" +
+                             std::string(values) + "' --out " + out.string());
     EXPECT_EQ(empty.code, 2) << values << ": " << empty.output;
     EXPECT_NE(empty.output.find("is empty"), std::string::npos) << empty.output;
   }
@@ -1252,19 +1389,26 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
     EXPECT_EQ(swept.code, 2) << set << ": " << swept.output;
     EXPECT_NE(swept.output.find("is the swept --param"), std::string::npos) << swept.output;
   }
-  const Result frames = run("sweep --preset quick --set output.frames=true --param material.conductivity "
-                            "--values 1 --out " + out.string());
+  const Result frames =
+      run("sweep --preset quick --set output.frames=true --param material.conductivity "
+          "--values 1 --out " +
+          out.string());
   EXPECT_EQ(frames.code, 2) << frames.output;
-  EXPECT_NE(frames.output.find("written by `beampack run` only"), std::string::npos) << frames.output;
+  EXPECT_NE(frames.output.find("written by `beampack run` only"), std::string::npos)
+      << frames.output;
   // A bad swept value is named as the --param/--values the user typed, not as a --set.
-  const Result typo = run("sweep --preset quick --param material.conductivty --values 1 --out " + out.string());
+  const Result typo =
+      run("sweep --preset quick --param material.conductivty --values 1 --out " + out.string());
   EXPECT_EQ(typo.code, 2) << typo.output;
-  EXPECT_NE(typo.output.find("--param material.conductivty --values 1: unknown key"), std::string::npos)
+  EXPECT_NE(typo.output.find("--param material.conductivty --values 1: unknown key"),
+            std::string::npos)
       << typo.output;
   for (const char* command : {"sweep --param material.conductivity --values 0", "converge"}) {
-    const Result threads = run(std::string(command) + " --preset quick --threads -3 --out " + out.string());
+    const Result threads =
+        run(std::string(command) + " --preset quick --threads -3 --out " + out.string());
     EXPECT_EQ(threads.code, 2) << command << ": " << threads.output;
-    EXPECT_NE(threads.output.find("--threads: Value -3 not in range 0 to 4096"), std::string::npos) << threads.output;
+    EXPECT_NE(threads.output.find("--threads: Value -3 not in range 0 to 4096"), std::string::npos)
+        << threads.output;
   }
 }
 
@@ -1282,8 +1426,9 @@ TEST(Cli, ConvergeRefusesBadOutputFirstAndKeepsNoInterruptedRung) {
   // 20000 pulses: the reference rung of the time-step ladder (the paper's dt) takes about a
   // minute, far beyond the 0.5 s interrupt, however fast a step becomes (the paper's 20 pulses
   // took 0.7 s in the eighth session, 200 took 0.45 s in the ninth: both too close).
-  const auto [code, text] = run("converge --preset zohdi2013 --set pulses.count=20000 --quiet --out " + out.string(),
-                                "timeout --preserve-status -s INT 0.5");
+  const auto [code, text] =
+      run("converge --preset zohdi2013 --set pulses.count=20000 --quiet --out " + out.string(),
+          "timeout --preserve-status -s INT 0.5");
   EXPECT_EQ(code, 1) << text;
   EXPECT_NE(text.find("converge interrupted during time step"), std::string::npos) << text;
   // It was cut, so no row was written.
@@ -1295,13 +1440,15 @@ TEST(Cli, ConvergeRefusesBadOutputFirstAndKeepsNoInterruptedRung) {
 // frames: they would outlive it, and --resume would continue the earlier run over the new outputs.
 TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   const fs::path out = fresh_dir("earlier_run");
-  const Result first = run("run --preset quick --quiet --set output.frames=true --checkpoint-every 1 --out " +
-                           out.string());
+  const Result first =
+      run("run --preset quick --quiet --set output.frames=true --checkpoint-every 1 --out " +
+          out.string());
   ASSERT_EQ(first.code, 0) << first.output;
   ASSERT_TRUE(fs::exists(out / "checkpoint.bin"));
   ASSERT_TRUE(fs::exists(out / "particles_0000.vtp"));
   const std::string mine = write(out / "notes.txt", "the user's own file");
-  const Result second = run("run --preset quick --quiet --set pulses.count=2 --out " + out.string());
+  const Result second =
+      run("run --preset quick --quiet --set pulses.count=2 --out " + out.string());
   ASSERT_EQ(second.code, 0) << second.output;
   EXPECT_NE(second.output.find("removed"), std::string::npos) << second.output;
   EXPECT_FALSE(fs::exists(out / "checkpoint.bin"));
@@ -1311,16 +1458,21 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   EXPECT_EQ(int(read_json(out / "summary.json")["pulses"]), 2);
   EXPECT_EQ(run("run --resume " + out.string() + " --quiet").code, 2);  // nothing left to resume
   // Bad input changes nothing, also when it is found while the packing is read (a flawed row).
-  const std::string flawed = write(fresh_dir("earlier_run_input") / "flawed.xyz", "0 0 0 1e-4\n0 0 0 -1\n");
-  const Result refused = run("run --preset quick --quiet --set packing.source=file --set packing.file=" + flawed +
-                             " --out " + out.string());
+  const std::string flawed =
+      write(fresh_dir("earlier_run_input") / "flawed.xyz", "0 0 0 1e-4\n0 0 0 -1\n");
+  const Result refused =
+      run("run --preset quick --quiet --set packing.source=file --set packing.file=" + flawed +
+          " --out " + out.string());
   ASSERT_EQ(refused.code, 2) << refused.output;
-  EXPECT_NE(refused.output.find("flawed.xyz:2: radius r = -1: must be > 0"), std::string::npos) << refused.output;
+  EXPECT_NE(refused.output.find("flawed.xyz:2: radius r = -1: must be > 0"), std::string::npos)
+      << refused.output;
   EXPECT_EQ(int(read_json(out / "summary.json")["pulses"]), 2) << refused.output;
   EXPECT_TRUE(fs::exists(out / "particles.csv"));
   // A run that fails leaves no results, rather than the earlier run's as if they were its own.
-  const Result failed = run("run --preset zohdi2013 --quiet --set thermal.solver=fixed-point "
-                            "--set material.conductivity=1e6 --out " + out.string());
+  const Result failed =
+      run("run --preset zohdi2013 --quiet --set thermal.solver=fixed-point "
+          "--set material.conductivity=1e6 --out " +
+          out.string());
   ASSERT_EQ(failed.code, 1) << failed.output;
   EXPECT_FALSE(fs::exists(out / "summary.json")) << failed.output;
   EXPECT_FALSE(fs::exists(out / "history.csv"));
@@ -1392,14 +1544,16 @@ TEST(Cli, ARunLeavesTheUsersFilesAndRefusesToWriteOverItsInputs) {
   EXPECT_EQ(r.output.find("removed"), std::string::npos) << r.output;
   // A killed run leaves only frames and their particles.pvd: those mark a run of beampack's too.
   const fs::path killed = fresh_dir("killed_run");
-  write(killed / "particles.pvd", "<VTKFile><Collection><DataSet file=\"particles_0000.vtp\"/></Collection></VTKFile>\n");
+  write(killed / "particles.pvd",
+        "<VTKFile><Collection><DataSet file=\"particles_0000.vtp\"/></Collection></VTKFile>\n");
   const std::string old_frame = write(killed / "particles_0066.vtp", "frame 67 of a killed run");
   ASSERT_EQ(run("run --preset quick --quiet --out " + killed.string()).code, 0);
   EXPECT_FALSE(fs::exists(old_frame));
   // A killed run that wrote ray paths only leaves those, and perhaps a temporary file of a write
   // it was in: both go too.
   const fs::path rays = fresh_dir("killed_rays_run");
-  ASSERT_EQ(run("run --preset quick --quiet --set output.rays=true --out " + rays.string()).code, 0);
+  ASSERT_EQ(run("run --preset quick --quiet --set output.rays=true --out " + rays.string()).code,
+            0);
   for (const char* name : {"summary.json", "history.csv", "particles.csv"}) fs::remove(rays / name);
   const std::string temporary = write(rays / "checkpoint.bin.tmp.4242", "half a checkpoint");
   ASSERT_EQ(run("run --preset quick --quiet --set pulses.count=2 --out " + rays.string()).code, 0);
@@ -1416,19 +1570,22 @@ TEST(Cli, ARunLeavesTheUsersFilesAndRefusesToWriteOverItsInputs) {
   EXPECT_TRUE(fs::exists(own));
   const fs::path bed = fresh_dir("input_in_out");
   const std::string packing = write(bed / "particles.csv", "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n");
-  const Result over = run("run --preset quick --quiet --set packing.source=file --set packing.file=" + packing +
-                          " --out " + bed.string());
+  const Result over =
+      run("run --preset quick --quiet --set packing.source=file --set packing.file=" + packing +
+          " --out " + bed.string());
   EXPECT_EQ(over.code, 2) << over.output;
   EXPECT_NE(over.output.find("a file the run writes"), std::string::npos) << over.output;
   // The same through a symbolic link from elsewhere.
   const fs::path link = fresh_dir("input_link") / "bed.csv";
   fs::create_symlink(packing, link);
-  const Result linked = run("run --preset quick --quiet --set packing.source=file --set packing.file=" +
-                            link.string() + " --out " + bed.string());
+  const Result linked = run(
+      "run --preset quick --quiet --set packing.source=file --set packing.file=" + link.string() +
+      " --out " + bed.string());
   EXPECT_EQ(linked.code, 2) << linked.output;
   EXPECT_NE(linked.output.find("a file the run writes"), std::string::npos) << linked.output;
   std::ifstream kept(packing);
-  EXPECT_EQ(std::string(std::istreambuf_iterator<char>(kept), {}), "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n");
+  EXPECT_EQ(std::string(std::istreambuf_iterator<char>(kept), {}),
+            "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n");
 }
 
 // Walls that take no heat (pi K R with K = 0) are legal, and a sweep over K passes through 0:
@@ -1436,24 +1593,31 @@ TEST(Cli, ARunLeavesTheUsersFilesAndRefusesToWriteOverItsInputs) {
 // phi < 1's sub-step cap allows is no reason to refuse it.
 TEST(Cli, LegalButOddScenesRunAndAreAnnounced) {
   const fs::path out = fresh_dir("odd_scenes");
-  const Result sweep = run("sweep --preset quick --quiet --set thermal.walls=z- --param material.conductivity "
-                           "--values 10,0 --out " + out.string());
+  const Result sweep =
+      run("sweep --preset quick --quiet --set thermal.walls=z- --param material.conductivity "
+          "--values 10,0 --out " +
+          out.string());
   ASSERT_EQ(sweep.code, 0) << sweep.output;
   EXPECT_EQ(read_csv(out / "sweep.csv").size(), 2u);
-  const Result walls = run("run --preset quick --quiet --set thermal.walls=z- --set material.conductivity=0 --out " +
-                           out.string());
+  const Result walls =
+      run("run --preset quick --quiet --set thermal.walls=z- --set material.conductivity=0 --out " +
+          out.string());
   ASSERT_EQ(walls.code, 0) << walls.output;
   EXPECT_NE(walls.output.find("the walls take no heat"), std::string::npos) << walls.output;
-  const Result single = run("run --preset quick --quiet --set pulses.count=1 --set thermal.phi=0.5 "
-                            "--set pulses.period=1e-6 --out " + out.string());
+  const Result single =
+      run("run --preset quick --quiet --set pulses.count=1 --set thermal.phi=0.5 "
+          "--set pulses.period=1e-6 --out " +
+          out.string());
   EXPECT_EQ(single.code, 0) << single.output;
 }
 
 // A beam beyond the machine's memory is refused at once, before any allocation, naming its key.
 TEST(Cli, ABeamBeyondTheMachinesMemoryIsRefusedAtOnce) {
-  if (beampack::tools::machine_memory() > 3.9e10) GTEST_SKIP() << "10^8 rays fit in this machine's memory";
+  if (beampack::tools::machine_memory() > 3.9e10)
+    GTEST_SKIP() << "10^8 rays fit in this machine's memory";
   const auto start = std::chrono::steady_clock::now();
-  const Result r = run("run --preset quick --quiet --set beam.rays=100000000 --out " + fresh_dir("huge_beam").string());
+  const Result r = run("run --preset quick --quiet --set beam.rays=100000000 --out " +
+                       fresh_dir("huge_beam").string());
   EXPECT_EQ(r.code, 2) << r.output;
   EXPECT_NE(
       r.output.find("--set beam.rays=100000000: `beam.rays` = 100000000: the run needs at least"),
@@ -1482,19 +1646,22 @@ TEST(Cli, StabilityGridStopsAtCtrlC) {
 // Starts more than 1% of T_p late are counted and announced; a step that divides T_p is not.
 TEST(Cli, PulsesStartAtTheirPeriodAndLateStartsAreAnnounced) {
   const fs::path out = fresh_dir("period");
-  const Result late = run("run --preset quick --quiet --set pulses.period=1e-11 --set thermal.dt=3e-12 --out " +
-                          out.string());
+  const Result late =
+      run("run --preset quick --quiet --set pulses.period=1e-11 --set thermal.dt=3e-12 --out " +
+          out.string());
   ASSERT_EQ(late.code, 0) << late.output;
   EXPECT_NE(late.output.find("warning: 3 of 5 pulses started"), std::string::npos) << late.output;
   const auto history = read_csv(out / "history.csv");
   ASSERT_EQ(history.size(), 5u);
   const double starts[] = {12e-12, 21e-12, 30e-12, 42e-12};
-  for (int k = 0; k < 4; ++k) EXPECT_NEAR(std::stod(history[k].at("time_s")), starts[k], 1e-18) << k;
+  for (int k = 0; k < 4; ++k)
+    EXPECT_NEAR(std::stod(history[k].at("time_s")), starts[k], 1e-18) << k;
   const auto summary = read_json(out / "summary.json");
   EXPECT_EQ(int(summary["counts"]["late_pulses"]), 3);
   EXPECT_NEAR(double(summary["max_pulse_delay_s"]), 2e-12, 1e-18);
-  const Result exact = run("run --preset quick --quiet --set pulses.period=1e-11 --set thermal.dt=1e-12 --out " +
-                           out.string());
+  const Result exact =
+      run("run --preset quick --quiet --set pulses.period=1e-11 --set thermal.dt=1e-12 --out " +
+          out.string());
   ASSERT_EQ(exact.code, 0) << exact.output;
   EXPECT_EQ(exact.output.find("warning"), std::string::npos) << exact.output;
   EXPECT_EQ(int(read_json(out / "summary.json")["counts"]["late_pulses"]), 0);

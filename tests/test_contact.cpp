@@ -139,9 +139,9 @@ TEST(ContactGraph, RecomputedAfterRemovalsDropsTheirPairs) {
 TEST(ContactGraph, DegenerateNeighboursGiveNoNaN) {
   Particles p;
   p.add({0, 0, 0}, 1.0);
-  p.add({0, 0, 0}, 1.0);   // coincident
-  p.add({0.1, 0, 0}, 0.2); // inside the first two
-  p.add({5, 5, 5}, 1.0);   // alone
+  p.add({0, 0, 0}, 1.0);    // coincident
+  p.add({0.1, 0, 0}, 0.2);  // inside the first two
+  p.add({5, 5, 5}, 1.0);    // alone
   const auto contacts = find_contacts(p);
   ASSERT_EQ(contacts.size(), 3u);
   for (const Contact& c : contacts) {

@@ -13,7 +13,8 @@ namespace beampack::testing {
 // This process's folder, made on first use.
 inline const std::filesystem::path& process_dir() {
   static const std::filesystem::path dir = [] {
-    auto d = std::filesystem::temp_directory_path() / ("beampack_tests_" + std::to_string(::getpid()));
+    auto d =
+        std::filesystem::temp_directory_path() / ("beampack_tests_" + std::to_string(::getpid()));
     std::filesystem::create_directories(d);
     return d;
   }();

@@ -165,7 +165,7 @@ TEST(Extreme, EverythingVaporisesAndLaterPulsesAllEscape) {
   SimulationSpec spec = small_spec(8);
   spec.beam.diameter_fraction = 2.0;  // covers the whole entry face
   spec.beam.rays = 1000;
-  spec.pulses.duration = 1e-9;        // ~6 uJ a pulse; one sphere vaporises with ~0.1 uJ
+  spec.pulses.duration = 1e-9;  // ~6 uJ a pulse; one sphere vaporises with ~0.1 uJ
   Simulation sim(spec, lattice_packing(8, kD, 0.3));
   std::vector<Figures> at_end;
   std::vector<std::size_t> alive;
@@ -179,7 +179,8 @@ TEST(Extreme, EverythingVaporisesAndLaterPulsesAllEscape) {
   EXPECT_EQ(sim.figures().vaporized_fraction, 1.0);
   const auto empty = std::find(alive.begin(), alive.end(), 0u);
   ASSERT_LT(empty - alive.begin(), 5) << "the sample should be gone within a few pulses";
-  for (std::size_t k = static_cast<std::size_t>(empty - alive.begin()) + 1; k < at_end.size(); ++k) {
+  for (std::size_t k = static_cast<std::size_t>(empty - alive.begin()) + 1; k < at_end.size();
+       ++k) {
     const EnergyLedger& a = at_end[k - 1].energy;
     const EnergyLedger& b = at_end[k].energy;
     EXPECT_GT(b.injected, a.injected);
@@ -212,8 +213,8 @@ TEST(Extreme, CoincidentCentresConductWhatTheFirstAbsorbs) {
   EXPECT_GT(sim.absorbed()[0], 0.0);
   EXPECT_EQ(sim.absorbed()[1], 0.0);
   const auto& t = sim.particles().temperature;
-  EXPECT_GT(t[1], 300.0);          // conduction carried heat over
-  EXPECT_GE(t[0], t[1]);           // downhill only
+  EXPECT_GT(t[1], 300.0);  // conduction carried heat over
+  EXPECT_GE(t[0], t[1]);   // downhill only
   // Equal thermal masses m C / M: the heat content is the absorbed energy.
   const Material& m = spec.materials[0];
   const double c = m.density * sim.particles().volume(0) * m.c_solid / spec.thermal.time_scaling;
@@ -270,8 +271,8 @@ TEST(Extreme, IndexExactlyOneAbsorbsEverythingAtTheFirstHit) {
   double hit_energy = 0;
   std::uint64_t hitting = 0;
   for (std::size_t k = 0; k < beam.size(); ++k) {
-    const ReferenceRay ref = reference_trace(p, spec, launched.origin[k], beam.direction,
-                                             launched.energy[k]);
+    const ReferenceRay ref =
+        reference_trace(p, spec, launched.origin[k], beam.direction, launched.energy[k]);
     ASSERT_LE(ref.deposits.size(), 1u);
     if (ref.deposits.empty()) continue;
     EXPECT_EQ(ref.deposits[0].second, launched.energy[k]);  // R = 0 exactly
@@ -286,7 +287,8 @@ TEST(Extreme, IndexExactlyOneAbsorbsEverythingAtTheFirstHit) {
   EXPECT_NEAR(l.absorbed, hit_energy, 1e-12 * l.injected);
   EXPECT_NEAR(l.escaped, l.injected - hit_energy, 1e-12 * l.injected);
   EXPECT_EQ(l.cutoff, 0.0);
-  for (std::size_t i = 0; i < p.size(); ++i) EXPECT_NEAR(deposits[i], expected[i], 1e-12 * expected[i]) << i;
+  for (std::size_t i = 0; i < p.size(); ++i)
+    EXPECT_NEAR(deposits[i], expected[i], 1e-12 * expected[i]) << i;
 }
 
 // n_hat = 1e6: R = 1 - O(1e-6) at every angle but Brewster's (within 1e-6 rad of grazing): the
@@ -356,11 +358,13 @@ TEST(Extreme, TeraWattBeamVaporisesWithoutNaN) {
   EXPECT_GT(f.max_temperature, spec.materials[0].vapor_temperature);
   const Material& m = spec.materials[0];
   // Most heat any path from 300 K to theta_v can take: the largest capacity plus every band.
-  const double per_kelvin = m.c_liquid + m.c_solid + m.latent_melt + m.latent_vapor + m.latent_solidify;
+  const double per_kelvin =
+      m.c_liquid + m.c_solid + m.latent_melt + m.latent_vapor + m.latent_solidify;
   std::size_t vaporised = 0;
   for (std::size_t i = 0; i < sim.particles().size(); ++i) {
     const double mass = m.density * sim.particles().volume(i);
-    const double enough = mass * per_kelvin * (m.vapor_temperature - 300) / spec.thermal.time_scaling;
+    const double enough =
+        mass * per_kelvin * (m.vapor_temperature - 300) / spec.thermal.time_scaling;
     if (sim.absorbed()[i] > enough) {
       EXPECT_EQ(sim.particles().phase[i], Phase::vapor) << "particle " << i;
       ++vaporised;
@@ -439,8 +443,7 @@ TEST(Extreme, SpheresAMillionthOfTheBoxAreNeitherMissedNorPhantom) {
                              p.centre[i].z() + b * R * std::sin(phi));
       }
     }
-    for (int k = 0; k < 200; ++k)
-      origins.push_back(frame + Vec3(0.0, kD * u(rng), kD * u(rng)));
+    for (int k = 0; k < 200; ++k) origins.push_back(frame + Vec3(0.0, kD * u(rng), kD * u(rng)));
     for (bool packets : {true, false}) {  // rtcIntersect16 with the float prefilter, and 1
       OpticsSpec spec;
       spec.packets = packets;

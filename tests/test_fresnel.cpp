@@ -11,7 +11,9 @@
 using namespace beampack;
 
 namespace {
-double cos_deg(double deg) { return std::cos(deg * std::numbers::pi / 180.0); }
+double cos_deg(double deg) {
+  return std::cos(deg * std::numbers::pi / 180.0);
+}
 }  // namespace
 
 TEST(Fresnel, NormalIncidenceIsSquaredIndexContrast) {
@@ -51,7 +53,8 @@ TEST(Fresnel, LargeIndexReflectsEverything) {
       const double absorbed = 1.0 - reflectance(c, n);
       const double asymptote = 2.0 / (n * c) + 2.0 * c / n;
       // The expansion drops terms of relative size 2/(n cos) (at normal incidence 4n/(n+1)^2).
-      EXPECT_NEAR(absorbed, asymptote, 3.0 / (n * c) * asymptote) << "n_hat = " << n << ", deg = " << deg;
+      EXPECT_NEAR(absorbed, asymptote, 3.0 / (n * c) * asymptote)
+          << "n_hat = " << n << ", deg = " << deg;
     }
   }
 }
@@ -132,7 +135,8 @@ TEST(Fresnel, ComplexIndexAtObliqueIncidenceMatchesTheFormulasInLongDouble) {
   for (const std::complex<double> n : media)
     for (const double mu : {1.0, 2.0})
       for (const double deg : {10.0, 30.0, 45.0, 60.0, 75.0, 85.0, 89.9}) {
-        const long double c = std::cos(static_cast<long double>(deg) * std::numbers::pi_v<long double> / 180);
+        const long double c =
+            std::cos(static_cast<long double>(deg) * std::numbers::pi_v<long double> / 180);
         const C n2 = C(n) * C(n), w = std::sqrt(n2 - (1 - c * c));
         const long double m = mu;
         const long double r_par = std::norm((n2 * c - m * w) / (n2 * c + m * w));

@@ -78,7 +78,8 @@ TEST(FuzzRegressions, FindingsAreInputErrorsNamingTheLine) {
   // A non-ASCII character right after a bare value (`0"""è"`: no string to toml++) reached the
   // same __builtin_unreachable, from a file and from --set (the fuzzer's input).
   const Outcome after_value = check_run_file(bytes_of(found / "non_ascii_after_bare_value.toml"));
-  EXPECT_NE(after_value.input_error.find("run.toml:1:"), std::string::npos) << after_value.input_error;
+  EXPECT_NE(after_value.input_error.find("run.toml:1:"), std::string::npos)
+      << after_value.input_error;
   EXPECT_FALSE(check_run_file(bytes_of(found / "non_ascii_after_bare_value_in_set.toml")).accepted);
   // Invalid UTF-8 is refused before parsing, naming the line.
   const Outcome bad_utf8 = check_run_file(bytes_of(found / "invalid_utf8_in_string.toml"));

@@ -125,7 +125,8 @@ TEST(OpticsBeam, RaysLieOnTheEntryDiskAndFollowTheProfile) {
     const double d = std::hypot(o.y() - 0.5 * D, o.z() - 0.5 * D);
     EXPECT_LE(d, rb * (1 + 1e-12));
     // I_k / I_j = exp(-a (d_k - d_j) / r_b) (5.1)
-    if (d < std::hypot(beam.origin[centre].y() - 0.5 * D, beam.origin[centre].z() - 0.5 * D)) centre = k;
+    if (d < std::hypot(beam.origin[centre].y() - 0.5 * D, beam.origin[centre].z() - 0.5 * D))
+      centre = k;
     if (d > std::hypot(beam.origin[edge].y() - 0.5 * D, beam.origin[edge].z() - 0.5 * D)) edge = k;
   }
   auto dist = [&](std::size_t k) {
@@ -150,10 +151,12 @@ TEST(OpticsBeam, EveryRayFollowsItsProfileShape) {
     auto shape = [&](std::size_t k) {
       const double d = std::hypot(beam.origin[k].y() - 0.5 * D, beam.origin[k].z() - 0.5 * D);
       const double w = 0.6 * rb;
-      return std::string(profile) == "gaussian" ? std::exp(-2.0 * d * d / (w * w)) : std::exp(-3.5 * d / rb);
+      return std::string(profile) == "gaussian" ? std::exp(-2.0 * d * d / (w * w))
+                                                : std::exp(-3.5 * d / rb);
     };
     for (std::size_t k = 1; k < beam.size(); ++k)
-      EXPECT_NEAR(beam.intensity[k] / beam.intensity[0], shape(k) / shape(0), 1e-12 * shape(k) / shape(0))
+      EXPECT_NEAR(beam.intensity[k] / beam.intensity[0], shape(k) / shape(0),
+                  1e-12 * shape(k) / shape(0))
           << profile << " ray " << k;
   }
 }
@@ -211,8 +214,7 @@ TEST(OpticsBeam, StratifiedSamplingIsDeterministicAndFillsTheDiskEvenly) {
   // Equal-area cells: the fraction of rays within radius rho is (rho / r_b)^2 to O(1/sqrt(N)).
   for (double rho : {0.3, 0.5, 0.8}) {
     std::size_t inside = 0;
-    for (const auto& o : a.origin)
-      inside += std::hypot(o.y() - 0.5, o.z() - 0.5) < rho * a.radius;
+    for (const auto& o : a.origin) inside += std::hypot(o.y() - 0.5, o.z() - 0.5) < rho * a.radius;
     EXPECT_NEAR(inside / 1e4, rho * rho, 0.01) << rho;
   }
 }
@@ -231,7 +233,8 @@ TEST(OpticsBeam, ResampledPulsesDrawNewRaysWithTheSamePower) {
   for (std::uint64_t pulse : {1, 2, 3}) {
     const Beam b = make_beam(resampled, 1e-3, pulse);
     std::size_t shared = 0;
-    for (const Vec3& o : b.origin) shared += std::count(first.origin.begin(), first.origin.end(), o);
+    for (const Vec3& o : b.origin)
+      shared += std::count(first.origin.begin(), first.origin.end(), o);
     EXPECT_EQ(shared, 0u) << "pulse " << pulse;
     double power = 0;
     for (double i : b.intensity) power += i * b.ray_area;
@@ -260,10 +263,14 @@ TEST(OpticsBeam, BadInputNamesTheKey) {
   };
   EXPECT_NE(message([](BeamSpec& s) { s.power = -1; }).find("beam.power"), std::string::npos);
   EXPECT_NE(message([](BeamSpec& s) { s.rays = 0; }).find("beam.rays"), std::string::npos);
-  EXPECT_NE(message([](BeamSpec& s) { s.sampling = "sobol"; }).find("beam.sampling"), std::string::npos);
-  EXPECT_NE(message([](BeamSpec& s) { s.sampling = "stratified", s.resample = true; }).find("beam.resample"),
+  EXPECT_NE(message([](BeamSpec& s) { s.sampling = "sobol"; }).find("beam.sampling"),
             std::string::npos);
-  EXPECT_NE(message([](BeamSpec& s) { s.profile = "tophat"; }).find("beam.profile"), std::string::npos);
+  EXPECT_NE(message([](BeamSpec& s) {
+              s.sampling = "stratified", s.resample = true;
+            }).find("beam.resample"),
+            std::string::npos);
+  EXPECT_NE(message([](BeamSpec& s) { s.profile = "tophat"; }).find("beam.profile"),
+            std::string::npos);
   EXPECT_NE(message([](BeamSpec& s) { s.decay = -2; }).find("beam.decay"), std::string::npos);
   EXPECT_NE(message([](BeamSpec& s) { s.diameter_fraction = 0; }).find("beam.diameter_fraction"),
             std::string::npos);

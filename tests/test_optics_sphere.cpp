@@ -99,7 +99,8 @@ TEST(OpticsSphere, MetalSphereMatchesQuadratureOfTheComplexIndex) {
   double e;
   const double absorbed = traced_absorbed(s, spec, e);
   const double I = spec.power / (kPi * 0.15e-3 * 0.15e-3);
-  const double expected = I * cross_section_integral(s.R, [&](double c) { return 1.0 - reflectance(c, silver); });
+  const double expected =
+      I * cross_section_integral(s.R, [&](double c) { return 1.0 - reflectance(c, silver); });
   EXPECT_NEAR(absorbed, expected, 1e-6 * expected);
   EXPECT_LT(expected, 0.05 * I * kPi * s.R * s.R);  // a mirror: it absorbs a few percent
 }
@@ -156,7 +157,8 @@ struct RandomBeamOnOneSphere {
     auto a = [&](double c) { return 1.0 - textbook_reflectance(c, s.n_hat); };
     const double area = kPi * 0.15e-3 * 0.15e-3;
     const double m1 = e * cross_section_integral(s.R, a) / area;
-    const double m2 = e * e * cross_section_integral(s.R, [&](double c) { return a(c) * a(c); }) / area;
+    const double m2 =
+        e * e * cross_section_integral(s.R, [&](double c) { return a(c) * a(c); }) / area;
     return std::sqrt(static_cast<double>(spec.rays) * (m2 - m1 * m1));
   }
 };
@@ -206,7 +208,8 @@ TEST(OpticsSphere, ResampledPulsesAverageTheirSamplingErrorDown) {
     const double absorbed = traced_absorbed(b.s, b.spec, e, {}, static_cast<std::uint64_t>(k));
     sum += absorbed, sum2 += absorbed * absorbed;
   }
-  const double mean = sum / pulses, spread = std::sqrt((sum2 - pulses * mean * mean) / (pulses - 1));
+  const double mean = sum / pulses,
+               spread = std::sqrt((sum2 - pulses * mean * mean) / (pulses - 1));
   const double sigma = b.sigma(e);
   EXPECT_NEAR(mean, b.expected(), 3.0 * sigma / std::sqrt(double(pulses)));
   EXPECT_GT(spread, 0.6 * sigma);  // the spread of a 64-sample deviation is ~0.09 sigma
@@ -243,7 +246,8 @@ PencilRun trace_pencils(double n_solid, Polarisation polarisation, const std::ve
   beam.radius = s;
   beam.ray_area = 1.0;
   for (double phi : phis) {
-    beam.origin.push_back(beam.centre + std::sin(kPencilIncidence) * s * Vec3(0, std::cos(phi), std::sin(phi)));
+    beam.origin.push_back(beam.centre +
+                          std::sin(kPencilIncidence) * s * Vec3(0, std::cos(phi), std::sin(phi)));
     beam.intensity.push_back(1.0);
   }
   tracer.launch(beam, std::vector<double>(phis.size(), 1.0));
@@ -450,12 +454,13 @@ TEST(OpticsSphere, GridHitsEqualBruteForceBeforeAndAfterRemoval) {
       std::vector<std::uint32_t> hit(n, kNoParticle);
       std::vector<double> t(n, kNoHit);
       std::vector<Vec3> normal(n);
-      const RayQuery q{rays.org.data(), rays.dir.data(), rays.skip.data(), t.data(), hit.data(),
-                       normal.data()};
+      const RayQuery q{rays.org.data(), rays.dir.data(), rays.skip.data(),
+                       t.data(),        hit.data(),      normal.data()};
       for (std::uint32_t r = 0; r < n; ++r) grid.intersect1(q, r);
       for (std::size_t r = 0; r < n; ++r) {
         const NearestHit truth = brute_force_nearest(p, gone, rays, r);
-        ASSERT_EQ(hit[r], truth.particle) << "factor " << factor << " pass " << pass << " ray " << r;
+        ASSERT_EQ(hit[r], truth.particle)
+            << "factor " << factor << " pass " << pass << " ray " << r;
         ASSERT_EQ(t[r], truth.t) << "factor " << factor << " pass " << pass << " ray " << r;
       }
       std::vector<std::uint32_t> victims;
@@ -601,8 +606,9 @@ namespace {
 TEST(OpticsSphere, IndexThatIsNotAPassiveMaterialIsRefused) {
   SingleSphere s;
   const double inf = std::numeric_limits<double>::infinity();
-  for (const std::complex<double> n : {std::complex<double>(1.4, -0.1), std::complex<double>(inf, 0.0),
-                                       std::complex<double>(1.4, std::nan(""))}) {
+  for (const std::complex<double> n :
+       {std::complex<double>(1.4, -0.1), std::complex<double>(inf, 0.0),
+        std::complex<double>(1.4, std::nan(""))}) {
     OpticsSpec optics;
     optics.materials[0].n_solid = n;
     EXPECT_THROW(Tracer(s.particles, optics), InputError) << n;

@@ -35,7 +35,8 @@ struct Traced {
 
 OpticsSpec optics_for(double n_hat, bool packets = true,
                       SceneUpdate update = OpticsSpec{}.scene_update,
-                      BounceSearch bounce = OpticsSpec{}.bounce_search, std::size_t chunk_rays = 256) {
+                      BounceSearch bounce = OpticsSpec{}.bounce_search,
+                      std::size_t chunk_rays = 256) {
   OpticsSpec spec;
   spec.chunk_rays = chunk_rays;
   spec.materials[0].n_solid = n_hat;
@@ -46,7 +47,7 @@ OpticsSpec optics_for(double n_hat, bool packets = true,
 }
 
 Traced trace(const Particles& p, const OpticsSpec& spec, const BeamSpec& beam_spec,
-          double budget = kAll) {
+             double budget = kAll) {
   Tracer tracer(p, spec);
   tracer.launch(make_beam(beam_spec, kD), 1e-9);
   Traced run;
@@ -213,8 +214,10 @@ TEST(OpticsTracer, EveryBounceOnAPackingObeysTheOpticsOfOneHit) {
 TEST(OpticsTracer, PacketsAndSingleRaysGiveIdenticalDeposits) {
   const SceneUpdate update = OpticsSpec{}.scene_update;
   for (double n_hat : {1.4, 20.0}) {
-    const Traced a = trace(packing_1e4(), optics_for(n_hat, true, update, BounceSearch::embree), BeamSpec{});
-    const Traced b = trace(packing_1e4(), optics_for(n_hat, false, update, BounceSearch::embree), BeamSpec{});
+    const Traced a =
+        trace(packing_1e4(), optics_for(n_hat, true, update, BounceSearch::embree), BeamSpec{});
+    const Traced b =
+        trace(packing_1e4(), optics_for(n_hat, false, update, BounceSearch::embree), BeamSpec{});
     // Interleaved grid walks (after packets, or after single-ray primaries in the same waves),
     // incoherent packets.
     const std::pair<BounceSearch, bool> variants[] = {
@@ -445,7 +448,9 @@ TEST(OpticsTracer, AfterARemovalInFlightEverySegmentEndsAtTheNearestSurvivor) {
   const std::vector<RaySegment> segments = tracer.take_segments();
   ASSERT_GT(segments.size(), 1000u);
   const double r = p.radius[0], slack = 1e-9 * r;
-  auto on_sphere = [&](const Vec3& x, std::size_t i) { return std::abs((x - p.centre[i]).norm() - p.radius[i]) < slack; };
+  auto on_sphere = [&](const Vec3& x, std::size_t i) {
+    return std::abs((x - p.centre[i]).norm() - p.radius[i]) < slack;
+  };
   std::size_t ends_on_survivor = 0;
   for (const RaySegment& g : segments) {
     const double length = (g.to - g.from).norm();
@@ -461,7 +466,8 @@ TEST(OpticsTracer, AfterARemovalInFlightEverySegmentEndsAtTheNearestSurvivor) {
       ASSERT_GE(ray_sphere_entry(g.from, d, p.centre[i], p.radius[i]), length - slack)
           << "segment from " << g.from.transpose() << " passes into surviving particle " << i;
     }
-    EXPECT_TRUE(on_survivor || !on_removed) << "segment ends on a removed particle at " << g.to.transpose();
+    EXPECT_TRUE(on_survivor || !on_removed)
+        << "segment ends on a removed particle at " << g.to.transpose();
     ends_on_survivor += on_survivor;
   }
   EXPECT_GT(ends_on_survivor, segments.size() / 4);  // most end on a hit, not at the box
@@ -521,7 +527,8 @@ TEST(OpticsTracer, RemovingThenTracingEqualsAPackingWithout) {
 // Every per-ray array, the ledger and the path clock of two states.
 void expect_same_rays_but_counters(const RayState& a, const RayState& b, const std::string& where) {
   ASSERT_EQ(a.polarised, b.polarised) << where;
-  RayState::for_each_member(a.polarised, [&](auto member) { ASSERT_TRUE(a.*member == b.*member) << where; });
+  RayState::for_each_member(a.polarised,
+                            [&](auto member) { ASSERT_TRUE(a.*member == b.*member) << where; });
   EXPECT_EQ(a.ledger.injected, b.ledger.injected) << where;
   EXPECT_EQ(a.ledger.absorbed, b.ledger.absorbed) << where;
   EXPECT_EQ(a.ledger.escaped, b.ledger.escaped) << where;
@@ -544,7 +551,8 @@ void expect_same_rays(const RayState& a, const RayState& b, const std::string& w
 // rays (restore rebuilds it): a stale entry would leave a chunk in flight past a hit.
 TEST(OpticsTracer, KeptNextEventsEqualOnesRebuiltFromTheRays) {
   const Particles& p = packing_1e4();
-  const OpticsSpec spec = optics_for(20.0, true, OpticsSpec{}.scene_update, OpticsSpec{}.bounce_search, 64);
+  const OpticsSpec spec =
+      optics_for(20.0, true, OpticsSpec{}.scene_update, OpticsSpec{}.bounce_search, 64);
   Tracer kept(p, spec), rebuilt(p, spec);
   const Beam beam = make_beam(BeamSpec{}, kD);
   kept.launch(beam, 1e-9), rebuilt.launch(beam, 1e-9);
@@ -561,9 +569,11 @@ TEST(OpticsTracer, KeptNextEventsEqualOnesRebuiltFromTheRays) {
     const RayState now = kept.save();
     double last_chunk_event = kAll;
     for (std::size_t r = now.live.size() / 64 * 64; r < now.live.size(); ++r)
-      if (now.live[r]) last_chunk_event = std::min(last_chunk_event, now.t_next[r] < 0 ? -kAll : now.start_clock[r] + now.t_next[r]);
-    if (!relaunched && now.live_count * 2 >= now.live.size() && last_chunk_event > now.clock + 2e-5 &&
-        last_chunk_event < kAll) {
+      if (now.live[r])
+        last_chunk_event = std::min(last_chunk_event,
+                                    now.t_next[r] < 0 ? -kAll : now.start_clock[r] + now.t_next[r]);
+    if (!relaunched && now.live_count * 2 >= now.live.size() &&
+        last_chunk_event > now.clock + 2e-5 && last_chunk_event < kAll) {
       kept.launch(beam, 1e-9), rebuilt.launch(beam, 1e-9);
       relaunched = true;
     }
@@ -633,7 +643,8 @@ TEST(OpticsTracer, ReusedFirstHitsEqualTracedOnes) {
       if ((pulse == 2 && step == 1) || (pulse % 4 == 0 && !reuse.has_live_rays())) {
         std::vector<std::uint32_t> victims;
         for (std::size_t k = pulse; k < last_hits.size(); k += 10)
-          if (last_hits[k] != kNoParticle && !gone[last_hits[k]]) victims.push_back(last_hits[k]), gone[last_hits[k]] = 1;
+          if (last_hits[k] != kNoParticle && !gone[last_hits[k]])
+            victims.push_back(last_hits[k]), gone[last_hits[k]] = 1;
         std::sort(victims.begin(), victims.end());
         victims.erase(std::unique(victims.begin(), victims.end()), victims.end());
         ASSERT_GE(victims.size(), 10u);
@@ -709,7 +720,8 @@ TEST(OpticsTracer, ALaunchIntoWholeChunksKeepsEveryChunksNextEvent) {
   beam_spec.rays = 1024;
   const Beam beam = make_beam(beam_spec, kD);
   for (std::size_t chunk : {std::size_t{16}, std::size_t{1}}) {
-    const OpticsSpec spec = optics_for(20.0, true, OpticsSpec{}.scene_update, OpticsSpec{}.bounce_search, chunk);
+    const OpticsSpec spec =
+        optics_for(20.0, true, OpticsSpec{}.scene_update, OpticsSpec{}.bounce_search, chunk);
     Tracer kept(packing_1e4(), spec), rebuilt(packing_1e4(), spec);
     std::vector<double> a, b;
     int launches = 0;
@@ -797,7 +809,8 @@ TEST(OpticsTracer, UndoAdvanceTakesBackExactlyTheLastAdvance) {
   const Particles& p = packing_1e4();
   const auto victims = most_hit(trace(p, optics_for(20.0), BeamSpec{}).deposits, 40);
   for (bool polarised : {false, true}) {
-    OpticsSpec spec = optics_for(20.0, true, OpticsSpec{}.scene_update, OpticsSpec{}.bounce_search, 64);
+    OpticsSpec spec =
+        optics_for(20.0, true, OpticsSpec{}.scene_update, OpticsSpec{}.bounce_search, 64);
     spec.polarisation.linear = polarised;
     Tracer tracer(p, spec), plain(p, spec);  // plain: each step once, no undo
     tracer.keep_undo(true);
@@ -811,7 +824,8 @@ TEST(OpticsTracer, UndoAdvanceTakesBackExactlyTheLastAdvance) {
       plain.advance(2e-5, plain_deposits);
       const RayState before = tracer.save();
       const double path_before = tracer.last_advance_path();
-      const std::size_t run_before = tracer.last_chunks_run(), live_before = tracer.last_chunks_live();
+      const std::size_t run_before = tracer.last_chunks_run(),
+                        live_before = tracer.last_chunks_live();
       std::vector<double> first, again;
       tracer.advance(2e-5, first);
       const RayState after = tracer.save();
@@ -834,7 +848,9 @@ TEST(OpticsTracer, UndoAdvanceTakesBackExactlyTheLastAdvance) {
     ASSERT_EQ(redone.size(), once.size());
     ASSERT_GT(once.size(), 1000u);
     for (std::size_t k = 0; k < once.size(); ++k)
-      ASSERT_TRUE(redone[k].from == once[k].from && redone[k].to == once[k].to && redone[k].energy == once[k].energy) << k;
+      ASSERT_TRUE(redone[k].from == once[k].from && redone[k].to == once[k].to &&
+                  redone[k].energy == once[k].energy)
+          << k;
     // Launching drops the record: an undo then changes nothing.
     tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
     const RayState launched = tracer.save();
@@ -847,7 +863,8 @@ TEST(OpticsTracer, UndoAdvanceTakesBackExactlyTheLastAdvance) {
 // the whole beam in packets against the brute-force reference (the start plane, the packets'
 // tiles and the box exit all depend on the direction).
 TEST(OpticsTracer, ObliqueAndReversedBeamsMatchTheReference) {
-  const Vec3 directions[] = {Vec3(1, 1, 1).normalized(), -Vec3::UnitZ(), Vec3(1, 0.3, -0.2).normalized()};
+  const Vec3 directions[] = {Vec3(1, 1, 1).normalized(), -Vec3::UnitZ(),
+                             Vec3(1, 0.3, -0.2).normalized()};
   for (const Vec3& d : directions) {
     BeamSpec b;
     b.direction = d;
@@ -855,7 +872,8 @@ TEST(OpticsTracer, ObliqueAndReversedBeamsMatchTheReference) {
     b.rays = 400;
     const Beam beam = make_beam(b, kD);
     std::uint64_t hits = 0;
-    test::expect_rays_match_reference(packing_1e4(), optics_for(1.4), beam.origin, d, hits, nullptr, 1.0, 1e-9);
+    test::expect_rays_match_reference(packing_1e4(), optics_for(1.4), beam.origin, d, hits, nullptr,
+                                      1.0, 1e-9);
     EXPECT_GT(hits, beam.size() / 4) << d.transpose();  // the beam meets the packing
     test::expect_beam_matches_reference(packing_1e4(), optics_for(1.4), beam.origin, d);
   }
@@ -956,7 +974,8 @@ TEST(OpticsTracer, NoBounceGridWhenNoRayCanBounce) {
   EXPECT_TRUE(Tracer(packing_1e4(), optics_for(1.4)).has_grid());
   OpticsSpec embree = one;
   embree.bounce_search = BounceSearch::embree;
-  const Traced a = trace(packing_1e4(), one, BeamSpec{}), b = trace(packing_1e4(), embree, BeamSpec{});
+  const Traced a = trace(packing_1e4(), one, BeamSpec{}),
+               b = trace(packing_1e4(), embree, BeamSpec{});
   EXPECT_EQ(a.deposits, b.deposits);
   EXPECT_EQ(a.bounced, 0u);
   EXPECT_GT(a.ledger.cutoff, 0.0);  // what the first hits reflect ends in the cutoff bin
@@ -991,7 +1010,8 @@ TEST(OpticsTracer, CheckpointWithAWrongLiveCountIsRefused) {
     round_trip(state);
     FAIL() << "a wrong live_count was accepted";
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("live_count = " + std::to_string(state.live_count)), std::string::npos)
+    EXPECT_NE(std::string(e.what()).find("live_count = " + std::to_string(state.live_count)),
+              std::string::npos)
         << e.what();
   }
   EXPECT_THROW(tracer.restore(state), InputError);  // a library caller's state, the same check

@@ -63,8 +63,10 @@ TEST(Packing, RandomOverlapFollowsThePaper) {
 }
 
 TEST(Packing, SameSeedSamePackingOtherSeedOther) {
-  EXPECT_TRUE(same_packing(random_overlap_packing(500, 1, 0.3, 7), random_overlap_packing(500, 1, 0.3, 7)));
-  EXPECT_FALSE(same_packing(random_overlap_packing(500, 1, 0.3, 7), random_overlap_packing(500, 1, 0.3, 8)));
+  EXPECT_TRUE(
+      same_packing(random_overlap_packing(500, 1, 0.3, 7), random_overlap_packing(500, 1, 0.3, 7)));
+  EXPECT_FALSE(
+      same_packing(random_overlap_packing(500, 1, 0.3, 7), random_overlap_packing(500, 1, 0.3, 8)));
   EXPECT_TRUE(same_packing(rsa_packing(300, 1, 0.2, 3), rsa_packing(300, 1, 0.2, 3)));
 }
 
@@ -123,8 +125,10 @@ TEST(Packing, BadParametersNameTheKey) {
     }
     return std::string();
   };
-  EXPECT_NE(message([] { random_overlap_packing(10, -1, 0.3, 1); }).find("sample.size"), std::string::npos);
-  EXPECT_NE(message([] { random_overlap_packing(10, 1, NAN, 1); }).find("packing.radius_ratio"), std::string::npos);
+  EXPECT_NE(message([] { random_overlap_packing(10, -1, 0.3, 1); }).find("sample.size"),
+            std::string::npos);
+  EXPECT_NE(message([] { random_overlap_packing(10, 1, NAN, 1); }).find("packing.radius_ratio"),
+            std::string::npos);
   PackingSpec spec;
   spec.source = "hexagonal";
   EXPECT_NE(message([&] { make_packing(spec); }).find("packing.source"), std::string::npos);
@@ -138,8 +142,8 @@ TEST(PackingFile, RoundTripIsExact) {
 }
 
 TEST(PackingFile, HeaderCommentsAndBlankLinesAreAllowed) {
-  const Particles p = read_packing_file(
-      temp_file("header", "x y z r\n# a comment\n\n1 2 3 0.5  # trailing\n4,5,6,0.25\n7;8;9;0.125\r\n"));
+  const Particles p = read_packing_file(temp_file(
+      "header", "x y z r\n# a comment\n\n1 2 3 0.5  # trailing\n4,5,6,0.25\n7;8;9;0.125\r\n"));
   ASSERT_EQ(p.size(), 3u);
   EXPECT_EQ(p.centre[1], Vec3(4, 5, 6));
   EXPECT_EQ(p.radius[1], 0.25);
@@ -162,10 +166,12 @@ TEST(PackingFile, APipeFromProcessSubstitutionIsRead) {
 }
 
 TEST(PackingFile, EachErrorNamesItsLine) {
-  EXPECT_NE(read_error("cols", "1 2 3 1\n1 2 3\n").find(":2: expected 4 columns"), std::string::npos);
+  EXPECT_NE(read_error("cols", "1 2 3 1\n1 2 3\n").find(":2: expected 4 columns"),
+            std::string::npos);
   // An x y z file read without packing.radius: the message says where the radius goes.
-  EXPECT_NE(read_error("xyz", "1 2 3\n").find(":1: expected 4 columns (x y z r), found 3; for x y z rows give "
-                                             "the radius with packing.radius"),
+  EXPECT_NE(read_error("xyz", "1 2 3\n")
+                .find(":1: expected 4 columns (x y z r), found 3; for x y z rows give "
+                      "the radius with packing.radius"),
             std::string::npos);
   EXPECT_NE(read_error("nan_text", "# c\n1 2 abc 1\n").find(":2: column 3 'abc' is not a number"),
             std::string::npos);
@@ -174,18 +180,23 @@ TEST(PackingFile, EachErrorNamesItsLine) {
   EXPECT_NE(read_error("zero", "1 2 3 0\n").find(":1: radius r = 0"), std::string::npos);
   // Far beyond any sample the ray scene's float bounds lose the sphere (at 1e20 m nothing was
   // hit, without a word): the limit packing.radius has, for a file's own radii too.
-  EXPECT_NE(read_error("huge", "1 2 3 1e6\n1 2 3 1e20\n").find(":2: radius r = 1e+20: must be <= 1e+06 m"),
+  EXPECT_NE(read_error("huge", "1 2 3 1e6\n1 2 3 1e20\n")
+                .find(":2: radius r = 1e+20: must be <= 1e+06 m"),
             std::string::npos);
-  EXPECT_NE(read_error("nan", "1 nan 3 1\n").find(":1: column 2 'nan' is not finite"), std::string::npos);
+  EXPECT_NE(read_error("nan", "1 nan 3 1\n").find(":1: column 2 'nan' is not finite"),
+            std::string::npos);
   EXPECT_NE(read_error("inf", "1 2 3 1\ninf 2 3 1\n").find(":2: column 1 'inf' is not finite"),
             std::string::npos);
   EXPECT_NE(read_error("extra", "1 2 3 1 5\n").find(":1: expected 4 columns"), std::string::npos);
-  EXPECT_NE(read_error("header_late", "1 2 3 1\nx y z r\n").find(":2: column 1 'x' is not a number"),
-            std::string::npos);
+  EXPECT_NE(
+      read_error("header_late", "1 2 3 1\nx y z r\n").find(":2: column 1 'x' is not a number"),
+      std::string::npos);
   // Before the data: one header, and a typo in the first data line is an error, not a header.
-  EXPECT_NE(read_error("two_headers", "x y z r\nid x y z\n1 2 3 1\n").find(":2: a second header line"),
-            std::string::npos);
-  EXPECT_NE(read_error("typo_first", "1.0e-3x 2 3 1\n4 5 6 1\n").find(":1: column 1 '1.0e-3x' is not a number"),
+  EXPECT_NE(
+      read_error("two_headers", "x y z r\nid x y z\n1 2 3 1\n").find(":2: a second header line"),
+      std::string::npos);
+  EXPECT_NE(read_error("typo_first", "1.0e-3x 2 3 1\n4 5 6 1\n")
+                .find(":1: column 1 '1.0e-3x' is not a number"),
             std::string::npos);
   // A file without data is refused (an empty bed is asked for with packing.count = 0).
   EXPECT_NE(read_error("empty", "").find("holds no particle (no data line)"), std::string::npos);
@@ -311,8 +322,9 @@ TEST(PackingDump, SeveralSnapshotsAreRefusedWithTheirCount) {
   EXPECT_NE(m.find("holds 3 snapshots"), std::string::npos) << m;
   EXPECT_NE(m.find("keep one"), std::string::npos) << m;
   // With dump_modify time yes each snapshot opens with ITEM: TIME.
-  const std::string timed = "ITEM: TIME\n0.5\n" + one + "ITEM: TIME\n1.5\n" +
-                            lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.04 0.01"}, -1, "2000");
+  const std::string timed =
+      "ITEM: TIME\n0.5\n" + one + "ITEM: TIME\n1.5\n" +
+      lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.04 0.01"}, -1, "2000");
   const std::string t = read_error("dump_timed", timed);
   EXPECT_NE(t.find("holds 2 snapshots"), std::string::npos) << t;
 }
@@ -321,8 +333,9 @@ TEST(PackingDump, SeveralSnapshotsAreRefusedWithTheirCount) {
 // file that starts with a UTF-8 byte-order mark: both read.
 TEST(PackingDump, GeneralTriclinicBoxAndByteOrderMarkAreAccepted) {
   const std::string text =
-      "\xEF\xBB\xBF" + lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.05 0.01"}, -1, "0",
-                                "BOX BOUNDS abc origin pp pp pp\n1 0 0 -0.5\n0 1 0 -0.5\n0 0 0.2 0");
+      "\xEF\xBB\xBF" +
+      lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.05 0.01"}, -1, "0",
+                  "BOX BOUNDS abc origin pp pp pp\n1 0 0 -0.5\n0 1 0 -0.5\n0 0 0.2 0");
   EXPECT_EQ(read_packing_file(temp_file("dump_general", text)).centre[0], Vec3(0.1, 0.2, 0.05));
 }
 
@@ -384,7 +397,8 @@ TEST(PackingDump, MissingRadiusNeedsPackingRadius) {
       read_packing_file(temp_file("dump_both_radii", both), 0.01);
       ADD_FAILURE() << column << ": two radii accepted";
     } catch (const InputError& e) {
-      EXPECT_NE(std::string(e.what()).find("packing.radius gives one too"), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("packing.radius gives one too"), std::string::npos)
+          << e.what();
     }
   }
 }

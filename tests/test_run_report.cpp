@@ -32,11 +32,12 @@ TEST(RunReport, AWriteThatThrowsLeavesNoFileBehind) {
   const auto dir = beampack::testing::process_dir() / "throwing_write";
   std::filesystem::create_directories(dir);
   const auto path = dir / "summary.json";
-  EXPECT_THROW(write_atomically(path.string(),
-                                [](std::ostream& o) {
-                                  o << "half";
-                                  throw std::runtime_error("stopped");
-                                }),
+  EXPECT_THROW(write_atomically(
+                   path.string(),
+                   [](std::ostream& o) {
+    o << "half";
+    throw std::runtime_error("stopped");
+                   }),
                std::runtime_error);
   EXPECT_TRUE(std::filesystem::is_empty(dir)) << "a temporary file was left in " << dir;
 }
@@ -95,7 +96,8 @@ TEST(RunReport, AnOpenLedgerIsNamedWithItsSize) {
 std::vector<std::string> svg_texts(const std::string& svg, const std::string& attribute = "") {
   std::vector<std::string> out;
   const std::regex text("<text[^>]*" + attribute + "[^>]*>([^<]*)</text>");
-  for (auto it = std::sregex_iterator(svg.begin(), svg.end(), text); it != std::sregex_iterator(); ++it)
+  for (auto it = std::sregex_iterator(svg.begin(), svg.end(), text); it != std::sregex_iterator();
+       ++it)
     out.push_back((*it)[1]);
   return out;
 }
@@ -206,8 +208,9 @@ TEST(RunReport, PulseDurationAndThePapersStepFollowTheirFormulas) {
   // A file's spheres differ in size: R is their median (the paper, remark after (3.11)), 3e-5 m
   // here, and for an even count the mean of the middle two. Was sample.size / 100 = 1e-5 m.
   const std::filesystem::path dir = beampack::testing::fresh_dir("paper_step");
-  for (const auto& [rows, median] : {std::pair{"1 1 1 1e-5\n2 2 2 2e-4\n3 3 3 3e-5\n", 3e-5},
-                                     std::pair{"1 1 1 1e-5\n2 2 2 2e-4\n3 3 3 3e-5\n4 4 4 4e-5\n", 3.5e-5}}) {
+  for (const auto& [rows, median] :
+       {std::pair{"1 1 1 1e-5\n2 2 2 2e-4\n3 3 3 3e-5\n", 3e-5},
+        std::pair{"1 1 1 1e-5\n2 2 2 2e-4\n3 3 3 3e-5\n4 4 4 4e-5\n", 3.5e-5}}) {
     std::ofstream(dir / "bed.xyz") << "x y z r\n" << rows;
     RunSources file = auto_tau;
     file.sets.push_back("packing.source=\"file\"");
@@ -216,7 +219,8 @@ TEST(RunReport, PulseDurationAndThePapersStepFollowTheirFormulas) {
     const RunConfig f = load_run_config(file);
     EXPECT_NEAR(f.sim.pulses.duration, 0.08 * median / kC, 1e-12 * f.sim.pulses.duration) << rows;
     EXPECT_NEAR(f.sim.dt, 0.08 * median / kC, 1e-12 * f.sim.dt) << rows;
-    EXPECT_NEAR(paper_step(f.sim.packing, f.xi), 0.08 * median / kC, 1e-12 * f.sim.dt) << rows;  // converge's
+    EXPECT_NEAR(paper_step(f.sim.packing, f.xi), 0.08 * median / kC, 1e-12 * f.sim.dt)
+        << rows;                    // converge's
     ASSERT_NE(f.packing, nullptr);  // read once, for the simulation too
     EXPECT_EQ(f.packing->size(), std::count(rows, rows + std::strlen(rows), '\n'));
   }
@@ -240,7 +244,8 @@ TEST(RunReport, PulseDurationAndThePapersStepFollowTheirFormulas) {
   EXPECT_EQ(made, 1);
   ASSERT_NE(r.packing, nullptr);
   EXPECT_EQ(r.packing->temperature, std::vector<double>(2, 300.0));
-  EXPECT_NEAR(r.sim.pulses.duration, 0.08 * 2.5e-5 / kC, 1e-12 * r.sim.pulses.duration);  // their median
+  EXPECT_NEAR(r.sim.pulses.duration, 0.08 * 2.5e-5 / kC,
+              1e-12 * r.sim.pulses.duration);             // their median
   EXPECT_EQ(load_run_config(auto_tau).packing, nullptr);  // a generated packing takes none
   RunSources generated = auto_tau;
   generated.saved_packing = resumed.saved_packing;
@@ -262,8 +267,11 @@ TEST(RunReport, PulseDurationAndThePapersStepFollowTheirFormulas) {
 TEST(RunReport, LogChartsLabelEachDecadeOnceAndShowZerosAsZeros) {
   const Chart chart{"t", "x", "y", true, true, {{"a", {0.5, 2.0, 12.0}, {3e-5, 0.2, 0.0}}}};
   const std::string svg = render_svg(chart);
-  EXPECT_EQ(svg_texts(svg, "y=\"380\""), (std::vector<std::string>{"1e-1", "1e0", "1e1", "1e2"})) << svg;
-  EXPECT_EQ(svg_texts(svg, "x=\"8\""), (std::vector<std::string>{"1e-5", "1e-4", "1e-3", "1e-2", "1e-1", "1e0"})) << svg;
+  EXPECT_EQ(svg_texts(svg, "y=\"380\""), (std::vector<std::string>{"1e-1", "1e0", "1e1", "1e2"}))
+      << svg;
+  EXPECT_EQ(svg_texts(svg, "x=\"8\""),
+            (std::vector<std::string>{"1e-5", "1e-4", "1e-3", "1e-2", "1e-1", "1e0"}))
+      << svg;
   const std::vector<std::string> labels = svg_texts(svg);
   EXPECT_EQ(std::count(labels.begin(), labels.end(), "hollow: 0"), 1) << svg;
   EXPECT_NE(svg.find("fill=\"white\" stroke="), std::string::npos) << svg;
@@ -280,8 +288,15 @@ TEST(RunReport, NearlyEqualNegativeValuesStillGiveAFewTicks) {
 // sweep.svg: a swept word (`beam.profile`) is named on the x axis; a single value gets a span
 // around it rather than [v, v + 1].
 TEST(RunReport, SweepChartsNameWordValuesAndSpanASingleValue) {
-  Chart words{"t", "beam.profile", "v_v", false, false, {{"a", {0, 1, 2}, {0.03, 0.02, 0.03}}}, {"flat", "gaussian", "exponential"}};
-  EXPECT_EQ(svg_texts(render_svg(words), "y=\"380\""), (std::vector<std::string>{"flat", "gaussian", "exponential"}));
+  Chart words{"t",
+              "beam.profile",
+              "v_v",
+              false,
+              false,
+              {{"a", {0, 1, 2}, {0.03, 0.02, 0.03}}},
+              {"flat", "gaussian", "exponential"}};
+  EXPECT_EQ(svg_texts(render_svg(words), "y=\"380\""),
+            (std::vector<std::string>{"flat", "gaussian", "exponential"}));
   const Chart one{"t", "x", "y", false, false, {{"a", {1, 2}, {0.03, 0.03}}}};
   const std::string svg = render_svg(one);
   EXPECT_EQ(svg_texts(svg, "x=\"8\"").back(), "0.04") << svg;  // not 1: the axis spans 0 to 0.047

@@ -132,7 +132,8 @@ TEST(SimulationStages, ShortStepsLeaveChunksOfRaysInFreeFlightAlone) {
       EXPECT_EQ(c.ray_chunks_run, c.ray_chunks_live);
     }
     const EnergyLedger& e = sim.figures().energy;
-    EXPECT_NEAR(e.absorbed + e.escaped + e.cutoff + e.in_flight, e.injected, 1e-12 * e.injected) << dt;
+    EXPECT_NEAR(e.absorbed + e.escaped + e.cutoff + e.in_flight, e.injected, 1e-12 * e.injected)
+        << dt;
   }
 }
 
@@ -158,7 +159,8 @@ TEST(SimulationStages, RepeatedPulsesReuseFirstHitsAndChangeNothing) {
     EXPECT_GT(reuse.counts().primaries_reused, 400u) << dt;
     EXPECT_LT(reuse.counts().primaries_reused, 800u) << dt;
     EXPECT_EQ(traced.counts().primaries_reused, 0u) << dt;
-    EXPECT_EQ(reuse.counts().segments + reuse.counts().primaries_reused, traced.counts().segments) << dt;
+    EXPECT_EQ(reuse.counts().segments + reuse.counts().primaries_reused, traced.counts().segments)
+        << dt;
   }
 }
 
@@ -180,8 +182,9 @@ TEST(SimulationStages, ResampledPulsesCarryTheirOwnRayEnergies) {
     const std::vector<double> expected = sim.beam().ray_energies(spec.pulses.duration);
     const RayState s = sim.tracer().save();
     ASSERT_GE(s.initial_energy.size(), expected.size());
-    const std::vector<double> started(s.initial_energy.end() - static_cast<std::ptrdiff_t>(expected.size()),
-                                      s.initial_energy.end());
+    const std::vector<double> started(
+        s.initial_energy.end() - static_cast<std::ptrdiff_t>(expected.size()),
+        s.initial_energy.end());
     EXPECT_EQ(started, expected) << "pulse " << launches - 1;
     redrawn += expected != first;
   }
@@ -218,7 +221,8 @@ struct StateParts {
     in.vector(absorbed);
     time = in.value<double>(), next_pulse_time = in.value<double>(), peak = in.value<double>();
     launched = in.value<int>(), counts = in.value<Counts>();
-    for (auto& [seconds, calls] : stages) seconds = in.value<double>(), calls = in.value<std::uint64_t>();
+    for (auto& [seconds, calls] : stages)
+      seconds = in.value<double>(), calls = in.value<std::uint64_t>();
     rays.read(in);
     for (double& v : hit_frame) v = in.value<double>();
     in.vector(hit_origin), in.vector(hit_normal), in.vector(hit_t), in.vector(hit_particle);
@@ -232,7 +236,8 @@ struct StateParts {
     out.vector(p.centre), out.vector(p.radius), out.vector(p.material);
     out.vector(p.temperature), out.vector(p.phase), out.vector(p.alive);
     out.vector(absorbed);
-    out.value(time), out.value(next_pulse_time), out.value(peak), out.value(launched), out.value(counts);
+    out.value(time), out.value(next_pulse_time), out.value(peak), out.value(launched),
+        out.value(counts);
     for (const auto& [seconds, calls] : stages) out.value(seconds), out.value(calls);
     rays.write(out);
     for (double v : hit_frame) out.value(v);
@@ -270,8 +275,9 @@ TEST(SimulationStages, AStateWithAnArrayOfTheWrongLengthIsRefused) {
   StateParts longer = parts;
   longer.p.temperature.push_back(300.0);
   const std::size_t n = parts.p.size();
-  EXPECT_NE(read_error(quick_spec(), longer).find("per-particle array holds " + std::to_string(n + 1)),
-            std::string::npos);
+  EXPECT_NE(
+      read_error(quick_spec(), longer).find("per-particle array holds " + std::to_string(n + 1)),
+      std::string::npos);
 }
 
 // Nor are values a run cannot hold (a review doctored checkpoints and recomputed the checksum):
@@ -286,34 +292,43 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
   const StateParts parts(sim);
   ASSERT_GT(parts.rays.live_count, 0u);
   ASSERT_EQ(read_error(spec, parts), "");
-  const std::size_t live = std::size_t(std::find(parts.rays.live.begin(), parts.rays.live.end(), 1) -
-                                       parts.rays.live.begin());
+  const std::size_t live = std::size_t(
+      std::find(parts.rays.live.begin(), parts.rays.live.end(), 1) - parts.rays.live.begin());
   const double nan = std::numeric_limits<double>::quiet_NaN();
-  const std::vector<std::pair<std::function<void(StateParts&)>, std::string>> edits = {
-      {[](StateParts& s) { s.p.material[3] = 99; }, "particle 3 has material 99 of 1"},
-      {[&](StateParts& s) { s.p.temperature[4] = nan; }, "particle 4 has temperature nan K"},
-      {[](StateParts& s) { s.p.temperature[4] = -50; }, "particle 4 has temperature -50"},
-      {[](StateParts& s) { s.p.phase[5] = Phase(7); }, "particle 5 has a phase or live flag out of range"},
-      {[](StateParts& s) { s.p.alive[5] = 2; }, "particle 5 has a phase or live flag out of range"},
-      {[&](StateParts& s) { s.absorbed[6] = nan; }, "particle 6 has absorbed nan J"},
-      {[&](StateParts& s) { s.stored[6] = nan; }, "particle 6 has stored heat nan J"},
-      {[&](StateParts& s) { s.time = nan; }, "its time, next pulse time or peak"},
-      {[&](StateParts& s) { s.peak = nan; }, "its time, next pulse time or peak"},
-      {[](StateParts& s) { s.launched = 99; }, "99 pulses launched, of pulses.count = 5"},
-      {[](StateParts& s) { s.launched = -5; }, "-5 pulses launched"},
-      {[](StateParts& s) { s.counts.particles = 7; }, "its counts are of 7 particles"},
-      {[&](StateParts& s) { s.ledger.walls = nan; }, "a heat ledger entry is nan"},
-      {[&](StateParts& s) { s.stages[1].first = nan; }, "a stage time is not finite"},
-      {[&](StateParts& s) { s.rays.next_particle[live] = 5'000'000; },
-       "ray " + std::to_string(live) + " has particle 5000000, beyond the 200 particles"},
-      {[&](StateParts& s) { s.rays.last_particle[live] = 200; }, "has particle 200, beyond the 200"},
-      {[&](StateParts& s) { s.rays.energy[live] = nan; }, "ray " + std::to_string(live) + " has energy nan"},
-      {[&](StateParts& s) { s.rays.energy[live] = 2 * s.rays.initial_energy[live]; }, " has energy "},
-      {[&](StateParts& s) { s.rays.start_clock[live] = nan; }, "clock that is not a finite number"},
-      {[&](StateParts& s) { s.rays.ledger.escaped = -1; }, "a ledger entry or the clock is -1"},
-      {[&](StateParts& s) { s.hit_t.front() = nan; }, "a first hit at distance nan"},
-      {[&](StateParts& s) { s.ray_paths.push_back({Vec3(nan, 0, 0), Vec3::Zero(), 1e-12}); },
-       "a recorded ray path holds a value that is not a finite number"},
+  const std::vector<std::pair<std::function<void(StateParts&)>, std::string>> edits =
+      {
+          {[](StateParts& s) { s.p.material[3] = 99; }, "particle 3 has material 99 of 1"},
+          {[&](StateParts& s) { s.p.temperature[4] = nan; }, "particle 4 has temperature nan K"},
+          {[](StateParts& s) { s.p.temperature[4] = -50; }, "particle 4 has temperature -50"},
+          {[](StateParts& s) { s.p.phase[5] = Phase(7); },
+           "particle 5 has a phase or live flag out of range"},
+          {[](StateParts& s) { s.p.alive[5] = 2; },
+           "particle 5 has a phase or live flag out of range"},
+          {[&](StateParts& s) { s.absorbed[6] = nan; }, "particle 6 has absorbed nan J"},
+          {[&](StateParts& s) { s.stored[6] = nan; }, "particle 6 has stored heat nan J"},
+          {[&](StateParts& s) { s.time = nan; }, "its time, next pulse time or peak"},
+          {[&](StateParts& s) { s.peak = nan; }, "its time, next pulse time or peak"},
+          {[](StateParts& s) { s.launched = 99; }, "99 pulses launched, of pulses.count = 5"},
+          {[](StateParts& s) { s.launched = -5; }, "-5 pulses launched"},
+          {[](StateParts& s) { s.counts.particles = 7; }, "its counts are of 7 particles"},
+          {[&](StateParts& s) { s.ledger.walls = nan; }, "a heat ledger entry is nan"},
+          {[&](StateParts& s) { s.stages[1].first = nan; }, "a stage time is not finite"},
+          {[&](StateParts& s) { s.rays.next_particle[live] = 5'000'000; },
+           "ray " + std::to_string(live) + " has particle 5000000, beyond the 200 particles"},
+          {[&](StateParts& s) { s.rays.last_particle[live] = 200; },
+           "has particle 200, beyond the 200"},
+          {[&](StateParts& s) { s.rays.energy[live] = nan; },
+           "ray " + std::to_string(live) + " has energy nan"},
+          {[&](StateParts& s) { s.rays.energy[live] = 2 * s.rays.initial_energy[live]; },
+           " has energy "},
+          {[&](StateParts& s) { s.rays.start_clock[live] = nan; },
+           "clock that is not a finite number"},
+          {[&](StateParts& s) { s.rays.ledger.escaped = -1; }, "a ledger entry or the clock is -1"},
+          {[&](StateParts& s) { s.hit_t.front() = nan; }, "a first hit at distance nan"},
+          {[&](StateParts& s) {
+    s.ray_paths.push_back({Vec3(nan, 0, 0), Vec3::Zero(), 1e-12});
+           },
+           "a recorded ray path holds a value that is not a finite number"},
   };
   ASSERT_FALSE(parts.hit_t.empty());
   for (const auto& [edit, message] : edits) {
@@ -346,15 +361,16 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
     EXPECT_EQ(resumed.figures().energy.absorbed, original.figures().energy.absorbed);
   }
   for (const auto& edit : std::vector<std::function<void(StateParts&)>>{
-           [&](StateParts& s) { s.p.centre[8].y() = nan; }, [](StateParts& s) { s.p.radius[8] = -1; },
-           [](StateParts& s) { s.p.radius[8] = 0; }}) {
+           [&](StateParts& s) { s.p.centre[8].y() = nan; },
+           [](StateParts& s) { s.p.radius[8] = -1; }, [](StateParts& s) { s.p.radius[8] = 0; }}) {
     StateParts bad = parts;
     edit(bad);
     try {
       Simulation::saved_packing(StateReader(bad.bytes(), "rebuilt"), spec);
       ADD_FAILURE() << "a saved packing with a bad sphere was read";
     } catch (const InputError& e) {
-      EXPECT_NE(std::string(e.what()).find("checkpoint: particle 8: "), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("checkpoint: particle 8: "), std::string::npos)
+          << e.what();
     }
   }
   // Nor a material the spec does not define: named as the checkpoint's (the tracer would refuse
@@ -366,7 +382,9 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
       Simulation::saved_packing(StateReader(bad.bytes(), "rebuilt"), spec);
       ADD_FAILURE() << "a saved packing with material 9 of 1 was read";
     } catch (const InputError& e) {
-      EXPECT_NE(std::string(e.what()).find("checkpoint: particle 3 has material 9 of 1"), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("checkpoint: particle 3 has material 9 of 1"),
+                std::string::npos)
+          << e.what();
     }
   }
   // A refused state changes nothing: the simulation goes on as if it had never read it.
@@ -465,7 +483,8 @@ TEST(SimulationStages, AResampledPulseThatCannotSampleTheProfileIsRefusedUpFront
     Simulation sim(spec);
     FAIL() << "accepted";
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("pulse 2's rays (`beam.resample`)"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("pulse 2's rays (`beam.resample`)"), std::string::npos)
+        << e.what();
   }
 }
 

@@ -85,11 +85,12 @@ struct Answers {
   std::vector<std::uint32_t> particle;
   std::vector<Vec3> normal;
   explicit Answers(const Rays& rays)
-      : t(rays.t_limit), particle(rays.t_limit.size(), kNoParticle),
+      : t(rays.t_limit),
+        particle(rays.t_limit.size(), kNoParticle),
         normal(rays.t_limit.size(), Vec3::Constant(-7.0)) {}
   RayQuery query(const Rays& rays) {
-    return {rays.origin.data(), rays.direction.data(), rays.skip.data(), t.data(), particle.data(),
-            normal.data()};
+    return {rays.origin.data(), rays.direction.data(), rays.skip.data(),
+            t.data(),           particle.data(),       normal.data()};
   }
 };
 

@@ -32,7 +32,8 @@ struct Lumped {
     ThermalSpec spec;
     spec.phi = phi;
     spec.time_scaling = scaling;
-    for (double x : {0.0, 2.0 * radius}) spec.walls.push_back({0, x, 0.0, theta_w, k * area / length});
+    for (double x : {0.0, 2.0 * radius})
+      spec.walls.push_back({0, x, 0.0, theta_w, k * area / length});
     ThermalModel model(p, {material}, spec);
     const double dt = t_end / steps;
     for (int s = 0; s < steps; ++s) model.step(dt, {power() * dt});
@@ -112,16 +113,17 @@ TEST_P(TwoParticles, DifferenceDecaysExponentiallyEnergyConstant) {
 
 INSTANTIATE_TEST_SUITE_P(Solvers, TwoParticles, ::testing::Values("fixed-point", "cg", "direct"),
                          [](const auto& info) {
-                           std::string s = info.param;
-                           return s == "fixed-point" ? std::string("fixed_point") : s;
-                         });
+  std::string s = info.param;
+  return s == "fixed-point" ? std::string("fixed_point") : s;
+});
 
 // Exact solution of the discrete system c theta' = b - (L + W) theta by the generalised symmetric
 // eigenproblem (L + W) v = lambda C v (V^T C V = I):
 //   theta(t) = theta* + V exp(-Lambda t) V^T C (theta0 - theta*),  theta* = (L + W)^{-1} b.
 Eigen::VectorXd chain_exact(const Eigen::MatrixXd& lw, const Eigen::VectorXd& c,
                             const Eigen::VectorXd& b, const Eigen::VectorXd& theta0, double t) {
-  Eigen::GeneralizedSelfAdjointEigenSolver<Eigen::MatrixXd> eig(lw, Eigen::MatrixXd(c.asDiagonal()));
+  Eigen::GeneralizedSelfAdjointEigenSolver<Eigen::MatrixXd> eig(lw,
+                                                                Eigen::MatrixXd(c.asDiagonal()));
   const Eigen::MatrixXd& v = eig.eigenvectors();
   const Eigen::VectorXd steady = lw.ldlt().solve(b);
   const Eigen::VectorXd decay = (-eig.eigenvalues().array() * t).exp().matrix();
@@ -167,7 +169,8 @@ TEST(ThermalExact, ChainMatchesMatrixExponential) {
     EXPECT_NEAR(model.thermal_mass(static_cast<std::size_t>(k)) / c[k], 1.0, 1e-14) << k;
   }
 
-  Eigen::GeneralizedSelfAdjointEigenSolver<Eigen::MatrixXd> eig(lw, Eigen::MatrixXd(c.asDiagonal()));
+  Eigen::GeneralizedSelfAdjointEigenSolver<Eigen::MatrixXd> eig(lw,
+                                                                Eigen::MatrixXd(c.asDiagonal()));
   const double slowest = eig.eigenvalues().minCoeff(), fastest = eig.eigenvalues().maxCoeff();
   const double t_end = 1.0 / slowest;
   const int steps = 4000;

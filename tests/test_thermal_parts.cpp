@@ -220,7 +220,8 @@ TEST(ThermalSolvers, HeatingNeverRoundsATemperatureBelowItsStart) {
     for (std::size_t i = 0; i < q.size(); ++i) dh[i] = u(rng) * model.thermal_mass(i);  // < 2e-14 K
     const StepReport r = model.step(1e-12, dh);
     EXPECT_EQ(r.solver, walls ? "diagonal" : "none");
-    for (std::size_t i = 1; i < q.size(); ++i) ASSERT_GE(q.temperature[i], p.temperature[i]) << i << (walls ? " walls" : "");
+    for (std::size_t i = 1; i < q.size(); ++i)
+      ASSERT_GE(q.temperature[i], p.temperature[i]) << i << (walls ? " walls" : "");
   }
 }
 
@@ -258,16 +259,18 @@ struct RestingScene {
     m.conductivity = conductivity;
     std::mt19937_64 rng(5);
     std::uniform_real_distribution<double> u(0.0, 1.0);
-    for (std::size_t i = 0; i < p.size(); ++i) dh.push_back(p.centre[i].x() < 1e-4 ? heat * u(rng) : 0.0);
+    for (std::size_t i = 0; i < p.size(); ++i)
+      dh.push_back(p.centre[i].x() < 1e-4 ? heat * u(rng) : 0.0);
   }
 };
 
 struct RestingRun {
   std::vector<double> temperature;
   std::vector<std::uint32_t> vaporized;
-  std::size_t solved = 0, live = 0;  // the most rows a step solved; live rows then (sub-steps summed)
-  std::size_t live_particles = 0;    // at the end
-  bool skipped = false;              // some step left rows out
+  std::size_t solved = 0,
+              live = 0;            // the most rows a step solved; live rows then (sub-steps summed)
+  std::size_t live_particles = 0;  // at the end
+  bool skipped = false;            // some step left rows out
   double imbalance = 0;
 };
 
@@ -294,32 +297,37 @@ RestingRun run_resting(double heat, const ThermalSpec& base, bool skip, double c
 
 TEST(ThermalSkip, RestingComponentsAreSkippedAndTheBusyOnesMatchTheWholeSolve) {
   for (double k : {100.0, 0.0})  // K = 0: every particle is its own component
-  for (const char* solver : {"cg", "direct", "auto"})
-    for (double phi : {1.0, 0.5})
-      for (const char* walls : {"", "300", "450"})
-        for (double heat : {5e-13, 1e-10}) {  // up to ~7 K a step; up to ~1400 K: melting, vaporising
-          ThermalSpec spec;
-          spec.solver = solver;
-          spec.phi = phi;
-          spec.tolerance = 1e-13;
-          if (*walls) spec.walls = {Wall{2, 0.0, 2e-5, std::atof(walls), -1}};  // the face z = 0
-          std::ostringstream name;
-          name << "K " << k << " " << solver << " phi " << phi << " wall " << walls << " heat " << heat;
-          const RestingRun whole = run_resting(heat, spec, false, k), busy = run_resting(heat, spec, true, k);
-          EXPECT_FALSE(whole.skipped) << name.str();
-          EXPECT_LT(busy.solved, busy.live / 2) << name.str();  // the skip happened
-          EXPECT_GT(busy.solved, 0u) << name.str();
-          EXPECT_EQ(busy.vaporized, whole.vaporized) << name.str();
-          EXPECT_TRUE(heat < 1e-12 || !busy.vaporized.empty()) << name.str();  // the phase rules ran
-          std::size_t untouched = 0;
-          for (std::size_t i = 0; i < whole.temperature.size(); ++i) {
-            EXPECT_NEAR(busy.temperature[i], whole.temperature[i], 1e-8 * whole.temperature[i]) << name.str() << " particle " << i;
-            untouched += busy.temperature[i] == 300.0;
+    for (const char* solver : {"cg", "direct", "auto"})
+      for (double phi : {1.0, 0.5})
+        for (const char* walls : {"", "300", "450"})
+          for (double heat :
+               {5e-13, 1e-10}) {  // up to ~7 K a step; up to ~1400 K: melting, vaporising
+            ThermalSpec spec;
+            spec.solver = solver;
+            spec.phi = phi;
+            spec.tolerance = 1e-13;
+            if (*walls) spec.walls = {Wall{2, 0.0, 2e-5, std::atof(walls), -1}};  // the face z = 0
+            std::ostringstream name;
+            name << "K " << k << " " << solver << " phi " << phi << " wall " << walls << " heat "
+                 << heat;
+            const RestingRun whole = run_resting(heat, spec, false, k),
+                             busy = run_resting(heat, spec, true, k);
+            EXPECT_FALSE(whole.skipped) << name.str();
+            EXPECT_LT(busy.solved, busy.live / 2) << name.str();  // the skip happened
+            EXPECT_GT(busy.solved, 0u) << name.str();
+            EXPECT_EQ(busy.vaporized, whole.vaporized) << name.str();
+            EXPECT_TRUE(heat < 1e-12 || !busy.vaporized.empty())
+                << name.str();  // the phase rules ran
+            std::size_t untouched = 0;
+            for (std::size_t i = 0; i < whole.temperature.size(); ++i) {
+              EXPECT_NEAR(busy.temperature[i], whole.temperature[i], 1e-8 * whole.temperature[i])
+                  << name.str() << " particle " << i;
+              untouched += busy.temperature[i] == 300.0;
+            }
+            EXPECT_GT(untouched, busy.live_particles / 2) << name.str();
+            EXPECT_LT(busy.imbalance, 1e-9) << name.str();
+            EXPECT_LT(whole.imbalance, 1e-9) << name.str();
           }
-          EXPECT_GT(untouched, busy.live_particles / 2) << name.str();
-          EXPECT_LT(busy.imbalance, 1e-9) << name.str();
-          EXPECT_LT(whole.imbalance, 1e-9) << name.str();
-        }
 }
 
 // After vaporisations the contact list is cut, not searched again: it equals a new search.
@@ -347,7 +355,7 @@ std::vector<double> vaporise_and_redo(bool assemble_anew) {
   RestingScene s(1e-10);
   ThermalSpec spec;
   spec.solver = "cg";
-  spec.skip_resting = false;  // every row solved: a wrong entry anywhere shows
+  spec.skip_resting = false;                       // every row solved: a wrong entry anywhere shows
   spec.walls = {Wall{0, 0.0, 1e-4, 350.0, 1e-6}};  // every heated particle touches it, weakly
   ThermalModel model(s.p, {s.m}, spec);
   model.set_contacts(find_contacts(s.p));
@@ -396,8 +404,10 @@ TEST(ThermalGraph, ComponentsFollowVaporisationsAndRedosAsANewSearchFindsThem) {
     std::size_t roots = 0;
     for (std::size_t i = 0; i < p.size(); ++i) {
       if (!p.alive[i]) continue;
-      ASSERT_EQ(model.component_of(i), fresh.component_of(i)) << "round " << round << " particle " << i;
-      ASSERT_EQ(model.in_insulated_cluster(i), fresh.in_insulated_cluster(i)) << "round " << round << " particle " << i;
+      ASSERT_EQ(model.component_of(i), fresh.component_of(i))
+          << "round " << round << " particle " << i;
+      ASSERT_EQ(model.in_insulated_cluster(i), fresh.in_insulated_cluster(i))
+          << "round " << round << " particle " << i;
       roots += model.component_of(i) == i;
       std::size_t size = 0;
       if (model.component_of(i) == i)
@@ -461,9 +471,9 @@ TEST(ThermalSkip, ASnapshotFromElsewhereIsLookedAtWhole) {
   ThermalModel warmed(a.p, {a.m}, {}), idle(b.p, {b.m}, {});
   warmed.set_contacts(find_contacts(a.p));
   idle.set_contacts(find_contacts(b.p));
-  warmed.step(2e-10, a.dh);       // the heated components now differ inside
-  idle.step(2e-10, {});           // nothing to do: its record holds no component
-  idle.restore(warmed.save());    // the same step count, another model
+  warmed.step(2e-10, a.dh);     // the heated components now differ inside
+  idle.step(2e-10, {});         // nothing to do: its record holds no component
+  idle.restore(warmed.save());  // the same step count, another model
   const StepReport ra = warmed.step(2e-10, {}), rb = idle.step(2e-10, {});
   EXPECT_GT(rb.solved_rows, 0u);
   EXPECT_EQ(ra.solved_rows, rb.solved_rows);
@@ -479,7 +489,9 @@ TEST(ThermalSkip, AListOfTheHeatedParticlesGivesTheSameStep) {
   found.set_contacts(find_contacts(b.p));
   std::vector<std::uint32_t> heated;
   for (std::size_t i = a.dh.size(); i-- > 0;)
-    if (a.dh[i] != 0) heated.push_back(static_cast<std::uint32_t>(i)), heated.push_back(static_cast<std::uint32_t>(i));
+    if (a.dh[i] != 0)
+      heated.push_back(static_cast<std::uint32_t>(i)),
+          heated.push_back(static_cast<std::uint32_t>(i));
   ASSERT_GT(heated.size(), 20u);
   for (int step = 0; step < 3; ++step) {
     const StepReport ra = listed.step(2e-10, a.dh, heated), rb = found.step(2e-10, b.dh);
@@ -547,7 +559,8 @@ TEST(ThermalSkip, SubStepsAfterAWholeSolveLookAtEveryParticle) {
 TEST(ThermalSkip, RestoringTheUndoneBranchLooksAgain) {
   auto pairs = [] {
     Particles p;
-    for (int k = 0; k < 10; ++k) p.add(Vec3(k * 1e-3, 0, 0), 1e-4), p.add(Vec3(k * 1e-3 + 1.8e-4, 0, 0), 1e-4);
+    for (int k = 0; k < 10; ++k)
+      p.add(Vec3(k * 1e-3, 0, 0), 1e-4), p.add(Vec3(k * 1e-3 + 1.8e-4, 0, 0), 1e-4);
     return p;
   };
   Particles a = pairs(), b = pairs();

@@ -166,7 +166,8 @@ TEST(ThermalPhase, CoolingThroughMeltSolidifiesWithLiquidPlusSolidifyBand) {
   EXPECT_NEAR(s.p.temperature[0], expected, 1e-9);
   ASSERT_LT(expected, m.melt_temperature);
   // Everything that left the sphere went into the wall.
-  EXPECT_NEAR(s.model.ledger().walls, -s.model.ledger().stored, 1e-12 * std::abs(s.model.ledger().walls));
+  EXPECT_NEAR(s.model.ledger().walls, -s.model.ledger().stored,
+              1e-12 * std::abs(s.model.ledger().walls));
   EXPECT_NEAR(s.model.ledger().walls, c_eff * (610.0 - expected), 1e-12 * s.model.ledger().walls);
 }
 
@@ -227,8 +228,8 @@ TEST(ThermalPhase, VaporisedParticleCarriesItsEnergyAndLeavesTheGraph) {
   EXPECT_NEAR(l.stored, model.thermal_mass(1) * (p.temperature[1] - 300.0), 1e-9 * l.absorbed);
   const double theta1 = p.temperature[1];
   const StepReport after = model.step(dt, {0.0, 0.0});
-  EXPECT_EQ(p.temperature[1], theta1);  // no exchange with the vapour
-  EXPECT_FALSE(after.conduction_ran);   // no live contact conducts any more
+  EXPECT_EQ(p.temperature[1], theta1);                 // no exchange with the vapour
+  EXPECT_FALSE(after.conduction_ran);                  // no live contact conducts any more
   EXPECT_THROW(model.step(dt, {1.0, 0.0}), RunError);  // energy into vapour is a driver bug
 }
 

@@ -1,5 +1,6 @@
-// Stiff steps: dt = 1e6 x the explicit limit. Backward Euler keeps the discrete maximum principle;
-// explicit steps beyond the limit are sub-stepped or refused; the fixed-point iteration fails loudly.
+// Stiff steps: dt = 1e6 x the explicit limit. Backward Euler keeps the discrete maximum
+// principle; explicit steps beyond the limit are sub-stepped or refused; the fixed-point iteration
+// fails loudly.
 #include <gtest/gtest.h>
 
 #include <Eigen/Dense>
@@ -54,7 +55,8 @@ Eigen::VectorXd backward_euler_by_hand(const Particles& p, const ThermalModel& m
   }
   for (const Contact& ct : find_contacts(p)) {
     const double g = dt * 100.0 * ct.area / ct.distance;  // K_ij A / d (3.2), K = 100 both
-    system(ct.i, ct.i) += g, system(ct.j, ct.j) += g, system(ct.i, ct.j) -= g, system(ct.j, ct.i) -= g;
+    system(ct.i, ct.i) += g, system(ct.j, ct.j) += g, system(ct.i, ct.j) -= g,
+        system(ct.j, ct.i) -= g;
   }
   system += Eigen::MatrixXd(c.asDiagonal());
   const Eigen::LDLT<Eigen::MatrixXd> solve(system);
@@ -96,8 +98,8 @@ TEST_P(StiffImplicit, BackwardEulerBoundedAndMonotone) {
   EXPECT_NEAR(model.ledger().imbalance(), 0.0, 1e-9 * heat);
   // The same five steps solved densely from (3.2) and the masses: (C + dt L) theta1 = C theta0.
   const Eigen::VectorXd exact = backward_euler_by_hand(stiff_packing(), model, dt, 5);
-  const Eigen::VectorXd start = Eigen::Map<const Eigen::VectorXd>(stiff_packing().temperature.data(),
-                                                                  static_cast<Eigen::Index>(p.size()));
+  const Eigen::VectorXd start = Eigen::Map<const Eigen::VectorXd>(
+      stiff_packing().temperature.data(), static_cast<Eigen::Index>(p.size()));
   EXPECT_GT((exact - start).cwiseAbs().maxCoeff(), 50.0);  // heat did flow, far
   for (std::size_t i = 0; i < p.size(); ++i)
     EXPECT_NEAR(p.temperature[i], exact[static_cast<Eigen::Index>(i)], 1e-6) << "particle " << i;
@@ -280,7 +282,8 @@ TEST(ThermalStiff, EverySolverKeepsAStiffClustersEnergy) {
     // One temperature throughout (the conductance is 1e13 times the capacity per step).
     for (double t : p.temperature) EXPECT_NEAR(t, energy / mass, 1e-6) << solver;
     if (reference.empty()) reference = p.temperature;
-    for (std::size_t i = 0; i < p.size(); ++i) EXPECT_NEAR(p.temperature[i], reference[i], 1e-6) << solver;
+    for (std::size_t i = 0; i < p.size(); ++i)
+      EXPECT_NEAR(p.temperature[i], reference[i], 1e-6) << solver;
   }
 }
 

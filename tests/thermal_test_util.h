@@ -21,6 +21,8 @@ inline Particles chain(int n, double a, double theta0 = 300.0) {
   return p;
 }
 
-inline std::vector<double> constant(std::size_t n, double v) { return std::vector<double>(n, v); }
+inline std::vector<double> constant(std::size_t n, double v) {
+  return std::vector<double>(n, v);
+}
 
 }  // namespace beampack::test

@@ -17,7 +17,8 @@ void Wall::validate(const std::string& prefix) const {
   if (axis < 0 || axis > 2) fail("axis", axis, "must be 0 (x), 1 (y) or 2 (z)");
   if (!std::isfinite(position)) fail("position", position, "must be finite");
   if (!(std::isfinite(reach) && reach >= 0)) fail("reach", reach, "must be >= 0");
-  if (!(std::isfinite(temperature) && temperature > 0)) fail("temperature", temperature, "must be > 0");
+  if (!(std::isfinite(temperature) && temperature > 0))
+    fail("temperature", temperature, "must be > 0");
   if (!std::isfinite(conductance)) fail("conductance", conductance, "must be finite (< 0: from K)");
 }
 

@@ -1,6 +1,7 @@
 #pragma once
 // Conduction between touching spheres (3.2) and with isothermal walls (1.1), assembled as the
-// sparse matrix L + W such that the net heat flow into the particles is Q(theta) = b - (L + W) theta.
+// sparse matrix L + W such that the net heat flow into the particles is
+// Q(theta) = b - (L + W) theta.
 #include <Eigen/SparseCore>
 #include <vector>
 
@@ -20,10 +21,10 @@ inline double conductance(double k_i, double k_j, double area, double distance) 
 // lies within `reach` of the plane (|x_axis - position| - R <= reach) exchanges
 // g (theta_w - theta_i) with it (1.1). One particle between two walls is the lumped model (1.2).
 struct Wall {
-  int axis = 0;               // 0: x, 1: y, 2: z
-  double position = 0;        // m
-  double reach = 0;           // m
-  double temperature = 300;   // theta_w, K
+  int axis = 0;              // 0: x, 1: y, 2: z
+  double position = 0;       // m
+  double reach = 0;          // m
+  double temperature = 300;  // theta_w, K
   // W/K per touching particle. < 0: pi K_i R_i, i.e. (3.2) with the sphere's cross-section
   // pi R^2 as contact area and its radius R as conduction length.
   double conductance = -1;

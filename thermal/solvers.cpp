@@ -45,7 +45,8 @@ SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
     // Growth is judged on the absolute update: when theta itself grows geometrically the update
     // relative to it stays near 1 and would look like stagnation.
     const double ratio = k > 1 && previous_abs > 0 ? abs_u / previous_abs : 0.0;
-    if (!std::isfinite(u)) fixed_point_failure("diverged to a non-finite field", k, u, ratio, contraction_estimate);
+    if (!std::isfinite(u))
+      fixed_point_failure("diverged to a non-finite field", k, u, ratio, contraction_estimate);
     if (u <= tolerance) return {k, u};
     growing = ratio > 1.0 ? growing + 1 : 0;
     if (growing >= kGrowthLimit) fixed_point_failure("diverges", k, u, ratio, contraction_estimate);
@@ -102,8 +103,9 @@ void DirectSolver::solve(const SparseMatrix& a, std::uint64_t pattern_version,
   }
   if (ldlt_.info() != Eigen::Success) {
     factored_values_.clear();
-    throw RunError("thermal direct solver: LDL^T factorisation failed (matrix not positive "
-                   "definite; non-positive heat capacity or time step?)");
+    throw RunError(
+        "thermal direct solver: LDL^T factorisation failed (matrix not positive "
+        "definite; non-positive heat capacity or time step?)");
   }
   theta = ldlt_.solve(rhs);
   if (!theta.allFinite()) throw RunError("thermal direct solver: non-finite temperature");

@@ -45,7 +45,8 @@ void ThermalSpec::validate() const {
     input_error("thermal.time_scaling", time_scaling, "must be > 0");
   if (solver != "auto" && solver != "fixed-point" && solver != "cg" && solver != "direct")
     input_error("thermal.solver", '"' + solver + '"', "must be fixed-point, cg, direct or auto");
-  if (!(tolerance > 0 && tolerance < 1)) input_error("thermal.tolerance", tolerance, "must be in (0, 1)");
+  if (!(tolerance > 0 && tolerance < 1))
+    input_error("thermal.tolerance", tolerance, "must be in (0, 1)");
   if (max_iterations < 1) input_error("thermal.max_iterations", max_iterations, "must be >= 1");
   if (max_substeps < 1) input_error("thermal.max_substeps", max_substeps, "must be >= 1");
   if (max_phase_corrections < 1)
@@ -60,7 +61,8 @@ ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials
   spec_.validate();
   if (materials_.empty()) input_error("material", "(none)", "at least one material is needed");
   for (std::size_t k = 0; k < materials_.size(); ++k)
-    materials_[k].validate(materials_.size() == 1 ? "material" : "material[" + std::to_string(k) + "]");
+    materials_[k].validate(materials_.size() == 1 ? "material"
+                                                  : "material[" + std::to_string(k) + "]");
   for (std::size_t i = 0; i < p_.size(); ++i) {
     if (p_.material[i] >= materials_.size())
       input_error(("particle " + std::to_string(i) + " material").c_str(), p_.material[i],
@@ -112,7 +114,8 @@ Eigen::Index position_of(const SparseMatrix& m, Eigen::Index row, Eigen::Index c
 }
 
 // Where each column's diagonal entry sits in the matrix's values, and the diagonal itself.
-void find_diagonal(const SparseMatrix& m, std::vector<Eigen::Index>& pos, Eigen::VectorXd& diagonal) {
+void find_diagonal(const SparseMatrix& m, std::vector<Eigen::Index>& pos,
+                   Eigen::VectorXd& diagonal) {
   pos.resize(static_cast<std::size_t>(m.cols()));
   for (Eigen::Index j = 0; j < m.cols(); ++j) {
     pos[j] = position_of(m, j, j);
@@ -178,7 +181,8 @@ bool ThermalModel::live_contact_conducts() const {
 void ThermalModel::set_wall_terms(Eigen::Index i) {
   System& s = all_;
   const bool live = p_.alive[i];
-  s.wall_source[i] = live ? walls_.source[i] - walls_.conductance[i] * reference_ : 0.0;  // b relative to it
+  s.wall_source[i] =
+      live ? walls_.source[i] - walls_.conductance[i] * reference_ : 0.0;  // b relative to it
   s.wall_conductance[i] = live ? walls_.conductance[i] : 0.0;
   if (!s.has_conduction) s.diagonal[i] = s.wall_conductance[i];
 }
@@ -200,7 +204,8 @@ void ThermalModel::assemble_anew(bool conducts) {
     find_components();
   } else {
     s.laplacian = SparseMatrix();
-    pattern_dirty_ = false;  // no conducting contact: nothing to assemble until the live set changes
+    pattern_dirty_ =
+        false;  // no conducting contact: nothing to assemble until the live set changes
   }
 }
 
@@ -238,7 +243,8 @@ std::vector<Eigen::Index> ThermalModel::update_live_set(const std::vector<Eigen:
         at = k;
         continue;
       }
-      const double v = p_.alive[r] && p_.alive[j] ? contact_values_[static_cast<std::size_t>(k)] : 0.0;
+      const double v =
+          p_.alive[r] && p_.alive[j] ? contact_values_[static_cast<std::size_t>(k)] : 0.0;
       values[k] = v;
       diagonal += -v;
     }
@@ -291,7 +297,8 @@ std::uint32_t ThermalModel::next_stamp() {
 
 // The live particles joined to `from` by conducting contacts, `from` included, marked in
 // visited_ with `stamp` (a breadth-first walk over L's pattern).
-void ThermalModel::collect_component(Eigen::Index from, std::uint32_t stamp, std::vector<Eigen::Index>& out) {
+void ThermalModel::collect_component(Eigen::Index from, std::uint32_t stamp,
+                                     std::vector<Eigen::Index>& out) {
   const SparseMatrix& m = all_.laplacian;
   std::size_t next = out.size();
   visited_[from] = stamp;
@@ -300,7 +307,9 @@ void ThermalModel::collect_component(Eigen::Index from, std::uint32_t stamp, std
     const Eigen::Index j = out[next];
     for (Eigen::Index k = m.outerIndexPtr()[j]; k < m.outerIndexPtr()[j + 1]; ++k) {
       const Eigen::Index r = m.innerIndexPtr()[k];
-      if (visited_[r] == stamp || !p_.alive[r] || !(contact_values_[static_cast<std::size_t>(k)] < 0)) continue;
+      if (visited_[r] == stamp || !p_.alive[r] ||
+          !(contact_values_[static_cast<std::size_t>(k)] < 0))
+        continue;
       visited_[r] = stamp;
       out.push_back(r);
     }
@@ -342,10 +351,14 @@ bool ThermalModel::in_insulated_cluster(std::size_t i) {
 }
 
 // The component named r is an insulated cluster: >= 2 particles, no wall touching it.
-bool ThermalModel::insulated(std::uint32_t r) const { return clustered(r) && !component_walled_[r]; }
+bool ThermalModel::insulated(std::uint32_t r) const {
+  return clustered(r) && !component_walled_[r];
+}
 
 // The component named r is a cluster: >= 2 particles joined by conducting contacts.
-bool ThermalModel::clustered(std::uint32_t r) const { return r != kNoComponent && component_size_[r] >= 2; }
+bool ThermalModel::clustered(std::uint32_t r) const {
+  return r != kNoComponent && component_size_[r] >= 2;
+}
 
 // A system's clusters (>= 2 live particles joined by conducting contacts, touching a wall or not):
 // cluster id per row and the row grounded in each, the component's lowest particle (rows ascend,
@@ -357,7 +370,8 @@ void ThermalModel::mark_clusters(System& s) {
   s.ground.clear();
   if (!s.has_conduction) return;
   for (Eigen::Index k = 0; k < m; ++k) {
-    const std::size_t i = s.particle.empty() ? static_cast<std::size_t>(k) : static_cast<std::size_t>(s.particle[k]);
+    const std::size_t i =
+        s.particle.empty() ? static_cast<std::size_t>(k) : static_cast<std::size_t>(s.particle[k]);
     const std::uint32_t r = component_[i];
     if (!clustered(r)) continue;
     if (r == i) {
@@ -377,7 +391,8 @@ void ThermalModel::mark_clusters(System& s) {
 bool ThermalModel::select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat,
                                std::size_t live) {
   if (!spec_.skip_resting) return false;
-  std::vector<Eigen::Index> rows = restless_known_ ? busy_rows_of_restless(theta0, heat) : busy_rows_of_all(theta0, heat);
+  std::vector<Eigen::Index> rows =
+      restless_known_ ? busy_rows_of_restless(theta0, heat) : busy_rows_of_all(theta0, heat);
   if (4 * rows.size() >= 3 * live) return false;
   if (rows != busy_.particle || busy_assembly_ != assembly_) build_busy_system(std::move(rows));
   return true;
@@ -390,8 +405,8 @@ bool particle_busy(double dh, double theta, double theta_root, double wall_g, do
 }  // namespace
 
 // Every live particle looked at (the first step, or when restless_ is not known).
-std::vector<Eigen::Index> ThermalModel::busy_rows_of_all(const Eigen::Ref<const Eigen::VectorXd>& theta0,
-                                                        const Heat& heat) const {
+std::vector<Eigen::Index> ThermalModel::busy_rows_of_all(
+    const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat) const {
   const std::size_t n = p_.size();
   const bool graph = all_.has_conduction;  // without one, every particle is its own component
   auto component = [&](std::size_t i) { return graph ? std::size_t{component_[i]} : i; };
@@ -399,7 +414,8 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_of_all(const Eigen::Ref<const 
   for (std::size_t i = 0; i < n; ++i) {
     if (!p_.alive[i]) continue;
     const std::size_t r = component(i);
-    if (particle_busy(heat.at(i), theta0[i], theta0[r], walls_.conductance[i], walls_.source[i])) busy[r] = 1;
+    if (particle_busy(heat.at(i), theta0[i], theta0[r], walls_.conductance[i], walls_.source[i]))
+      busy[r] = 1;
   }
   std::vector<Eigen::Index> rows;
   for (std::size_t i = 0; i < n; ++i)
@@ -408,8 +424,8 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_of_all(const Eigen::Ref<const 
 }
 
 // Only the components of restless_ and of the particles given heat: the others are at rest.
-std::vector<Eigen::Index> ThermalModel::busy_rows_of_restless(const Eigen::Ref<const Eigen::VectorXd>& theta0,
-                                                             const Heat& heat) {
+std::vector<Eigen::Index> ThermalModel::busy_rows_of_restless(
+    const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat) {
   std::vector<Eigen::Index> seeds = restless_;
   for (std::uint32_t i : heat.particles)
     if (heat.at(i) != 0) seeds.push_back(i);
@@ -426,7 +442,8 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_of_restless(const Eigen::Ref<c
     }
     const Eigen::Index r = all_.has_conduction ? Eigen::Index{component_[i]} : i;
     const bool busy = std::any_of(members.begin(), members.end(), [&](Eigen::Index j) {
-      return particle_busy(heat.at(j), theta0[j], theta0[r], walls_.conductance[j], walls_.source[j]);
+      return particle_busy(heat.at(j), theta0[j], theta0[r], walls_.conductance[j],
+                           walls_.source[j]);
     });
     if (busy) rows.insert(rows.end(), members.begin(), members.end());
   }
@@ -447,7 +464,8 @@ void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
   if (s.has_conduction) {  // column by column: rows ascend, so each column's entries stay sorted
     const SparseMatrix& all = all_.laplacian;
     Eigen::Index entries = 0;
-    for (Eigen::Index k = 0; k < m; ++k) entries += all.outerIndexPtr()[rows[k] + 1] - all.outerIndexPtr()[rows[k]];
+    for (Eigen::Index k = 0; k < m; ++k)
+      entries += all.outerIndexPtr()[rows[k] + 1] - all.outerIndexPtr()[rows[k]];
     s.laplacian = SparseMatrix(m, m);
     s.laplacian.reserve(entries);
     s.diag_pos.resize(static_cast<std::size_t>(m));
@@ -497,8 +515,8 @@ Eigen::VectorXd ThermalModel::base_capacity() const {
     const std::size_t i = particle_of(k);
     if (!p_.alive[i]) continue;
     c[k] = thermal_mass(i);
-    BEAMPACK_DCHECK(c[k] > 0.0 && std::isfinite(c[k]), "particle %zu: thermal mass %g J/K at %g K", i, c[k],
-                    p_.temperature[i]);
+    BEAMPACK_DCHECK(c[k] > 0.0 && std::isfinite(c[k]), "particle %zu: thermal mass %g J/K at %g K",
+                    i, c[k], p_.temperature[i]);
     sum += c[k];
     ++live;
   }
@@ -531,7 +549,8 @@ double ThermalModel::monotone_step_limit() const {
   for (std::size_t i = 0; i < p_.size(); ++i) {
     const double d = all_.diagonal[static_cast<Eigen::Index>(i)];
     if (!p_.alive[i] || !(d > 0)) continue;
-    const double c = least_thermal_mass(materials_[p_.material[i]], p_.volume(i), spec_.time_scaling);
+    const double c =
+        least_thermal_mass(materials_[p_.material[i]], p_.volume(i), spec_.time_scaling);
     limit = std::min(limit, c / ((1.0 - spec_.phi) * d));
   }
   limit_ = limit, limit_assembly_ = assembly_;
@@ -539,7 +558,8 @@ double ThermalModel::monotone_step_limit() const {
 }
 
 // Bound on the iteration matrix of (3.11), || dt phi c^{-1} (L + W) ||_inf (Gershgorin).
-double ThermalModel::contraction_estimate(const System& s, double dt, const Eigen::VectorXd& c) const {
+double ThermalModel::contraction_estimate(const System& s, double dt,
+                                          const Eigen::VectorXd& c) const {
   double worst = 0;
   for (Eigen::Index k = 0; k < c.size(); ++k)
     if (s.live[k]) worst = std::max(worst, (2.0 * s.diagonal[k] - s.wall_conductance[k]) / c[k]);
@@ -582,7 +602,8 @@ void ThermalModel::solve_relative(const System& s, double dt, const Eigen::Vecto
       s.has_conduction ? Eigen::VectorXd(s.laplacian * theta0) : s.diagonal.cwiseProduct(theta0);
   const Eigen::VectorXd drive = dt * (s.wall_source - flux_in) + dh;
   ++report.solves;
-  if (!s.has_conduction || spec_.phi == 0) {  // the change, so heating never rounds theta below theta0
+  if (!s.has_conduction ||
+      spec_.phi == 0) {  // the change, so heating never rounds theta below theta0
     theta1 = theta0 + drive.cwiseQuotient(c + implicit * s.diagonal);
     report.solver = s.has_conduction ? "explicit" : has_walls_ ? "diagonal" : "none";
     report.conduction_ran = s.has_conduction;
@@ -611,12 +632,14 @@ void ThermalModel::solve_relative(const System& s, double dt, const Eigen::Vecto
 // An iterative solve stops at a residual relative to its drive, dt Q(theta0) + dH. At a stiff step
 // that drive is far larger than what the step changes (dt L theta0 >> c (theta1 - theta0)), and
 // the residual left lies mostly along each cluster's constant vector: its energy. Summed over a
-// component, the step (3.10) reads (c + dt phi W)^T (theta1 - theta0) = sum(dt (b - W theta0) + dH),
+// component, the step (3.10) reads
+//   (c + dt phi W)^T (theta1 - theta0) = sum(dt (b - W theta0) + dH),
 // `own` per row (1^T L = 0: the contacts only move heat within it). A uniform shift of each
 // cluster's change restores that balance exactly, and keeps the solver's accuracy within it; a
 // lone particle's row is decoupled, and is solved exactly.
 void ThermalModel::keep_energy_of_components(const System& s, const Eigen::VectorXd& weight,
-                                             const Eigen::VectorXd& own, const Eigen::VectorXd& theta0,
+                                             const Eigen::VectorXd& own,
+                                             const Eigen::VectorXd& theta0,
                                              Eigen::VectorXd& theta1) const {
   const std::size_t clusters = s.ground.size();
   std::vector<double> energy(clusters, 0.0), held(clusters, 0.0), mass(clusters, 0.0);
@@ -824,7 +847,8 @@ StepReport ThermalModel::step_once(double dt, const Heat& heat) {
   StepReport report;
   assemble_if_needed();
   book_heat_of_vaporised(heat);
-  const Eigen::Map<const Eigen::VectorXd> theta(p_.temperature.data(), static_cast<Eigen::Index>(p_.size()));
+  const Eigen::Map<const Eigen::VectorXd> theta(p_.temperature.data(),
+                                                static_cast<Eigen::Index>(p_.size()));
   report.live_rows = live_count_;
   solve_busy_ = select_busy(theta, heat, report.live_rows);
   report.solved_rows = solve_busy_ ? busy_.particle.size() : report.live_rows;
@@ -906,10 +930,12 @@ ThermalModel::Heat ThermalModel::checked_heat(const std::vector<double>& absorbe
                      " absorbed energies for " + std::to_string(n) + " particles");
   Heat heat{&absorbed, std::vector<std::uint32_t>(given.begin(), given.end()), 1};
   std::sort(heat.particles.begin(), heat.particles.end());  // sums in particle order
-  heat.particles.erase(std::unique(heat.particles.begin(), heat.particles.end()), heat.particles.end());
+  heat.particles.erase(std::unique(heat.particles.begin(), heat.particles.end()),
+                       heat.particles.end());
   for (std::uint32_t i : heat.particles) {
     if (i >= absorbed.size())
-      throw InputError("thermal step: heated particle " + std::to_string(i) + " has no absorbed energy");
+      throw InputError("thermal step: heated particle " + std::to_string(i) +
+                       " has no absorbed energy");
     if (!(std::isfinite(absorbed[i]) && absorbed[i] >= 0))
       throw RunError("thermal step: absorbed energy of particle " + std::to_string(i) + " = " +
                      std::to_string(absorbed[i]) + ": must be finite and >= 0");
@@ -988,7 +1014,8 @@ void ThermalModel::put_back_changed() {
     p_.temperature[i] = u.temperature;
     p_.phase[i] = u.phase;
     stored_[i] = u.stored;
-    if (p_.alive[i] != u.alive) p_.alive[i] = u.alive, dirty_ = true, flipped_.push_back(static_cast<Eigen::Index>(i));
+    if (p_.alive[i] != u.alive)
+      p_.alive[i] = u.alive, dirty_ = true, flipped_.push_back(static_cast<Eigen::Index>(i));
   }
   ledger_ = undo_ledger_;
 }
@@ -1012,7 +1039,8 @@ void ThermalModel::restore(const Snapshot& s) {
   // restless_ holds every component not at rest in the state now and in the state before the
   // last step (if it solved no sub-step whole): any other state is looked at whole.
   flips_known_ = false;  // any live flag may change below
-  const bool known_state = s.serial != 0 && (s.serial == serial_ || s.serial == serial_before_step_);
+  const bool known_state =
+      s.serial != 0 && (s.serial == serial_ || s.serial == serial_before_step_);
   if (!known_state) restless_known_ = false;
   serial_ = known_state ? s.serial : new_serial();
   clear_undo();  // nothing to undo: the last step's record no longer describes this state

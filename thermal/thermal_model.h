@@ -17,11 +17,11 @@
 namespace beampack {
 
 struct ThermalSpec {
-  double phi = 1;                  // thermal.phi: 1 backward Euler, 1/2 Crank-Nicolson, 0 explicit
-  double time_scaling = 1e6;       // thermal.time_scaling: M of section 4.1, divides m C
-  std::string solver = "auto";     // thermal.solver: fixed-point | cg | direct | auto
-  double tolerance = 1e-10;        // thermal.tolerance: relative, see solvers.h
-  int max_iterations = 1000;       // thermal.max_iterations: fixed-point and cg
+  double phi = 1;               // thermal.phi: 1 backward Euler, 1/2 Crank-Nicolson, 0 explicit
+  double time_scaling = 1e6;    // thermal.time_scaling: M of section 4.1, divides m C
+  std::string solver = "auto";  // thermal.solver: fixed-point | cg | direct | auto
+  double tolerance = 1e-10;     // thermal.tolerance: relative, see solvers.h
+  int max_iterations = 1000;    // thermal.max_iterations: fixed-point and cg
   // thermal.max_substeps: phi < 1 beyond its step limit (monotone_step_limit) is split into at
   // most this many sub-steps; more would be needed -> InputError.
   int max_substeps = 1000;
@@ -51,9 +51,10 @@ struct ThermalLedger {
 struct StepReport {
   std::vector<std::uint32_t> vaporized;      // particles removed in this step
   std::vector<std::uint32_t> phase_changed;  // live particles now solid <-> liquid (optics change)
-  std::string solver = "none";  // fixed-point | cg | direct | explicit | diagonal | none (or all at rest)
-  int iterations = 0;           // summed over solves and sub-steps
-  int solves = 0;               // linear solves (predictor + corrector passes, all sub-steps)
+  std::string solver =
+      "none";          // fixed-point | cg | direct | explicit | diagonal | none (or all at rest)
+  int iterations = 0;  // summed over solves and sub-steps
+  int solves = 0;      // linear solves (predictor + corrector passes, all sub-steps)
   int substeps = 1;
   double contraction_estimate = 0;  // dt phi max_i (2 sum_j G_ij + W_i) / c_i, see solvers.h
   bool conduction_ran = false;  // false: no contact conducts (K = 0) or every component was at rest
@@ -64,13 +65,13 @@ struct StepReport {
   // false: no particle the step worked on (with skip_resting: the busy ones; one at rest cannot
   // cross a band) was at or above theta_m before or after it.
   bool phases_ran = false;
-  double phases_seconds = 0;    // wall time of the latent-heat work (section 4), all sub-steps
-  bool phase_corrected = false; // a band was crossed and the step re-solved with C_eff
+  double phases_seconds = 0;     // wall time of the latent-heat work (section 4), all sub-steps
+  bool phase_corrected = false;  // a band was crossed and the step re-solved with C_eff
   // The corrector stopped at max_phase_corrections while its last solve still crossed a new band:
   // that band's latent heat is missing from the step.
   bool phase_passes_capped = false;
-  bool symbolic_reused = false; // direct: analysis kept from an earlier step
-  bool factors_reused = false;  // direct: numeric factors kept too
+  bool symbolic_reused = false;  // direct: analysis kept from an earlier step
+  bool factors_reused = false;   // direct: numeric factors kept too
 };
 
 class ThermalModel {
@@ -108,7 +109,8 @@ class ThermalModel {
   // skip_resting after its first step, looks only at the components it solved last and the
   // heated ones (it still counts the live particles, and after a vaporisation compares the
   // live flags).
-  StepReport step(double dt, const std::vector<double>& absorbed, std::span<const std::uint32_t> heated);
+  StepReport step(double dt, const std::vector<double>& absorbed,
+                  std::span<const std::uint32_t> heated);
 
   const ThermalLedger& ledger() const { return ledger_; }
   // Largest dt for which a step keeps the discrete maximum principle (no temperature leaves the
@@ -171,8 +173,8 @@ class ThermalModel {
     // none) and the row grounded in each (solve_direct_grounded), marked by mark_clusters.
     std::vector<int> cluster;
     std::vector<Eigen::Index> ground;
-    std::uint64_t pattern_version = 0;   // the direct solver keeps its analysis while unchanged
-    bool has_conduction = false;         // some contact with G > 0
+    std::uint64_t pattern_version = 0;  // the direct solver keeps its analysis while unchanged
+    bool has_conduction = false;        // some contact with G > 0
     std::size_t rows() const { return static_cast<std::size_t>(diagonal.size()); }
   };
 
@@ -189,7 +191,8 @@ class ThermalModel {
     int parts = 1;
     double at(std::size_t i) const { return absorbed->empty() ? 0.0 : (*absorbed)[i] / parts; }
   };
-  Heat checked_heat(const std::vector<double>& absorbed, std::span<const std::uint32_t> given) const;
+  Heat checked_heat(const std::vector<double>& absorbed,
+                    std::span<const std::uint32_t> given) const;
   void begin_undo();
   void put_back_changed();
   void clear_undo();
@@ -209,11 +212,13 @@ class ThermalModel {
   void update_components(const std::vector<Eigen::Index>& touched);
   std::uint32_t next_stamp();
   void mark_clusters(System& s);
-  void keep_energy_of_components(const System& s, const Eigen::VectorXd& weight, const Eigen::VectorXd& own,
-                                 const Eigen::VectorXd& theta0, Eigen::VectorXd& theta1) const;
+  void keep_energy_of_components(const System& s, const Eigen::VectorXd& weight,
+                                 const Eigen::VectorXd& own, const Eigen::VectorXd& theta0,
+                                 Eigen::VectorXd& theta1) const;
   bool insulated(std::uint32_t root) const;
   bool clustered(std::uint32_t root) const;
-  bool select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat, std::size_t live);
+  bool select_busy(const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat,
+                   std::size_t live);
   std::vector<Eigen::Index> busy_rows_of_all(const Eigen::Ref<const Eigen::VectorXd>& theta0,
                                              const Heat& heat) const;
   std::vector<Eigen::Index> busy_rows_of_restless(const Eigen::Ref<const Eigen::VectorXd>& theta0,
@@ -224,13 +229,15 @@ class ThermalModel {
                                       const std::vector<std::uint8_t>& bands) const;
   void solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& dh, StepTemperatures& t,
              StepReport& report);
-  void solve_relative(const System& s, double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& theta0,
-                      const Eigen::VectorXd& dh, Eigen::VectorXd& theta1, StepReport& report);
+  void solve_relative(const System& s, double dt, const Eigen::VectorXd& c,
+                      const Eigen::VectorXd& theta0, const Eigen::VectorXd& dh,
+                      Eigen::VectorXd& theta1, StepReport& report);
   bool solve_change(const SparseMatrix& a, const Eigen::VectorXd& c, const Eigen::VectorXd& drive,
                     double rho, const Eigen::VectorXd& theta0, Eigen::VectorXd& theta1,
                     StepReport& report) const;
   void solve_direct_grounded(const System& s, SparseMatrix& a, const Eigen::VectorXd& w,
-                             const Eigen::VectorXd& rhs, Eigen::VectorXd& theta1, StepReport& report);
+                             const Eigen::VectorXd& rhs, Eigen::VectorXd& theta1,
+                             StepReport& report);
   double contraction_estimate(const System& s, double dt, const Eigen::VectorXd& c) const;
   std::string choose_solver(double contraction) const;
   bool phase_work_needed(const Eigen::VectorXd& theta0, const Eigen::VectorXd& theta1) const;
@@ -247,20 +254,22 @@ class ThermalModel {
   WallCoupling walls_;
   bool has_walls_ = false;
   std::vector<Contact> contacts_;
-  std::vector<double> g_;            // G_ij per contact
-  System all_;                       // every particle
-  System busy_;                      // the busy components' particles (skip_resting)
-  bool solve_busy_ = false;          // this step solves busy_ (the others are at rest)
+  std::vector<double> g_;    // G_ij per contact
+  System all_;               // every particle
+  System busy_;              // the busy components' particles (skip_resting)
+  bool solve_busy_ = false;  // this step solves busy_ (the others are at rest)
   // The step's rows: every particle (row i is particle i) or busy_'s particles.
   Eigen::Index rows() const {
-    return solve_busy_ ? static_cast<Eigen::Index>(busy_.particle.size()) : static_cast<Eigen::Index>(p_.size());
+    return solve_busy_ ? static_cast<Eigen::Index>(busy_.particle.size())
+                       : static_cast<Eigen::Index>(p_.size());
   }
   std::size_t particle_of(Eigen::Index row) const {
-    return static_cast<std::size_t>(solve_busy_ ? busy_.particle[static_cast<std::size_t>(row)] : row);
+    return static_cast<std::size_t>(solve_busy_ ? busy_.particle[static_cast<std::size_t>(row)]
+                                                : row);
   }
   std::uint64_t assembly_ = 0;       // counts assemblies of all_: busy_ is cut from one of them
   std::uint64_t busy_assembly_ = 0;  // the assembly busy_ was cut from
-  std::uint64_t versions_ = 1;       // pattern versions handed out (all_ and busy_ share the solver)
+  std::uint64_t versions_ = 1;  // pattern versions handed out (all_ and busy_ share the solver)
   // Connected component of each live particle under conducting contacts: its lowest particle id
   // (kNoComponent for the others). By that id: the component's size and whether a wall touches it.
   static constexpr std::uint32_t kNoComponent = std::numeric_limits<std::uint32_t>::max();
@@ -269,12 +278,12 @@ class ThermalModel {
   std::vector<std::uint8_t> component_walled_;
   std::vector<std::uint32_t> visited_;  // walks over the contacts (update_components): stamps
   std::uint32_t stamp_ = 0;
-  std::vector<int> cluster_of_root_;    // mark_clusters' scratch, by component id
-  std::vector<Eigen::Index> row_of_;    // build_busy_system's scratch: -1 between calls
+  std::vector<int> cluster_of_root_;  // mark_clusters' scratch, by component id
+  std::vector<Eigen::Index> row_of_;  // build_busy_system's scratch: -1 between calls
   // The live flags the model flipped since all_ was assembled (flips_known_: no others changed).
   std::vector<Eigen::Index> flipped_;
   bool flips_known_ = false;
-  std::size_t live_count_ = 0;          // live particles at the last assembly
+  std::size_t live_count_ = 0;  // live particles at the last assembly
   // skip_resting without a scan of every particle: every component not at rest (temperatures
   // that differ, a wall at another temperature) holds a particle in restless_, the rows solved
   // in the last step (with its sub-steps). False before the first step, after a new assembly,
@@ -294,19 +303,19 @@ class ThermalModel {
   std::vector<std::int32_t> undo_slot_;  // each particle's entry in undo_, -1: left alone
   ThermalLedger undo_ledger_;
   bool undo_ready_ = false;
-  std::uint64_t clusters_assembly_ = 0; // the assembly all_'s clusters were marked for
-  mutable double limit_ = 0;            // monotone_step_limit of the assembly limit_assembly_
+  std::uint64_t clusters_assembly_ = 0;  // the assembly all_'s clusters were marked for
+  mutable double limit_ = 0;             // monotone_step_limit of the assembly limit_assembly_
   mutable std::uint64_t limit_assembly_ = 0;
   // The temperature the solve measures from: the first wall's (0 K without walls). L 1 = 0, so
   // the shift moves only the wall sources, to 0 at a wall of that temperature; a particle held
   // near it by a wall of 1e9 W/K then changes by digits a temperature near 300 K cannot hold,
   // and they still reach the solver and the ledger (before: CG stopped at once, heat imbalance 1).
   double reference_ = 0;
-  bool dirty_ = true;                // all_'s values out of date (contacts or live set)
-  bool pattern_dirty_ = true;        // the contacts changed: all_ is assembled anew
+  bool dirty_ = true;                   // all_'s values out of date (contacts or live set)
+  bool pattern_dirty_ = true;           // the contacts changed: all_ is assembled anew
   std::vector<double> contact_values_;  // -G of each off-diagonal of all_.laplacian, as if live
   DirectSolver direct_;
-  std::vector<double> stored_;       // J per particle since the start
+  std::vector<double> stored_;  // J per particle since the start
   ThermalLedger ledger_;
 };
 

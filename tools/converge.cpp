@@ -38,8 +38,13 @@ std::vector<Ladder> ladders(const RunConfig& base) {
   Ladder dt{"time step", "thermal.dt", {}, {}, {}};
   for (double f : {1.0, 4.0, 16.0, 64.0}) dt.values.push_back(seconds(f * paper_dt));
   dt.values.push_back("\"pulse\"");
-  Ladder rays{"rays per pulse", "beam.rays", {"100000", "30000", "10000", "3000", "1000", "300", "100"}, {}, {}};
-  Ladder tol{"solver tolerance", "thermal.tolerance", {"1e-12", "1e-10", "1e-8", "1e-6", "1e-4"}, {}, {}};
+  Ladder rays{"rays per pulse",
+              "beam.rays",
+              {"100000", "30000", "10000", "3000", "1000", "300", "100"},
+              {},
+              {}};
+  Ladder tol{
+      "solver tolerance", "thermal.tolerance", {"1e-12", "1e-10", "1e-8", "1e-6", "1e-4"}, {}, {}};
   return {dt, rays, tol};
 }
 
@@ -54,16 +59,19 @@ int run_ladder(Ladder& ladder, bool quiet) {
     try {
       RunResult r = run_scene(ladder.configs[k], quiet, label);
       if (r.interrupted) {
-        std::fprintf(stderr, "beampack: converge interrupted during %s; that rung and the rest "
-                             "are not in convergence.csv\n", rung.c_str());
+        std::fprintf(stderr,
+                     "beampack: converge interrupted during %s; that rung and the rest "
+                     "are not in convergence.csv\n",
+                     rung.c_str());
         break;
       }
       ladder.rungs.push_back({ladder.values[k], std::move(r)});
     } catch (const std::exception& e) {
       const bool reference = k == 0;
-      code = std::max(code, report_failed_run(label, e, reference ? "the reference rung: ladder left out of "
-                                                                    "convergence.csv, its other rungs not run"
-                                                                  : "left out of convergence.csv"));
+      code = std::max(code, report_failed_run(label, e,
+                                              reference ? "the reference rung: ladder left out of "
+                                                          "convergence.csv, its other rungs not run"
+                                                        : "left out of convergence.csv"));
       if (reference) break;
     }
   }
@@ -105,10 +113,15 @@ int converge_command(const RunOptions& options) {
       ladder.configs.back().packing.reset();
       refuse_run_only_outputs(ladder.configs.back(), "converge");
     }
-  std::string csv = "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
-                    "temperature_l2_error_K,temperature_max_error_K,temperature_particles\n";
-  Chart chart{"error of the vaporised fraction against run time", "wall seconds",
-              "|v_v - v_v(finest)|", true, true, {}};
+  std::string csv =
+      "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
+      "temperature_l2_error_K,temperature_max_error_K,temperature_particles\n";
+  Chart chart{"error of the vaporised fraction against run time",
+              "wall seconds",
+              "|v_v - v_v(finest)|",
+              true,
+              true,
+              {}};
   int code = 0;
   for (Ladder& ladder : all) {
     code = std::max(code, run_ladder(ladder, options.quiet));
@@ -117,7 +130,8 @@ int converge_command(const RunOptions& options) {
     Series series{ladder.name, {}, {}};
     for (const Rung& rung : ladder.rungs) {
       const RunResult& r = rung.result;
-      const double vv_error = std::abs(r.figures.vaporized_fraction - ref.figures.vaporized_fraction);
+      const double vv_error =
+          std::abs(r.figures.vaporized_fraction - ref.figures.vaporized_fraction);
       const TemperatureError t = temperature_error(r, ref);
       std::ostringstream row;
       row << ladder.name << ',' << ladder.key << ',' << rung.value << ',' << exact(r.wall_seconds)
@@ -125,8 +139,9 @@ int converge_command(const RunOptions& options) {
           << exact(r.figures.vaporized_fraction) << ',' << exact(vv_error) << ',' << exact(t.l2)
           << ',' << exact(t.max) << ',' << t.compared << '\n';
       csv += row.str();
-      std::printf("%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %.3g K\n", ladder.name.c_str(),
-                  rung.value.c_str(), r.wall_seconds, r.figures.vaporized_fraction, vv_error, t.l2);
+      std::printf("%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %.3g K\n",
+                  ladder.name.c_str(), rung.value.c_str(), r.wall_seconds,
+                  r.figures.vaporized_fraction, vv_error, t.l2);
       std::fflush(stdout);
       if (&rung != &ladder.rungs.front()) {
         series.x.push_back(r.wall_seconds);
@@ -137,7 +152,8 @@ int converge_command(const RunOptions& options) {
   }
   const fs::path out(options.out_dir);
   write_atomically((out / "convergence.csv").string(), [&](std::ostream& o) { o << csv; });
-  write_atomically((out / "convergence.svg").string(), [&](std::ostream& o) { o << render_svg(chart); });
+  write_atomically((out / "convergence.svg").string(),
+                   [&](std::ostream& o) { o << render_svg(chart); });
   std::printf("converge: %s/convergence.csv, %s/convergence.svg\n", options.out_dir.c_str(),
               options.out_dir.c_str());
   return stop_requested().load() ? std::max(code, 1) : code;

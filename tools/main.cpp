@@ -18,12 +18,15 @@ using namespace beampack::tools;
 
 // An empty --preset would read as none given: the built-in defaults, silently.
 const CLI::Validator kNamed(
-    [](const std::string& s) { return s.empty() ? std::string("must name a preset (beampack presets)") : ""; },
+    [](const std::string& s) {
+  return s.empty() ? std::string("must name a preset (beampack presets)") : "";
+    },
     "NAME");
 
 void add_run_sources(CLI::App* cmd, RunOptions& o) {
   cmd->add_option("run_file", o.sources.file, "run file (TOML)")->check(CLI::ExistingFile);
-  cmd->add_option("--preset", o.sources.preset, "start from a named preset (beampack presets)")->check(kNamed);
+  cmd->add_option("--preset", o.sources.preset, "start from a named preset (beampack presets)")
+      ->check(kNamed);
   // One value per --set: a run file after it is not taken as a second assignment.
   cmd->add_option("--set", o.sources.sets, "override one key: --set material.conductivity=100")
       ->allow_extra_args(false);
@@ -37,7 +40,8 @@ bool unknown_command(const CLI::App& app, int argc, char** argv) {
     if (sub->get_name() == argv[1]) return false;
     names += (names.empty() ? "" : ", ") + sub->get_name();
   }
-  std::fprintf(stderr, "beampack: error: unknown command `%s` (commands: %s)\n", argv[1], names.c_str());
+  std::fprintf(stderr, "beampack: error: unknown command `%s` (commands: %s)\n", argv[1],
+               names.c_str());
   return true;
 }
 
@@ -110,8 +114,10 @@ int main(int argc, char** argv) {
   run_cmd->add_option("--out", run.out_dir, "output directory")->capture_default_str();
   run_cmd->add_option("--threads", run.threads, "worker threads (0: all cores)")->check(kThreads);
   run_cmd->add_flag("--quiet", run.quiet, "no progress line");
-  run_cmd->add_option("--checkpoint-every", run.checkpoint_every,
-                      "write DIR/checkpoint.bin every N pulses (atomically)")->check(CLI::Range(0, 1'000'000'000));
+  run_cmd
+      ->add_option("--checkpoint-every", run.checkpoint_every,
+                   "write DIR/checkpoint.bin every N pulses (atomically)")
+      ->check(CLI::Range(0, 1'000'000'000));
   run_cmd->add_option("--resume", run.resume, "continue the run whose checkpoint is in DIR")
       ->check(CLI::ExistingDirectory);
 
@@ -119,31 +125,39 @@ int main(int argc, char** argv) {
   add_run_sources(sweep_cmd, sweep.run);
   sweep_cmd->add_option("--param", sweep.param, "key to vary")->required();
   // Split by sweep_command itself, which refuses an empty value instead of dropping it.
-  sweep_cmd->add_option("--values", sweep.values, "comma-separated values, one argument: --values 0,10,100")
+  sweep_cmd
+      ->add_option("--values", sweep.values,
+                   "comma-separated values, one argument: --values 0,10,100")
       ->required()
       ->allow_extra_args(false)
       ->type_name("V1,V2,...");
   sweep_cmd->add_option("--out", sweep.run.out_dir, "output directory")->capture_default_str();
-  sweep_cmd->add_option("--threads", sweep.run.threads, "worker threads (0: all cores)")->check(kThreads);
+  sweep_cmd->add_option("--threads", sweep.run.threads, "worker threads (0: all cores)")
+      ->check(kThreads);
   sweep_cmd->add_flag("--quiet", sweep.run.quiet, "no progress line");
 
   RunOptions converge;
-  CLI::App* converge_cmd = app.add_subcommand("converge", "error against run time over resolution ladders");
+  CLI::App* converge_cmd =
+      app.add_subcommand("converge", "error against run time over resolution ladders");
   add_run_sources(converge_cmd, converge);
   converge_cmd->add_option("--out", converge.out_dir, "output directory")->capture_default_str();
-  converge_cmd->add_option("--threads", converge.threads, "worker threads (0: all cores)")->check(kThreads);
+  converge_cmd->add_option("--threads", converge.threads, "worker threads (0: all cores)")
+      ->check(kThreads);
   converge_cmd->add_flag("--quiet", converge.quiet, "no progress line");
 
-  CLI::App* validate_cmd = app.add_subcommand("validate", "run the analytic cases and print a table");
+  CLI::App* validate_cmd =
+      app.add_subcommand("validate", "run the analytic cases and print a table");
   validate_cmd->add_flag("--quiet", quiet_validate, "print failures only");
   bool stiff = false;
-  validate_cmd->add_flag("--stiff", stiff, "run the stability grid (K, dt, index, N, solver) instead");
+  validate_cmd->add_flag("--stiff", stiff,
+                         "run the stability grid (K, dt, index, N, solver) instead");
 
   app.add_subcommand("presets", "list the named presets");
   RunOptions config;
   CLI::App* config_cmd = app.add_subcommand("config", "print a complete run file");
   config_cmd->add_option("--preset", config.sources.preset, "preset to print")->check(kNamed);
-  config_cmd->add_option("run_file", config.sources.file, "run file to resolve")->check(CLI::ExistingFile);
+  config_cmd->add_option("run_file", config.sources.file, "run file to resolve")
+      ->check(CLI::ExistingFile);
   config_cmd->add_option("--set", config.sources.sets, "override one key")->allow_extra_args(false);
 
   if (unknown_command(app, argc, argv) || misread_arguments(app, argc, argv)) return 2;
@@ -161,7 +175,8 @@ int main(int argc, char** argv) {
     }
     if (sweep_cmd->parsed()) return exit_code(sweep_command(sweep));
     if (converge_cmd->parsed()) return exit_code(converge_command(converge));
-    if (validate_cmd->parsed()) return stiff ? run_stability_report(quiet_validate) : run_validate(quiet_validate);
+    if (validate_cmd->parsed())
+      return stiff ? run_stability_report(quiet_validate) : run_validate(quiet_validate);
     if (app.got_subcommand("presets")) return list_presets();
     if (config_cmd->parsed()) return print_config(config.sources);
   } catch (const beampack::InputError& e) {

@@ -78,7 +78,8 @@ std::size_t edit_distance(const std::string& a, const std::string& b) {
 std::vector<std::string> leaf_keys(const toml::table& table, const std::string& prefix) {
   std::vector<std::string> keys;
   for (const auto& [k, node] : table) {
-    const std::string key = prefix.empty() ? std::string(k.str()) : prefix + "." + std::string(k.str());
+    const std::string key =
+        prefix.empty() ? std::string(k.str()) : prefix + "." + std::string(k.str());
     if (const toml::table* sub = node.as_table()) {
       const auto inner = leaf_keys(*sub, key);
       keys.insert(keys.end(), inner.begin(), inner.end());
@@ -95,7 +96,8 @@ namespace {
 // (set_path): a value above it (`k.a = 2` over `k = 1` turns k into a table) and the keys under it
 // (`k = 1` over `k.a = 2`), so their origins go too: a message then names the layer whose value is
 // there now, not an older one that set the key before it was overridden.
-void set_origin(std::map<std::string, KeyOrigin>& origin, const std::string& key, const KeyOrigin& source) {
+void set_origin(std::map<std::string, KeyOrigin>& origin, const std::string& key,
+                const KeyOrigin& source) {
   for (std::size_t dot = key.find('.'); dot != std::string::npos; dot = key.find('.', dot + 1))
     origin.erase(key.substr(0, dot));
   const std::string below = key + ".";
@@ -144,7 +146,10 @@ void reject_invalid_utf8(std::string_view text, const std::string& source) {
       ++i;
       continue;
     }
-    const int extra = b >= 0xF0 && b <= 0xF4 ? 3 : b >= 0xE0 && b <= 0xEF ? 2 : b >= 0xC2 && b <= 0xDF ? 1 : -1;
+    const int extra = b >= 0xF0 && b <= 0xF4   ? 3
+                      : b >= 0xE0 && b <= 0xEF ? 2
+                      : b >= 0xC2 && b <= 0xDF ? 1
+                                               : -1;
     std::uint32_t cp = extra == 3 ? b & 0x07u : extra == 2 ? b & 0x0Fu : b & 0x1Fu;
     bool ok = extra > 0 && i + std::size_t(extra) < text.size();
     for (int k = 1; ok && k <= extra; ++k) {
@@ -169,7 +174,8 @@ std::uint32_t decode_utf8(std::string_view text, std::size_t& i) {
   const auto b = static_cast<unsigned char>(text[i]);
   const int extra = b >= 0xF0 ? 3 : b >= 0xE0 ? 2 : 1;
   std::uint32_t cp = b & (0x3Fu >> extra);
-  for (int k = 1; k <= extra; ++k) cp = (cp << 6) | (static_cast<unsigned char>(text[i + k]) & 0x3Fu);
+  for (int k = 1; k <= extra; ++k)
+    cp = (cp << 6) | (static_cast<unsigned char>(text[i + k]) & 0x3Fu);
   i += std::size_t(extra) + 1;
   return cp;
 }
@@ -190,19 +196,23 @@ std::string ascii_for_toml(std::string_view text, const std::string& source) {
   };
   auto refuse = [&](std::size_t i, const char* where) {
     std::string bytes;
-    for (std::size_t j = i; j < text.size() && j < i + 4 && static_cast<unsigned char>(text[j]) >= 0x80; ++j) {
+    for (std::size_t j = i;
+         j < text.size() && j < i + 4 && static_cast<unsigned char>(text[j]) >= 0x80; ++j) {
       char hex[8];
       std::snprintf(hex, sizeof hex, "\\x%02X", static_cast<unsigned char>(text[j]));
       bytes += hex;
     }
-    throw InputError(source + ":" + std::to_string(line) + ": unexpected character " + bytes + " " + where);
+    throw InputError(source + ":" + std::to_string(line) + ": unexpected character " + bytes + " " +
+                     where);
   };
   for (std::size_t i = 0; i < text.size();) {
     const char ch = text[i];
     if (static_cast<unsigned char>(ch) >= 0x80) {
       if (state == normal) refuse(i, "outside a string or comment (TOML allows only ASCII there)");
       if (state == literal || state == multi_literal)
-        refuse(i, "in a literal string: write it in a \"...\" string (beampack reads non-ASCII only there)");
+        refuse(i,
+               "in a literal string: write it in a \"...\" string (beampack reads non-ASCII only "
+               "there)");
       if (state == comment) {
         out += ch;
         ++i;
@@ -230,7 +240,8 @@ std::string ascii_for_toml(std::string_view text, const std::string& source) {
       case basic:
       case multi_basic:
         if (ch == '\\' && i + 1 < text.size()) {  // an escape: its next byte is taken as it is
-          if (static_cast<unsigned char>(text[i + 1]) >= 0x80) refuse(i + 1, "after a backslash (not an escape)");
+          if (static_cast<unsigned char>(text[i + 1]) >= 0x80)
+            refuse(i + 1, "after a backslash (not an escape)");
           line += text[i + 1] == '\n';
           out += text[++i];
         } else if (state == basic && (ch == '"' || ch == '\n')) {
@@ -269,7 +280,9 @@ int beyond_doubles(const std::string& token) {
   return std::isfinite(v) ? -1 : 1;
 }
 
-bool underflows(const std::string& token) { return beyond_doubles(token) < 0; }
+bool underflows(const std::string& token) {
+  return beyond_doubles(token) < 0;
+}
 
 // Every 0.0 of a parsed file whose written token underflowed is refused, with its line.
 void reject_underflow(const toml::node& node, const std::vector<std::string_view>& lines,
@@ -280,10 +293,13 @@ void reject_underflow(const toml::node& node, const std::vector<std::string_view
     for (const toml::node& child : *a) reject_underflow(child, lines, source);
   } else if (node.is_floating_point() && node.as_floating_point()->get() == 0.0) {
     const toml::source_position at = node.source().begin;
-    if (at.line == 0 || at.line > lines.size() || at.column == 0 || at.column > lines[at.line - 1].size()) return;
+    if (at.line == 0 || at.line > lines.size() || at.column == 0 ||
+        at.column > lines[at.line - 1].size())
+      return;
     const std::string_view line = lines[at.line - 1].substr(at.column - 1);
     const std::string token(line.substr(0, line.find_first_of(" \t,]}#")));
-    if (underflows(token)) throw InputError(source + ":" + std::to_string(at.line) + ": " + token + ": " + kUnderflow);
+    if (underflows(token))
+      throw InputError(source + ":" + std::to_string(at.line) + ": " + token + ": " + kUnderflow);
   }
 }
 
@@ -324,7 +340,9 @@ void Params::merge_toml_file(const std::string& path) {
   while (in.read(block.data(), block.size()) || in.gcount() > 0) {
     text.append(block.data(), static_cast<std::size_t>(in.gcount()));
     if (text.size() > kMaxRunFile)
-      throw InputError(path + ": the run file is over 16 MiB (a run file is a few kB; is this the packing file?)");
+      throw InputError(
+          path +
+          ": the run file is over 16 MiB (a run file is a few kB; is this the packing file?)");
   }
   if (in.bad()) throw InputError(path + ": read error");
   if (text.starts_with("\xEF\xBB\xBF")) text.erase(0, 3);  // a UTF-8 byte-order mark (some editors)
@@ -363,7 +381,9 @@ const toml::node* Params::find(const std::string& key) const {
   return merged_.at_path(key).node();
 }
 
-bool Params::has(const std::string& key) const { return find(key) != nullptr; }
+bool Params::has(const std::string& key) const {
+  return find(key) != nullptr;
+}
 
 // A key's own layer, or for a key given as a table (`conductivity = {a = 1}`) the earliest layer
 // of its entries: the one that made it a table (set_origin keeps only the layers whose values are
@@ -372,7 +392,8 @@ const KeyOrigin* Params::origin(const std::string& key) const {
   if (const auto it = origin_.find(key); it != origin_.end()) return &it->second;
   const std::string below = key + ".";
   const KeyOrigin* first = nullptr;
-  for (auto it = origin_.lower_bound(below); it != origin_.end() && it->first.starts_with(below); ++it)
+  for (auto it = origin_.lower_bound(below); it != origin_.end() && it->first.starts_with(below);
+       ++it)
     if (!first || it->second.layer < first->layer) first = &it->second;
   return first;
 }
@@ -432,8 +453,9 @@ std::string Params::path(const std::string& key) {
   const KeyOrigin* o = origin(key);
   if (v.empty() || std::filesystem::path(v).is_absolute()) return v;
   // Absolute in the resolved run file: `config` output and a checkpoint work from anywhere.
-  const std::filesystem::path folder =
-      o && !o->file.empty() ? std::filesystem::path(o->file).parent_path() : std::filesystem::path();
+  const std::filesystem::path folder = o && !o->file.empty()
+                                           ? std::filesystem::path(o->file).parent_path()
+                                           : std::filesystem::path();
   const std::string resolved = std::filesystem::absolute(folder / v).lexically_normal().string();
   record(key, toml::value<std::string>(resolved));
   return resolved;
@@ -450,21 +472,19 @@ void Params::record(const std::string& key, toml::node&& value) {
   set_path(resolved_, key, value);
 }
 
-void Params::fail(const std::string& key, const std::string& value, const std::string& limit) const {
+void Params::fail(const std::string& key, const std::string& value,
+                  const std::string& limit) const {
   throw InputError(where(key) + "`" + key + "` = " + value + ": " + limit);
 }
 
 double Params::number(const std::string& key, double fallback, double lo, double hi, bool lo_open) {
   double v = fallback;
   if (const toml::node* node = find(key)) {
-    if (node->is_integer())
-      v = double(node->as_integer()->get());
-    else if (node->is_floating_point())
-      v = node->as_floating_point()->get();
+    if (node->is_integer()) v = double(node->as_integer()->get());
+    else if (node->is_floating_point()) v = node->as_floating_point()->get();
     else if (node->is_string() && beyond_doubles(node->as_string()->get()) > 0)
       fail(key, repr(*node), "must be a finite number (|x| <= 1.8e308, the range of a double)");
-    else
-      fail(key, repr(*node), "must be a number");
+    else fail(key, repr(*node), "must be a number");
     if (!std::isfinite(v)) fail(key, repr(*node), "must be finite");
   }
   const bool below = lo_open ? !(v > lo) : !(v >= lo);
@@ -483,11 +503,13 @@ std::int64_t Params::integer(const std::string& key, std::int64_t fallback, std:
   std::int64_t v = fallback;
   if (const toml::node* node = find(key)) {
     if (!node->is_integer())
-      fail(key, repr(*node), "must be an integer >= " + std::to_string(lo) + " and <= " + std::to_string(hi));
+      fail(key, repr(*node),
+           "must be an integer >= " + std::to_string(lo) + " and <= " + std::to_string(hi));
     v = node->as_integer()->get();
   }
   if (v < lo || v > hi)
-    fail(key, std::to_string(v), "must be >= " + std::to_string(lo) + " and <= " + std::to_string(hi));
+    fail(key, std::to_string(v),
+         "must be >= " + std::to_string(lo) + " and <= " + std::to_string(hi));
   record(key, toml::value<std::int64_t>(v));
   number_defaults_[key] = double(fallback);
   return v;

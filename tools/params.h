@@ -4,8 +4,8 @@
 // file and line. Every message names the key, the value and the limit.
 #include <cstdint>
 #include <initializer_list>
-#include <map>
 #include <limits>
+#include <map>
 #include <set>
 #include <string>
 #include <vector>
@@ -69,8 +69,9 @@ class Params {
   // Returns the word, or "" and sets value. `unit` names the number's unit in the error message;
   // lo itself is allowed only when lo_open is false.
   std::string number_or_word(const std::string& key, double& value, double lo, double hi,
-                             std::initializer_list<const char*> words, const std::string& fallback_word,
-                             const std::string& unit = "seconds", bool lo_open = true);
+                             std::initializer_list<const char*> words,
+                             const std::string& fallback_word, const std::string& unit = "seconds",
+                             bool lo_open = true);
 
   // InputError for the first key present in the layers but never read.
   void check_all_used() const;

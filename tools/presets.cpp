@@ -54,8 +54,7 @@ phi = 1.0
 solver = "auto"
 dt = "pulse"
 )"},
-      {"quick",
-       "a seconds-long check: 200 random-overlap spheres, 200 rays, 5 pulses",
+      {"quick", "a seconds-long check: 200 random-overlap spheres, 200 rays, 5 pulses",
        R"([packing]
 count = 200
 seed = 7

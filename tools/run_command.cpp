@@ -6,16 +6,16 @@
 #include <chrono>
 #include <condition_variable>
 #include <csignal>
-#include <ctime>
-#include <cstdlib>
 #include <cstdio>
+#include <cstdlib>
+#include <ctime>
 #include <filesystem>
 #include <fstream>
-#include <optional>
-#include <regex>
 #include <memory>
 #include <mutex>
 #include <nlohmann/json.hpp>
+#include <optional>
+#include <regex>
 #include <sstream>
 #include <string_view>
 #include <thread>
@@ -78,9 +78,11 @@ void on_interrupt(int signal) {
   }
   stop_requested().store(true);
   if (setting_up.load()) return;  // the set-up ends at once; the main thread says so
-  static constexpr char kNote[] = "\nbeampack: stopping after the current step; interrupt again to quit at once\n";
+  static constexpr char kNote[] =
+      "\nbeampack: stopping after the current step; interrupt again to quit at once\n";
   static constexpr char kReading[] =
-      "\nbeampack: interrupted while the input is read: the run ends when the read does, before its "
+      "\nbeampack: interrupted while the input is read: the run ends when the read does, before "
+      "its "
       "set-up; interrupt again to quit at once\n";
   [[maybe_unused]] const auto written = reading_input.load()
                                             ? ::write(STDERR_FILENO, kReading, sizeof kReading - 1)
@@ -160,7 +162,9 @@ std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config, b
   return std::move(shared->sim);
 }
 
-void note_reading_input() { reading_input.store(true); }
+void note_reading_input() {
+  reading_input.store(true);
+}
 
 int exit_code(int code) {
   if (!set_up_left_running.load()) return code;
@@ -188,9 +192,11 @@ std::string share_note(std::uint64_t done, std::uint64_t all, const char* what) 
 // throughout a step) left out, if anything.
 std::string stage_note(std::string_view stage, const Counts& c) {
   if (stage == "heat")
-    return share_note(c.heat_rows_solved, c.heat_rows_live, "particle rows solved, the rest at rest");
+    return share_note(c.heat_rows_solved, c.heat_rows_live,
+                      "particle rows solved, the rest at rest");
   if (stage == "trace")
-    return share_note(c.ray_chunks_run, c.ray_chunks_live, "ray chunks traced, the rest in free flight");
+    return share_note(c.ray_chunks_run, c.ray_chunks_live,
+                      "ray chunks traced, the rest in free flight");
   return "";
 }
 
@@ -239,12 +245,15 @@ std::string figure_columns(const Figures& f) {
   std::ostringstream s;
   s << exact(f.vaporized_fraction) << ',' << exact(f.melted_fraction) << ','
     << (f.particles > 0 ? exact(f.max_temperature) : "") << ',' << exact(e.injected) << ','
-    << exact(e.absorbed) << ',' << exact(e.escaped) << ',' << exact(e.cutoff) << ',' << exact(e.stored) << ','
-    << exact(e.vaporized) << ',' << exact(e.walls) << ',' << exact(e.in_flight);
+    << exact(e.absorbed) << ',' << exact(e.escaped) << ',' << exact(e.cutoff) << ','
+    << exact(e.stored) << ',' << exact(e.vaporized) << ',' << exact(e.walls) << ','
+    << exact(e.in_flight);
   return s.str();
 }
 
-std::string history_header() { return std::string("time_s,pulse,") + kFigureColumns + "\n"; }
+std::string history_header() {
+  return std::string("time_s,pulse,") + kFigureColumns + "\n";
+}
 
 std::string history_row(const Figures& f) {
   return exact(f.time) + ',' + std::to_string(f.pulse) + ',' + figure_columns(f) + '\n';
@@ -269,20 +278,25 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
   nlohmann::json j;
   j["vaporized_fraction"] = f.vaporized_fraction;
   j["melted_fraction"] = f.melted_fraction;
-  j["max_temperature_K"] = f.particles > 0 ? nlohmann::json(f.max_temperature) : nlohmann::json(nullptr);
+  j["max_temperature_K"] =
+      f.particles > 0 ? nlohmann::json(f.max_temperature) : nlohmann::json(nullptr);
   j["time_s"] = f.time;
   j["pulses"] = f.pulse;
-  j["energy_J"] = {{"injected", e.injected}, {"absorbed", e.absorbed}, {"escaped", e.escaped},
-                   {"in_flight", e.in_flight},
-                   {"cutoff", e.cutoff},     {"stored", e.stored},     {"vaporized", e.vaporized},
-                   {"walls", e.walls}};
-  j["counts"] = {{"particles", r.counts.particles}, {"rays", r.counts.rays},
-                 {"segments", r.counts.segments},   {"primaries_reused", r.counts.primaries_reused},
+  j["energy_J"] = {{"injected", e.injected},   {"absorbed", e.absorbed}, {"escaped", e.escaped},
+                   {"in_flight", e.in_flight}, {"cutoff", e.cutoff},     {"stored", e.stored},
+                   {"vaporized", e.vaporized}, {"walls", e.walls}};
+  j["counts"] = {{"particles", r.counts.particles},
+                 {"rays", r.counts.rays},
+                 {"segments", r.counts.segments},
+                 {"primaries_reused", r.counts.primaries_reused},
                  {"steps", r.counts.steps},
-                 {"rebuilds", r.counts.rebuilds},   {"staggers", r.counts.staggers},
+                 {"rebuilds", r.counts.rebuilds},
+                 {"staggers", r.counts.staggers},
                  {"late_pulses", r.counts.late_pulses},
-                 {"heat_rows_solved", r.counts.heat_rows_solved}, {"heat_rows_live", r.counts.heat_rows_live},
-                 {"ray_chunks_run", r.counts.ray_chunks_run}, {"ray_chunks_live", r.counts.ray_chunks_live},
+                 {"heat_rows_solved", r.counts.heat_rows_solved},
+                 {"heat_rows_live", r.counts.heat_rows_live},
+                 {"ray_chunks_run", r.counts.ray_chunks_run},
+                 {"ray_chunks_live", r.counts.ray_chunks_live},
                  {"capped_phase_steps", r.counts.capped_phase_steps},
                  {"capped_stagger_steps", r.counts.capped_stagger_steps},
                  {"stagger_cycles", r.counts.stagger_cycles}};
@@ -291,7 +305,8 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
   const auto stage_times = sim.stages();
   for (int k = 0; k < Simulation::kStages; ++k) {
     const StageTime& s = stage_times[k];
-    stages[Simulation::kStageNames[k]] = {{"seconds", s.seconds}, {"calls", s.calls},
+    stages[Simulation::kStageNames[k]] = {{"seconds", s.seconds},
+                                          {"calls", s.calls},
                                           {"skipped", s.calls == 0},
                                           {"skipped_because", s.skipped_because}};
   }
@@ -332,8 +347,8 @@ void print_table(const Simulation& sim, const RunResult& r) {
                   static_cast<unsigned long long>(s.calls),
                   stage_note(Simulation::kStageNames[k], r.counts).c_str());
   }
-  std::printf("%-28s %14.3f s (%llu steps, %llu rays, %llu segments traced", "wall time", r.wall_seconds,
-              static_cast<unsigned long long>(r.counts.steps),
+  std::printf("%-28s %14.3f s (%llu steps, %llu rays, %llu segments traced", "wall time",
+              r.wall_seconds, static_cast<unsigned long long>(r.counts.steps),
               static_cast<unsigned long long>(r.counts.rays),
               static_cast<unsigned long long>(r.counts.segments));
   if (r.counts.primaries_reused > 0)
@@ -351,18 +366,22 @@ std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const 
   std::vector<std::string> out;
   char text[640];
   if (!(optics <= EnergyLedger::kOpticsTolerance)) {  // NaN included
-    std::snprintf(text, sizeof text, "the optics ledger is open by %.3g of the injected energy "
-                  "(round-off is ~1e-15): please report this run file", optics);
+    std::snprintf(text, sizeof text,
+                  "the optics ledger is open by %.3g of the injected energy "
+                  "(round-off is ~1e-15): please report this run file",
+                  optics);
     out.emplace_back(text);
   }
   if (!(heat <= heat_limit)) {
-    std::snprintf(text, sizeof text, "the heat ledger is open by %.3g of the absorbed energy (more "
-                  "than %.3g, from `thermal.tolerance` = %g). Every solver keeps each cluster's "
-                  "energy to round-off, so the likely cause is a step whose temperature rises are "
-                  "below ~1e-13 of the temperatures (a faint beam, large or dense particles, "
-                  "`thermal.time_scaling` near 1): doubles cannot hold them; raise "
-                  "`thermal.time_scaling` or the energy of a step. Otherwise please report this run file",
-                  heat, heat_limit, spec.thermal.tolerance);
+    std::snprintf(
+        text, sizeof text,
+        "the heat ledger is open by %.3g of the absorbed energy (more "
+        "than %.3g, from `thermal.tolerance` = %g). Every solver keeps each cluster's "
+        "energy to round-off, so the likely cause is a step whose temperature rises are "
+        "below ~1e-13 of the temperatures (a faint beam, large or dense particles, "
+        "`thermal.time_scaling` near 1): doubles cannot hold them; raise "
+        "`thermal.time_scaling` or the energy of a step. Otherwise please report this run file",
+        heat, heat_limit, spec.thermal.tolerance);
     out.emplace_back(text);
   }
   return out;
@@ -370,8 +389,8 @@ std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const 
 
 int report_failed_run(const std::string& label, const std::exception& e, const char* consequence) {
   const bool input = dynamic_cast<const InputError*>(&e) != nullptr;
-  std::fprintf(stderr, "beampack: %s%s %s (%s)\n", label.c_str(), input ? "error:" : "run failed:",
-               e.what(), consequence);
+  std::fprintf(stderr, "beampack: %s%s %s (%s)\n", label.c_str(),
+               input ? "error:" : "run failed:", e.what(), consequence);
   return input ? 2 : 1;
 }
 
@@ -402,7 +421,9 @@ OutDir::OutDir(const std::string& dir) {
   fs::remove(probe);
 }
 
-OutDir::~OutDir() { remove_empty_made(); }
+OutDir::~OutDir() {
+  remove_empty_made();
+}
 
 // Innermost first, and only while they are empty: a folder with results in it stays, and so do
 // the folders made on the way to it (`a` of `--out a/../b`), through which its path still leads.
@@ -464,7 +485,8 @@ std::string toml_text(const toml::table& table) {
 }
 
 // `wall_seconds`: the run's wall time so far, resumed runs included.
-void write_checkpoint(const fs::path& path, const Simulation& sim, const RunRecord& record, double wall_seconds) {
+void write_checkpoint(const fs::path& path, const Simulation& sim, const RunRecord& record,
+                      double wall_seconds) {
   StateWriter w;
   w.text(kCheckpointMagic);
   w.value(wall_seconds);
@@ -475,7 +497,8 @@ void write_checkpoint(const fs::path& path, const Simulation& sim, const RunReco
   for (const auto& [name, time] : record.frames) w.text(name), w.value(time);
   sim.write_state(w);
   const std::string bytes = w.finish();
-  write_atomically(path.string(), [&](std::ostream& o) { o.write(bytes.data(), std::streamsize(bytes.size())); });
+  write_atomically(path.string(),
+                   [&](std::ostream& o) { o.write(bytes.data(), std::streamsize(bytes.size())); });
 }
 
 StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
@@ -486,8 +509,8 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   StateReader r(std::move(bytes), path.string());
   const std::string magic = r.text();
   if (magic == "beampack-checkpoint" || magic == "beampack-checkpoint-2")
-    throw InputError(path.string() + ": a checkpoint of an earlier beampack (" + magic + "); this one reads " +
-                     kCheckpointMagic);
+    throw InputError(path.string() + ": a checkpoint of an earlier beampack (" + magic +
+                     "); this one reads " + kCheckpointMagic);
   if (magic != kCheckpointMagic) throw InputError(path.string() + ": not a beampack checkpoint");
   record.earlier_seconds = r.value<double>();
   record.checkpoint_every = r.value<int>();
@@ -510,11 +533,12 @@ void warn_of_many_steps(const SimulationSpec& spec) {
   // starts after (count - 1) x period / dt steps.
   const double periods = spec.dt > 0 ? (spec.pulses.count - 1) * spec.pulses.period / spec.dt : 0.0;
   if (periods >= 1e7)
-    std::fprintf(stderr,
-                 "beampack: warning: `pulses.count` = %d pulses of `pulses.period` = %g s in steps of "
-                 "`thermal.dt` = %g s: %.3g steps at least; a longer thermal.dt cools between pulses in "
-                 "fewer steps\n",
-                 spec.pulses.count, spec.pulses.period, spec.dt, periods);
+    std::fprintf(
+        stderr,
+        "beampack: warning: `pulses.count` = %d pulses of `pulses.period` = %g s in steps of "
+        "`thermal.dt` = %g s: %.3g steps at least; a longer thermal.dt cools between pulses in "
+        "fewer steps\n",
+        spec.pulses.count, spec.pulses.period, spec.dt, periods);
   const double steps = steps_per_crossing(spec);
   if (steps < 1e6) return;
   const double crossing = spec.packing.sample_size / kSpeedOfLight;
@@ -529,52 +553,60 @@ void warn_of_many_steps(const SimulationSpec& spec) {
 // what a run that names walls usually wants.
 void warn_if_walls_take_no_heat(const SimulationSpec& spec) {
   const auto& walls = spec.thermal.walls;
-  if (walls.empty() || walls.front().conductance >= 0 || spec.materials.front().conductivity > 0) return;
-  std::fprintf(stderr, "beampack: warning: `thermal.walls` with `thermal.wall_conductance` = -1 (pi K R) "
-                       "and `material.conductivity` = 0: the walls take no heat; give "
-                       "thermal.wall_conductance in W/K for walls that do\n");
+  if (walls.empty() || walls.front().conductance >= 0 || spec.materials.front().conductivity > 0)
+    return;
+  std::fprintf(stderr,
+               "beampack: warning: `thermal.walls` with `thermal.wall_conductance` = -1 (pi K R) "
+               "and `material.conductivity` = 0: the walls take no heat; give "
+               "thermal.wall_conductance in W/K for walls that do\n");
 }
 
 // The latent-heat corrector re-solves a step at most a few times (section 4); one that still
 // found a new band at its last pass left that band's latent heat out.
 void warn_of_capped_phase_steps(const SimulationSpec& spec, const Counts& counts) {
   if (counts.capped_phase_steps == 0) return;
-  std::fprintf(stderr,
-               "beampack: warning: %llu heat steps stopped the latent-heat correction at its cap of %d "
-               "passes while a particle still crossed a new band (theta_m or theta_v): that band's "
-               "latent heat is missing from the step; a shorter `thermal.dt` crosses fewer bands per step\n",
-               static_cast<unsigned long long>(counts.capped_phase_steps), spec.thermal.max_phase_corrections);
+  std::fprintf(
+      stderr,
+      "beampack: warning: %llu heat steps stopped the latent-heat correction at its cap of %d "
+      "passes while a particle still crossed a new band (theta_m or theta_v): that band's "
+      "latent heat is missing from the step; a shorter `thermal.dt` crosses fewer bands per step\n",
+      static_cast<unsigned long long>(counts.capped_phase_steps),
+      spec.thermal.max_phase_corrections);
 }
 
 // The stagger redoes a step while a phase change alters the optics of a particle the rays met; in
 // some steps the phases never settle (MODEL.md section 5, step 4).
 void warn_of_unsettled_staggers(const SimulationSpec& spec, const Counts& counts) {
   if (counts.capped_stagger_steps > 0)
-    std::fprintf(stderr,
-                 "beampack: warning: %llu steps reached `thermal.max_staggers` = %d redos with the optics "
-                 "still changing: their result is the last redo's and depends on the cap; raise it or "
-                 "shorten `thermal.dt`\n",
-                 static_cast<unsigned long long>(counts.capped_stagger_steps), spec.max_staggers);
+    std::fprintf(
+        stderr,
+        "beampack: warning: %llu steps reached `thermal.max_staggers` = %d redos with the optics "
+        "still changing: their result is the last redo's and depends on the cap; raise it or "
+        "shorten `thermal.dt`\n",
+        static_cast<unsigned long long>(counts.capped_stagger_steps), spec.max_staggers);
   if (counts.stagger_cycles > 0)
-    std::fprintf(stderr,
-                 "beampack: warning: in %llu steps the stagger's redos alternated between two sets of "
-                 "phases (a particle melts when traced solid and does not when traced liquid, or the like): "
-                 "each such step keeps the second pass of the cycle; a shorter `thermal.dt` splits the "
-                 "melting over steps\n",
-                 static_cast<unsigned long long>(counts.stagger_cycles));
+    std::fprintf(
+        stderr,
+        "beampack: warning: in %llu steps the stagger's redos alternated between two sets of "
+        "phases (a particle melts when traced solid and does not when traced liquid, or the like): "
+        "each such step keeps the second pass of the cycle; a shorter `thermal.dt` splits the "
+        "melting over steps\n",
+        static_cast<unsigned long long>(counts.stagger_cycles));
 }
 
 // Pulses start at step boundaries: a pulses.period shorter than a step delays them.
 void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts) {
   if (counts.late_pulses == 0) return;
-  std::fprintf(stderr,
-               "beampack: warning: %llu of %d pulses started more than 1%% of `pulses.period` = %g s "
-               "after k x period (up to %g s late): a pulse starts at a step boundary, and %s; use a "
-               "fixed `thermal.dt` that divides the period\n",
-               static_cast<unsigned long long>(counts.late_pulses), spec.pulses.count,
-               spec.pulses.period, counts.max_pulse_delay,
-               spec.dt > 0 ? "`thermal.dt` does not divide the period"
-                           : "with `thermal.dt` = \"pulse\" a step is a whole pulse flight, longer than the period");
+  std::fprintf(
+      stderr,
+      "beampack: warning: %llu of %d pulses started more than 1%% of `pulses.period` = %g s "
+      "after k x period (up to %g s late): a pulse starts at a step boundary, and %s; use a "
+      "fixed `thermal.dt` that divides the period\n",
+      static_cast<unsigned long long>(counts.late_pulses), spec.pulses.count, spec.pulses.period,
+      counts.max_pulse_delay,
+      spec.dt > 0
+          ? "`thermal.dt` does not divide the period"
+          : "with `thermal.dt` = \"pulse\" a step is a whole pulse flight, longer than the period");
 }
 
 // A wall within whose reach no particle lies takes no heat: legal, but not what naming it asks.
@@ -584,10 +616,11 @@ void warn_of_walls_touching_nothing(const Simulation& sim) {
     std::size_t touching = 0;
     for (std::size_t i = 0; i < p.size(); ++i) touching += touches(w, p, i);
     if (touching > 0 || p.size() == 0) continue;
-    std::fprintf(stderr,
-                 "beampack: warning: the wall %c%c (`thermal.walls`) touches no particle: none lies within "
-                 "`thermal.wall_reach` = %g m of it, so it takes no heat\n",
-                 "xyz"[w.axis], w.position > 0 ? '+' : '-', w.reach);
+    std::fprintf(
+        stderr,
+        "beampack: warning: the wall %c%c (`thermal.walls`) touches no particle: none lies within "
+        "`thermal.wall_reach` = %g m of it, so it takes no heat\n",
+        "xyz"[w.axis], w.position > 0 ? '+' : '-', w.reach);
   }
 }
 
@@ -619,10 +652,11 @@ void warn_if_time_stands_still(const Simulation& sim) {
   const Particles& p = sim.particles();
   if (spec.dt > 0 || spec.pulses.period > 0 || spec.pulses.count == 0) return;
   if (p.alive_count() > 0) return;
-  std::fprintf(stderr,
-               "beampack: warning: no particles: every ray escapes at once, so with `pulses.period` = "
-               "\"auto\" and `thermal.dt` = \"pulse\" no step has a length and time stays 0; set "
-               "`pulses.period` (s) or `thermal.dt` (s) for a time axis\n");
+  std::fprintf(
+      stderr,
+      "beampack: warning: no particles: every ray escapes at once, so with `pulses.period` = "
+      "\"auto\" and `thermal.dt` = \"pulse\" no step has a length and time stays 0; set "
+      "`pulses.period` (s) or `thermal.dt` (s) for a time axis\n");
 }
 
 // The first `bytes` of a regular file; "" for anything else (a FIFO would block the open).
@@ -652,9 +686,12 @@ std::string pulse_file(const char* stem, int pulse) {
 // ray paths (a killed run leaves only those), or its summary.json (the figures and the
 // configuration). Files of beampack's names in a folder without any of them are the user's own.
 bool holds_earlier_run(const fs::path& dir) {
-  if (head_of(dir / "checkpoint.bin", 64).find("beampack-checkpoint") != std::string::npos) return true;
-  if (head_of(dir / "particles.pvd", 4096).find("file=\"particles_0") != std::string::npos) return true;
-  if (head_of(dir / "rays_0000.vtp", 256).find("<!-- written by beampack -->") != std::string::npos) return true;
+  if (head_of(dir / "checkpoint.bin", 64).find("beampack-checkpoint") != std::string::npos)
+    return true;
+  if (head_of(dir / "particles.pvd", 4096).find("file=\"particles_0") != std::string::npos)
+    return true;
+  if (head_of(dir / "rays_0000.vtp", 256).find("<!-- written by beampack -->") != std::string::npos)
+    return true;
   const nlohmann::json j = summary_in(dir);
   return j.is_object() && j.contains("vaporized_fraction") && j.contains("config");
 }
@@ -670,7 +707,8 @@ bool is_output_name(const fs::path& file) {
 // A run file or packing file where the run writes an output would be overwritten (or removed
 // as an earlier run's) before the run has read it, or after: refused. Compared as files, so a
 // symlink or hard link to an output is caught too.
-void refuse_outputs_over_inputs(const fs::path& dir, const std::vector<std::pair<std::string, std::string>>& inputs) {
+void refuse_outputs_over_inputs(const fs::path& dir,
+                                const std::vector<std::pair<std::string, std::string>>& inputs) {
   for (const auto& [key, path] : inputs) {
     if (path.empty()) continue;
     for (const fs::directory_entry& e : fs::directory_iterator(dir)) {
@@ -692,12 +730,15 @@ void remove_earlier_run(const fs::path& dir) {
   for (const fs::directory_entry& e : fs::directory_iterator(dir)) {
     // A temporary file of a write (NAME.tmp.PID) is a killed run's, with or without a marker.
     const bool temporary = e.path().filename().string().find(".tmp.") != std::string::npos;
-    if (e.is_regular_file() && is_output_name(e.path()) && (earlier_run || temporary)) earlier.push_back(e.path());
+    if (e.is_regular_file() && is_output_name(e.path()) && (earlier_run || temporary))
+      earlier.push_back(e.path());
   }
   for (const fs::path& f : earlier) fs::remove(f);
   if (!earlier.empty())
-    std::fprintf(stderr, "beampack: note: removed %zu files of an earlier run from %s "
-                         "(results, checkpoint.bin, frames)\n", earlier.size(), dir.c_str());
+    std::fprintf(stderr,
+                 "beampack: note: removed %zu files of an earlier run from %s "
+                 "(results, checkpoint.bin, frames)\n",
+                 earlier.size(), dir.c_str());
 }
 
 // `--resume DIR` into DIR whose run finished: nothing is left to run. A checkpoint there is a
@@ -708,7 +749,8 @@ void refuse_to_resume_a_finished_run(const fs::path& dir) {
       j.contains("failed"))
     return;  // a failed run's periodic checkpoint may be resumed (a disk that was full)
   throw InputError("--resume " + dir.string() + ": the run there finished (summary.json, " +
-                   j.value("pulses", nlohmann::json(0)).dump() + " pulses): nothing to resume; to run it " +
+                   j.value("pulses", nlohmann::json(0)).dump() +
+                   " pulses): nothing to resume; to run it " +
                    "again from its last periodic checkpoint, give --out another folder");
 }
 
@@ -719,7 +761,8 @@ void carry_earlier_files(const fs::path& from, const fs::path& to, const RunReco
                          const OutputSpec& output, int pulses_ended) {
   auto carry = [&](const std::string& name) {
     std::error_code ec;
-    if (fs::is_regular_file(from / name, ec)) fs::copy_file(from / name, to / name, fs::copy_options::overwrite_existing);
+    if (fs::is_regular_file(from / name, ec))
+      fs::copy_file(from / name, to / name, fs::copy_options::overwrite_existing);
   };
   for (const auto& [name, time] : record.frames) carry(name);
   for (int k = 0; output.rays && k < pulses_ended; ++k) carry(pulse_file("rays", k));
@@ -759,30 +802,36 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
 
 int run_command(const RunOptions& options) {
   note_reading_input();
-  if (!options.resume.empty() && (!options.sources.file.empty() || !options.sources.preset.empty() ||
-                                  !options.sources.sets.empty()))
+  if (!options.resume.empty() && (!options.sources.file.empty() ||
+                                  !options.sources.preset.empty() || !options.sources.sets.empty()))
     throw InputError("--resume " + options.resume +
                      ": the checkpoint holds its run file; give no run file, --preset or --set");
   RunRecord record;
   std::optional<StateReader> saved;
   RunSources sources = options.sources;
-  const std::string out_dir = options.resume.empty() || options.out_set ? options.out_dir : options.resume;
+  const std::string out_dir =
+      options.resume.empty() || options.out_set ? options.out_dir : options.resume;
   std::error_code same_ec;
-  const bool into_checkpoint_folder = !options.resume.empty() && fs::equivalent(out_dir, options.resume, same_ec);
+  const bool into_checkpoint_folder =
+      !options.resume.empty() && fs::equivalent(out_dir, options.resume, same_ec);
   if (into_checkpoint_folder) refuse_to_resume_a_finished_run(options.resume);
   if (!options.resume.empty()) {
     saved.emplace(open_checkpoint(fs::path(options.resume) / "checkpoint.bin", record));
     sources.text = record.config_text;
-    sources.saved_packing = [&saved](const SimulationSpec& spec) { return Simulation::saved_packing(*saved, spec); };
+    sources.saved_packing = [&saved](const SimulationSpec& spec) {
+      return Simulation::saved_packing(*saved, spec);
+    };
   }
   RunConfig config = load_run_config(sources);
   warn_of_ignored_keys({&config});
   warn_of_many_steps(config.sim);
   warn_if_walls_take_no_heat(config.sim);
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
-  if (options.resume.empty() || options.checkpoint_set) record.checkpoint_every = options.checkpoint_every;
+  if (options.resume.empty() || options.checkpoint_set)
+    record.checkpoint_every = options.checkpoint_every;
   const OutDir out_folder(out_dir);
-  refuse_outputs_over_inputs(out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});
+  refuse_outputs_over_inputs(
+      out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
   const std::unique_ptr<Simulation> owned = set_up_unless_interrupted(config, options.quiet);
@@ -799,7 +848,8 @@ int run_command(const RunOptions& options) {
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
   if (!into_checkpoint_folder) remove_earlier_run(out_dir);
   if (saved && !into_checkpoint_folder)
-    carry_earlier_files(options.resume, out_dir, record, config.output, std::max(sim.figures().pulse - 1, 0));
+    carry_earlier_files(options.resume, out_dir, record, config.output,
+                        std::max(sim.figures().pulse - 1, 0));
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);
   bool checkpoint_due = false;
@@ -823,7 +873,8 @@ int run_command(const RunOptions& options) {
       sim.step();
       // Between steps, never inside one: a resume continues with exactly the next step.
       if (checkpoint_due && !sim.done())
-        write_checkpoint(out / "checkpoint.bin", sim, record, record.earlier_seconds + seconds_since(start));
+        write_checkpoint(out / "checkpoint.bin", sim, record,
+                         record.earlier_seconds + seconds_since(start));
       checkpoint_due = false;
       progress.update(sim);
     }
@@ -854,9 +905,10 @@ int run_command(const RunOptions& options) {
   for (const std::string& warning : open_ledger_warnings(config.sim, r.figures.energy))
     std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
   if (r.interrupted) {
-    const std::string where = r.figures.pulse > 0 ? "in pulse " + std::to_string(r.figures.pulse) + " of " +
-                                                        std::to_string(config.sim.pulses.count)
-                                                  : std::string("before the first pulse");
+    const std::string where = r.figures.pulse > 0
+                                  ? "in pulse " + std::to_string(r.figures.pulse) + " of " +
+                                        std::to_string(config.sim.pulses.count)
+                                  : std::string("before the first pulse");
     std::fprintf(stderr,
                  "beampack: interrupted at t = %.6g s %s; outputs in %s hold that state "
                  "(history.csv: the pulses before it); continue with: beampack run --resume %s\n",
@@ -908,13 +960,15 @@ std::vector<std::string> sweep_values(const SweepOptions& options) {
   for (std::string v : items) {
     v.erase(0, v.find_first_not_of(" \t"));
     v.erase(v.find_last_not_of(" \t") + 1);
-    if (v.empty()) throw InputError("--values: value " + std::to_string(values.size() + 1) + " is empty");
+    if (v.empty())
+      throw InputError("--values: value " + std::to_string(values.size() + 1) + " is empty");
     values.push_back(v);
   }
   if (values.empty()) throw InputError("--values: give at least one value");
   for (const std::string& s : options.run.sources.sets)
     if (assigned_key(s) == options.param)
-      throw InputError("--set " + s + ": `" + options.param + "` is the swept --param; its values come from --values");
+      throw InputError("--set " + s + ": `" + options.param +
+                       "` is the swept --param; its values come from --values");
   return values;
 }
 
@@ -930,7 +984,8 @@ int sweep_command(const SweepOptions& options) {
     sources.swept = options.param + "=" + value;
     sources.swept_origin = "--param " + options.param + " --values " + value;
     configs.push_back(load_run_config(sources));
-    configs.back().packing.reset();  // each value reads its packing when it runs: one copy at a time
+    configs.back()
+        .packing.reset();  // each value reads its packing when it runs: one copy at a time
     refuse_run_only_outputs(configs.back(), "sweep");
   }
   std::vector<const RunConfig*> resolved;
@@ -960,8 +1015,10 @@ int sweep_command(const SweepOptions& options) {
       continue;
     }
     if (r.interrupted) {
-      std::fprintf(stderr, "beampack: sweep interrupted during %s = %s: that value and the rest "
-                           "are not in sweep.csv\n", options.param.c_str(), values[k].c_str());
+      std::fprintf(stderr,
+                   "beampack: sweep interrupted during %s = %s: that value and the rest "
+                   "are not in sweep.csv\n",
+                   options.param.c_str(), values[k].c_str());
       break;
     }
     const Figures& f = r.figures;
@@ -969,15 +1026,20 @@ int sweep_command(const SweepOptions& options) {
            exact(r.wall_seconds) + '\n';
     vv.x.push_back(named ? double(k) : xs[k]);
     vv.y.push_back(f.vaporized_fraction);
-    std::printf("%-24s %s = %-10s v_v = %.4f  melted = %.4f  T_max = %s  (%.2f s)\n",
-                "sweep", options.param.c_str(), values[k].c_str(), f.vaporized_fraction,
-                f.melted_fraction, peak_text(f, "%.0f K").c_str(), r.wall_seconds);
+    std::printf("%-24s %s = %-10s v_v = %.4f  melted = %.4f  T_max = %s  (%.2f s)\n", "sweep",
+                options.param.c_str(), values[k].c_str(), f.vaporized_fraction, f.melted_fraction,
+                peak_text(f, "%.0f K").c_str(), r.wall_seconds);
     std::fflush(stdout);
   }
   const fs::path out(options.run.out_dir);
   write_atomically((out / "sweep.csv").string(), [&](std::ostream& o) { o << csv; });
-  Chart chart{"vaporized fraction against " + options.param, options.param, "vaporized fraction",
-              false, false, {vv}, named ? values : std::vector<std::string>{}};
+  Chart chart{"vaporized fraction against " + options.param,
+              options.param,
+              "vaporized fraction",
+              false,
+              false,
+              {vv},
+              named ? values : std::vector<std::string>{}};
   write_atomically((out / "sweep.svg").string(), [&](std::ostream& o) { o << render_svg(chart); });
   const double total = seconds_since(start);
   std::printf("sweep: %zu runs in %.2f s; %s/sweep.csv, %s/sweep.svg\n", vv.x.size(), total,

@@ -16,12 +16,13 @@ namespace beampack::tools {
 struct RunOptions {
   RunSources sources;
   std::string out_dir = "beampack-out";
-  int threads = 0;     // 0: all cores
+  int threads = 0;  // 0: all cores
   bool quiet = false;
   int checkpoint_every = 0;  // pulses between checkpoints (0: none; Ctrl-C always writes one)
-  bool checkpoint_set = false;  // --checkpoint-every given (a resume otherwise keeps the checkpoint's)
-  std::string resume;        // directory holding checkpoint.bin
-  bool out_set = false;      // --out given (a resume otherwise writes into its own directory)
+  bool checkpoint_set =
+      false;             // --checkpoint-every given (a resume otherwise keeps the checkpoint's)
+  std::string resume;    // directory holding checkpoint.bin
+  bool out_set = false;  // --out given (a resume otherwise writes into its own directory)
 };
 
 // The flag Ctrl-C sets: runs stop after the current step and write what they have.
@@ -69,7 +70,8 @@ struct RunResult {
 // folder is left behind.
 class OutDir {
  public:
-  explicit OutDir(const std::string& dir);  // InputError naming --out when not creatable or writable
+  explicit OutDir(
+      const std::string& dir);  // InputError naming --out when not creatable or writable
   ~OutDir();
   OutDir(const OutDir&) = delete;
   OutDir& operator=(const OutDir&) = delete;

@@ -44,32 +44,49 @@ struct Cap {
   double limit;
   const char* why;  // unit and reason, after "must be <= limit"
 };
-constexpr Cap kConductivity{1e20, "W/(m K) (5e16 times diamond's; far larger ones overflow the conductances and the "
-                                  "heat flows)"};
-constexpr Cap kWallConductance{1e20, "W/K per particle (far larger ones overflow the heat flows from the walls)"};
-constexpr Cap kHeatCapacity{1e12, "J/(kg K) (2e8 times water's; beyond it a step's warming is lost to the "
-                                  "temperatures' round-off: the heat ledger opens, and far beyond it books energies "
-                                  "the beam never gave)"};
-constexpr Cap kLatentHeat{1e12, "J/kg (4e5 times water's heat of vaporisation; beyond it a step's warming is "
-                                "lost to the temperatures' round-off: the heat ledger opens, and far beyond it books "
-                                "energies the beam never gave)"};
-constexpr Cap kTemperature{1e12, "K (hotter than any solid or liquid; far higher ones overflow the heat flows, "
-                                 "conductance times temperature difference)"};
-constexpr Cap kPower{1e20, "W (1e5 times the most powerful lasers'; far beyond it the pulse energy with "
-                           "pulses.duration, or the temperatures it gives, overflows)"};
-constexpr Cap kDuration{1e12, "s (30,000 years; far longer pulses overflow their energy and the temperatures it "
-                              "gives)"};
+constexpr Cap kConductivity{
+    1e20,
+    "W/(m K) (5e16 times diamond's; far larger ones overflow the conductances and the "
+    "heat flows)"};
+constexpr Cap kWallConductance{
+    1e20, "W/K per particle (far larger ones overflow the heat flows from the walls)"};
+constexpr Cap kHeatCapacity{
+    1e12,
+    "J/(kg K) (2e8 times water's; beyond it a step's warming is lost to the "
+    "temperatures' round-off: the heat ledger opens, and far beyond it books energies "
+    "the beam never gave)"};
+constexpr Cap kLatentHeat{
+    1e12,
+    "J/kg (4e5 times water's heat of vaporisation; beyond it a step's warming is "
+    "lost to the temperatures' round-off: the heat ledger opens, and far beyond it books "
+    "energies the beam never gave)"};
+constexpr Cap kTemperature{
+    1e12,
+    "K (hotter than any solid or liquid; far higher ones overflow the heat flows, "
+    "conductance times temperature difference)"};
+constexpr Cap kPower{1e20,
+                     "W (1e5 times the most powerful lasers'; far beyond it the pulse energy with "
+                     "pulses.duration, or the temperatures it gives, overflows)"};
+constexpr Cap kDuration{
+    1e12,
+    "s (30,000 years; far longer pulses overflow their energy and the temperatures it "
+    "gives)"};
 // thermal.dt, and pulses.period: with thermal.dt = "pulse" the wait for the next pulse is one step.
-constexpr Cap kStep{1e12, "s (30,000 years; far longer steps overflow their heat flows, time step times "
-                          "conductance times temperature)"};
+constexpr Cap kStep{1e12,
+                    "s (30,000 years; far longer steps overflow their heat flows, time step times "
+                    "conductance times temperature)"};
 // Density multiplies the thermal mass rho V C as the heat capacities do, and M divides it (MODEL.md
 // section 4): the quick preset's heat ledger closed to 7e-8 at rho = 1e12, 7e-7 at 1e13, and was
 // open by 1.6e-4 at 1e15 (at 1e20 it booked none of the absorbed energy as stored); at M = 1e12 its
 // peak temperature was 1.2e8 K, and it grows as M: 1.2e286 K at M = 1e290, without a word.
-constexpr Cap kDensity{1e12, "kg/m^3 (4e7 times osmium's; beyond it a step's warming is lost to the temperatures' "
-                             "round-off: the heat ledger opens)"};
-constexpr Cap kTimeScaling{1e12, "(1e6 times the paper's M = 1e6; M multiplies every temperature rise, and far "
-                                 "beyond it they overflow)"};
+constexpr Cap kDensity{
+    1e12,
+    "kg/m^3 (4e7 times osmium's; beyond it a step's warming is lost to the temperatures' "
+    "round-off: the heat ledger opens)"};
+constexpr Cap kTimeScaling{
+    1e12,
+    "(1e6 times the paper's M = 1e6; M multiplies every temperature rise, and far "
+    "beyond it they overflow)"};
 // packing.radius: the limit of every particle's radius (geometry/packing.h); from 1e3 m the heat
 // ledger opens already (a warning says so).
 constexpr Cap kFileRadius{kMaxParticleRadius, kMaxParticleRadiusWhy};
@@ -80,7 +97,8 @@ double capped(const Params& p, const std::string& key, double value, const Cap& 
   if (!(value > cap.limit)) return value;
   std::array<char, 32> shown;
   const auto end = std::to_chars(shown.data(), shown.data() + shown.size(), value).ptr;
-  p.fail(key, std::string(shown.data(), end), "must be <= " + number_text(cap.limit) + " " + cap.why);
+  p.fail(key, std::string(shown.data(), end),
+         "must be <= " + number_text(cap.limit) + " " + cap.why);
 }
 
 double number_up_to(Params& p, const std::string& key, double fallback, double lo, const Cap& cap,
@@ -93,7 +111,8 @@ double number_up_to(Params& p, const std::string& key, double fallback, double l
 void read_packing(Params& p, PackingSpec& s) {
   // Embree's boxes are floats: far below 1e-12 m their corners underflow and every ray escapes.
   s.sample_size = p.number("sample.size", 1e-3, 1e-12, 1e6);
-  s.source = p.choice("packing.source", "random-overlap", {"random-overlap", "rsa", "lattice", "file"});
+  s.source =
+      p.choice("packing.source", "random-overlap", {"random-overlap", "rsa", "lattice", "file"});
   s.count = std::size_t(p.integer("packing.count", 1000, 0, 100'000'000));
   s.radius_ratio = p.number("packing.radius_ratio", 0.325, 0, 10, true);
   s.solid_fraction = p.number("packing.solid_fraction", 0.3, 0, 0.5, true);
@@ -106,9 +125,11 @@ void read_packing(Params& p, PackingSpec& s) {
   s.file = p.path("packing.file");
   s.file_radius = number_up_to(p, "packing.radius", 0.0, 0, kFileRadius);
   if (s.source != "file" && !s.file.empty())  // it would be read by nobody
-    p.fail("packing.file", "\"" + s.file + "\"", "needs packing.source = \"file\" (it is \"" + s.source + "\")");
+    p.fail("packing.file", "\"" + s.file + "\"",
+           "needs packing.source = \"file\" (it is \"" + s.source + "\")");
   if (s.source != "file" && s.file_radius != 0.0)
-    p.fail("packing.radius", number_text(s.file_radius), "applies to packing.source = \"file\" only");
+    p.fail("packing.radius", number_text(s.file_radius),
+           "applies to packing.source = \"file\" only");
   if (s.source == "file" && s.file.empty())
     p.fail("packing.file", "\"\"", "required with packing.source = \"file\"");
 }
@@ -139,16 +160,19 @@ void read_optics(Params& p, OpticsSpec& o) {
   // An index of 1e6 is a mirror to 1e-6 already; far beyond, the Fresnel terms overflow.
   constexpr double kIndex = 1e6;
   MaterialOptics m;
-  m.n_solid = {p.number("optics.n_solid", 1.4, 0, kIndex, true), p.number("optics.k_solid", 0.0, 0, kIndex)};
-  m.n_liquid = {p.number("optics.n_liquid", 1.0, 0, kIndex, true), p.number("optics.k_liquid", 0.0, 0, kIndex)};
+  m.n_solid = {p.number("optics.n_solid", 1.4, 0, kIndex, true),
+               p.number("optics.k_solid", 0.0, 0, kIndex)};
+  m.n_liquid = {p.number("optics.n_liquid", 1.0, 0, kIndex, true),
+                p.number("optics.k_liquid", 0.0, 0, kIndex)};
   m.mu_hat = p.number("optics.mu_hat", 1.0, 1e-100, 1e100);
   o.materials = {m};
   o.cutoff = p.number("optics.cutoff", 1e-10, 0, 1);
-  if (o.cutoff == 1.0) p.fail("optics.cutoff", "1", "must be < 1 (a ray would end before its first hit)");
+  if (o.cutoff == 1.0)
+    p.fail("optics.cutoff", "1", "must be < 1 (a ray would end before its first hit)");
   o.max_bounces = int(p.integer("optics.max_bounces", 1000, 1, 1'000'000));
   double degrees = 0.0;
-  const std::string word =
-      p.number_or_word("optics.polarisation", degrees, 0, 180, {"unpolarised"}, "unpolarised", "degrees", false);
+  const std::string word = p.number_or_word("optics.polarisation", degrees, 0, 180, {"unpolarised"},
+                                            "unpolarised", "degrees", false);
   o.polarisation = {word.empty(), degrees * std::numbers::pi / 180.0};
   o.packets = p.flag("optics.packets", true);
 }
@@ -170,7 +194,8 @@ void read_material(Params& p, Material& m) {
 // a particle within thermal.wall_reach of a face (surface to face) exchanges heat with it.
 std::vector<Wall> read_walls(Params& p, double size) {
   const std::string faces = p.text("thermal.walls", "");
-  const double temperature = number_up_to(p, "thermal.wall_temperature", 300, 0, kTemperature, true);
+  const double temperature =
+      number_up_to(p, "thermal.wall_temperature", 300, 0, kTemperature, true);
   const double reach = p.number("thermal.wall_reach", 0, 0, kBig);
   const double conductance = number_up_to(p, "thermal.wall_conductance", -1, -1, kWallConductance);
   if (conductance < 0 && conductance != -1)
@@ -182,8 +207,10 @@ std::vector<Wall> read_walls(Params& p, double size) {
   for (std::string face; std::getline(list, face, ',');) {
     face.erase(std::remove(face.begin(), face.end(), ' '), face.end());
     const std::string axes = "xyz";
-    if (face.size() != 2 || axes.find(face[0]) == std::string::npos || (face[1] != '-' && face[1] != '+'))
-      p.fail("thermal.walls", "\"" + faces + "\"", "faces are x-, x+, y-, y+, z-, z+ separated by commas");
+    if (face.size() != 2 || axes.find(face[0]) == std::string::npos ||
+        (face[1] != '-' && face[1] != '+'))
+      p.fail("thermal.walls", "\"" + faces + "\"",
+             "faces are x-, x+, y-, y+, z-, z+ separated by commas");
     if (std::count(seen.begin(), seen.end(), face))  // a face listed twice would conduct twice
       p.fail("thermal.walls", "\"" + faces + "\"", "face " + face + " is listed twice");
     seen.push_back(face);
@@ -226,7 +253,8 @@ void check_steps_per_crossing(Params& p, const SimulationSpec& s, bool paper) {
   constexpr double kMaxStepsPerCrossing = 1e9;
   const double crossing = s.packing.sample_size / kSpeedOfLight;
   if (steps_per_crossing(s) > kMaxStepsPerCrossing)
-    p.fail("thermal.dt", paper ? "\"paper\" (xi R / c = " + number_text(s.dt) + " s)" : number_text(s.dt),
+    p.fail("thermal.dt",
+           paper ? "\"paper\" (xi R / c = " + number_text(s.dt) + " s)" : number_text(s.dt),
            "must be >= sample.size / c / 1e9 = " + number_text(crossing / kMaxStepsPerCrossing) +
                " s (light crosses the sample in " + number_text(crossing) + " s)");
 }
@@ -236,7 +264,8 @@ void check_steps_per_crossing(Params& p, const SimulationSpec& s, bool paper) {
 void read_pulses(Params& p, SimulationSpec& s, PaperStepUse& use) {
   s.pulses.count = int(p.integer("pulses.count", 20, 0, 10'000'000));
   double tau = 0;
-  const std::string word = p.number_or_word("pulses.duration", tau, 0, kBig, {"auto", "energy"}, "auto");
+  const std::string word =
+      p.number_or_word("pulses.duration", tau, 0, kBig, {"auto", "energy"}, "auto");
   capped(p, "pulses.duration", tau, kDuration);
   use.xi = p.number("pulses.xi", 0.05, 0, 10, true);
   use.duration = word == "auto";
@@ -245,8 +274,10 @@ void read_pulses(Params& p, SimulationSpec& s, PaperStepUse& use) {
   // Each input is in range, but a quotient can still overflow or underflow (found by fuzz/).
   if (word == "energy" && !(std::isfinite(tau) && tau > 0 && tau <= kDuration.limit)) {
     std::ostringstream m;
-    m << "`pulses.duration` = \"energy\" gives tau = " << tau << " s (pulses.energy / beam.power): must be > 0 "
-      << "and <= " << kDuration.limit << " " << kDuration.why << "; give pulses.duration in seconds";
+    m << "`pulses.duration` = \"energy\" gives tau = " << tau
+      << " s (pulses.energy / beam.power): must be > 0 "
+      << "and <= " << kDuration.limit << " " << kDuration.why
+      << "; give pulses.duration in seconds";
     throw InputError(m.str());
   }
   s.pulses.duration = tau;
@@ -273,8 +304,8 @@ void derive_paper_step(RunConfig& c, const PaperStepUse& use) {
   m << (use.duration ? "`pulses.duration` = \"auto\" gives tau" : "`thermal.dt` = \"paper\" gives")
     << " = pulses.xi * R / c = " << step
     << " s (R from sample.size and packing.*, or a file's median radius): must be > 0 and <= "
-    << kStep.limit << " s; give "
-    << (use.duration ? "pulses.duration" : "thermal.dt") << " in seconds";
+    << kStep.limit << " s; give " << (use.duration ? "pulses.duration" : "thermal.dt")
+    << " in seconds";
   throw InputError(m.str());
 }
 
@@ -302,11 +333,13 @@ std::vector<std::string> check_unread_keys(const Params& p, const SimulationSpec
   const std::string is_profile = " (it is " + p.shown("beam.profile") + ")";
   const std::string duration = p.shown("pulses.duration");
   const bool walls = !s.thermal.walls.empty();
-  const std::string wall_needs = "applies to walls only (thermal.walls = " + p.shown("thermal.walls") +
-                                 " names none; e.g. thermal.walls = \"z-\")";
+  const std::string wall_needs =
+      "applies to walls only (thermal.walls = " + p.shown("thermal.walls") +
+      " names none; e.g. thermal.walls = \"z-\")";
   const KeyUse uses[] = {
       {"packing.count", source != "file", "packing.source",
-       "applies to generated packings only; with packing.source = \"file\" the file gives the count"},
+       "applies to generated packings only; with packing.source = \"file\" the file gives the "
+       "count"},
       {"packing.radius_ratio", source == "random-overlap" || source == "lattice", "packing.source",
        "applies to packing.source = \"random-overlap\" or \"lattice\" only" + is_source},
       {"packing.solid_fraction", source == "rsa", "packing.source",
@@ -346,7 +379,8 @@ RunConfig read_config(Params& p, const RunSources& sources) {
   const auto& saved_packing = sources.saved_packing;
   RunConfig c;
   read_packing(p, c.sim.packing);
-  c.sim.packing.initial_temperature = number_up_to(p, "material.initial_temperature", 300, 0, kTemperature, true);
+  c.sim.packing.initial_temperature =
+      number_up_to(p, "material.initial_temperature", 300, 0, kTemperature, true);
   read_beam(p, c.sim.beam);
   read_optics(p, c.sim.optics);
   Material m;
@@ -386,7 +420,8 @@ RunConfig load_run_config(const RunSources& sources) {
       if (sources.preset == preset.name) found = &preset;
     if (!found) {
       std::string list;
-      for (const Preset& preset : presets()) list += std::string(list.empty() ? "" : ", ") + preset.name;
+      for (const Preset& preset : presets())
+        list += std::string(list.empty() ? "" : ", ") + preset.name;
       throw InputError("--preset " + sources.preset + ": unknown preset (known: " + list + ")");
     }
     p.merge_toml_text(found->toml, std::string("preset ") + found->name);
@@ -410,14 +445,17 @@ void warn_of_ignored_keys(const std::vector<const RunConfig*>& configs) {
 }
 
 std::string locate(const std::string& message, const std::map<std::string, std::string>& origins) {
-  auto is_key_char = [](char c) { return std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '.'; };
+  auto is_key_char = [](char c) {
+    return std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '.';
+  };
   std::size_t first = std::string::npos;
   std::string at;
   for (const auto& [key, where] : origins) {
     if (message.starts_with(where + ":")) return message;
     for (std::size_t i = message.find(key); i < first; i = message.find(key, i + 1)) {
       const std::size_t end = i + key.size();
-      if ((i == 0 || !is_key_char(message[i - 1])) && (end == message.size() || !is_key_char(message[end]))) {
+      if ((i == 0 || !is_key_char(message[i - 1])) &&
+          (end == message.size() || !is_key_char(message[end]))) {
         first = i, at = where;
         break;
       }
@@ -457,7 +495,8 @@ double paper_step(const PackingSpec& packing, double xi, const Particles* partic
 }
 
 double least_memory_need(const SimulationSpec& s, std::size_t file_particles) {
-  const double particles = s.packing.source == "file" ? double(file_particles) : double(s.packing.count);
+  const double particles =
+      s.packing.source == "file" ? double(file_particles) : double(s.packing.count);
   return kBytesPerRay * double(s.beam.rays) + bytes_per_particle(s) * particles;
 }
 

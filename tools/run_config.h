@@ -32,10 +32,10 @@ struct RunConfig {
 };
 
 struct RunSources {
-  std::string file;                 // RUN.toml ("" for none)
-  std::string preset;               // --preset NAME ("" for none)
-  std::vector<std::string> sets;    // --set KEY=VALUE, in order
-  std::string text;                 // a complete run file held in a checkpoint ("" for none)
+  std::string file;               // RUN.toml ("" for none)
+  std::string preset;             // --preset NAME ("" for none)
+  std::vector<std::string> sets;  // --set KEY=VALUE, in order
+  std::string text;               // a complete run file held in a checkpoint ("" for none)
   // KEY=VALUE applied after the --set list by sweep and converge, and named in messages as
   // `swept_origin` ("--param K --values V") rather than as a --set the user never typed.
   std::string swept, swept_origin;
@@ -86,7 +86,8 @@ double machine_memory();
 // InputError naming the key that needs the most, when a scene needs more than `available` bytes
 // (it would end in std::bad_alloc, or the kernel's out-of-memory kill, part way into set-up).
 // start_simulation checks it: `beampack config` prints a run file for any machine.
-void refuse_beyond_memory(const SimulationSpec& s, double available, std::size_t file_particles = 0);
+void refuse_beyond_memory(const SimulationSpec& s, double available,
+                          std::size_t file_particles = 0);
 
 // Named presets: TOML text.
 struct Preset {

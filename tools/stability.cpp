@@ -32,16 +32,22 @@ struct Outcome {
 };
 
 std::vector<std::string> index_sets(const std::string& index) {
-  if (index == "metal") return {"optics.n_solid=0.056", "optics.k_solid=4.276", "optics.n_liquid=0.056", "optics.k_liquid=4.276"};
+  if (index == "metal")
+    return {"optics.n_solid=0.056", "optics.k_solid=4.276", "optics.n_liquid=0.056",
+            "optics.k_liquid=4.276"};
   return {"optics.n_solid=" + index, "optics.n_liquid=" + index};
 }
 
 Outcome run_cell(const Cell& c) {
   RunSources sources;
   sources.preset = "zohdi2013";
-  sources.sets = {"pulses.count=2", "beam.rays=200", "pulses.duration=1e-13",
-                  "material.conductivity=" + c.conductivity, "thermal.solver=\"" + c.solver + "\"",
-                  "packing.count=" + c.count, "thermal.dt=" + c.dt};
+  sources.sets = {"pulses.count=2",
+                  "beam.rays=200",
+                  "pulses.duration=1e-13",
+                  "material.conductivity=" + c.conductivity,
+                  "thermal.solver=\"" + c.solver + "\"",
+                  "packing.count=" + c.count,
+                  "thermal.dt=" + c.dt};
   for (const auto& s : index_sets(c.index)) sources.sets.push_back(s);
   // The stiffest real step: a whole pulses.period of cooling in one step (dt G / c up to ~1e9).
   if (c.dt == kCoolingStep) sources.sets.push_back("pulses.period=" + c.dt);
@@ -67,14 +73,18 @@ Outcome run_cell(const Cell& c) {
     // The lightest particle's thermal mass m C_S / M (all share one material here).
     const Material& m = sim.spec().materials[0];
     double lightest = std::numeric_limits<double>::infinity();
-    for (std::size_t i = 0; i < sim.particles().size(); ++i) lightest = std::min(lightest, sim.particles().volume(i));
-    const double mass = std::isfinite(lightest) ? lightest * m.density * m.c_solid / sim.spec().thermal.time_scaling : 1.0;
+    for (std::size_t i = 0; i < sim.particles().size(); ++i)
+      lightest = std::min(lightest, sim.particles().volume(i));
+    const double mass = std::isfinite(lightest)
+                            ? lightest * m.density * m.c_solid / sim.spec().thermal.time_scaling
+                            : 1.0;
     o.bounded = std::isfinite(lo) && std::isfinite(hi) && lo >= 300 - 1e-6 &&
                 hi <= 300 + e.absorbed / mass + 1e-6;
     // The heat ledger closes to round-off whatever the solver: the iterative ones restore each
     // component's energy after they stop (they lost up to 1.8e-9 of it in the cooling cells
     // before, within the tolerance-sized bound this grid used to apply; the worst now is 4e-12).
-    const double heat_bound = 1e-10 * std::max(e.absorbed, std::abs(e.stored) + e.vaporized + std::abs(e.walls));
+    const double heat_bound =
+        1e-10 * std::max(e.absorbed, std::abs(e.stored) + e.vaporized + std::abs(e.walls));
     const bool ledgers = o.optics_error < 1e-12 && std::abs(e.heat_imbalance()) <= heat_bound;
     o.status = o.bounded && ledgers ? "ok" : "FAIL";
     if (!ledgers) o.note = "ledger does not close";
@@ -112,16 +122,18 @@ int run_stability_report(bool quiet) {
   for (const Cell& cell : cells) {
     const Outcome o = run_cell(cell);
     if (o.status == "interrupted") {  // Ctrl-C: the cells so far stand, the rest never ran
-      std::printf("stability: interrupted after %d of %zu cells: %d passed, %d failed, %d refused\n",
-                  ok + failed + refused, cells.size(), ok, failed, refused);
+      std::printf(
+          "stability: interrupted after %d of %zu cells: %d passed, %d failed, %d refused\n",
+          ok + failed + refused, cells.size(), ok, failed, refused);
       return 1;
     }
     (o.status == "ok" ? ok : o.status == "refused" ? refused : failed) += 1;
     if (quiet && o.status == "ok") continue;
     std::string note = o.note.substr(0, 90);
-    std::printf("%-8s %-9s %-6s %-6s %-12s %-8s %-8s %-10.1e %-10.1e %s\n", cell.conductivity.c_str(),
-                cell.dt.c_str(), cell.index.c_str(), cell.count.c_str(), cell.solver.c_str(),
-                o.status.c_str(), o.bounded ? "yes" : "NO", o.optics_error, o.heat_error, note.c_str());
+    std::printf("%-8s %-9s %-6s %-6s %-12s %-8s %-8s %-10.1e %-10.1e %s\n",
+                cell.conductivity.c_str(), cell.dt.c_str(), cell.index.c_str(), cell.count.c_str(),
+                cell.solver.c_str(), o.status.c_str(), o.bounded ? "yes" : "NO", o.optics_error,
+                o.heat_error, note.c_str());
     std::fflush(stdout);
   }
   std::printf("stability: %d passed, %d failed, %d refused with a message\n", ok, failed, refused);

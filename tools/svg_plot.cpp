@@ -54,7 +54,8 @@ std::string tick_label(double a, bool log) {
 // about five to a side; each label appears once.
 std::vector<double> ticks(const Axis& a) {
   const double span = a.hi - a.lo;
-  double step = a.log ? std::max(1.0, std::ceil(span / 6)) : std::pow(10.0, std::floor(std::log10(span / 5)));
+  double step =
+      a.log ? std::max(1.0, std::ceil(span / 6)) : std::pow(10.0, std::floor(std::log10(span / 5)));
   if (!a.log) {
     for (double m : {2.0, 5.0, 10.0})
       if (span / step > 7) step = std::pow(10.0, std::floor(std::log10(span / 5))) * m;
@@ -77,15 +78,18 @@ std::string render_svg(const Chart& chart) {
     xs.insert(xs.end(), s.x.begin(), s.x.end());
     ys.insert(ys.end(), s.y.begin(), s.y.end());
   }
-  if (!chart.x_categories.empty()) xs = {0.0, double(chart.x_categories.size() - 1)};  // failed ones too
+  if (!chart.x_categories.empty())
+    xs = {0.0, double(chart.x_categories.size() - 1)};  // failed ones too
   const Axis ax = fit_axis(xs, chart.log_x), ay = fit_axis(ys, chart.log_y);
   const double w = kWidth - kLeft - kRight, h = kHeight - kTop - kBottom;
   auto px = [&](double x) { return kLeft + w * ax.map(x); };
   auto py = [&](double y) { return kTop + h * (1 - ay.map(y)); };
   std::ostringstream o;
   o << "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"" << kWidth << "\" height=\"" << kHeight
-    << "\" font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n";
-  o << "<text x=\"" << kWidth / 2 - 60 << "\" y=\"22\" font-size=\"14\">" << chart.title << "</text>\n";
+    << "\" font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"100%\" height=\"100%\" "
+       "fill=\"white\"/>\n";
+  o << "<text x=\"" << kWidth / 2 - 60 << "\" y=\"22\" font-size=\"14\">" << chart.title
+    << "</text>\n";
   o << "<rect x=\"" << kLeft << "\" y=\"" << kTop << "\" width=\"" << w << "\" height=\"" << h
     << "\" fill=\"none\" stroke=\"black\"/>\n";
   const bool categories = !chart.x_categories.empty();
@@ -96,37 +100,45 @@ std::string render_svg(const Chart& chart) {
   }
   for (double fx : x_ticks) {
     const double x = kLeft + w * (fx - ax.lo) / (ax.hi - ax.lo);
-    const std::string label = categories ? chart.x_categories[std::size_t(std::lround(fx))] : tick_label(fx, ax.log);
-    o << "<line x1=\"" << x << "\" y1=\"" << kTop + h << "\" x2=\"" << x << "\" y2=\"" << kTop + h + 5 << "\" stroke=\"black\"/>"
+    const std::string label =
+        categories ? chart.x_categories[std::size_t(std::lround(fx))] : tick_label(fx, ax.log);
+    o << "<line x1=\"" << x << "\" y1=\"" << kTop + h << "\" x2=\"" << x << "\" y2=\""
+      << kTop + h + 5 << "\" stroke=\"black\"/>"
       << "<text x=\"" << x - 15 << "\" y=\"" << kTop + h + 20 << "\">" << label << "</text>\n";
   }
   for (double fy : ticks(ay)) {
     const double y = kTop + h * (1 - (fy - ay.lo) / (ay.hi - ay.lo));
-    o << "<line x1=\"" << kLeft - 5 << "\" y1=\"" << y << "\" x2=\"" << kLeft << "\" y2=\"" << y << "\" stroke=\"black\"/>"
+    o << "<line x1=\"" << kLeft - 5 << "\" y1=\"" << y << "\" x2=\"" << kLeft << "\" y2=\"" << y
+      << "\" stroke=\"black\"/>"
       << "<text x=\"" << 8 << "\" y=\"" << y + 4 << "\">" << tick_label(fy, ay.log) << "</text>\n";
   }
-  o << "<text x=\"" << kLeft + w / 2 - 40 << "\" y=\"" << kHeight - 15 << "\">" << chart.x_label << "</text>\n";
-  o << "<text transform=\"translate(18," << kTop + h / 2 + 40 << ") rotate(-90)\">" << chart.y_label << "</text>\n";
+  o << "<text x=\"" << kLeft + w / 2 - 40 << "\" y=\"" << kHeight - 15 << "\">" << chart.x_label
+    << "</text>\n";
+  o << "<text transform=\"translate(18," << kTop + h / 2 + 40 << ") rotate(-90)\">" << chart.y_label
+    << "</text>\n";
   bool zeros = false;  // on a log y axis a 0 sits on the lower edge as a hollow circle
   for (std::size_t k = 0; k < chart.series.size(); ++k) {
     const Series& s = chart.series[k];
     const char* colour = kColours[k % 6];
     std::ostringstream path;
     for (std::size_t i = 0; i < s.x.size(); ++i) {
-      if (!std::isfinite(s.y[i]) || (chart.log_y && s.y[i] < 0) || (chart.log_x && s.x[i] <= 0)) continue;
+      if (!std::isfinite(s.y[i]) || (chart.log_y && s.y[i] < 0) || (chart.log_x && s.x[i] <= 0))
+        continue;
       const bool zero = chart.log_y && s.y[i] == 0;
       zeros = zeros || zero;
       const double y = zero ? kTop + h : py(s.y[i]);
       path << (path.tellp() == 0 ? "M" : " L") << px(s.x[i]) << ',' << y;
-      o << "<circle cx=\"" << px(s.x[i]) << "\" cy=\"" << y << "\" r=\"3\" fill=\"" << (zero ? "white" : colour)
-        << "\" stroke=\"" << colour << "\"/>\n";
+      o << "<circle cx=\"" << px(s.x[i]) << "\" cy=\"" << y << "\" r=\"3\" fill=\""
+        << (zero ? "white" : colour) << "\" stroke=\"" << colour << "\"/>\n";
     }
-    o << "<path d=\"" << path.str() << "\" fill=\"none\" stroke=\"" << colour << "\" stroke-width=\"1.5\"/>\n";
-    o << "<text x=\"" << kWidth - kRight + 10 << "\" y=\"" << kTop + 15 + 18 * k << "\" fill=\"" << colour
-      << "\">" << s.label << "</text>\n";
+    o << "<path d=\"" << path.str() << "\" fill=\"none\" stroke=\"" << colour
+      << "\" stroke-width=\"1.5\"/>\n";
+    o << "<text x=\"" << kWidth - kRight + 10 << "\" y=\"" << kTop + 15 + 18 * k << "\" fill=\""
+      << colour << "\">" << s.label << "</text>\n";
   }
   if (zeros)
-    o << "<text x=\"" << kWidth - kRight + 10 << "\" y=\"" << kTop + h << "\" font-size=\"10\">hollow: 0</text>\n";
+    o << "<text x=\"" << kWidth - kRight + 10 << "\" y=\"" << kTop + h
+      << "\" font-size=\"10\">hollow: 0</text>\n";
   o << "</svg>\n";
   return o.str();
 }

@@ -14,7 +14,8 @@ int run_validate(bool quiet) {
   for (auto& c : geometry_cases()) cases.push_back(std::move(c));
   for (auto& c : physics_cases()) cases.push_back(std::move(c));
   int failed = 0;
-  if (!quiet) std::printf("%-58s %14s %14s %9s  %s\n", "case", "expected", "obtained", "tolerance", "result");
+  if (!quiet)
+    std::printf("%-58s %14s %14s %9s  %s\n", "case", "expected", "obtained", "tolerance", "result");
   for (const ValidationCase& c : cases) {
     failed += !c.pass();
     if (!quiet || !c.pass())

@@ -48,8 +48,8 @@ ValidationCase single_sphere() {
 ValidationCase lumped_model() {
   const double radius = 1e-3, g_wall = 1e-3, theta_w = 300, M = 1e6;
   Material material;
-  const double c = material.density * 4.0 / 3.0 * std::numbers::pi * std::pow(radius, 3) *
-                   material.c_solid / M;
+  const double c =
+      material.density * 4.0 / 3.0 * std::numbers::pi * std::pow(radius, 3) * material.c_solid / M;
   const double g_total = 2 * g_wall, power = 100 * g_total, tau = c / g_total, t_end = 3 * tau;
   Particles p;
   p.add(Vec3(radius, 0, 0), radius, 0, theta_w);

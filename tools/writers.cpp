@@ -62,8 +62,8 @@ namespace {
 template <class Value>
 void data_array(std::ostream& out, const char* type, const char* name, int components,
                 std::size_t n, Value&& value) {
-  out << "        <DataArray type=\"" << type << "\" Name=\"" << name
-      << "\" NumberOfComponents=\"" << components << "\" format=\"ascii\">\n";
+  out << "        <DataArray type=\"" << type << "\" Name=\"" << name << "\" NumberOfComponents=\""
+      << components << "\" format=\"ascii\">\n";
   for (std::size_t i = 0; i < n; ++i) out << "          " << value(i) << '\n';
   out << "        </DataArray>\n";
 }
@@ -77,7 +77,9 @@ void vtp_header(std::ostream& out, std::size_t points, std::size_t verts, std::s
       << "\" NumberOfLines=\"" << lines << "\" NumberOfStrips=\"0\" NumberOfPolys=\"0\">\n";
 }
 
-void vtp_footer(std::ostream& out) { out << "    </Piece>\n  </PolyData>\n</VTKFile>\n"; }
+void vtp_footer(std::ostream& out) {
+  out << "    </Piece>\n  </PolyData>\n</VTKFile>\n";
+}
 
 // Cells: connectivity 0..n-1 in groups of `per_cell` points.
 void cells(std::ostream& out, const char* kind, std::size_t count, int per_cell) {
@@ -126,7 +128,8 @@ void write_rays_vtp(const std::string& path, const std::vector<RaySegment>& segm
     out << "      </Points>\n";
     cells(out, "Lines", n, 2);
     out << "      <CellData Scalars=\"energy\">\n";
-    data_array(out, "Float64", "energy", 1, n, [&](std::size_t i) { return exact(segments[i].energy); });
+    data_array(out, "Float64", "energy", 1, n,
+               [&](std::size_t i) { return exact(segments[i].energy); });
     out << "      </CellData>\n";
     vtp_footer(out);
   });
@@ -134,9 +137,11 @@ void write_rays_vtp(const std::string& path, const std::vector<RaySegment>& segm
 
 void write_pvd(const std::string& path, const std::vector<std::pair<std::string, double>>& frames) {
   write_atomically(path, [&](std::ostream& out) {
-    out << "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n  <Collection>\n";
+    out << "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n  "
+           "<Collection>\n";
     for (const auto& [file, time] : frames)
-      out << "    <DataSet timestep=\"" << exact(time) << "\" part=\"0\" file=\"" << file << "\"/>\n";
+      out << "    <DataSet timestep=\"" << exact(time) << "\" part=\"0\" file=\"" << file
+          << "\"/>\n";
     out << "  </Collection>\n</VTKFile>\n";
   });
 }
