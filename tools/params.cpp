@@ -569,6 +569,14 @@ std::string Params::number_or_word(const std::string& key, double& value, double
 void Params::check_all_used() const {
   for (const std::string& key : leaf_keys(merged_)) {
     if (used_.count(key)) continue;
+    // `[[beam]]` (an array of tables) or `beam = [...]`: a table's name given as something else.
+    const auto member = std::find_if(used_.begin(), used_.end(), [&](const std::string& known) {
+      return known.size() > key.size() && known.compare(0, key.size() + 1, key + ".") == 0;
+    });
+    if (member != used_.end())
+      throw InputError(where(key) + "`" + key + "` is a table of keys (`" + *member +
+                       "`, ...): write it once as [" + key + "], not as [[" + key +
+                       "]] or a value");
     std::string best;
     std::size_t best_d = 4;
     for (const std::string& known : used_) {
