@@ -235,6 +235,8 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
   expect_input_error("set", "", "--preset quick --set material.conductivity=-3",
                      {"--set material.conductivity=-3", "material.conductivity", "must be >= 0"});
   expect_input_error("syntax", "[beam\nrays = 3\n", "", {"run.toml:1"});
+  expect_input_error("table_by_set", "", "--preset quick --set 'material={a=1}'",
+                     {"--set material={a=1}: unknown key `material.a`"});
   expect_input_error("array_of_tables", "[[beam]]\nrays = 5\n", "",
                      {"run.toml:1", "`beam` is a table of keys", "write it once as [beam]"});
   expect_input_error("preset", "", "--preset nosuch", {"nosuch", "zohdi2013"});
