@@ -151,12 +151,10 @@ TEST(ThermalExact, ChainMatchesMatrixExponential) {
   model.set_contacts(find_contacts(p));
 
   // The exact system, assembled independently of the model from (3.2) and the wall rule.
-  Eigen::MatrixXd lw = Eigen::MatrixXd::Zero(n, n);
+  Eigen::MatrixXd lw = test::dense_conduction(n, find_contacts(p), [](const Contact& ct) {
+    return conductance(ct.i % 2 ? 80 : 20, ct.j % 2 ? 80 : 20, ct.area, ct.distance);
+  });
   Eigen::VectorXd c(n), b = Eigen::VectorXd::Zero(n), theta0(n);
-  for (const Contact& ct : find_contacts(p)) {
-    const double g = conductance(ct.i % 2 ? 80 : 20, ct.j % 2 ? 80 : 20, ct.area, ct.distance);
-    lw(ct.i, ct.i) += g, lw(ct.j, ct.j) += g, lw(ct.i, ct.j) -= g, lw(ct.j, ct.i) -= g;
-  }
   const double g_wall = std::numbers::pi * 20 * 0.6 * a;
   lw(0, 0) += g_wall;
   b[0] = g_wall * 250.0;

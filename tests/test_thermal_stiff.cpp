@@ -47,18 +47,15 @@ double explicit_limit(Particles& p) {
 Eigen::VectorXd backward_euler_by_hand(const Particles& p, const ThermalModel& model, double dt,
                                        int steps) {
   const auto n = static_cast<Eigen::Index>(p.size());
-  Eigen::MatrixXd system = Eigen::MatrixXd::Zero(n, n);
   Eigen::VectorXd c(n), theta(n);
   for (Eigen::Index i = 0; i < n; ++i) {
     c[i] = model.thermal_mass(static_cast<std::size_t>(i));
     theta[i] = p.temperature[static_cast<std::size_t>(i)];
   }
-  for (const Contact& ct : find_contacts(p)) {
-    const double g = dt * 100.0 * ct.area / ct.distance;  // K_ij A / d (3.2), K = 100 both
-    system(ct.i, ct.i) += g, system(ct.j, ct.j) += g, system(ct.i, ct.j) -= g,
-        system(ct.j, ct.i) -= g;
-  }
-  system += Eigen::MatrixXd(c.asDiagonal());
+  // K_ij A / d (3.2), K = 100 both.
+  const Eigen::MatrixXd l = test::dense_conduction(
+      n, find_contacts(p), [](const Contact& ct) { return 100.0 * ct.area / ct.distance; });
+  const Eigen::MatrixXd system = Eigen::MatrixXd(c.asDiagonal()) + dt * l;
   const Eigen::LDLT<Eigen::MatrixXd> solve(system);
   for (int s = 0; s < steps; ++s) theta = solve.solve(c.cwiseProduct(theta));
   return theta;

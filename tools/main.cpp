@@ -32,14 +32,20 @@ void add_run_sources(CLI::App* cmd, RunOptions& o) {
       ->allow_extra_args(false);
 }
 
+// The command named by the first argument, if there is one.
+const CLI::App* command_named(const CLI::App& app, int argc, char** argv) {
+  if (argc < 2) return nullptr;
+  for (const CLI::App* sub : app.get_subcommands({}))
+    if (sub->get_name() == argv[1]) return sub;
+  return nullptr;
+}
+
 // CLI11 answers an unknown first word with "A subcommand is required": name it instead.
 bool unknown_command(const CLI::App& app, int argc, char** argv) {
-  if (argc < 2 || argv[1][0] == '-') return false;
+  if (argc < 2 || argv[1][0] == '-' || command_named(app, argc, argv)) return false;
   std::string names;
-  for (const CLI::App* sub : app.get_subcommands({})) {
-    if (sub->get_name() == argv[1]) return false;
+  for (const CLI::App* sub : app.get_subcommands({}))
     names += (names.empty() ? "" : ", ") + sub->get_name();
-  }
   std::fprintf(stderr, "beampack: error: unknown command `%s` (commands: %s)\n", argv[1],
                names.c_str());
   return true;
@@ -47,13 +53,10 @@ bool unknown_command(const CLI::App& app, int argc, char** argv) {
 
 // CLI11 hands an option the command does not have to the parent, and its value then fails as the
 // run file ("run_file: File does not exist: 1"): name the option instead. Likewise a
-// space-separated
-// --values list (`--values 0 10 100`), whose second value would be read as the run file.
+// space-separated --values list (`--values 0 10 100`), whose second value would be read as the
+// run file.
 bool misread_arguments(const CLI::App& app, int argc, char** argv) {
-  if (argc < 2) return false;
-  const CLI::App* sub = nullptr;
-  for (const CLI::App* s : app.get_subcommands({}))
-    if (s->get_name() == argv[1]) sub = s;
+  const CLI::App* sub = command_named(app, argc, argv);
   if (!sub) return false;
   for (int k = 2; k < argc; ++k) {
     const std::string token = argv[k];

@@ -35,11 +35,6 @@ void set_path(toml::table& root, const std::string& key, const toml::node& value
   value.visit([&](auto&& concrete) { t->insert_or_assign(parts.back(), concrete); });
 }
 
-std::string trimmed(const std::string& s) {
-  const auto first = s.find_first_not_of(" \t"), last = s.find_last_not_of(" \t");
-  return first == std::string::npos ? "" : s.substr(first, last - first + 1);
-}
-
 std::string repr(const toml::node& node) {
   std::ostringstream s;
   if (const toml::table* t = node.as_table()) {  // inline: `{ a = 1 }`, not a table's lines
@@ -356,11 +351,20 @@ void Params::merge_toml_file(const std::string& path) {
   merge_layer(merged_, origin_, layer, {path, path, ++layers_}, true);
 }
 
+std::string trimmed(const std::string& s) {
+  const auto first = s.find_first_not_of(" \t"), last = s.find_last_not_of(" \t");
+  return first == std::string::npos ? "" : s.substr(first, last - first + 1);
+}
+
+std::string assignment_key(const std::string& key_equals_value) {
+  return trimmed(key_equals_value.substr(0, key_equals_value.find('=')));
+}
+
 void Params::merge_assignment(const std::string& key_equals_value, const std::string& origin,
                               bool swept) {
   const std::string named = origin.empty() ? "--set " + key_equals_value : origin;
   const auto eq = key_equals_value.find('=');
-  const std::string key = trimmed(key_equals_value.substr(0, eq));  // --set "k = v" as k=v
+  const std::string key = assignment_key(key_equals_value);
   const auto parts = split_key(key);
   if (eq == std::string::npos || parts.empty() || key.back() == '.' ||
       std::any_of(parts.begin(), parts.end(), [](const std::string& part) { return part.empty(); }))

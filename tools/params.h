@@ -96,6 +96,11 @@ class Params {
   std::map<std::string, double> number_defaults_;  // key -> fallback of number() and integer()
 };
 
+// `s` without the spaces and tabs at either end.
+std::string trimmed(const std::string& s);
+// The key a `--set KEY=VALUE` sets, as the run file reads it: `--set "k = v"` sets k.
+std::string assignment_key(const std::string& key_equals_value);
+
 // Dotted keys of every leaf in a table ("material.conductivity").
 std::vector<std::string> leaf_keys(const toml::table& table, const std::string& prefix = "");
 

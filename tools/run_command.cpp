@@ -24,6 +24,7 @@
 #include <unistd.h>
 
 #include "geometry/error.h"
+#include "tools/params.h"
 #include "tools/svg_plot.h"
 #include "tools/writers.h"
 
@@ -937,14 +938,6 @@ std::string empty_cells(const std::string& header) {
   return std::string(static_cast<std::size_t>(std::count(header.begin(), header.end(), ',')), ',');
 }
 
-// The key of a --set KEY=VALUE as the run file reads it (spaces around it dropped).
-std::string assigned_key(const std::string& assignment) {
-  std::string key = assignment.substr(0, assignment.find('='));
-  key.erase(0, key.find_first_not_of(" \t"));
-  key.erase(key.find_last_not_of(" \t") + 1);
-  return key;
-}
-
 }  // namespace
 
 // The swept values, trimmed; an empty one ("1,,2", a stray comma) is refused, not dropped, and so
@@ -957,16 +950,15 @@ std::vector<std::string> sweep_values(const SweepOptions& options) {
     if (!arg.empty() && arg.back() == ',') items.push_back("");
   }
   std::vector<std::string> values;
-  for (std::string v : items) {
-    v.erase(0, v.find_first_not_of(" \t"));
-    v.erase(v.find_last_not_of(" \t") + 1);
+  for (const std::string& item : items) {
+    const std::string v = trimmed(item);
     if (v.empty())
       throw InputError("--values: value " + std::to_string(values.size() + 1) + " is empty");
     values.push_back(v);
   }
   if (values.empty()) throw InputError("--values: give at least one value");
   for (const std::string& s : options.run.sources.sets)
-    if (assigned_key(s) == options.param)
+    if (assignment_key(s) == options.param)
       throw InputError("--set " + s + ": `" + options.param +
                        "` is the swept --param; its values come from --values");
   return values;
