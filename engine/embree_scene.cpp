@@ -57,14 +57,18 @@ struct SphereSet {
 };
 
 // RTCIntersectContext extended with the double side arrays (Embree passes it to the callbacks
-// untouched; base must be the first member).
+// untouched; base must be the first member). Embree's ray id is the ray's slot in the packet
+// handed to Embree, not the lane a callback sees it in: where 16-wide packets are not native
+// (AVX2 and below), Embree splits them into narrower packets or single rays, so a callback's
+// lane i may be any slot. Everything per ray is therefore looked up by slot.
 struct QueryContext {
   RTCIntersectContext base;
   RayQuery query;
   double slack;                 // absolute pad of the float culling distance
   float prefilter_pad;          // 10 slack: the packet prefilter's margin
-  std::uint32_t skip_rank[16];  // per lane: Morton rank of the sphere just left (no id lookup)
-  double shift[16];             // per lane: Embree's t = the double t - shift (clip_to_scene)
+  std::uint32_t ray_id[16];     // per slot: the ray's id in the query
+  std::uint32_t skip_rank[16];  // per slot: Morton rank of the sphere just left (no id lookup)
+  double shift[16];             // per slot: Embree's t = the double t - shift (clip_to_scene)
 };
 
 float round_down(double x) {
@@ -205,13 +209,14 @@ void intersect_sphere(const RTCIntersectFunctionNArguments* args, const SphereSe
   const RayQuery& q = ctx.query;
   const std::uint32_t rank = set.first + k;
   RTCRayN* rays = RTCRayHitN_RayN(args->rayhit, args->N);
-  unsigned lanes[16], ids[16], m = 0;
+  unsigned lanes[16], slots[16], ids[16], m = 0;
   double t[16];
   for (std::uint32_t bits = candidates(args, sphere, set.frame, ctx.prefilter_pad); bits != 0;
        bits &= bits - 1) {
     const unsigned i = static_cast<unsigned>(__builtin_ctz(bits));
-    lanes[m] = i, ids[m] = RTCRayN_id(rays, args->N, i);
-    m += ctx.skip_rank[i] != rank;  // never the sphere the ray has just left
+    const unsigned slot = RTCRayN_id(rays, args->N, i);
+    lanes[m] = i, slots[m] = slot, ids[m] = ctx.ray_id[slot];
+    m += ctx.skip_rank[slot] != rank;  // never the sphere the ray has just left
   }
   for (unsigned j = 0; j < m; ++j)
     t[j] = ray_sphere_entry(q.origin[ids[j]], q.direction[ids[j]], sphere.centre, sphere.radius);
@@ -225,7 +230,7 @@ void intersect_sphere(const RTCIntersectFunctionNArguments* args, const SphereSe
     if (q.normal)
       q.normal[id] =
           entry_normal(q.origin[id], q.direction[id], t[j], sphere.centre, sphere.radius);
-    const double from_clip = std::max(t[j] - ctx.shift[lanes[j]], 0.0);  // >= 0 but for round-off
+    const double from_clip = std::max(t[j] - ctx.shift[slots[j]], 0.0);  // >= 0 but for round-off
     RTCRayN_tfar(rays, args->N, lanes[j]) = culling_distance(from_clip, ctx.slack);
   }
 }
@@ -246,8 +251,10 @@ void sphere_occluded(const RTCOccludedFunctionNArguments* args) {
     const SphereRecord& sphere = set->spheres[k];
     if (is_removed(sphere)) continue;
     for (unsigned i = 0; i < n; ++i) {
-      if (args->valid[i] != -1 || ctx.skip_rank[i] == set->first + k) continue;
-      const unsigned id = RTCRayN_id(args->ray, n, i);
+      if (args->valid[i] != -1) continue;
+      const unsigned slot = RTCRayN_id(args->ray, n, i);
+      if (ctx.skip_rank[slot] == set->first + k) continue;
+      const unsigned id = ctx.ray_id[slot];
       const double t =
           ray_sphere_entry(q.origin[id], q.direction[id], sphere.centre, sphere.radius);
       if (t < q.t_hit[id]) {
@@ -450,7 +457,7 @@ std::vector<std::uint32_t> morton_order(const Particles& particles) {
 
 EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
                          std::size_t particles_per_brick, double rebuild_fraction,
-                         unsigned spheres_per_primitive)
+                         unsigned spheres_per_primitive, const std::string& device_config)
     : update_(update), rebuild_fraction_(rebuild_fraction), impl_(std::make_unique<Impl>()) {
   Impl& im = *impl_;
   const std::size_t n = particles.size();
@@ -464,10 +471,10 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
     removed_[p] = particles.alive[p] ? 0 : 1;
     im.spheres[k] = {particles.centre[p], removed_[p] ? -particles.radius[p] : particles.radius[p]};
   }
-  im.device = rtcNewDevice(nullptr);
+  im.device = rtcNewDevice(device_config.empty() ? nullptr : device_config.c_str());
   if (!im.device)
-    throw RunError("Embree: rtcNewDevice failed (error " +
-                   std::to_string(static_cast<int>(rtcGetDeviceError(nullptr))) + ")");
+    throw RunError("Embree: rtcNewDevice(\"" + device_config + "\") failed (" +
+                   error_name(rtcGetDeviceError(nullptr)) + ")");
   rtcSetDeviceErrorFunction(im.device, record_error, &im.report);
   rtcSetDeviceMemoryMonitorFunction(im.device, monitor_memory, &im.report);
   im.scene = rtcNewScene(im.device);
@@ -624,7 +631,7 @@ FloatRay float_ray(const Vec3& o, const Vec3& d, double t_hit, double t0, const 
       t_hit < kInf ? culling_distance(t_hit - t0, slack) : std::numeric_limits<float>::infinity()};
 }
 
-RTCRay rtc_ray(const FloatRay& f, std::uint32_t id) {
+RTCRay rtc_ray(const FloatRay& f, std::uint32_t slot) {
   RTCRay ray;
   ray.org_x = f.org[0], ray.org_y = f.org[1], ray.org_z = f.org[2];
   ray.dir_x = f.dir[0], ray.dir_y = f.dir[1], ray.dir_z = f.dir[2];
@@ -632,7 +639,7 @@ RTCRay rtc_ray(const FloatRay& f, std::uint32_t id) {
   ray.tfar = f.tfar;
   ray.time = 0.0f;
   ray.mask = 0xFFFFFFFFu;
-  ray.id = id;
+  ray.id = slot;
   ray.flags = 0;
   return ray;
 }
@@ -646,9 +653,10 @@ bool EmbreeScene::Impl::single_ray(const RayQuery& query, std::uint32_t id, Quer
   const double t0 = clip_to_scene(reach, o, d, query.t_hit[id]);
   if (t0 < 0.0) return false;
   ctx = make_context(query, slack, false);
+  ctx.ray_id[0] = id;
   ctx.skip_rank[0] = rank_of(query.skip[id]);
   ctx.shift[0] = t0;
-  ray = rtc_ray(float_ray(o, d, query.t_hit[id], t0, frame, slack), id);
+  ray = rtc_ray(float_ray(o, d, query.t_hit[id], t0, frame, slack), 0);
   return true;
 }
 
@@ -678,13 +686,14 @@ void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, i
     const double t0 = i < count ? clip_to_scene(im.reach, o, d, query.t_hit[id]) : -1.0;
     valid[i] = t0 >= 0.0 ? -1 : 0;
     any |= t0 >= 0.0;
+    ctx.ray_id[i] = id;
     ctx.skip_rank[i] = im.rank_of(query.skip[id]);
     ctx.shift[i] = std::max(t0, 0.0);
     const FloatRay f = float_ray(o, d, query.t_hit[id], ctx.shift[i], im.frame, im.slack);
     rh.ray.org_x[i] = f.org[0], rh.ray.org_y[i] = f.org[1], rh.ray.org_z[i] = f.org[2];
     rh.ray.dir_x[i] = f.dir[0], rh.ray.dir_y[i] = f.dir[1], rh.ray.dir_z[i] = f.dir[2];
     rh.ray.tfar[i] = f.tfar;
-    rh.ray.id[i] = id;
+    rh.ray.id[i] = static_cast<unsigned>(i);
   }
   if (!any) return;
   std::fill(std::begin(rh.ray.tnear), std::end(rh.ray.tnear), 0.0f);

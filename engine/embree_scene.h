@@ -20,6 +20,7 @@
 #include <limits>
 #include <memory>
 #include <span>
+#include <string>
 
 #include "geometry/particles.h"
 
@@ -58,7 +59,7 @@ class EmbreeScene {
  public:
   explicit EmbreeScene(const Particles& particles, SceneUpdate update = SceneUpdate::deferred,
                        std::size_t particles_per_brick = 4096, double rebuild_fraction = 0.1,
-                       unsigned spheres_per_primitive = 1);
+                       unsigned spheres_per_primitive = 1, const std::string& device_config = {});
   ~EmbreeScene();
   EmbreeScene(const EmbreeScene&) = delete;
   EmbreeScene& operator=(const EmbreeScene&) = delete;

@@ -167,7 +167,7 @@ Tracer::Tracer(const Particles& particles, OpticsSpec spec)
     : particles_(particles), spec_(std::move(spec)) {
   validate(spec_, particles);
   scene_ = std::make_unique<EmbreeScene>(particles, spec_.scene_update, 4096, 0.1,
-                                         spec_.spheres_per_primitive);
+                                         spec_.spheres_per_primitive, spec_.embree_config);
   // The grid serves bounced rays only: with optics.max_bounces = 1 every ray ends at its first hit.
   if (spec_.bounce_search == BounceSearch::grid && spec_.max_bounces > 1)
     grid_ = std::make_unique<SphereGrid>(particles, spec_.grid_cell_factor);

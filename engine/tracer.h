@@ -67,6 +67,9 @@ struct OpticsSpec {
   double grid_cell_factor = 3.0;  // grid cell edge / largest radius (measured best of 1.5-4)
   SceneUpdate scene_update = SceneUpdate::deferred;  // docs/bench/optics.md: fastest measured
   unsigned spheres_per_primitive = 1;  // Embree primitive = cluster of this many spheres
+  // Embree's device configuration (rtcNewDevice), e.g. "max_isa=sse4.2" to trace as on a machine
+  // without AVX2 (the tests trace under each ISA: Embree splits packets wider than its own).
+  std::string embree_config;
   // Rays per chunk (1-256): an advance runs only the chunks with an event before its end. Small
   // chunks leave more of them alone under short budgets (1e6 spheres, 10^5 rays, the paper's dt:
   // 15% of chunks run with 64, 44% with 256); whole pulses trace their bounces faster in large

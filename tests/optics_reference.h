@@ -19,6 +19,11 @@
 
 namespace beampack::test {
 
+// Embree device configurations the packet tests run under: the machine's own, and Embree capped
+// at AVX2 and at SSE4.2, whose native packets hold 8 and 4 rays. There Embree splits the tracer's
+// 16-ray packets, and a callback's lane is not the ray's slot in the packet.
+inline constexpr const char* kEmbreeIsas[] = {"", "max_isa=avx2", "max_isa=sse4.2"};
+
 // The reference: one ray against every live sphere in double precision, with the tracer's rules
 // (MODEL.md section 3): nearest outside hit (ray_sphere_entry), ties to the lower particle id,
 // the sphere just left skipped, (1 - R) E absorbed (R of the complex index when k > 0), specular

@@ -424,21 +424,23 @@ void expect_brute_force_hits(const EmbreeScene& scene, const Particles& p,
 
 // Nearest outside hit from the scene (single rays and packets) equals the brute-force minimum of
 // ray_sphere_entry over all spheres, skipping the sphere the ray leaves: same particle, same t;
-// and again after removing 10% of the spheres, in every update mode.
+// and again after removing 10% of the spheres, in every update mode and under each Embree ISA.
 TEST(OpticsSphere, SceneHitsEqualBruteForceBeforeAndAfterRemoval) {
   const Particles p = random_overlap_packing(2000, 1e-3, 0.325, 11);
   const RandomRays rays(p, 4000, 5);
   std::vector<std::uint8_t> gone(p.size(), 0);
   std::vector<std::uint32_t> victims;
   for (std::uint32_t i = 0; i < p.size(); i += 10) victims.push_back(i), gone[i] = 1;
-  for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::mask_only, SceneUpdate::rebuild,
-                           SceneUpdate::refit, SceneUpdate::bricks}) {
-    SCOPED_TRACE(static_cast<int>(mode));
-    EmbreeScene scene(p, mode, 256, 0.05);
-    expect_brute_force_hits(scene, p, std::vector<std::uint8_t>(p.size(), 0), rays);
-    scene.remove(victims);
-    EXPECT_EQ(scene.rebuilds(), mode == SceneUpdate::mask_only ? 0u : 1u);
-    expect_brute_force_hits(scene, p, gone, rays);
+  for (const char* isa : test::kEmbreeIsas) {
+    for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::mask_only, SceneUpdate::rebuild,
+                             SceneUpdate::refit, SceneUpdate::bricks}) {
+      SCOPED_TRACE(std::string(isa) + " mode " + std::to_string(static_cast<int>(mode)));
+      EmbreeScene scene(p, mode, 256, 0.05, 1, isa);
+      expect_brute_force_hits(scene, p, std::vector<std::uint8_t>(p.size(), 0), rays);
+      scene.remove(victims);
+      EXPECT_EQ(scene.rebuilds(), mode == SceneUpdate::mask_only ? 0u : 1u);
+      expect_brute_force_hits(scene, p, gone, rays);
+    }
   }
 }
 

@@ -211,6 +211,7 @@ TEST(OpticsTracer, EveryBounceOnAPackingObeysTheOpticsOfOneHit) {
 
 // Packets or single rays for primaries, Embree or the grid for bounces: the same hits in double,
 // hence bit-identical deposits.
+// Under each Embree ISA (packets split into 8- or 4-ray ones below AVX-512) as well.
 TEST(OpticsTracer, PacketsAndSingleRaysGiveIdenticalDeposits) {
   const SceneUpdate update = OpticsSpec{}.scene_update;
   for (double n_hat : {1.4, 20.0}) {
@@ -222,13 +223,18 @@ TEST(OpticsTracer, PacketsAndSingleRaysGiveIdenticalDeposits) {
     // incoherent packets.
     const std::pair<BounceSearch, bool> variants[] = {
         {BounceSearch::grid, true}, {BounceSearch::grid, false}, {BounceSearch::packets, true}};
-    for (const auto& [bounce, packets] : variants) {
-      const Traced c = trace(packing_1e4(), optics_for(n_hat, packets, update, bounce), BeamSpec{});
-      EXPECT_EQ(a.deposits, c.deposits);
-      EXPECT_EQ(a.ledger.absorbed, c.ledger.absorbed);
-      EXPECT_EQ(a.ledger.escaped, c.ledger.escaped);
-      EXPECT_EQ(a.ledger.cutoff, c.ledger.cutoff);
-      EXPECT_EQ(a.hits, c.hits);
+    for (const char* isa : test::kEmbreeIsas) {
+      for (const auto& [bounce, packets] : variants) {
+        SCOPED_TRACE(std::string(isa) + (packets ? " packets" : " single rays"));
+        OpticsSpec spec = optics_for(n_hat, packets, update, bounce);
+        spec.embree_config = isa;
+        const Traced c = trace(packing_1e4(), spec, BeamSpec{});
+        EXPECT_EQ(a.deposits, c.deposits);
+        EXPECT_EQ(a.ledger.absorbed, c.ledger.absorbed);
+        EXPECT_EQ(a.ledger.escaped, c.ledger.escaped);
+        EXPECT_EQ(a.ledger.cutoff, c.ledger.cutoff);
+        EXPECT_EQ(a.hits, c.hits);
+      }
     }
     EXPECT_EQ(a.deposits, b.deposits);
     EXPECT_EQ(a.ledger.absorbed, b.ledger.absorbed);
