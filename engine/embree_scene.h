@@ -28,10 +28,11 @@ namespace beampack {
 
 constexpr std::uint32_t kNoParticle = std::numeric_limits<std::uint32_t>::max();
 
-// Double-precision ray data indexed by ray id (RTCRay::id). The callback reads origin, direction
-// and skip (the sphere the ray has just left: never hit, so no tnear fudge), and improves
-// t_hit/particle. The caller sets t_hit to the longest distance of interest (infinity) and
-// particle to kNoParticle before a query; after it, they hold the nearest outside hit.
+// Double-precision ray data indexed by the ray ids a query names (not Embree's RTCRay::id, which
+// is the ray's slot in the packet). The callback reads origin, direction and skip (the sphere the
+// ray has just left: never hit, so no tnear fudge), and improves t_hit/particle. The caller sets
+// t_hit to the longest distance of interest (infinity) and particle to kNoParticle before a
+// query; after it, they hold the nearest outside hit.
 struct RayQuery {
   const Vec3* origin = nullptr;
   const Vec3* direction = nullptr;  // unit
