@@ -597,6 +597,26 @@ TEST(OpticsSphere, EmbreeErrorsAreThrownNamingTheCodeAndTheTask) {
   EXPECT_GE(hits, 4u);  // (7 of the 16)
 }
 
+// A device configuration Embree refuses (OpticsSpec::embree_config) is a RunError naming the
+// configuration and Embree's error code, from the scene and from the tracer that builds one.
+TEST(OpticsSphere, ADeviceConfigurationEmbreeRefusesIsNamed) {
+  const Particles p = random_overlap_packing(50, 1e-3, 0.325, 3);
+  const auto expect_refused = [](auto&& build) {
+    try {
+      build();
+      ADD_FAILURE() << "no RunError for threads=abc";
+    } catch (const RunError& e) {
+      EXPECT_NE(std::string(e.what()).find("rtcNewDevice(\"threads=abc\") failed (RTC_ERROR_"),
+                std::string::npos)
+          << e.what();
+    }
+  };
+  expect_refused([&] { EmbreeScene scene(p, SceneUpdate::deferred, 4096, 0.1, 1, "threads=abc"); });
+  OpticsSpec spec;
+  spec.embree_config = "threads=abc";
+  expect_refused([&] { Tracer tracer(p, spec); });
+}
+
 }  // namespace
 }  // namespace beampack
 
