@@ -26,6 +26,22 @@ EnergyLedger closed_ledger() {
   return e;
 }
 
+// The progress line's time left: the pace of the launches seen (none before two), the pulse under
+// way as far along as the time since its launch, never below zero.
+TEST(RunReport, PulsePaceGivesTheTimeLeftFromTheLaunchesSeen) {
+  PulsePace pace;
+  pace.observe(1, 2.0);  // pulse 1 under way, launched at a time not seen
+  EXPECT_TRUE(std::isnan(pace.seconds_left(10, 2.0)));
+  pace.observe(1, 2.5);
+  pace.observe(2, 3.0);  // one launch seen: no pace yet
+  EXPECT_TRUE(std::isnan(pace.seconds_left(10, 3.0)));
+  pace.observe(4, 5.0);                               // two pulses in 2 s
+  EXPECT_DOUBLE_EQ(pace.seconds_left(10, 5.5), 6.5);  // pulses 4-10 at 1 s, 4 half done
+  pace.observe(10, 11.0);                             // eight pulses in 8 s
+  EXPECT_DOUBLE_EQ(pace.seconds_left(10, 11.25), 0.75);
+  EXPECT_EQ(pace.seconds_left(10, 20.0), 0.0);  // overdue
+}
+
 // An output file is written beside itself and renamed into place; a fill that throws (an error or
 // an interrupt mid-write) leaves neither the file nor its temporary behind.
 TEST(RunReport, AWriteThatThrowsLeavesNoFileBehind) {

@@ -11,6 +11,7 @@
 #include <ctime>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <memory>
 #include <mutex>
 #include <nlohmann/json.hpp>
@@ -173,6 +174,23 @@ int exit_code(int code) {
   std::_Exit(code);
 }
 
+void PulsePace::observe(int launched, double elapsed) {
+  if (first_ < 0) {  // the pulse under way when first seen: its launch time is unknown
+    first_ = latest_ = launched;
+    first_at_ = latest_at_ = -1;
+    return;
+  }
+  if (launched == latest_) return;
+  if (first_at_ < 0) first_ = launched, first_at_ = elapsed;  // the first launch seen
+  latest_ = launched, latest_at_ = elapsed;
+}
+
+double PulsePace::seconds_left(int count, double elapsed) const {
+  if (first_at_ < 0 || latest_ == first_) return std::numeric_limits<double>::quiet_NaN();
+  const double pace = (latest_at_ - first_at_) / (latest_ - first_);
+  return std::max(0.0, pace * (count - latest_ + 1) - (elapsed - latest_at_));
+}
+
 namespace {
 
 using Clock = std::chrono::steady_clock;
@@ -209,6 +227,16 @@ std::string peak_text(const Figures& f, const char* format) {
   return text;
 }
 
+// "~12 s left", "~3.5 min left", "~2.0 h left"; empty without an estimate.
+std::string time_left_text(double seconds) {
+  if (!(seconds >= 0)) return "";
+  char text[32];
+  if (seconds < 120) std::snprintf(text, sizeof text, "~%.0f s left", seconds);
+  else if (seconds < 7200) std::snprintf(text, sizeof text, "~%.1f min left", seconds / 60);
+  else std::snprintf(text, sizeof text, "~%.1f h left", seconds / 3600);
+  return text;
+}
+
 // One progress line on stderr, refreshed at most twice a second once a run passes two seconds.
 class Progress {
  public:
@@ -219,9 +247,12 @@ class Progress {
     if (elapsed < 2.0 || elapsed - last_ < 0.5) return;
     last_ = elapsed;
     const Figures f = sim.figures();
-    std::fprintf(stderr, "\r%spulse %d/%d  t = %.3e s  v_v = %.4f  T_max = %s  %.1f s   ",
-                 label_.c_str(), f.pulse, sim.spec().pulses.count, f.time, f.vaporized_fraction,
-                 peak_text(f, "%.0f K").c_str(), elapsed);
+    const int count = sim.spec().pulses.count;
+    pace_.observe(f.pulse, elapsed);
+    std::fprintf(stderr, "\r%spulse %d/%d  t = %.3e s  v_v = %.4f  T_max = %s  %.1f s  %s   ",
+                 label_.c_str(), f.pulse, count, f.time, f.vaporized_fraction,
+                 peak_text(f, "%.0f K").c_str(), elapsed,
+                 time_left_text(pace_.seconds_left(count, elapsed)).c_str());
     shown_ = true;
   }
   ~Progress() {
@@ -234,6 +265,7 @@ class Progress {
   Clock::time_point start_ = Clock::now();
   double last_ = 0;
   bool shown_ = false;
+  PulsePace pace_;
 };
 
 // The figures of a run as CSV columns: history.csv and sweep.csv share them.

@@ -44,6 +44,21 @@ void note_reading_input();
 // destructors (TBB's, Embree's) must not run under that thread.
 int exit_code(int code);
 
+// The wall time a run has left, by the pace of its pulse launches: the progress line's estimate.
+// The pace is measured from the first launch this process sees to the latest (samples as the
+// progress line takes them, every half second); the pulse under way is taken to be as far along
+// as the time since its launch says. No estimate (NaN) before two launches have been seen.
+class PulsePace {
+ public:
+  // `launched`: pulses launched so far (the pulse under way), at `elapsed` wall seconds.
+  void observe(int launched, double elapsed);
+  double seconds_left(int count, double elapsed) const;
+
+ private:
+  int first_ = -1, latest_ = -1;  // launches counted at the first and the latest change seen
+  double first_at_ = 0, latest_at_ = 0;
+};
+
 // Runs one scene and writes summary.json, particles.csv, history.csv (and frames). Returns the
 // exit code: 0 done, 1 interrupted or failed.
 int run_command(const RunOptions& options);
