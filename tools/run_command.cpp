@@ -806,7 +806,7 @@ struct PulsesEnded {
   int count = 0;  // in this run (a resumed one: since the checkpoint)
   Figures figures;
   Counts counts;
-  void note(const Simulation& sim) { ++count, figures = sim.figures(), counts = sim.counts(); }
+  void note(const Figures& f, const Counts& c) { ++count, figures = f, counts = c; }
 };
 
 // A step that throws leaves the particles part way through it: they are not written (nor a
@@ -821,8 +821,9 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
   r.figures = ended.figures;
   r.counts = ended.counts;
   r.wall_seconds = wall_seconds;
+  const double failed_at = sim.figures().time;
   nlohmann::json j = summary_json(sim, r, config);
-  j["failed"] = {{"message", failure}, {"time_s", sim.figures().time}};
+  j["failed"] = {{"message", failure}, {"time_s", failed_at}};
   write_atomically((out / "history.csv").string(), [&](std::ostream& o) { o << record.history; });
   write_atomically((out / "summary.json").string(),
                    [&](std::ostream& o) { o << j.dump(2) << '\n'; });
@@ -830,7 +831,7 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
                "beampack: the run failed at t = %.6g s, after %d pulses had ended; %s holds them "
                "(history.csv, and summary.json as at the last one's end, with the failure; no "
                "particles.csv: the particles are part way through a step)\n",
-               sim.figures().time, ended.figures.pulse, out.c_str());
+               failed_at, ended.figures.pulse, out.c_str());
 }
 
 int run_command(const RunOptions& options) {
@@ -888,14 +889,15 @@ int run_command(const RunOptions& options) {
   bool checkpoint_due = false;
   PulsesEnded ended;
   sim.on_pulse_end([&](int pulse) {
-    ended.note(sim);
-    record.history += history_row(sim.figures());
+    const Figures figures = sim.figures();  // one pass over the particles per pulse end
+    ended.note(figures, sim.counts());
+    record.history += history_row(figures);
     if (config.output.rays)
       write_rays_vtp((out / pulse_file("rays", pulse)).string(), sim.take_ray_paths());
     if (config.output.frames) {
       const std::string name = pulse_file("particles", pulse);
       write_particles_vtp((out / name).string(), sim.particles(), sim.absorbed());
-      record.frames.emplace_back(name, sim.figures().time);
+      record.frames.emplace_back(name, figures.time);
       write_pvd((out / "particles.pvd").string(), record.frames);
     }
     checkpoint_due = record.checkpoint_every > 0 && (pulse + 1) % record.checkpoint_every == 0;
