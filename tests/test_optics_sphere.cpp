@@ -538,6 +538,18 @@ TEST(OpticsSphere, OccludedExactlyWhenTheNearestHitIsBeforeTheLimit) {
   EXPECT_LT(occluded, 3 * queries / 4);
 }
 
+// `call` throws a RunError whose message holds every one of `parts`.
+template <class Call>
+void expect_run_error(Call&& call, std::initializer_list<const char*> parts) {
+  try {
+    call();
+    ADD_FAILURE() << "no RunError; expected one naming " << *parts.begin();
+  } catch (const RunError& e) {
+    for (const char* part : parts)
+      EXPECT_NE(std::string(e.what()).find(part), std::string::npos) << e.what();
+  }
+}
+
 // Embree's errors are RunErrors on the calling thread, naming Embree's error code and what was
 // being done. A real one: with Embree's allocations limited to 1 kB, the rebuild after a removal
 // runs out of memory. Embree is then left without a structure and would answer every query with
@@ -551,15 +563,6 @@ TEST(OpticsSphere, EmbreeErrorsAreThrownNamingTheCodeAndTheTask) {
   for (std::uint32_t r = 0; r < 16; ++r) ids[r] = r;
   const RayQuery q{rays.org.data(), rays.dir.data(), rays.skip.data(), t_hit.data(),
                    particle.data()};
-  auto expect_run_error = [](auto&& call, std::initializer_list<const char*> parts) {
-    try {
-      call();
-      ADD_FAILURE() << "no RunError; expected one naming " << *parts.begin();
-    } catch (const RunError& e) {
-      for (const char* part : parts)
-        EXPECT_NE(std::string(e.what()).find(part), std::string::npos) << e.what();
-    }
-  };
   EmbreeScene scene(p, SceneUpdate::rebuild);
   scene.intersect1(q, 0);  // no error before the limit
   scene.intersect16(q, ids.data(), 16);
@@ -601,20 +604,13 @@ TEST(OpticsSphere, EmbreeErrorsAreThrownNamingTheCodeAndTheTask) {
 // configuration and Embree's error code, from the scene and from the tracer that builds one.
 TEST(OpticsSphere, ADeviceConfigurationEmbreeRefusesIsNamed) {
   const Particles p = random_overlap_packing(50, 1e-3, 0.325, 3);
-  const auto expect_refused = [](auto&& build) {
-    try {
-      build();
-      ADD_FAILURE() << "no RunError for threads=abc";
-    } catch (const RunError& e) {
-      EXPECT_NE(std::string(e.what()).find("rtcNewDevice(\"threads=abc\") failed (RTC_ERROR_"),
-                std::string::npos)
-          << e.what();
-    }
-  };
-  expect_refused([&] { EmbreeScene scene(p, SceneUpdate::deferred, 4096, 0.1, 1, "threads=abc"); });
+  constexpr const char* kRefused = "rtcNewDevice(\"threads=abc\") failed (RTC_ERROR_";
+  expect_run_error(
+      [&] { EmbreeScene scene(p, SceneUpdate::deferred, 4096, 0.1, 1, "threads=abc"); },
+      {kRefused});
   OpticsSpec spec;
   spec.embree_config = "threads=abc";
-  expect_refused([&] { Tracer tracer(p, spec); });
+  expect_run_error([&] { Tracer tracer(p, spec); }, {kRefused});
 }
 
 }  // namespace
