@@ -834,12 +834,104 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
                failed_at, ended.figures.pulse, out.c_str());
 }
 
-int run_command(const RunOptions& options) {
-  note_reading_input();
-  if (!options.resume.empty() && (!options.sources.file.empty() ||
-                                  !options.sources.preset.empty() || !options.sources.sets.empty()))
+// --resume: the checkpoint's run file and particles stand in for the run's sources.
+void resume_from_checkpoint(const RunOptions& options, bool into_checkpoint_folder,
+                            RunRecord& record, std::optional<StateReader>& saved,
+                            RunSources& sources) {
+  if (!options.sources.file.empty() || !options.sources.preset.empty() ||
+      !options.sources.sets.empty())
     throw InputError("--resume " + options.resume +
                      ": the checkpoint holds its run file; give no run file, --preset or --set");
+  if (into_checkpoint_folder) refuse_to_resume_a_finished_run(options.resume);
+  saved.emplace(open_checkpoint(fs::path(options.resume) / "checkpoint.bin", record));
+  sources.text = record.config_text;
+  sources.saved_packing = [&saved](const SimulationSpec& spec) {
+    return Simulation::saved_packing(*saved, spec);
+  };
+}
+
+// What a pulse end leaves: a history row, the pulse's ray paths and particle frame when asked
+// for, the figures a later failure keeps, and whether a checkpoint is due after the step.
+void record_pulse_ends(Simulation& sim, const OutputSpec& output, const fs::path& out,
+                       RunRecord& record, PulsesEnded& ended, bool& checkpoint_due) {
+  sim.on_pulse_end([&sim, &output, out, &record, &ended, &checkpoint_due](int pulse) {
+    const Figures figures = sim.figures();  // one pass over the particles per pulse end
+    ended.note(figures, sim.counts());
+    record.history += history_row(figures);
+    if (output.rays)
+      write_rays_vtp((out / pulse_file("rays", pulse)).string(), sim.take_ray_paths());
+    if (output.frames) {
+      const std::string name = pulse_file("particles", pulse);
+      write_particles_vtp((out / name).string(), sim.particles(), sim.absorbed());
+      record.frames.emplace_back(name, figures.time);
+      write_pvd((out / "particles.pvd").string(), record.frames);
+    }
+    checkpoint_due = record.checkpoint_every > 0 && (pulse + 1) % record.checkpoint_every == 0;
+  });
+}
+
+// Steps until the run is done or interrupted, with a checkpoint between steps when one is due
+// (never inside a step: a resume continues with exactly the next step). A step that fails keeps
+// the pulses ended before it, and its exception goes on.
+void run_steps(Simulation& sim, const RunConfig& config, const fs::path& out, RunRecord& record,
+               const PulsesEnded& ended, bool& checkpoint_due, bool quiet,
+               Clock::time_point start) {
+  try {
+    Progress progress(quiet, "");
+    while (!sim.done() && !stop_requested().load()) {
+      sim.step();
+      if (checkpoint_due && !sim.done())
+        write_checkpoint(out / "checkpoint.bin", sim, record,
+                         record.earlier_seconds + seconds_since(start));
+      checkpoint_due = false;
+      progress.update(sim);
+    }
+  } catch (const std::exception& failure) {
+    try {
+      keep_pulses_before_failure(out, sim, record, ended, config, failure.what(),
+                                 record.earlier_seconds + seconds_since(start));
+    } catch (const std::exception& e) {  // a full disk, say: the failure itself is what to report
+      std::fprintf(stderr, "beampack: the pulses before the failure could not be written: %s\n",
+                   e.what());
+    }
+    throw;
+  }
+}
+
+// The run's end, finished or interrupted: its files (and a checkpoint when interrupted), its
+// table and its warnings. Returns the exit code.
+int finish_run(const Simulation& sim, const RunConfig& config, const RunRecord& record,
+               const fs::path& out, Clock::time_point start) {
+  RunResult r;
+  r.figures = sim.figures();
+  r.counts = sim.counts();
+  r.interrupted = !sim.done();
+  r.wall_seconds = record.earlier_seconds + seconds_since(start);  // like the stage times
+  if (r.interrupted) write_checkpoint(out / "checkpoint.bin", sim, record, r.wall_seconds);
+  write_atomically((out / "history.csv").string(), [&](std::ostream& o) { o << record.history; });
+  write_particles_csv((out / "particles.csv").string(), sim.particles(), sim.absorbed());
+  write_atomically((out / "summary.json").string(),
+                   [&](std::ostream& o) { o << summary_json(sim, r, config).dump(2) << '\n'; });
+  print_table(sim, r);
+  warn_of_late_pulses(config.sim, r.counts);
+  warn_of_capped_phase_steps(config.sim, r.counts);
+  warn_of_unsettled_staggers(config.sim, r.counts);
+  for (const std::string& warning : open_ledger_warnings(config.sim, r.figures.energy))
+    std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
+  if (!r.interrupted) return 0;
+  const std::string where = r.figures.pulse > 0
+                                ? "in pulse " + std::to_string(r.figures.pulse) + " of " +
+                                      std::to_string(config.sim.pulses.count)
+                                : std::string("before the first pulse");
+  std::fprintf(stderr,
+               "beampack: interrupted at t = %.6g s %s; outputs in %s hold that state "
+               "(history.csv: the pulses before it); continue with: beampack run --resume %s\n",
+               r.figures.time, where.c_str(), out.c_str(), out.c_str());
+  return 1;
+}
+
+int run_command(const RunOptions& options) {
+  note_reading_input();
   RunRecord record;
   std::optional<StateReader> saved;
   RunSources sources = options.sources;
@@ -848,14 +940,8 @@ int run_command(const RunOptions& options) {
   std::error_code same_ec;
   const bool into_checkpoint_folder =
       !options.resume.empty() && fs::equivalent(out_dir, options.resume, same_ec);
-  if (into_checkpoint_folder) refuse_to_resume_a_finished_run(options.resume);
-  if (!options.resume.empty()) {
-    saved.emplace(open_checkpoint(fs::path(options.resume) / "checkpoint.bin", record));
-    sources.text = record.config_text;
-    sources.saved_packing = [&saved](const SimulationSpec& spec) {
-      return Simulation::saved_packing(*saved, spec);
-    };
-  }
+  if (!options.resume.empty())
+    resume_from_checkpoint(options, into_checkpoint_folder, record, saved, sources);
   RunConfig config = load_run_config(sources);
   warn_of_ignored_keys({&config});
   warn_of_many_steps(config.sim);
@@ -888,69 +974,9 @@ int run_command(const RunOptions& options) {
   const fs::path out(out_dir);
   bool checkpoint_due = false;
   PulsesEnded ended;
-  sim.on_pulse_end([&](int pulse) {
-    const Figures figures = sim.figures();  // one pass over the particles per pulse end
-    ended.note(figures, sim.counts());
-    record.history += history_row(figures);
-    if (config.output.rays)
-      write_rays_vtp((out / pulse_file("rays", pulse)).string(), sim.take_ray_paths());
-    if (config.output.frames) {
-      const std::string name = pulse_file("particles", pulse);
-      write_particles_vtp((out / name).string(), sim.particles(), sim.absorbed());
-      record.frames.emplace_back(name, figures.time);
-      write_pvd((out / "particles.pvd").string(), record.frames);
-    }
-    checkpoint_due = record.checkpoint_every > 0 && (pulse + 1) % record.checkpoint_every == 0;
-  });
-  try {
-    Progress progress(options.quiet, "");
-    while (!sim.done() && !stop_requested().load()) {
-      sim.step();
-      // Between steps, never inside one: a resume continues with exactly the next step.
-      if (checkpoint_due && !sim.done())
-        write_checkpoint(out / "checkpoint.bin", sim, record,
-                         record.earlier_seconds + seconds_since(start));
-      checkpoint_due = false;
-      progress.update(sim);
-    }
-  } catch (const std::exception& failure) {
-    try {
-      keep_pulses_before_failure(out, sim, record, ended, config, failure.what(),
-                                 record.earlier_seconds + seconds_since(start));
-    } catch (const std::exception& e) {  // a full disk, say: the failure itself is what to report
-      std::fprintf(stderr, "beampack: the pulses before the failure could not be written: %s\n",
-                   e.what());
-    }
-    throw;
-  }
-  RunResult r;
-  r.figures = sim.figures();
-  r.counts = sim.counts();
-  r.interrupted = !sim.done();
-  r.wall_seconds = record.earlier_seconds + seconds_since(start);  // like the stage times
-  if (r.interrupted) write_checkpoint(out / "checkpoint.bin", sim, record, r.wall_seconds);
-  write_atomically((out / "history.csv").string(), [&](std::ostream& o) { o << record.history; });
-  write_particles_csv((out / "particles.csv").string(), sim.particles(), sim.absorbed());
-  write_atomically((out / "summary.json").string(),
-                   [&](std::ostream& o) { o << summary_json(sim, r, config).dump(2) << '\n'; });
-  print_table(sim, r);
-  warn_of_late_pulses(config.sim, r.counts);
-  warn_of_capped_phase_steps(config.sim, r.counts);
-  warn_of_unsettled_staggers(config.sim, r.counts);
-  for (const std::string& warning : open_ledger_warnings(config.sim, r.figures.energy))
-    std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
-  if (r.interrupted) {
-    const std::string where = r.figures.pulse > 0
-                                  ? "in pulse " + std::to_string(r.figures.pulse) + " of " +
-                                        std::to_string(config.sim.pulses.count)
-                                  : std::string("before the first pulse");
-    std::fprintf(stderr,
-                 "beampack: interrupted at t = %.6g s %s; outputs in %s hold that state "
-                 "(history.csv: the pulses before it); continue with: beampack run --resume %s\n",
-                 r.figures.time, where.c_str(), out_dir.c_str(), out_dir.c_str());
-    return 1;
-  }
-  return 0;
+  record_pulse_ends(sim, config.output, out, record, ended, checkpoint_due);
+  run_steps(sim, config, out, record, ended, checkpoint_due, options.quiet, start);
+  return finish_run(sim, config, record, out, start);
 }
 
 }  // namespace beampack::tools
