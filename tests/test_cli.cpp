@@ -308,6 +308,37 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
 // A --set of `material.conductivity.x` turns the number an earlier layer gave into a table: the
 // error names that --set, not the layer whose number it replaced (found by an adversarial review:
 // the run file's line, "preset quick" and the first --set were named).
+// A table sets its keys and no others, from a run file or a --set; one that sets none is still
+// read: under a name that is no key it is an unknown key, in a value's place a wrong type.
+TEST(Cli, ATableSetsItsOwnKeysAndAnEmptyOneIsStillChecked) {
+  const fs::path dir = fresh_dir("tables");
+  const std::string file = write(dir / "m.toml", "[material]\ndensity = 2000\n");
+  const Result r = run("config " + file + " --preset quick --set 'material={conductivity=5}'");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("density = 2000.0"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("conductivity = 5.0"), std::string::npos) << r.output;
+  const Result none = run("config --preset quick --set 'material={}'");
+  ASSERT_EQ(none.code, 0) << none.output;
+  EXPECT_NE(none.output.find("conductivity = 20.0"), std::string::npos) << none.output;
+  // A section whose keys are all left out reads as the layers below it.
+  const Result bare = run("config " + write(dir / "bare.toml", "[beam]\n") + " --preset quick");
+  ASSERT_EQ(bare.code, 0) << bare.output;
+  EXPECT_NE(bare.output.find("rays = 200"), std::string::npos) << bare.output;
+  expect_input_error("empty_unknown", "[foo]\n", "--preset quick",
+                     {"run.toml:1", "unknown key `foo`"});
+  expect_input_error("empty_nested_unknown", "[foo.bar.baz]\n", "--preset quick",
+                     {"unknown key `foo.bar.baz`"});
+  expect_input_error("empty_for_number", "[beam.rays]\n", "--preset quick",
+                     {"run.toml:1", "`beam.rays` = {}", "must be an integer"});
+  expect_input_error("empty_inline_for_number", "[beam]\nrays = {}\n", "--preset quick",
+                     {"run.toml:2", "`beam.rays` = {}", "must be an integer"});
+  expect_input_error("empty_by_set", "", "--preset quick --set 'foo={}'",
+                     {"--set foo={}: unknown key `foo`"});
+  // A second line in a --set value would go unread.
+  expect_input_error("set_two_lines", "", "--preset quick --set 'material.conductivity=5\nbogus=7'",
+                     {"`material.conductivity` must be one TOML value", "2 assignments"});
+}
+
 TEST(Cli, AKeyTurnedIntoATableIsBlamedOnTheSetThatDidIt) {
   const char* table =
       "--set material.conductivity.x=5: `material.conductivity` = { x = 5 }: must be a number";
@@ -743,6 +774,18 @@ TEST(Cli, ASweepPipedIntoAnEarlyQuitterKeepsItsTable) {
   const auto rows = read_csv(dir / "sweep" / "sweep.csv");
   ASSERT_EQ(rows.size(), 4u) << piped.output;
   for (const auto& row : rows) EXPECT_NE(row.at("vaporized_fraction"), "");
+}
+
+// What config, presets and validate print is what they are for: output that could not be
+// written is a failed command (a run file of 0 bytes would run with the built-in defaults).
+TEST(Cli, ACommandWhoseOutputCannotBeWrittenFails) {
+  ASSERT_TRUE(fs::exists("/dev/full"));
+  for (const char* command : {"config --preset quick", "presets", "validate --quiet"}) {
+    const Result r = run(std::string(command) + " >/dev/full)", "(");  // stderr still read
+    EXPECT_EQ(r.code, 1) << command << ": " << r.output;
+    EXPECT_NE(r.output.find("standard output could not be written"), std::string::npos)
+        << command << ": " << r.output;
+  }
 }
 
 // A wall within whose reach no particle lies takes no heat: announced, as it usually means a

@@ -1,7 +1,9 @@
 // beampack: the command line (INTERFACE.md). Exit codes: 0 success, 1 failed run, 2 bad input.
 #include <CLI/CLI.hpp>
 #include <cctype>
+#include <cerrno>
 #include <cstdio>
+#include <cstring>
 #include <exception>
 #include <filesystem>
 #include <iostream>
@@ -102,6 +104,16 @@ int print_config(RunSources sources) {
   return 0;
 }
 
+// What validate, presets and config print is their product: one that could not be written (a
+// full disk, a closed pipe, /dev/full) is a failed command, not an empty success.
+int output_written(int code) {
+  std::cout.flush();
+  if (std::cout && std::fflush(stdout) == 0 && !std::ferror(stdout)) return code;
+  std::fprintf(stderr, "beampack: error: standard output could not be written (%s)\n",
+               std::strerror(errno));
+  return code == 0 ? 1 : code;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -179,9 +191,10 @@ int main(int argc, char** argv) {
     if (sweep_cmd->parsed()) return exit_code(sweep_command(sweep));
     if (converge_cmd->parsed()) return exit_code(converge_command(converge));
     if (validate_cmd->parsed())
-      return stiff ? run_stability_report(quiet_validate) : run_validate(quiet_validate);
-    if (app.got_subcommand("presets")) return list_presets();
-    if (config_cmd->parsed()) return print_config(config.sources);
+      return output_written(stiff ? run_stability_report(quiet_validate)
+                                  : run_validate(quiet_validate));
+    if (app.got_subcommand("presets")) return output_written(list_presets());
+    if (config_cmd->parsed()) return output_written(print_config(config.sources));
   } catch (const beampack::InputError& e) {
     std::fprintf(stderr, "beampack: error: %s\n", e.what());
     return exit_code(2);  // a set-up left running on its thread must not see the static destructors

@@ -75,7 +75,7 @@ std::vector<std::string> leaf_keys(const toml::table& table, const std::string& 
   for (const auto& [k, node] : table) {
     const std::string key =
         prefix.empty() ? std::string(k.str()) : prefix + "." + std::string(k.str());
-    if (const toml::table* sub = node.as_table()) {
+    if (const toml::table* sub = node.as_table(); sub && !sub->empty()) {
       const auto inner = leaf_keys(*sub, key);
       keys.insert(keys.end(), inner.begin(), inner.end());
     } else {
@@ -106,7 +106,30 @@ void set_origin(std::map<std::string, KeyOrigin>& origin, const std::string& key
 // Such names cannot be run-file keys, whose parts are bare words joined by dots.
 void merge_layer(toml::table& merged, std::map<std::string, KeyOrigin>& origin,
                  const toml::table& layer, const KeyOrigin& source, bool with_lines,
-                 const std::string& prefix = "") {
+                 const std::string& prefix = "");
+
+// One key's value from a layer, `at` where the layer gave it. A table sets its keys, as a run
+// file's [material] does: the keys it leaves out keep the values earlier layers gave them.
+void merge_value(toml::table& merged, std::map<std::string, KeyOrigin>& origin,
+                 const std::string& key, const toml::node& node, const KeyOrigin& source,
+                 bool with_lines, const std::string& at) {
+  if (const toml::table* sub = node.as_table(); sub && !sub->empty()) {
+    merge_layer(merged, origin, *sub, source, with_lines, key);
+    return;
+  }
+  // An empty table sets no key, but it must not vanish: `[foo]` is an unknown key, and
+  // `[beam.rays]` or `rays = {}` a wrong type (check_all_used, the typed accessors). It never
+  // clears a table an earlier layer filled (`[beam]` with its keys commented out).
+  if (node.is_table() && merged.at_path(key).is_table()) return;
+  set_path(merged, key, node);
+  KeyOrigin here = source;
+  here.at = at;
+  set_origin(origin, key, here);
+}
+
+void merge_layer(toml::table& merged, std::map<std::string, KeyOrigin>& origin,
+                 const toml::table& layer, const KeyOrigin& source, bool with_lines,
+                 const std::string& prefix) {
   for (const auto& [k, node] : layer) {
     const std::string name(k.str());
     const std::string at =
@@ -114,13 +137,8 @@ void merge_layer(toml::table& merged, std::map<std::string, KeyOrigin>& origin,
     if (name.empty() || name.find_first_of(".[]") != std::string::npos)
       throw InputError(at + ": key \"" + name + "\" (under `" + prefix +
                        "`): run-file key names are bare words, without '.', '[' or ']'");
-    const std::string key = prefix.empty() ? name : prefix + "." + name;
-    if (const toml::table* sub = node.as_table()) {
-      merge_layer(merged, origin, *sub, source, with_lines, key);
-      continue;
-    }
-    set_path(merged, key, node);
-    set_origin(origin, key, {at, source.file, source.layer});
+    merge_value(merged, origin, prefix.empty() ? name : prefix + "." + name, node, source,
+                with_lines, at);
   }
 }
 
@@ -377,8 +395,11 @@ void Params::merge_assignment(const std::string& key_equals_value, const std::st
   } catch (const std::runtime_error&) {  // toml::parse_error, or non-ASCII outside quotes
     parsed = toml::table{{"v", value}};  // a bare word: a string
   }
-  set_path(merged_, key, *parsed.get("v"));
-  set_origin(origin_, key, {named, "", ++layers_, true, swept});
+  if (parsed.size() != 1)  // "5\nbogus = 7": the second line would go unread
+    throw InputError(named + ": the value of `" + key + "` must be one TOML value (" +
+                     std::to_string(parsed.size()) + " assignments found: a line break?)");
+  merge_value(merged_, origin_, key, *parsed.get("v"), {named, "", ++layers_, true, swept}, false,
+              named);
 }
 
 const toml::node* Params::find(const std::string& key) const {
@@ -582,6 +603,7 @@ void Params::check_all_used() const {
     const auto member = std::find_if(used_.begin(), used_.end(), [&](const std::string& known) {
       return known.size() > key.size() && known.compare(0, key.size() + 1, key + ".") == 0;
     });
+    if (member != used_.end() && find(key)->is_table()) continue;  // `[beam]`, keys all left out
     if (member != used_.end())
       throw InputError(where(key) + "`" + key + "` is a table of keys (`" + *member +
                        "`, ...): write it once as [" + key + "], not as [[" + key +
