@@ -103,6 +103,15 @@ void normalise(const BeamSpec& spec, std::vector<double>& intensity, double ray_
   double shape_sum = 0.0;
   for (double& f : intensity) shape_sum += (f = std::ldexp(f, -exponent));
   const double i0 = power / (ray_area * shape_sum);
+  if (!std::isnormal(ray_area) || !std::isfinite(i0)) {  // P / A: a beam narrower than physics
+    std::ostringstream out;
+    out << "`beam.diameter_fraction` = " << spec.diameter_fraction
+        << " with `beam.power` = " << power << " W and " << spec.rays << " rays: each ray's area, "
+        << ray_area
+        << " m^2, is too small for double precision (the intensity P / area must stay finite, "
+        << "the area a normal double); widen the beam or lower beam.power";
+    throw InputError(out.str());
+  }
   std::size_t largest = 0;
   for (std::size_t k = 0; k < intensity.size(); ++k) {
     intensity[k] *= i0;
@@ -183,6 +192,18 @@ double radius_of(const BeamSpec& spec, double sample_size) {
   return 0.5 * spec.diameter_fraction * sample_size;
 }
 
+// The centre of the face the beam enters by (MODEL.md section 2: the disk is centred on the
+// entry face): the face it meets most squarely, across the axis of d's largest component (the
+// first such axis on a tie). For a beam along an axis this is sample centre - (D/2) d.
+Vec3 entry_face_centre(const Vec3& d, double size) {
+  int a = 0;
+  for (int k = 1; k < 3; ++k)
+    if (std::abs(d[k]) > std::abs(d[a])) a = k;
+  Vec3 centre = Vec3::Constant(0.5 * size);
+  centre[a] = d[a] > 0.0 ? 0.0 : size;
+  return centre;
+}
+
 double ray_area(const BeamSpec& spec, double radius) {
   return std::numbers::pi * radius * radius / static_cast<double>(spec.rays);
 }
@@ -218,7 +239,7 @@ Beam make_beam(const BeamSpec& spec, double sample_size, std::uint64_t pulse) {
   validate_beam(spec, sample_size);
   Beam beam;
   beam.direction = spec.direction;
-  beam.centre = Vec3::Constant(0.5 * sample_size) - 0.5 * sample_size * spec.direction;
+  beam.centre = entry_face_centre(spec.direction, sample_size);
   beam.radius = radius_of(spec, sample_size);
   beam.power = spec.power;
   beam.ray_area = ray_area(spec, beam.radius);

@@ -27,7 +27,7 @@ struct BeamSpec {
 
 struct Beam {
   Vec3 direction;         // unit
-  Vec3 centre;            // centre of the entry disk: sample centre - (D/2) direction
+  Vec3 centre;            // centre of the entry disk: the entry face's centre (make_beam)
   double radius = 0.0;    // r_b
   double ray_area = 0.0;  // A_r = A_b / N_r
   double power = 0.0;     // P
@@ -53,8 +53,9 @@ void validate_beam(const BeamSpec& spec, double sample_size);
 void check_pulse_draw(const BeamSpec& spec, double sample_size, std::uint64_t pulse);
 
 // Validates the spec (InputError naming the key) and samples the disk for pulse `pulse` (its own
-// random stream when spec.resample, else pulse 0's). The disk lies in the plane through the
-// sample centre's upstream face point, perpendicular to the direction.
+// random stream when spec.resample, else pulse 0's). The disk is perpendicular to the direction,
+// its centre at the centre of the entry face: the face the beam meets most squarely (across the
+// axis of the direction's largest component), so an oblique beam's spot is centred on that face.
 Beam make_beam(const BeamSpec& spec, double sample_size, std::uint64_t pulse = 0);
 
 // The profile's shape f(d) = I(d) / I_0 at distance d from the axis, beam radius r_b.

@@ -3,10 +3,16 @@
 #include <algorithm>
 #include <cmath>
 #include <complex>
+#include <limits>
 
 #include "geometry/vec3.h"
 
 namespace beampack {
+
+// The indices (real and imaginary parts) and relative permeabilities the optics accept: an index
+// of 1e6 is a mirror to 1e-6 already, and far beyond these the terms of (2.14) overflow.
+constexpr double kMaxIndex = 1e6;
+constexpr double kMinMu = 1e-100, kMaxMu = 1e100;
 
 struct Reflectances {
   double parallel;       // R_par = r_par^2, (2.13)-(2.14)
@@ -51,7 +57,11 @@ inline double reflectance(double cos_i, double n_hat, double mu_hat = 1.0) {
   const FresnelFractions f = fresnel_fractions(cos_i, n_hat, mu_hat);
   if (f.total) return 1.0;
   const double p2 = f.par_den * f.par_den, q2 = f.perp_den * f.perp_den, den = p2 * q2;
-  if (!std::isnormal(den)) {  // extreme indices (|n| beyond ~1e38 or tiny): two divisions
+  // |num| <= |den| for each fraction, so the numerator below is at most 2 den: finite when den
+  // is at most half the largest double. Beyond (n_hat ~ 2e51, or mu_hat ~ 1e74 with n_hat = 1e6)
+  // or below the normal range, two divisions.
+  if (!(den >= std::numeric_limits<double>::min() &&
+        den <= 0.5 * std::numeric_limits<double>::max())) {
     const Reflectances r = reflectance_components(cos_i, n_hat, mu_hat);
     return 0.5 * (r.parallel + r.perpendicular);
   }

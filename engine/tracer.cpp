@@ -17,6 +17,7 @@
 #include <cmath>
 #include <numbers>
 #include <numeric>
+#include <sstream>
 #include <string>
 #include <utility>
 
@@ -39,6 +40,14 @@ constexpr std::size_t kBatchesInFlight = 16;  // batches traced ahead of the in-
 constexpr std::size_t kItemsPerThread = 16;
 constexpr double kInf = std::numeric_limits<double>::infinity();
 
+std::string optics_text(const MaterialOptics& m) {
+  std::ostringstream s;
+  s << "`optics.n_solid` = " << m.n_solid.real() << ", `optics.k_solid` = " << m.n_solid.imag()
+    << ", `optics.n_liquid` = " << m.n_liquid.real()
+    << ", `optics.k_liquid` = " << m.n_liquid.imag() << ", `optics.mu_hat` = " << m.mu_hat;
+  return s.str();
+}
+
 void validate(const OpticsSpec& spec, const Particles& particles) {
   if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
     throw InputError("`optics.cutoff` = " + std::to_string(spec.cutoff) + ": must be in [0, 1)");
@@ -54,7 +63,7 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
                        std::to_string(particles.material[i]) + " but the optics spec defines " +
                        std::to_string(spec.materials.size()) + " material(s)");
   auto index_ok = [](std::complex<double> n) {
-    return n.real() > 0.0 && std::isfinite(n.real()) && n.imag() >= 0.0 && std::isfinite(n.imag());
+    return n.real() > 0.0 && n.real() <= kMaxIndex && n.imag() >= 0.0 && n.imag() <= kMaxIndex;
   };
   // Linear polarisation is followed only while it stays linear: real indices >= 1.
   auto keeps_linear = [](std::complex<double> n) { return n.imag() == 0.0 && n.real() >= 1.0; };
@@ -64,10 +73,10 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
                      " degrees: the field's angle in the beam disk must be in [0, 180]");
   for (const auto& m : spec.materials) {
     if (!index_ok(m.n_solid) || !index_ok(m.n_liquid) ||
-        !(m.mu_hat > 0.0 && std::isfinite(m.mu_hat)))
-      throw InputError(
-          "`optics.n_solid`, `optics.n_liquid` and mu_hat must be finite and > 0, and "
-          "`optics.k_solid`, `optics.k_liquid` finite and >= 0 (k < 0 would be a gain medium)");
+        !(m.mu_hat >= kMinMu && m.mu_hat <= kMaxMu))
+      throw InputError(optics_text(m) +
+                       ": the indices must be > 0 and <= 1e6, the k >= 0 and <= 1e6 (k < 0 "
+                       "would be a gain medium), mu_hat in [1e-100, 1e100]");
     if (spec.polarisation.linear && !(keeps_linear(m.n_solid) && keeps_linear(m.n_liquid)))
       throw InputError(
           "`optics.polarisation` with `optics.k_solid`/`k_liquid` > 0 or an index "

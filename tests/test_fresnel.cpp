@@ -59,6 +59,29 @@ TEST(Fresnel, LargeIndexReflectsEverything) {
   }
 }
 
+// Across the whole accepted range of index and permeability (and beyond it in n_hat, for the
+// one-division form's own sake) the reflectance is a number in [0, 1]. The one-division form
+// overflowed where p^2 q^2 came within a factor 2 of the largest double: n_hat ~ 2.1e51 at normal
+// incidence, or mu_hat ~ 9.74e73 with n_hat = 1e6, both gave R = inf.
+TEST(Fresnel, ReflectanceStaysInZeroOneAtTheExtremes) {
+  for (double n : {1e-6, 0.5, 1.4, 1e3, kMaxIndex, 2.12e51, 2.3e51, 5e51, 1e100})
+    for (double log_mu = std::log10(kMinMu); log_mu <= std::log10(kMaxMu); log_mu += 0.01)
+      for (double c : {1.0, 0.999, 0.5, 0.1, 1e-3, 0.0}) {
+        const double mu = std::pow(10.0, log_mu);
+        const double r = reflectance(c, n, mu);
+        ASSERT_TRUE(r >= 0.0 && r <= 1.0) << "n " << n << " mu " << mu << " cos " << c << ": " << r;
+      }
+  // The window itself, finely: mu_hat from 9.70e73 to 9.78e73 at n_hat = 1e6, normal incidence.
+  for (double mu = 9.70e73; mu < 9.78e73; mu += 1e69) {
+    const double r = reflectance(1.0, kMaxIndex, mu);
+    ASSERT_TRUE(r >= 0.0 && r <= 1.0) << "mu " << mu << ": " << r;
+  }
+  for (double n = 2.10e51; n < 2.40e51; n += 1e48) {
+    const double r = reflectance(1.0, n);
+    ASSERT_TRUE(r >= 0.0 && r <= 1.0) << "n " << n << ": " << r;
+  }
+}
+
 TEST(Fresnel, ReflectanceIsBoundedAndFinite) {
   for (double n : {0.2, 0.7, 1.0, 1.4, 3.0, 1e3})
     for (double mu : {0.5, 1.0, 2.0})

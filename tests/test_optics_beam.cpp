@@ -242,12 +242,34 @@ TEST(OpticsBeam, ResampledPulsesDrawNewRaysWithTheSamePower) {
   }
 }
 
+// The disk is perpendicular to the beam and centred on the entry face (MODEL.md section 2): the
+// face the beam meets most squarely, so an oblique beam's spot on it is centred there too.
 TEST(OpticsBeam, AnyUnitDirectionGivesADiskPerpendicularToIt) {
   BeamSpec spec;
-  spec.direction = Vec3(1, 2, -2) / 3.0;
+  spec.direction = Vec3(1, 2, -2) / 3.0;  // enters by y = 0
   const Beam beam = make_beam(spec, 1.0);
   for (const auto& o : beam.origin) EXPECT_NEAR((o - beam.centre).dot(spec.direction), 0.0, 1e-14);
-  EXPECT_TRUE((beam.centre - (Vec3::Constant(0.5) - 0.5 * spec.direction)).norm() < 1e-15);
+  EXPECT_EQ(beam.centre, Vec3(0.5, 0.0, 0.5));
+  const struct {
+    Vec3 direction, face_centre;
+  } cases[] = {{Vec3(1, 0, 0), Vec3(0, 0.5, 0.5)},
+               {Vec3(0, 0, -1), Vec3(0.5, 0.5, 1)},
+               {Vec3(std::sqrt(0.75), 0.5, 0), Vec3(0, 0.5, 0.5)},  // 30 degrees off +x
+               {Vec3(-0.6, 0, -0.8), Vec3(0.5, 0.5, 1)},
+               {Vec3(1, 1, 0).normalized(), Vec3(0, 0.5, 0.5)}};  // a tie: the first axis
+  spec.sampling = "stratified";  // equal-area rays: their centroid is the disk's centre
+  for (const auto& c : cases) {
+    spec.direction = c.direction;
+    const Beam b = make_beam(spec, 1.0);
+    EXPECT_EQ(b.centre, c.face_centre) << c.direction.transpose();
+    // The spot the rays make on the face's plane is centred on the face.
+    const int a = c.face_centre.x() == 0 ? 0 : 2;
+    const Vec3 d = c.direction;
+    Vec3 spot = Vec3::Zero();
+    for (const Vec3& o : b.origin) spot += o + ((c.face_centre[a] - o[a]) / d[a]) * d;
+    spot /= static_cast<double>(b.size());
+    EXPECT_LT((spot - c.face_centre).norm(), 1e-3 * b.radius) << d.transpose();
+  }
 }
 
 TEST(OpticsBeam, BadInputNamesTheKey) {
@@ -276,6 +298,18 @@ TEST(OpticsBeam, BadInputNamesTheKey) {
             std::string::npos);
   EXPECT_NE(message([](BeamSpec& s) { s.direction = Vec3(1, 1, 0); }).find("beam.direction"),
             std::string::npos);
+  // A beam so narrow that P / area overflows (or its rays' areas are subnormal) is blamed on its
+  // width and power, not on the pulse's energy, which is finite.
+  for (double fraction : {1e-150, 1e-160, 1e-300})
+    EXPECT_NE(message([fraction](BeamSpec& s) {
+                s.diameter_fraction = fraction;
+              }).find("each ray's area"),
+              std::string::npos);
+  EXPECT_NE(message([](BeamSpec& s) { s.diameter_fraction = 1e-150; }).find("too small"),
+            std::string::npos);
+  EXPECT_NE(
+      message([](BeamSpec& s) { s.power = 1e308, s.diameter_fraction = 1e-4; }).find("beam.power"),
+      std::string::npos);
   EXPECT_THROW(make_beam(BeamSpec{}, 1e-3).ray_energies(0.0), InputError);
 }
 

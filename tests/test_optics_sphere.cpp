@@ -620,20 +620,34 @@ namespace beampack {
 namespace {
 
 // The tracer refuses what the run file's ranges refuse too, for library callers: a gain medium
-// (k < 0), an infinite or NaN index or permeability.
+// (k < 0), an infinite or NaN index or permeability, and indices or permeabilities beyond the
+// range in which (2.14)'s terms stay finite (n_hat = 1e155 gave NaN deposits).
 TEST(OpticsSphere, IndexThatIsNotAPassiveMaterialIsRefused) {
   SingleSphere s;
   const double inf = std::numeric_limits<double>::infinity();
   for (const std::complex<double> n :
        {std::complex<double>(1.4, -0.1), std::complex<double>(inf, 0.0),
-        std::complex<double>(1.4, std::nan(""))}) {
+        std::complex<double>(1.4, std::nan("")), std::complex<double>(2 * kMaxIndex, 0.0),
+        std::complex<double>(1.4, 2 * kMaxIndex)}) {
     OpticsSpec optics;
     optics.materials[0].n_solid = n;
-    EXPECT_THROW(Tracer(s.particles, optics), InputError) << n;
+    try {
+      Tracer(s.particles, optics);
+      ADD_FAILURE() << n << " was accepted";
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find("`optics.n_solid` = "), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("<= 1e6"), std::string::npos) << e.what();
+    }
   }
-  OpticsSpec optics;
-  optics.materials[0].mu_hat = inf;
-  EXPECT_THROW(Tracer(s.particles, optics), InputError);
+  for (double mu : {inf, 2 * kMaxMu, 0.5 * kMinMu}) {
+    OpticsSpec optics;
+    optics.materials[0].mu_hat = mu;
+    EXPECT_THROW(Tracer(s.particles, optics), InputError) << mu;
+  }
+  OpticsSpec edge;  // the limits themselves are accepted
+  edge.materials[0].n_solid = {kMaxIndex, kMaxIndex};
+  edge.materials[0].mu_hat = kMaxMu;
+  EXPECT_NO_THROW(Tracer(s.particles, edge));
 }
 
 }  // namespace

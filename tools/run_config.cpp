@@ -15,6 +15,7 @@
 
 #include <unistd.h>
 
+#include "engine/fresnel.h"
 #include "geometry/error.h"
 
 namespace beampack::tools {
@@ -157,14 +158,12 @@ void read_beam(Params& p, BeamSpec& b) {
 }
 
 void read_optics(Params& p, OpticsSpec& o) {
-  // An index of 1e6 is a mirror to 1e-6 already; far beyond, the Fresnel terms overflow.
-  constexpr double kIndex = 1e6;
-  MaterialOptics m;
-  m.n_solid = {p.number("optics.n_solid", 1.4, 0, kIndex, true),
-               p.number("optics.k_solid", 0.0, 0, kIndex)};
-  m.n_liquid = {p.number("optics.n_liquid", 1.0, 0, kIndex, true),
-                p.number("optics.k_liquid", 0.0, 0, kIndex)};
-  m.mu_hat = p.number("optics.mu_hat", 1.0, 1e-100, 1e100);
+  MaterialOptics m;  // the optics' own limits (engine/fresnel.h)
+  m.n_solid = {p.number("optics.n_solid", 1.4, 0, kMaxIndex, true),
+               p.number("optics.k_solid", 0.0, 0, kMaxIndex)};
+  m.n_liquid = {p.number("optics.n_liquid", 1.0, 0, kMaxIndex, true),
+                p.number("optics.k_liquid", 0.0, 0, kMaxIndex)};
+  m.mu_hat = p.number("optics.mu_hat", 1.0, kMinMu, kMaxMu);
   o.materials = {m};
   o.cutoff = p.number("optics.cutoff", 1e-10, 0, 1);
   if (o.cutoff == 1.0)
