@@ -650,5 +650,27 @@ TEST(OpticsSphere, IndexThatIsNotAPassiveMaterialIsRefused) {
   EXPECT_NO_THROW(Tracer(s.particles, edge));
 }
 
+// One stray row at x = 1e20 m among spheres of 0.01 m made every ray miss, silently (the rays
+// start upstream of the whole packing, and a hit computed from 1e14 m away has no digits left
+// for a radius). A packing more than 1e9 smallest radii across is refused, naming both ends.
+TEST(OpticsSphere, APackingTooWideForItsSmallestSphereIsRefused) {
+  const double r = 0.01;
+  for (double far : {0.9e9 * r, 1.1e9 * r, 1e20}) {
+    Particles p;
+    p.add(Vec3(0.5, 0.5, 0.5), r);
+    p.add(Vec3(0.6, 0.5, 0.5), 2 * r);
+    p.add(Vec3(0.5 + far, 0.2, 0.3), r);
+    try {
+      Tracer tracer(p, OpticsSpec{});
+      EXPECT_LT(far + 2 * r, 1e9 * r) << "accepted a span of " << far;
+    } catch (const InputError& e) {
+      EXPECT_GT(far, 1e9 * r) << e.what();
+      const std::string m = e.what();
+      EXPECT_NE(m.find("times its smallest radius (0.01 m)"), std::string::npos) << m;
+      EXPECT_NE(m.find("Particles 0 at (0.5, 0.5, 0.5) and 2 at"), std::string::npos) << m;
+    }
+  }
+}
+
 }  // namespace
 }  // namespace beampack
