@@ -17,9 +17,9 @@ namespace {
   std::ostringstream msg;
   msg << "thermal fixed-point iteration (3.11) " << what << " at iteration " << k
       << " (relative update " << update << ", update ratio " << ratio
-      << ", contraction estimate dt phi max_i(2 sum_j G_ij + W_i)/c_i = " << contraction_estimate
-      << "; it converges only below 1): use thermal.solver = \"cg\", \"direct\" or \"auto\", or a "
-         "smaller thermal.dt";
+      << ", contraction bound dt phi max_i(2 sum_j G_ij + W_i)/c_i = " << contraction_estimate
+      << "; it bounds the iteration's spectral radius, which must be below 1): use "
+         "thermal.solver = \"cg\", \"direct\" or \"auto\", or a smaller thermal.dt";
   throw RunError(msg.str());
 }
 
@@ -29,10 +29,15 @@ SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
                              const Eigen::VectorXd& rhs, Eigen::VectorXd& theta, double tolerance,
                              int max_iterations, double contraction_estimate) {
   // Divergence: the update grew this many times in a row. Stagnation: over a window the update
-  // shrank so little that the cap would be reached long before the tolerance.
+  // shrank so little that the cap would be reached long before the tolerance. Both are judged on
+  // the update's capacity-weighted size |c^{1/2} u|: the iteration matrix I - c^{-1} A is
+  // self-adjoint under it (c - A is symmetric), so a convergent iteration shrinks it by at least
+  // its spectral radius every time. Its largest component can grow for a few iterations even
+  // so (spheres of unequal size), which made convergent iterations "diverge" or "stagnate".
   constexpr int kGrowthLimit = 3;
   constexpr int kWindow = 20;
-  double previous = 0, previous_abs = 0;
+  const Eigen::VectorXd root_c = c.cwiseSqrt();
+  double previous = 0, previous_size = 0;
   int growing = 0;
   std::vector<double> history;
   for (int k = 1; k <= max_iterations; ++k) {
@@ -42,23 +47,22 @@ SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
     const double u = abs_u == 0 ? 0.0
                                 : abs_u / std::max(theta.cwiseAbs().maxCoeff(),
                                                    std::numeric_limits<double>::min());
-    // Growth is judged on the absolute update: when theta itself grows geometrically the update
-    // relative to it stays near 1 and would look like stagnation.
-    const double ratio = k > 1 && previous_abs > 0 ? abs_u / previous_abs : 0.0;
+    const double size = update.cwiseProduct(root_c).norm();
+    const double ratio = k > 1 && previous_size > 0 ? size / previous_size : 0.0;
     if (!std::isfinite(u))
       fixed_point_failure("diverged to a non-finite field", k, u, ratio, contraction_estimate);
     if (u <= tolerance) return {k, u};
     growing = ratio > 1.0 ? growing + 1 : 0;
     if (growing >= kGrowthLimit) fixed_point_failure("diverges", k, u, ratio, contraction_estimate);
-    history.push_back(u);
+    history.push_back(size);
     if (k > kWindow) {
-      const double rate = std::pow(u / history[k - 1 - kWindow], 1.0 / kWindow);
+      const double rate = std::pow(size / history[k - 1 - kWindow], 1.0 / kWindow);
       const double needed = std::log(tolerance / u) / std::log(std::min(rate, 1.0 - 1e-16));
       if (rate >= 1.0 || needed > 10.0 * (max_iterations - k))
         fixed_point_failure("stagnates", k, u, rate, contraction_estimate);
     }
     previous = u;
-    previous_abs = abs_u;
+    previous_size = size;
   }
   fixed_point_failure("did not converge within thermal.max_iterations", max_iterations, previous,
                       0.0, contraction_estimate);
