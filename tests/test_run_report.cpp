@@ -44,6 +44,33 @@ TEST(RunReport, PulsePaceGivesTheTimeLeftFromTheLaunchesSeen) {
 
 // An output file is written beside itself and renamed into place; a fill that throws (an error or
 // an interrupt mid-write) leaves neither the file nor its temporary behind.
+// What a checkpoint holds besides the simulation is checked as it is read: edited by hand, with
+// its checksum recomputed, it gave summary.json a null wall time, particles.pvd a "nan" time,
+// and a resume copied a frame named ../../src.vtp from outside the folder to outside the other.
+TEST(RunReport, ACheckpointsRunRecordIsCheckedAsItIsRead) {
+  using Frames = std::vector<std::pair<std::string, double>>;
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  auto message = [](double wall, int every, const Frames& frames) {
+    try {
+      check_checkpoint_record(wall, every, frames, "ck.bin");
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string("accepted");
+  };
+  EXPECT_EQ(message(12.5, 2, {{"particles_0000.vtp", 0.0}, {"particles_0001.vtp", 1e-12}}),
+            "accepted");
+  EXPECT_EQ(message(0.0, 0, {}), "accepted");
+  for (double wall : {nan, -5.0, std::numeric_limits<double>::infinity()})
+    EXPECT_NE(message(wall, 0, {}).find("ck.bin: its wall time so far"), std::string::npos);
+  EXPECT_NE(message(1.0, -1, {}).find("--checkpoint-every"), std::string::npos);
+  for (const char* name : {"../../src.vtp", "/etc/x.vtp", "particles_00a1.vtp", "particles_.vtp",
+                           "particles_0001.vtp/..", "rays_0001.vtp"})
+    EXPECT_NE(message(1.0, 0, {{name, 0.0}}).find("not particles_NNNN.vtp"), std::string::npos)
+        << name;
+  EXPECT_NE(message(1.0, 0, {{"particles_0003.vtp", nan}}).find("not finite"), std::string::npos);
+}
+
 TEST(RunReport, AWriteThatThrowsLeavesNoFileBehind) {
   const auto dir = beampack::testing::process_dir() / "throwing_write";
   std::filesystem::create_directories(dir);

@@ -554,10 +554,41 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
     std::string name = r.text();
     record.frames.emplace_back(std::move(name), r.value<double>());
   }
+  check_checkpoint_record(record.earlier_seconds, record.checkpoint_every, record.frames,
+                          path.string());
   return r;
 }
 
+// A frame's file as pulse_file names it: particles_NNNN.vtp, digits only between.
+bool is_frame_name(const std::string& name) {
+  constexpr std::string_view stem = "particles_", suffix = ".vtp";
+  if (name.size() <= stem.size() + suffix.size() || !name.starts_with(stem) ||
+      !name.ends_with(suffix))
+    return false;
+  const std::string_view digits =
+      std::string_view(name).substr(stem.size(), name.size() - stem.size() - suffix.size());
+  return std::all_of(digits.begin(), digits.end(), [](char c) { return c >= '0' && c <= '9'; });
+}
+
 }  // namespace
+
+void check_checkpoint_record(double earlier_seconds, int checkpoint_every,
+                             const std::vector<std::pair<std::string, double>>& frames,
+                             const std::string& source) {
+  auto refuse = [&source](const std::string& what) {
+    throw InputError(source + ": " + what + " (a checkpoint edited by hand?)");
+  };
+  if (!(std::isfinite(earlier_seconds) && earlier_seconds >= 0))
+    refuse("its wall time so far, " + std::to_string(earlier_seconds) +
+           " s, is not a finite number >= 0");
+  if (checkpoint_every < 0)
+    refuse("its --checkpoint-every, " + std::to_string(checkpoint_every) + ", is below 0");
+  for (const auto& [name, time] : frames) {
+    if (!is_frame_name(name))
+      refuse("a frame named \"" + name + "\", not particles_NNNN.vtp in the run's folder");
+    if (!std::isfinite(time)) refuse("frame " + name + " has a time that is not finite");
+  }
+}
 
 // A fixed thermal.dt far below the light's crossing time of the sample makes a run of millions
 // of steps per pulse: legal (the budget per step is c dt), but say so before it starts.

@@ -59,6 +59,14 @@ class PulsePace {
   double first_at_ = 0, latest_at_ = 0;
 };
 
+// What a checkpoint holds besides the simulation: the wall time of the runs before it, its
+// --checkpoint-every and its frames (file name, time). A checkpoint edited by hand with its
+// checksum recomputed could hold a NaN or negative wall time, or a frame named outside the run's
+// folder (`../../x.vtp`, which a resume would copy): InputError naming `source`.
+void check_checkpoint_record(double earlier_seconds, int checkpoint_every,
+                             const std::vector<std::pair<std::string, double>>& frames,
+                             const std::string& source);
+
 // Runs one scene and writes summary.json, particles.csv, history.csv (and frames). Returns the
 // exit code: 0 done, 1 interrupted or failed.
 int run_command(const RunOptions& options);
