@@ -78,6 +78,12 @@ TEST(Cli, SmallSceneLedgerClosesAndFilesAgree) {
   const fs::path out = fresh_dir("small");
   const Result r = run("run --preset quick --set output.frames=true --quiet --out " + out.string());
   ASSERT_EQ(r.code, 0) << r.output;
+  // The stage table counts in words that agree with the numbers: "(5 steps", "(1 step".
+  EXPECT_NE(r.output.find("(5 steps, 1000 rays, "), std::string::npos) << r.output;
+  const Result one =
+      run("run --preset quick --set pulses.count=1 --quiet --out " + (out / "one").string());
+  EXPECT_NE(one.output.find("  (1 call)"), std::string::npos) << one.output;
+  EXPECT_NE(one.output.find("(1 step, 200 rays, "), std::string::npos) << one.output;
   const auto summary = read_json(out / "summary.json");
   const auto& e = summary["energy_J"];
   const double injected = e["injected"], absorbed = e["absorbed"];
@@ -982,10 +988,20 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
   const Result finished = run("run --resume " + whole.string() + " --quiet");
   EXPECT_EQ(finished.code, 2) << finished.output;
   EXPECT_NE(
-      finished.output.find("the run there finished (summary.json, 5 pulses): nothing to resume"),
+      finished.output.find("the run there finished (summary.json, 5 pulses): nothing to resume; "
+                           "to run it again from its last periodic checkpoint, give --out"),
       std::string::npos)
       << finished.output;
   EXPECT_EQ(file_text(whole / "summary.json"), summary);
+  // A finished run that kept no checkpoint has none to offer.
+  const fs::path plain = fresh_dir("series_plain");
+  ASSERT_EQ(run("run --preset quick --quiet --out " + plain.string()).code, 0);
+  const Result none = run("run --resume " + plain.string() + " --quiet");
+  EXPECT_EQ(none.code, 2) << none.output;
+  EXPECT_NE(none.output.find("nothing to resume (it kept no periodic checkpoint to start again "
+                             "from)"),
+            std::string::npos)
+      << none.output;
   write(other / "summary.json", R"({"vaporized_fraction": 0, "config": {}})");
   const std::string stale = write(other / "particles_0011.vtp", "a frame of an earlier run");
   const Result r = run("run --resume " + whole.string() + " --out " + other.string() + " --quiet");
@@ -1436,6 +1452,12 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
     EXPECT_EQ(swept.code, 2) << set << ": " << swept.output;
     EXPECT_NE(swept.output.find("is the swept --param"), std::string::npos) << swept.output;
   }
+  const Result assigned =
+      run("sweep --preset quick --param material.conductivity=5 --values 1 --out " + out.string());
+  EXPECT_EQ(assigned.code, 2) << assigned.output;
+  EXPECT_NE(assigned.output.find("--param material.conductivity=5: give the key alone"),
+            std::string::npos)
+      << assigned.output;
   const Result frames =
       run("sweep --preset quick --set output.frames=true --param material.conductivity "
           "--values 1 --out " +

@@ -195,6 +195,11 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
+// The "s" of a count's noun: "1 call", "2 calls".
+const char* plural(long long count) {
+  return count == 1 ? "" : "s";
+}
+
 double seconds_since(Clock::time_point start) {
   return std::chrono::duration<double>(Clock::now() - start).count();
 }
@@ -376,14 +381,15 @@ void print_table(const Simulation& sim, const RunResult& r) {
       std::printf("  %-26s %14s  skipped: %s\n", Simulation::kStageNames[k], "-",
                   s.skipped_because.c_str());
     else
-      std::printf("  %-26s %14.4f  (%llu calls)%s\n", Simulation::kStageNames[k], s.seconds,
-                  static_cast<unsigned long long>(s.calls),
+      std::printf("  %-26s %14.4f  (%llu call%s)%s\n", Simulation::kStageNames[k], s.seconds,
+                  static_cast<unsigned long long>(s.calls), plural(s.calls),
                   stage_note(Simulation::kStageNames[k], r.counts).c_str());
   }
-  std::printf("%-28s %14.3f s (%llu steps, %llu rays, %llu segments traced", "wall time",
+  std::printf("%-28s %14.3f s (%llu step%s, %llu ray%s, %llu segment%s traced", "wall time",
               r.wall_seconds, static_cast<unsigned long long>(r.counts.steps),
-              static_cast<unsigned long long>(r.counts.rays),
-              static_cast<unsigned long long>(r.counts.segments));
+              plural(r.counts.steps), static_cast<unsigned long long>(r.counts.rays),
+              plural(r.counts.rays), static_cast<unsigned long long>(r.counts.segments),
+              plural(r.counts.segments));
   if (r.counts.primaries_reused > 0)
     std::printf(", %llu primary segments (hits or misses) reused from earlier pulses",
                 static_cast<unsigned long long>(r.counts.primaries_reused));
@@ -644,18 +650,19 @@ void warn_of_unsettled_staggers(const SimulationSpec& spec, const Counts& counts
   if (counts.capped_stagger_steps > 0)
     std::fprintf(
         stderr,
-        "beampack: warning: %llu steps reached `thermal.max_staggers` = %d redos with the optics "
+        "beampack: warning: %llu step%s reached `thermal.max_staggers` = %d redos with the optics "
         "still changing: their result is the last redo's and depends on the cap; raise it or "
         "shorten `thermal.dt`\n",
-        static_cast<unsigned long long>(counts.capped_stagger_steps), spec.max_staggers);
+        static_cast<unsigned long long>(counts.capped_stagger_steps),
+        plural(counts.capped_stagger_steps), spec.max_staggers);
   if (counts.stagger_cycles > 0)
     std::fprintf(
         stderr,
-        "beampack: warning: in %llu steps the stagger's redos alternated between two sets of "
+        "beampack: warning: in %llu step%s the stagger's redos alternated between two sets of "
         "phases (a particle melts when traced solid and does not when traced liquid, or the like): "
         "each such step keeps the second pass of the cycle; a shorter `thermal.dt` splits the "
         "melting over steps\n",
-        static_cast<unsigned long long>(counts.stagger_cycles));
+        static_cast<unsigned long long>(counts.stagger_cycles), plural(counts.stagger_cycles));
 }
 
 // Pulses start at step boundaries: a pulses.period shorter than a step delays them.
@@ -812,10 +819,13 @@ void refuse_to_resume_a_finished_run(const fs::path& dir) {
   if (!j.is_object() || !j.contains("interrupted") || j["interrupted"] != false ||
       j.contains("failed"))
     return;  // a failed run's periodic checkpoint may be resumed (a disk that was full)
+  std::error_code ec;
+  const bool periodic = fs::is_regular_file(dir / "checkpoint.bin", ec);
   throw InputError("--resume " + dir.string() + ": the run there finished (summary.json, " +
-                   j.value("pulses", nlohmann::json(0)).dump() +
-                   " pulses): nothing to resume; to run it " +
-                   "again from its last periodic checkpoint, give --out another folder");
+                   j.value("pulses", nlohmann::json(0)).dump() + " pulses): nothing to resume" +
+                   (periodic ? "; to run it again from its last periodic checkpoint, give --out "
+                               "another folder"
+                             : " (it kept no periodic checkpoint to start again from)"));
 }
 
 // A run resumed into another folder than its checkpoint's continues the frames and ray paths
@@ -859,10 +869,10 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
   write_atomically((out / "summary.json").string(),
                    [&](std::ostream& o) { o << j.dump(2) << '\n'; });
   std::fprintf(stderr,
-               "beampack: the run failed at t = %.6g s, after %d pulses had ended; %s holds them "
+               "beampack: the run failed at t = %.6g s, after %d pulse%s had ended; %s holds them "
                "(history.csv, and summary.json as at the last one's end, with the failure; no "
                "particles.csv: the particles are part way through a step)\n",
-               failed_at, ended.figures.pulse, out.c_str());
+               failed_at, ended.figures.pulse, plural(ended.figures.pulse), out.c_str());
 }
 
 // --resume: the checkpoint's run file and particles stand in for the run's sources.
@@ -1048,6 +1058,10 @@ std::vector<std::string> sweep_values(const SweepOptions& options) {
     values.push_back(v);
   }
   if (values.empty()) throw InputError("--values: give at least one value");
+  if (options.param.find('=') != std::string::npos)
+    throw InputError("--param " + options.param +
+                     ": give the key alone (--param material.conductivity); its values come "
+                     "from --values");
   for (const std::string& s : options.run.sources.sets)
     if (assignment_key(s) == options.param)
       throw InputError("--set " + s + ": `" + options.param +
