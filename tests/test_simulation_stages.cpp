@@ -450,6 +450,27 @@ TEST(SimulationStages, ASphereVaporisedFromSolidInOneStepIsRetracedAsLiquid) {
 // middle of the cube: the rays that miss it fly from the start plane (R upstream of the sphere)
 // across its box (2R), those that hit it end there or bounce out within the box: the step lasts
 // between (D/2 + R) / c and (D/2 + 3R) / c.
+// Pulse k is due at k T_p; with T_p exactly 30000 fixed steps every pulse starts on time. The
+// clock, summed step by step, drifted by ~1e-16 a step, beyond the due test's 1e-12 slack: the
+// fourth pulse started one step late (max_pulse_delay = dt).
+TEST(SimulationStages, PulsesDueOnAStepBoundaryStartOnItAfterManySteps) {
+  SimulationSpec spec = quick_spec();
+  spec.materials[0].conductivity = 0.0;
+  spec.dt = 1e-15;
+  spec.pulses.period = 3e-11;
+  spec.pulses.count = 4;
+  Simulation sim(spec, random_overlap_packing(200, kD, 0.325, 7));
+  std::vector<std::uint64_t> launched_at;
+  sim.on_pulse_end([&](int) { launched_at.push_back(sim.counts().steps); });
+  sim.run();
+  EXPECT_LT(sim.counts().max_pulse_delay, 1e-6 * spec.dt);
+  EXPECT_EQ(sim.counts().late_pulses, 0u);
+  ASSERT_EQ(launched_at.size(), 4u);  // pulses 0-2 end as pulses 1-3 start; pulse 3 at the end
+  for (std::size_t k = 0; k < 3; ++k)
+    EXPECT_EQ(launched_at[k], 30000u * (k + 1)) << "pulse " << k + 1;
+  EXPECT_EQ(sim.figures().time, double(sim.counts().steps) * spec.dt);
+}
+
 TEST(SimulationStages, APulseStepLastsTheRaysFlight) {
   SimulationSpec spec;
   spec.packing.sample_size = kD;
