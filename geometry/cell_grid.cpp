@@ -11,7 +11,10 @@ void CellGrid::set_dims(const Box& box, double cell_size, std::size_t max_cells)
   double h = std::max(cell_size, 1e-300);
   // Cap the cell count near the point count so that huge boxes with tiny spheres stay O(N) memory.
   for (;;) {
-    for (int a = 0; a < 3; ++a) dims_[a] = std::max<long>(1, static_cast<long>(extent[a] / h));
+    // Clamped before the cast: a box 1e19 cells wide (spheres of 1e-17 m a kilometre apart) is
+    // beyond a long, and the cast undefined; the loop widens the cells from there.
+    for (int a = 0; a < 3; ++a)
+      dims_[a] = std::max<long>(1, static_cast<long>(std::min(extent[a] / h, 1e15)));
     const double cells = double(dims_[0]) * double(dims_[1]) * double(dims_[2]);
     if (cells <= double(std::max<std::size_t>(max_cells, 1))) break;
     h *= 1.26;

@@ -150,6 +150,19 @@ TEST(ContactGraph, DegenerateNeighboursGiveNoNaN) {
   }
 }
 
+// Spheres of 1e-17 m a kilometre apart: the box is 1e19 cells of their size wide, beyond a
+// long; the cell count was cast from that double unclamped (undefined behaviour, which the
+// sanitizer build reports). The grid must widen its cells and still find the touching pair.
+TEST(ContactGraph, TinySpheresFarApartNeedNoMoreCellsThanALongHolds) {
+  Particles p;
+  p.add({0, 0, 0}, 1e-17);
+  p.add({1.5e-17, 0, 0}, 1e-17);
+  p.add({1e3, 2e3, 0}, 1e-17);
+  p.add({1e3, 2e3, 3e3}, 1e-17);
+  expect_graph_equals_brute_force(p);
+  ASSERT_EQ(find_contacts(p).size(), 1u);
+}
+
 TEST(ContactGraph, EmptyAndSingleParticle) {
   EXPECT_TRUE(find_contacts(Particles{}).empty());
   Particles one;
