@@ -17,4 +17,12 @@ class RunError : public std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
+// A solver declining a step beyond its limits, with advice: the fixed-point iteration past its
+// contraction limit, CG past its iteration cap. A refusal, not a defect: every other RunError (a
+// NaN, energy into a vaporised particle) is one, and the stability grid fails on it.
+class SolverRefusal : public RunError {
+ public:
+  using RunError::RunError;
+};
+
 }  // namespace beampack

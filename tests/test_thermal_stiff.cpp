@@ -343,11 +343,30 @@ TEST(ThermalStiff, FixedPointJustBeyondConvergenceDivergesLoudly) {
   try {
     a.step(dt, {});
     FAIL() << "fixed-point iteration returned from a step beyond its contraction limit";
-  } catch (const RunError& e) {
+  } catch (const SolverRefusal& e) {  // a refusal with advice (validate --stiff counts it so)
     const std::string msg = e.what();
     EXPECT_NE(msg.find("fixed-point iteration (3.11) diverges"), std::string::npos) << msg;
   }
   EXPECT_EQ(p.temperature, before);
+}
+
+// CG stopped by its iteration cap declines the step with advice, as the fixed-point iteration
+// does past its limit: a SolverRefusal, which the stability grid counts as refused; any other
+// RunError (a NaN) is a failure there.
+TEST(ThermalStiff, CgAtItsIterationCapRefusesTheStep) {
+  Particles p = stiff_packing();
+  ThermalSpec spec;
+  spec.solver = "cg";
+  spec.max_iterations = 2;
+  ThermalModel model(p, {conductive()}, spec);
+  model.set_contacts(find_contacts(p));
+  try {
+    model.step(1e6 * explicit_limit(p), {});
+    FAIL() << "CG reached the tolerance in 2 iterations of a stiff step";
+  } catch (const SolverRefusal& e) {
+    EXPECT_NE(std::string(e.what()).find("did not reach thermal.tolerance"), std::string::npos)
+        << e.what();
+  }
 }
 
 // Stagnation (solvers.cpp): just below the limit the iteration converges, but too slowly for the
@@ -378,7 +397,7 @@ TEST(ThermalStiff, FixedPointCrawlingJustBelowItsLimitReportsStagnation) {
   try {
     model.step(dt, {});
     FAIL() << "fixed-point iteration returned though it needs ~2e4 iterations, cap 200";
-  } catch (const RunError& e) {
+  } catch (const SolverRefusal& e) {
     const std::string msg = e.what();
     EXPECT_NE(msg.find("fixed-point iteration (3.11) stagnates at iteration 21"), std::string::npos)
         << msg;

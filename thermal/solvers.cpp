@@ -20,7 +20,7 @@ namespace {
       << ", contraction bound dt phi max_i(2 sum_j G_ij + W_i)/c_i = " << contraction_estimate
       << "; it bounds the iteration's spectral radius, which must be below 1): use "
          "thermal.solver = \"cg\", \"direct\" or \"auto\", or a smaller thermal.dt";
-  throw RunError(msg.str());
+  throw SolverRefusal(msg.str());
 }
 
 }  // namespace
@@ -78,12 +78,15 @@ SolveStats cg_solve(const SparseMatrix& a, const Eigen::VectorXd& rhs, Eigen::Ve
   cg.compute(a);
   const Eigen::VectorXd guess = theta;
   theta = cg.solveWithGuess(rhs, guess);
-  if (cg.info() != Eigen::Success || !theta.allFinite()) {
+  if (!theta.allFinite())  // not a cap it reached: a defect (the matrix or right side)
+    throw RunError("thermal conjugate gradients returned a non-finite temperature change after " +
+                   std::to_string(cg.iterations()) + " iterations");
+  if (cg.info() != Eigen::Success) {
     std::ostringstream msg;
     msg << "thermal conjugate gradients did not reach thermal.tolerance = " << tolerance
         << " within thermal.max_iterations = " << max_iterations << " (relative residual "
         << cg.error() << "): raise thermal.max_iterations or use thermal.solver = \"direct\"";
-    throw RunError(msg.str());
+    throw SolverRefusal(msg.str());
   }
   return {static_cast<int>(cg.iterations()), cg.error()};
 }

@@ -91,7 +91,7 @@ Outcome run_cell(const Cell& c) {
   } catch (const InputError& e) {
     o.status = "refused";
     o.note = e.what();
-  } catch (const RunError& e) {
+  } catch (const SolverRefusal& e) {  // any other RunError (a NaN found mid-run) is a failure
     o.status = "refused";
     o.note = e.what();
   } catch (const std::exception& e) {
