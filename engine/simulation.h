@@ -113,7 +113,9 @@ class Simulation {
   bool step();
   // Steps until done or until `stop` becomes true.
   void run(const std::atomic<bool>* stop = nullptr);
-  // Called with k when pulse k is over: before pulse k+1 launches, or after the last step.
+  // Called with k when pulse k's time is over: just before pulse k+1 launches, or after the last
+  // step. With pulses.period shorter than a pulse's flight, pulse k's rays are still in flight
+  // then (the figures count them in the ledger's in_flight bin).
   void on_pulse_end(std::function<void(int pulse)> callback) {
     on_pulse_end_ = std::move(callback);
   }

@@ -805,11 +805,15 @@ void remove_earlier_run(const fs::path& dir) {
       earlier.push_back(e.path());
   }
   for (const fs::path& f : earlier) fs::remove(f);
-  if (!earlier.empty())
-    std::fprintf(stderr,
-                 "beampack: note: removed %zu files of an earlier run from %s "
-                 "(results, checkpoint.bin, frames)\n",
-                 earlier.size(), dir.c_str());
+  if (earlier.empty()) return;
+  std::sort(earlier.begin(), earlier.end());
+  std::string names;  // the first few by name: what was there, not a list of what might be
+  for (std::size_t k = 0; k < std::min<std::size_t>(earlier.size(), 4); ++k)
+    names += (k ? ", " : "") + earlier[k].filename().string();
+  if (earlier.size() > 4) names += " and " + std::to_string(earlier.size() - 4) + " more";
+  std::fprintf(stderr, "beampack: note: removed %zu file%s of an earlier run from %s: %s\n",
+               earlier.size(), plural(static_cast<long long>(earlier.size())), dir.c_str(),
+               names.c_str());
 }
 
 // `--resume DIR` into DIR whose run finished: nothing is left to run. A checkpoint there is a
@@ -1139,8 +1143,9 @@ int sweep_command(const SweepOptions& options) {
               named ? values : std::vector<std::string>{}};
   write_atomically((out / "sweep.svg").string(), [&](std::ostream& o) { o << render_svg(chart); });
   const double total = seconds_since(start);
-  std::printf("sweep: %zu runs in %.2f s; %s/sweep.csv, %s/sweep.svg\n", vv.x.size(), total,
-              options.run.out_dir.c_str(), options.run.out_dir.c_str());
+  std::printf("sweep: %zu run%s in %.2f s; %s/sweep.csv, %s/sweep.svg\n", vv.x.size(),
+              plural(static_cast<long long>(vv.x.size())), total, options.run.out_dir.c_str(),
+              options.run.out_dir.c_str());
   return stop_requested().load() ? std::max(code, 1) : code;
 }
 
