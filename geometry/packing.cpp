@@ -181,21 +181,31 @@ bool is_separator(char c) {
   return c == ' ' || c == '\t' || c == ',' || c == ';' || c == '\r';
 }
 
+// Runs of separators count as one, but two commas (or semicolons) between two values leave an
+// empty field between them, kept as an empty column (then refused by name): merged, "1,,2,3,0.1"
+// read as four columns, x y z r shifted by one.
 std::vector<std::string_view> split_columns(std::string_view line) {
   std::vector<std::string_view> cols;
   std::size_t i = 0;
   while (i < line.size()) {
-    while (i < line.size() && is_separator(line[i])) ++i;
+    int list_separators = 0;
+    for (; i < line.size() && is_separator(line[i]); ++i)
+      list_separators += line[i] == ',' || line[i] == ';';
     std::size_t j = i;
     while (j < line.size() && !is_separator(line[j])) ++j;
-    if (j > i) cols.push_back(line.substr(i, j - i));
+    if (j == i) break;  // separators at the end of the line
+    for (int k = 1; k < list_separators && !cols.empty(); ++k) cols.push_back(line.substr(i, 0));
+    cols.push_back(line.substr(i, j - i));
     i = j;
   }
   return cols;
 }
 
 bool parse_number(std::string_view text, double& value) {
-  if (!text.empty() && text.front() == '+') text.remove_prefix(1);
+  if (!text.empty() && text.front() == '+') {
+    text.remove_prefix(1);
+    if (!text.empty() && (text.front() == '+' || text.front() == '-')) return false;  // "+-1"
+  }
   const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
   return ec == std::errc() && end == text.data() + text.size();
 }
@@ -242,11 +252,27 @@ class PackingLines {
   std::size_t number_ = 0;
 };
 
+// A file's text as a message quotes it: control bytes as \xNN (a NUL cut the message short).
+std::string shown(std::string_view text) {
+  std::string out;
+  for (const char c : text) {
+    const auto b = static_cast<unsigned char>(c);
+    if (b >= 0x20 && b != 0x7F) {
+      out += c;
+      continue;
+    }
+    char hex[8];
+    std::snprintf(hex, sizeof hex, "\\x%02X", b);
+    out += hex;
+  }
+  return out;
+}
+
 // Column k of a row (numbered from 1 in messages, as editors number them) as a finite number.
 double finite_column(const std::vector<std::string_view>& cols, std::size_t k,
                      const std::string& where) {
   const std::string named =
-      where + "column " + std::to_string(k + 1) + " '" + std::string(cols[k]) + "' is not ";
+      where + "column " + std::to_string(k + 1) + " '" + shown(cols[k]) + "' is not ";
   double v = 0;
   require(parse_number(cols[k], v), named + "a number");
   require(std::isfinite(v), named + "finite");
@@ -303,7 +329,7 @@ std::string joined(const std::vector<std::string_view>& words) {
   std::string s;
   for (auto w : words) {
     if (!s.empty()) s += ' ';
-    s.append(w);
+    s += shown(w);
   }
   return s;
 }

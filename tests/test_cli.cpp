@@ -898,6 +898,8 @@ TEST(Cli, ConvergeWritesLaddersWithTheFinestAsReference) {
     }
     EXPECT_GT(std::stod(row.at("wall_seconds")), 0.0);
     EXPECT_FALSE(row.at("resolution").empty());  // INTERFACE.md's name for the rung's value
+    // Each rung ends when its last ray does, on its own step grid: when, is in the table.
+    EXPECT_GT(std::stod(row.at("end_time_s")), 0.0) << row.at("ladder");
   }
   EXPECT_EQ(per_ladder.size(), 3u);
   // --set beam.rays=50 is the other ladders' ray count; the rays ladder varies its own (`rays`

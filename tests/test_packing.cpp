@@ -165,6 +165,16 @@ TEST(PackingFile, APipeFromProcessSubstitutionIsRead) {
   EXPECT_EQ(p.radius[1], 0.5);
 }
 
+// Commas, semicolons, tabs and spaces separate columns, alone or together ("1, 2").
+TEST(PackingFile, ColumnsSeparatedByCommasOrSpacesAreRead) {
+  const Particles p = read_packing_file(
+      temp_file("bed.csv", "x,y,z,r\n1,2,3,0.1\n4, 5 ,6,0.2\n7;8;9;0.3,\n\t10\t11 12 0.4\n"));
+  ASSERT_EQ(p.size(), 4u);
+  EXPECT_EQ(p.centre[1], Vec3(4, 5, 6));
+  EXPECT_EQ(p.radius[2], 0.3);
+  EXPECT_EQ(p.centre[3], Vec3(10, 11, 12));
+}
+
 TEST(PackingFile, EachErrorNamesItsLine) {
   EXPECT_NE(read_error("cols", "1 2 3 1\n1 2 3\n").find(":2: expected 4 columns"),
             std::string::npos);
@@ -188,6 +198,21 @@ TEST(PackingFile, EachErrorNamesItsLine) {
   EXPECT_NE(read_error("inf", "1 2 3 1\ninf 2 3 1\n").find(":2: column 1 'inf' is not finite"),
             std::string::npos);
   EXPECT_NE(read_error("extra", "1 2 3 1 5\n").find(":1: expected 4 columns"), std::string::npos);
+  // An empty field between commas is a column, not nothing: merged with its neighbours it shifted
+  // x y z r by one ("1,,2,3,0.1" read as x = 1, y = 2, z = 3, r = 0.1).
+  EXPECT_NE(
+      read_error("empty_field", "1,,2,3,0.1\n").find(":1: expected 4 columns (x y z r), found 5"),
+      std::string::npos)
+      << read_error("empty_field", "1,,2,3,0.1\n");
+  EXPECT_NE(read_error("empty_field_4", "1;;2;0.1\n").find(":1: column 2 '' is not a number"),
+            std::string::npos);
+  EXPECT_NE(read_error("plus_minus", "+-1 2 3 1\n").find(":1: column 1 '+-1' is not a number"),
+            std::string::npos);
+  // A NUL or other control byte is shown, not left to end the message.
+  EXPECT_NE(read_error("nul", std::string("1 2 0.3\0x 1\n", 12))
+                .find(":1: column 3 '0.3\\x00x' is not a number"),
+            std::string::npos)
+      << read_error("nul", std::string("1 2 0.3\0x 1\n", 12));
   EXPECT_NE(
       read_error("header_late", "1 2 3 1\nx y z r\n").find(":2: column 1 'x' is not a number"),
       std::string::npos);

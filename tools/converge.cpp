@@ -115,7 +115,7 @@ int converge_command(const RunOptions& options) {
     }
   std::string csv =
       "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
-      "temperature_l2_error_K,temperature_max_error_K,temperature_particles\n";
+      "temperature_l2_error_K,temperature_max_error_K,temperature_particles,end_time_s\n";
   Chart chart{"error of the vaporised fraction against run time",
               "wall seconds",
               "|v_v - v_v(finest)|",
@@ -137,7 +137,7 @@ int converge_command(const RunOptions& options) {
       row << ladder.name << ',' << ladder.key << ',' << rung.value << ',' << exact(r.wall_seconds)
           << ',' << r.counts.steps << ',' << r.counts.rays << ','
           << exact(r.figures.vaporized_fraction) << ',' << exact(vv_error) << ',' << exact(t.l2)
-          << ',' << exact(t.max) << ',' << t.compared << '\n';
+          << ',' << exact(t.max) << ',' << t.compared << ',' << exact(r.figures.time) << '\n';
       csv += row.str();
       std::printf("%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %.3g K\n",
                   ladder.name.c_str(), rung.value.c_str(), r.wall_seconds,
