@@ -168,7 +168,8 @@ TEST(OpticsSphere, UniformBeamRandomWithinThreeStandardErrors) {
   double e;
   const double absorbed = traced_absorbed(b.s, b.spec, e);
   EXPECT_NEAR(absorbed, b.expected(), 3.0 * b.sigma(e));
-  EXPECT_GT(b.sigma(e), 0.0);
+  // The test has teeth: three standard errors of 20000 rays are ~1.6% of the answer.
+  EXPECT_LT(3.0 * b.sigma(e), 0.02 * b.expected());
 }
 
 // A sphere centred on the entry face sticks out of the cube by R: rays start upstream of it
