@@ -342,9 +342,22 @@ TEST(OpticsTracer, BudgetLimitsThePathOfEveryRay) {
   EXPECT_TRUE(tracer.has_live_rays());
   EXPECT_LE(tracer.last_advance_path(), 1e-12);
   for (double budget : {2e-5, 7e-6}) {  // no ray travels more than the budget in one advance
+    const double clock = tracer.save().clock;
     tracer.advance(budget, deposits);
     EXPECT_LE(tracer.last_advance_path(), budget * (1 + 1e-12));
-    EXPECT_GT(tracer.last_advance_path(), 0.5 * budget);  // the live rays do use it
+    // From the rays themselves: the path clock moved by the budget, every event up to it was
+    // taken (each live ray's next one lies beyond it) and no ray went past it.
+    const RayState s = tracer.save();
+    EXPECT_EQ(s.clock, clock + budget);
+    std::size_t waiting = 0;
+    for (std::size_t r = 0; r < s.live.size(); ++r) {
+      if (!s.live[r]) continue;
+      ASSERT_GE(s.t_next[r], 0.0) << "ray " << r << " left untraced";
+      ASSERT_LE(s.start_clock[r], s.clock) << "ray " << r;
+      ASSERT_GT(s.start_clock[r] + s.t_next[r], s.clock) << "ray " << r << ": an event left behind";
+      ++waiting;
+    }
+    EXPECT_GT(waiting, 0u);  // rays are still on their way: the budget, not the flight, ended it
   }
   tracer.advance(kAll, deposits);
   EXPECT_FALSE(tracer.has_live_rays());
@@ -367,6 +380,10 @@ TEST(OpticsTracer, EnergyInFlightIsWhatTheLedgerHasNotClosed) {
   EXPECT_EQ(tracer.energy_in_flight(), 0.0);
 }
 
+void expect_same_rays(const RayState& a, const RayState& b, const std::string& where);
+
+// A step redone from a saved state gives the same deposits, and leaves every ray, the ledger,
+// the clock and the counters as the first time.
 TEST(OpticsTracer, SaveAndRestoreRedoAStep) {
   Tracer tracer(packing_1e4(), optics_for(1.4));
   tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
@@ -375,9 +392,12 @@ TEST(OpticsTracer, SaveAndRestoreRedoAStep) {
   const RayState saved = tracer.save();
   std::vector<double> step_a, step_b;
   tracer.advance(2e-4, step_a);
+  const RayState after_a = tracer.save();
   tracer.restore(saved);
   tracer.advance(2e-4, step_b);
   EXPECT_EQ(step_a, step_b);
+  expect_same_rays(after_a, tracer.save(), "the redone step");
+  EXPECT_GT(after_a.hits, saved.hits);  // the step did something to redo
 }
 
 std::vector<std::uint32_t> most_hit(const std::vector<double>& deposits, std::size_t count) {
