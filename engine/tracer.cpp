@@ -49,23 +49,28 @@ std::string optics_text(const MaterialOptics& m) {
 }
 
 // Rays start upstream of the whole packing and its hits are found in double precision from
-// there: a packing spanning more than kMaxSpanRadii of its smallest radii leaves a grazing hit too
-// few digits (one stray row at x = 1e20 m among spheres of 0.01 m: every ray missed, silently),
-// and its float bounds long before that are padded by many radii (slow, still exact).
-constexpr double kMaxSpanRadii = 1e9;
+// there: a packing spanning more than kMaxSpanRadii of its smallest radii leaves a grazing hit
+// under ~1e-4 R of its digits (one stray row at x = 1e20 m among spheres of 0.01 m: every ray
+// missed, silently; at 1e13 m absorption was off by 1e-8), and its float bounds long before that
+// are padded by many radii (slow, still exact).
+constexpr double kMaxSpanRadii = 1e12;
 
 void check_span(const Particles& p) {
-  if (p.size() < 2) return;
-  const Box box = p.bounds();
+  const Box box = p.bounds();  // live particles
+  if (box.empty()) return;
   int axis = 0;
   const double span = (box.upper - box.lower).maxCoeff(&axis);
-  const double r_min = *std::min_element(p.radius.begin(), p.radius.end());
-  if (span <= kMaxSpanRadii * r_min) return;
-  std::size_t low = 0, high = 0;
-  for (std::size_t i = 1; i < p.size(); ++i) {
-    if (p.centre[i][axis] - p.radius[i] < p.centre[low][axis] - p.radius[low]) low = i;
-    if (p.centre[i][axis] + p.radius[i] > p.centre[high][axis] + p.radius[high]) high = i;
+  double r_min = std::numeric_limits<double>::infinity();
+  std::size_t low = p.size(), high = p.size();
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    if (!p.alive[i] || !(p.radius[i] > 0.0)) continue;  // r <= 0: removed (the scene's rule)
+    r_min = std::min(r_min, p.radius[i]);
+    if (low == p.size() || p.centre[i][axis] - p.radius[i] < p.centre[low][axis] - p.radius[low])
+      low = i;
+    if (high == p.size() || p.centre[i][axis] + p.radius[i] > p.centre[high][axis] + p.radius[high])
+      high = i;
   }
+  if (low == p.size() || span <= kMaxSpanRadii * r_min) return;
   auto at = [&p](std::size_t i) {
     std::ostringstream s;
     s << "(" << p.centre[i].x() << ", " << p.centre[i].y() << ", " << p.centre[i].z() << ")";
@@ -77,7 +82,8 @@ void check_span(const Particles& p) {
     << " m): rays find hits to the digits a grazing "
     << "ray needs only across <= " << kMaxSpanRadii << " radii. Particles " << low << " at "
     << at(low) << " and " << high << " at " << at(high)
-    << " bound it (counted from 0 in the order given: a stray row in a packing file?)";
+    << " bound it (counted from 0: a packing file's rows in order, a stray row?; or a generated "
+    << "packing's radius far below its spacing, packing.radius_ratio)";
   throw InputError(m.str());
 }
 

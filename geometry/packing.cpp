@@ -181,9 +181,9 @@ bool is_separator(char c) {
   return c == ' ' || c == '\t' || c == ',' || c == ';' || c == '\r';
 }
 
-// Runs of separators count as one, but two commas (or semicolons) between two values leave an
-// empty field between them, kept as an empty column (then refused by name): merged, "1,,2,3,0.1"
-// read as four columns, x y z r shifted by one.
+// Runs of separators count as one, but two commas (or semicolons) between two values, or one
+// before the first, leave an empty field, kept as an empty column (then refused by name): merged,
+// "1,,2,3,0.1" read as four columns, x y z r shifted by one. Tabs and spaces are whitespace.
 std::vector<std::string_view> split_columns(std::string_view line) {
   std::vector<std::string_view> cols;
   std::size_t i = 0;
@@ -193,8 +193,11 @@ std::vector<std::string_view> split_columns(std::string_view line) {
       list_separators += line[i] == ',' || line[i] == ';';
     std::size_t j = i;
     while (j < line.size() && !is_separator(line[j])) ++j;
-    if (j == i) break;  // separators at the end of the line
-    for (int k = 1; k < list_separators && !cols.empty(); ++k) cols.push_back(line.substr(i, 0));
+    if (j == i) break;  // separators at the end of the line: no value shifts
+    // Empty fields before this value: between two values, or before the first (",0.4,0.5,0.5"
+    // would read as x = 0.4).
+    const int empty = cols.empty() ? list_separators : list_separators - 1;
+    for (int k = 0; k < empty; ++k) cols.push_back(line.substr(i, 0));
     cols.push_back(line.substr(i, j - i));
     i = j;
   }

@@ -311,9 +311,6 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
       {"`thermal.dt` = \"pulse\" (step 0 lasts the rays' flight", "thermal.max_substeps = 1"});
 }
 
-// A --set of `material.conductivity.x` turns the number an earlier layer gave into a table: the
-// error names that --set, not the layer whose number it replaced (found by an adversarial review:
-// the run file's line, "preset quick" and the first --set were named).
 // A table sets its keys and no others, from a run file or a --set; one that sets none is still
 // read: under a name that is no key it is an unknown key, in a value's place a wrong type.
 TEST(Cli, ATableSetsItsOwnKeysAndAnEmptyOneIsStillChecked) {
@@ -326,6 +323,11 @@ TEST(Cli, ATableSetsItsOwnKeysAndAnEmptyOneIsStillChecked) {
   const Result none = run("config --preset quick --set 'material={}'");
   ASSERT_EQ(none.code, 0) << none.output;
   EXPECT_NE(none.output.find("conductivity = 20.0"), std::string::npos) << none.output;
+  // An empty table no layer had before sets none of its keys either (it was blamed for setting
+  // `thermal.wall_temperature`, which applies to walls only).
+  const Result thermal =
+      run("run --preset quick --quiet --set 'thermal={}' --out " + (dir / "thermal").string());
+  EXPECT_EQ(thermal.code, 0) << thermal.output;
   // A section whose keys are all left out reads as the layers below it.
   const Result bare = run("config " + write(dir / "bare.toml", "[beam]\n") + " --preset quick");
   ASSERT_EQ(bare.code, 0) << bare.output;
@@ -345,6 +347,9 @@ TEST(Cli, ATableSetsItsOwnKeysAndAnEmptyOneIsStillChecked) {
                      {"`material.conductivity` must be one TOML value", "2 assignments"});
 }
 
+// A --set of `material.conductivity.x` turns the number an earlier layer gave into a table: the
+// error names that --set, not the layer whose number it replaced (found by an adversarial review:
+// the run file's line, "preset quick" and the first --set were named).
 TEST(Cli, AKeyTurnedIntoATableIsBlamedOnTheSetThatDidIt) {
   const char* table =
       "--set material.conductivity.x=5: `material.conductivity` = { x = 5 }: must be a number";

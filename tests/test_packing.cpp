@@ -206,6 +206,9 @@ TEST(PackingFile, EachErrorNamesItsLine) {
       << read_error("empty_field", "1,,2,3,0.1\n");
   EXPECT_NE(read_error("empty_field_4", "1;;2;0.1\n").find(":1: column 2 '' is not a number"),
             std::string::npos);
+  EXPECT_NE(read_error("leading_empty", "x,y,z\n,0.4,0.5,0.5\n", 0.05)
+                .find(":2: expected 3 columns (x y z), found 4"),
+            std::string::npos);
   EXPECT_NE(read_error("plus_minus", "+-1 2 3 1\n").find(":1: column 1 '+-1' is not a number"),
             std::string::npos);
   // A NUL or other control byte is shown, not left to end the message.

@@ -42,8 +42,6 @@ TEST(RunReport, PulsePaceGivesTheTimeLeftFromTheLaunchesSeen) {
   EXPECT_EQ(pace.seconds_left(10, 20.0), 0.0);  // overdue
 }
 
-// An output file is written beside itself and renamed into place; a fill that throws (an error or
-// an interrupt mid-write) leaves neither the file nor its temporary behind.
 // What a checkpoint holds besides the simulation is checked as it is read: edited by hand, with
 // its checksum recomputed, it gave summary.json a null wall time, particles.pvd a "nan" time,
 // and a resume copied a frame named ../../src.vtp from outside the folder to outside the other.
@@ -71,6 +69,8 @@ TEST(RunReport, ACheckpointsRunRecordIsCheckedAsItIsRead) {
   EXPECT_NE(message(1.0, 0, {{"particles_0003.vtp", nan}}).find("not finite"), std::string::npos);
 }
 
+// An output file is written beside itself and renamed into place; a fill that throws (an error or
+// an interrupt mid-write) leaves neither the file nor its temporary behind.
 TEST(RunReport, AWriteThatThrowsLeavesNoFileBehind) {
   const auto dir = beampack::testing::process_dir() / "throwing_write";
   std::filesystem::create_directories(dir);

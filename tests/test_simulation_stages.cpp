@@ -446,10 +446,6 @@ TEST(SimulationStages, ASphereVaporisedFromSolidInOneStepIsRetracedAsLiquid) {
   EXPECT_LT(solid.absorbed()[0], 0.97 * met);
 }
 
-// thermal.dt = "pulse": one step is the pulse's whole flight. A flat beam on one sphere in the
-// middle of the cube: the rays that miss it fly from the start plane (R upstream of the sphere)
-// across its box (2R), those that hit it end there or bounce out within the box: the step lasts
-// between (D/2 + R) / c and (D/2 + 3R) / c.
 // Pulse k is due at k T_p; with T_p exactly 30000 fixed steps every pulse starts on time. The
 // clock, summed step by step, drifted by ~1e-16 a step, beyond the due test's 1e-12 slack: the
 // fourth pulse started one step late (max_pulse_delay = dt).
@@ -471,6 +467,10 @@ TEST(SimulationStages, PulsesDueOnAStepBoundaryStartOnItAfterManySteps) {
   EXPECT_EQ(sim.figures().time, double(sim.counts().steps) * spec.dt);
 }
 
+// thermal.dt = "pulse": one step is the pulse's whole flight. A flat beam on one sphere in the
+// middle of the cube: the rays that miss it fly from the start plane (R upstream of the sphere)
+// across its box (2R), those that hit it end there or bounce out within the box: the step lasts
+// between (D/2 + R) / c and (D/2 + 3R) / c.
 TEST(SimulationStages, APulseStepLastsTheRaysFlight) {
   SimulationSpec spec;
   spec.packing.sample_size = kD;

@@ -47,7 +47,7 @@ SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
     const double u = abs_u == 0 ? 0.0
                                 : abs_u / std::max(theta.cwiseAbs().maxCoeff(),
                                                    std::numeric_limits<double>::min());
-    const double size = update.cwiseProduct(root_c).norm();
+    const double size = update.cwiseProduct(root_c).stableNorm();  // no overflow at extreme c
     const double ratio = k > 1 && previous_size > 0 ? size / previous_size : 0.0;
     if (!std::isfinite(u))
       fixed_point_failure("diverged to a non-finite field", k, u, ratio, contraction_estimate);

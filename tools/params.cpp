@@ -420,12 +420,9 @@ const KeyOrigin* Params::origin(const std::string& key) const {
   for (auto it = origin_.lower_bound(below); it != origin_.end() && it->first.starts_with(below);
        ++it)
     if (!first || it->second.layer < first->layer) first = &it->second;
-  if (first) return first;
-  // A key inside a table given whole (`--set 'material={a=1}'`): the table's origin.
-  for (std::size_t dot = key.rfind('.'); dot != std::string::npos && dot > 0;
-       dot = key.rfind('.', dot - 1))
-    if (const auto it = origin_.find(key.substr(0, dot)); it != origin_.end()) return &it->second;
-  return nullptr;
+  // A table sets its keys one by one (merge_value), so a key under one has its own origin; an
+  // empty table is the origin of no key under it (`--set 'thermal={}'` set no wall temperature).
+  return first;
 }
 
 std::string Params::where(const std::string& key) const {

@@ -825,8 +825,9 @@ void refuse_to_resume_a_finished_run(const fs::path& dir) {
     return;  // a failed run's periodic checkpoint may be resumed (a disk that was full)
   std::error_code ec;
   const bool periodic = fs::is_regular_file(dir / "checkpoint.bin", ec);
+  const int pulses = j.value("pulses", 0);
   throw InputError("--resume " + dir.string() + ": the run there finished (summary.json, " +
-                   j.value("pulses", nlohmann::json(0)).dump() + " pulses): nothing to resume" +
+                   std::to_string(pulses) + " pulse" + plural(pulses) + "): nothing to resume" +
                    (periodic ? "; to run it again from its last periodic checkpoint, give --out "
                                "another folder"
                              : " (it kept no periodic checkpoint to start again from)"));
