@@ -1011,9 +1011,12 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
       << none.output;
   write(other / "summary.json", R"({"vaporized_fraction": 0, "config": {}})");
   const std::string stale = write(other / "particles_0011.vtp", "a frame of an earlier run");
+  // Past pulse 9999 a frame's number has five digits: still the earlier run's.
+  const std::string stale_late = write(other / "particles_12345.vtp", "a late frame");
   const Result r = run("run --resume " + whole.string() + " --out " + other.string() + " --quiet");
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_FALSE(fs::exists(stale));
+  EXPECT_FALSE(fs::exists(stale_late));
   std::size_t compared = 0;
   for (const fs::directory_entry& e : fs::directory_iterator(whole)) {
     const std::string name = e.path().filename().string();

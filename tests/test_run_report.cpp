@@ -56,7 +56,10 @@ TEST(RunReport, ACheckpointsRunRecordIsCheckedAsItIsRead) {
     }
     return std::string("accepted");
   };
-  EXPECT_EQ(message(12.5, 2, {{"particles_0000.vtp", 0.0}, {"particles_0001.vtp", 1e-12}}),
+  EXPECT_EQ(message(12.5, 2,
+                    {{"particles_0000.vtp", 0.0},
+                     {"particles_0001.vtp", 1e-12},
+                     {"particles_10000.vtp", 2e-12}}),  // pulse_file's names past 9999 pulses
             "accepted");
   EXPECT_EQ(message(0.0, 0, {}), "accepted");
   for (double wall : {nan, -5.0, std::numeric_limits<double>::infinity()})

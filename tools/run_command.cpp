@@ -565,36 +565,7 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   return r;
 }
 
-// A frame's file as pulse_file names it: particles_NNNN.vtp, digits only between.
-bool is_frame_name(const std::string& name) {
-  constexpr std::string_view stem = "particles_", suffix = ".vtp";
-  if (name.size() <= stem.size() + suffix.size() || !name.starts_with(stem) ||
-      !name.ends_with(suffix))
-    return false;
-  const std::string_view digits =
-      std::string_view(name).substr(stem.size(), name.size() - stem.size() - suffix.size());
-  return std::all_of(digits.begin(), digits.end(), [](char c) { return c >= '0' && c <= '9'; });
-}
-
 }  // namespace
-
-void check_checkpoint_record(double earlier_seconds, int checkpoint_every,
-                             const std::vector<std::pair<std::string, double>>& frames,
-                             const std::string& source) {
-  auto refuse = [&source](const std::string& what) {
-    throw InputError(source + ": " + what + " (a checkpoint edited by hand?)");
-  };
-  if (!(std::isfinite(earlier_seconds) && earlier_seconds >= 0))
-    refuse("its wall time so far, " + std::to_string(earlier_seconds) +
-           " s, is not a finite number >= 0");
-  if (checkpoint_every < 0)
-    refuse("its --checkpoint-every, " + std::to_string(checkpoint_every) + ", is below 0");
-  for (const auto& [name, time] : frames) {
-    if (!is_frame_name(name))
-      refuse("a frame named \"" + name + "\", not particles_NNNN.vtp in the run's folder");
-    if (!std::isfinite(time)) refuse("frame " + name + " has a time that is not finite");
-  }
-}
 
 // A fixed thermal.dt far below the light's crossing time of the sample makes a run of millions
 // of steps per pulse: legal (the budget per step is c dt), but say so before it starts.
@@ -746,11 +717,39 @@ nlohmann::json summary_in(const fs::path& dir) {
   return nlohmann::json::parse(head_of(dir / "summary.json", 1 << 24), nullptr, false);
 }
 
-// A pulse's file of a run: particles_0003.vtp, rays_0003.vtp.
+// A pulse's file of a run: particles_0003.vtp, rays_0003.vtp (particles_10000.vtp from the
+// ten-thousandth pulse on).
 std::string pulse_file(const char* stem, int pulse) {
   char name[64];
   std::snprintf(name, sizeof name, "%s_%04d.vtp", stem, pulse);
   return name;
+}
+
+// The pulse number and suffix of pulse_file's names, as a pattern: four digits or more.
+constexpr const char* kPulseFileNumber = R"(_\d{4,}\.vtp)";
+
+// A frame as pulse_file names it.
+bool is_frame_name(const std::string& name) {
+  static const std::regex frame(std::string("particles") + kPulseFileNumber);
+  return std::regex_match(name, frame);
+}
+
+void check_checkpoint_record(double earlier_seconds, int checkpoint_every,
+                             const std::vector<std::pair<std::string, double>>& frames,
+                             const std::string& source) {
+  auto refuse = [&source](const std::string& what) {
+    throw InputError(source + ": " + what + " (a checkpoint edited by hand?)");
+  };
+  if (!(std::isfinite(earlier_seconds) && earlier_seconds >= 0))
+    refuse("its wall time so far, " + std::to_string(earlier_seconds) +
+           " s, is not a finite number >= 0");
+  if (checkpoint_every < 0)
+    refuse("its --checkpoint-every, " + std::to_string(checkpoint_every) + ", is below 0");
+  for (const auto& [name, time] : frames) {
+    if (!is_frame_name(name))
+      refuse("a frame named \"" + name + "\", not particles_NNNN.vtp in the run's folder");
+    if (!std::isfinite(time)) refuse("frame " + name + " has a time that is not finite");
+  }
 }
 
 // Whether dir holds a run of beampack's: its checkpoint, its frames' particles.pvd or its first
@@ -770,7 +769,8 @@ bool holds_earlier_run(const fs::path& dir) {
 // The names of the files a run writes into its output folder, and of the temporary files it
 // writes them through (a killed run can leave one).
 bool is_output_name(const fs::path& file) {
-  static const std::regex ours(R"(((particles|rays)_\d{4}\.vtp|particles\.pvd|checkpoint\.bin|)"
+  static const std::regex ours(std::string(R"(((particles|rays))") + kPulseFileNumber +
+                               R"(|particles\.pvd|checkpoint\.bin|)"
                                R"(summary\.json|history\.csv|particles\.csv)(\.tmp\.\d+)?)");
   return std::regex_match(file.filename().string(), ours);
 }
