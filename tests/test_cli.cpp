@@ -1266,7 +1266,8 @@ TEST(Cli, ASecondInterruptEndsALongStepAtOnce) {
   EXPECT_EQ(r.status, 130) << r.printed;
   EXPECT_NE(r.printed.find("interrupt again to quit at once"), std::string::npos) << r.printed;
   EXPECT_LT(r.ms, 1500) << "a step of 3e6 rays alone takes about 2 s";
-  EXPECT_FALSE(fs::exists(dir / "out" / "summary.json"));
+  // No destructor ran, yet the --out folder the run made, still empty, is gone.
+  EXPECT_FALSE(fs::exists(dir / "out")) << r.printed;
 }
 
 // A set-up of seconds (1e6 particles, their contacts and the ray scene: about 3.5 s) writes
@@ -1303,6 +1304,22 @@ TEST(Cli, AnInterruptDuringASweepValuesSetUpKeepsTheEarlierRows) {
   const auto rows = read_csv(dir / "out" / "sweep.csv");
   ASSERT_EQ(rows.size(), 1u) << r.printed;
   EXPECT_EQ(rows[0].at("packing.count"), "1000");
+}
+
+// Interrupted before its first value ends, a sweep has no row: it writes no table (a header alone
+// read as a sweep that found nothing) and removes the --out folder it made.
+TEST(Cli, ASweepInterruptedBeforeItsFirstValueEndsWritesNothing) {
+  const fs::path dir = fresh_dir("interrupt_sweep_first");
+  const std::string args =
+      "sweep --preset zohdi2013 --param packing.count --values 1000000,1000 --out " +
+      (dir / "made" / "here").string();
+  const Interrupted r = interrupt(dir, args, "setting up", "sleep 0.3; kill -INT $p");
+  EXPECT_EQ(r.status, 1) << r.printed;
+  EXPECT_NE(r.printed.find("sweep interrupted during packing.count = 1000000: no value ended, "
+                           "nothing written"),
+            std::string::npos)
+      << r.printed;
+  EXPECT_FALSE(fs::exists(dir / "made")) << r.printed;
 }
 
 // A thermal.dt far below light's crossing time of the sample is legal but makes millions of steps
@@ -1510,9 +1527,12 @@ TEST(Cli, ConvergeRefusesBadOutputFirstAndKeepsNoInterruptedRung) {
           "timeout --preserve-status -s INT 0.5");
   EXPECT_EQ(code, 1) << text;
   EXPECT_NE(text.find("converge interrupted during time step"), std::string::npos) << text;
-  // It was cut, so no row was written.
-  ASSERT_TRUE(fs::exists(out / "convergence.csv")) << text;
-  EXPECT_TRUE(read_csv(out / "convergence.csv").empty()) << text;
+  // It was cut, so there is no row: no table is written (a header alone would read as a result).
+  EXPECT_NE(text.find("converge interrupted before any rung ended: nothing written"),
+            std::string::npos)
+      << text;
+  EXPECT_FALSE(fs::exists(out / "convergence.csv")) << text;
+  EXPECT_FALSE(fs::exists(out / "convergence.svg")) << text;
 }
 
 // A new run into the directory of an earlier one removes that run's results, checkpoint and
@@ -1588,7 +1608,9 @@ std::vector<std::string> names_in(const fs::path& dir) {
 // names the file; the files written before it stay whole and no half-written file is left, final
 // or temporary. Mid-run: the checkpoint (368 kB) after two frames (45 kB each) and their .pvd;
 // the run then keeps its two pulses (history.csv, summary.json, 1-3 kB, within the limit). At the
-// end: particles.csv (25 kB) after history.csv (1 kB).
+// end: particles.csv (25 kB) fails, and the files of the run's end are one set, so history.csv
+// (1 kB, within the limit) is not written either: no particles.csv or summary.json is missing
+// beside it, and the --out folder the run made, empty, is removed.
 TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
   const fs::path dir = fresh_dir("file_size_limit");
   const std::string frames = "--set beam.rays=2000 --set output.frames=true --checkpoint-every 2";
@@ -1612,8 +1634,7 @@ TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
   const std::string particles = (dir / "end" / "particles.csv").string();
   EXPECT_NE(end.output.find("output file \"" + particles + "\": write failed"), std::string::npos)
       << end.output;
-  EXPECT_EQ(names_in(dir / "end"), std::vector<std::string>{"history.csv"});
-  EXPECT_EQ(read_csv(dir / "end" / "history.csv").size(), 5u);
+  EXPECT_FALSE(fs::exists(dir / "end")) << end.output;
 }
 
 // Files of beampack's names in a folder that holds no beampack run (no summary.json of one, no

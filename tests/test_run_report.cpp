@@ -1,6 +1,7 @@
 // What a run reports beyond its figures: the warning when a ledger is open, and the charts.
 #include <gtest/gtest.h>
 
+#include <unistd.h>
 #include <algorithm>
 #include <cmath>
 #include <cstring>
@@ -9,8 +10,10 @@
 #include <limits>
 #include <regex>
 
+#include "geometry/error.h"
 #include "tests/test_dirs.h"
 #include "tools/converge.h"
+#include "tools/quit_cleanup.h"
 #include "tools/run_command.h"
 #include "tools/run_config.h"
 #include "tools/svg_plot.h"
@@ -86,6 +89,79 @@ TEST(RunReport, AWriteThatThrowsLeavesNoFileBehind) {
                    }),
                std::runtime_error);
   EXPECT_TRUE(std::filesystem::is_empty(dir)) << "a temporary file was left in " << dir;
+}
+
+// A set of files that belong together is renamed into place only once every one is whole: a
+// failure writing the last (a full disk) leaves the earlier ones as they were, not replaced by
+// this run's, and no temporary behind.
+TEST(RunReport, ASetOfFilesIsReplacedWholeOrNotAtAll) {
+  namespace fs = std::filesystem;
+  const auto dir = beampack::testing::process_dir() / "file_set";
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  const auto read = [](const fs::path& p) {
+    std::ifstream in(p);
+    return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  };
+  write_atomically(
+      {{(dir / "particles.csv").string(), [](std::ostream& o) { o << "old particles"; }},
+       {(dir / "summary.json").string(), [](std::ostream& o) { o << "old summary"; }}});
+  const auto fail_last = [&] {
+    write_atomically(
+        {{(dir / "particles.csv").string(), [](std::ostream& o) { o << "new particles"; }},
+         {(dir / "summary.json").string(), [](std::ostream& o) {
+            o << "new";
+            throw RunError("disk full");
+          }}});
+  };
+  EXPECT_THROW(fail_last(), RunError);
+  EXPECT_EQ(read(dir / "particles.csv"), "old particles");
+  EXPECT_EQ(read(dir / "summary.json"), "old summary");
+  EXPECT_EQ(std::distance(fs::directory_iterator(dir), fs::directory_iterator()), 2)
+      << "a temporary file was left in " << dir;
+  write_atomically(
+      {{(dir / "particles.csv").string(), [](std::ostream& o) { o << "new particles"; }},
+       {(dir / "summary.json").string(), [](std::ostream& o) { o << "new summary"; }}});
+  EXPECT_EQ(read(dir / "particles.csv"), "new particles");
+  EXPECT_EQ(read(dir / "summary.json"), "new summary");
+}
+
+// What a second interrupt removes, with no destructor to run: the temporary files being written
+// (only names ending as this process's temporaries) and the folders the command made, innermost
+// first, while they are empty.
+TEST(RunReport, AQuitRemovesTemporariesAndEmptyMadeFolders) {
+  namespace fs = std::filesystem;
+  const auto dir = beampack::testing::process_dir() / "quit_cleanup";
+  fs::remove_all(dir);
+  const fs::path outer = dir / "a", inner = outer / "b", kept = dir / "kept";
+  fs::create_directories(inner);
+  fs::create_directories(kept);
+  const auto touch = [](const fs::path& p) { std::ofstream(p) << "x"; };
+  const std::string temporary = (kept / "summary.json.tmp.").string() + std::to_string(::getpid());
+  const std::string other = (kept / "summary.json").string();
+  touch(temporary);
+  touch(other);
+  {
+    const QuitRemovesFile registered(temporary), not_temporary(other);
+    quit_removes_folders({outer, inner});
+    remove_on_quit();
+  }
+  EXPECT_FALSE(fs::exists(temporary));
+  EXPECT_TRUE(fs::exists(other)) << "a name not ending in .tmp.<pid> is never removed";
+  EXPECT_FALSE(fs::exists(outer)) << "the made folders, empty, innermost first";
+  // A made folder that holds a result stays, and so does the one around it.
+  fs::create_directories(inner);
+  touch(inner / "particles.csv");
+  quit_removes_folders({outer, inner});
+  remove_on_quit();
+  EXPECT_TRUE(fs::exists(inner / "particles.csv"));
+  // Unregistered (the file's writer is done, the command has ended): nothing is removed.
+  quit_removes_folders({});
+  fs::remove(inner / "particles.csv");
+  touch(temporary);
+  remove_on_quit();
+  EXPECT_TRUE(fs::exists(inner));
+  EXPECT_TRUE(fs::exists(temporary));
 }
 
 // converge's temperature errors: a particle vaporised in either run keeps the temperature it left

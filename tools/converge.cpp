@@ -123,9 +123,11 @@ int converge_command(const RunOptions& options) {
               true,
               {}};
   int code = 0;
+  bool any_rung = false;
   for (Ladder& ladder : all) {
     code = std::max(code, run_ladder(ladder, options.quiet));
     if (ladder.rungs.empty()) continue;
+    any_rung = true;
     const RunResult& ref = ladder.rungs.front().result;
     Series series{ladder.name, {}, {}};
     for (const Rung& rung : ladder.rungs) {
@@ -150,10 +152,14 @@ int converge_command(const RunOptions& options) {
     }
     chart.series.push_back(series);
   }
+  if (!any_rung && stop_requested().load()) {  // a table of no rows is no result
+    std::fprintf(stderr, "beampack: converge interrupted before any rung ended: nothing written\n");
+    return std::max(code, 1);
+  }
   const fs::path out(options.out_dir);
-  write_atomically((out / "convergence.csv").string(), [&](std::ostream& o) { o << csv; });
-  write_atomically((out / "convergence.svg").string(),
-                   [&](std::ostream& o) { o << render_svg(chart); });
+  write_atomically(
+      {{(out / "convergence.csv").string(), [&](std::ostream& o) { o << csv; }},
+       {(out / "convergence.svg").string(), [&](std::ostream& o) { o << render_svg(chart); }}});
   std::printf("converge: %s/convergence.csv, %s/convergence.svg\n", options.out_dir.c_str(),
               options.out_dir.c_str());
   return stop_requested().load() ? std::max(code, 1) : code;

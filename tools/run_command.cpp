@@ -26,6 +26,7 @@
 
 #include "geometry/error.h"
 #include "tools/params.h"
+#include "tools/quit_cleanup.h"
 #include "tools/svg_plot.h"
 #include "tools/writers.h"
 
@@ -74,6 +75,7 @@ void on_interrupt(int signal) {
   std::int64_t first = 0;
   if (!first_interrupt_ns.compare_exchange_strong(first, now)) {
     if (now - first < kSameInterruptNs) return;
+    remove_on_quit();  // no destructor runs: the temporaries and the empty --out folders go here
     std::signal(signal, SIG_DFL);
     ::kill(::getpid(), signal);
     return;
@@ -458,9 +460,11 @@ OutDir::OutDir(const std::string& dir) {
   }
   std::fclose(f);
   fs::remove(probe);
+  quit_removes_folders(made_);
 }
 
 OutDir::~OutDir() {
+  quit_removes_folders({});
   remove_empty_made();
 }
 
@@ -524,8 +528,8 @@ std::string toml_text(const toml::table& table) {
 }
 
 // `wall_seconds`: the run's wall time so far, resumed runs included.
-void write_checkpoint(const fs::path& path, const Simulation& sim, const RunRecord& record,
-                      double wall_seconds) {
+OutputFile checkpoint_file(const fs::path& path, const Simulation& sim, const RunRecord& record,
+                           double wall_seconds) {
   StateWriter w;
   w.text(kCheckpointMagic);
   w.value(wall_seconds);
@@ -535,9 +539,9 @@ void write_checkpoint(const fs::path& path, const Simulation& sim, const RunReco
   w.value<std::uint64_t>(record.frames.size());
   for (const auto& [name, time] : record.frames) w.text(name), w.value(time);
   sim.write_state(w);
-  const std::string bytes = w.finish();
-  write_atomically(path.string(),
-                   [&](std::ostream& o) { o.write(bytes.data(), std::streamsize(bytes.size())); });
+  auto bytes = std::make_shared<const std::string>(w.finish());
+  return {path.string(),
+          [bytes](std::ostream& o) { o.write(bytes->data(), std::streamsize(bytes->size())); }};
 }
 
 StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
@@ -870,9 +874,9 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
   const double failed_at = sim.figures().time;
   nlohmann::json j = summary_json(sim, r, config);
   j["failed"] = {{"message", failure}, {"time_s", failed_at}};
-  write_atomically((out / "history.csv").string(), [&](std::ostream& o) { o << record.history; });
-  write_atomically((out / "summary.json").string(),
-                   [&](std::ostream& o) { o << j.dump(2) << '\n'; });
+  write_atomically(
+      {{(out / "history.csv").string(), [&](std::ostream& o) { o << record.history; }},
+       {(out / "summary.json").string(), [&](std::ostream& o) { o << j.dump(2) << '\n'; }}});
   std::fprintf(stderr,
                "beampack: the run failed at t = %.6g s, after %d pulse%s had ended; %s holds them "
                "(history.csv, and summary.json as at the last one's end, with the failure; no "
@@ -927,8 +931,8 @@ void run_steps(Simulation& sim, const RunConfig& config, const fs::path& out, Ru
     while (!sim.done() && !stop_requested().load()) {
       sim.step();
       if (checkpoint_due && !sim.done())
-        write_checkpoint(out / "checkpoint.bin", sim, record,
-                         record.earlier_seconds + seconds_since(start));
+        write_atomically({checkpoint_file(out / "checkpoint.bin", sim, record,
+                                          record.earlier_seconds + seconds_since(start))});
       checkpoint_due = false;
       progress.update(sim);
     }
@@ -953,11 +957,15 @@ int finish_run(const Simulation& sim, const RunConfig& config, const RunRecord& 
   r.counts = sim.counts();
   r.interrupted = !sim.done();
   r.wall_seconds = record.earlier_seconds + seconds_since(start);  // like the stage times
-  if (r.interrupted) write_checkpoint(out / "checkpoint.bin", sim, record, r.wall_seconds);
-  write_atomically((out / "history.csv").string(), [&](std::ostream& o) { o << record.history; });
-  write_particles_csv((out / "particles.csv").string(), sim.particles(), sim.absorbed());
-  write_atomically((out / "summary.json").string(),
-                   [&](std::ostream& o) { o << summary_json(sim, r, config).dump(2) << '\n'; });
+  // One set: a full disk leaves the folder as it was, not particles.csv without its summary.
+  std::vector<OutputFile> files;
+  if (r.interrupted)
+    files.push_back(checkpoint_file(out / "checkpoint.bin", sim, record, r.wall_seconds));
+  files.push_back({(out / "history.csv").string(), [&](std::ostream& o) { o << record.history; }});
+  files.push_back(particles_csv((out / "particles.csv").string(), sim.particles(), sim.absorbed()));
+  files.push_back({(out / "summary.json").string(),
+                   [&](std::ostream& o) { o << summary_json(sim, r, config).dump(2) << '\n'; }});
+  write_atomically(files);
   print_table(sim, r);
   warn_of_late_pulses(config.sim, r.counts);
   warn_of_capped_phase_steps(config.sim, r.counts);
@@ -1117,10 +1125,11 @@ int sweep_command(const SweepOptions& options) {
       continue;
     }
     if (r.interrupted) {
-      std::fprintf(stderr,
-                   "beampack: sweep interrupted during %s = %s: that value and the rest "
-                   "are not in sweep.csv\n",
-                   options.param.c_str(), values[k].c_str());
+      std::fprintf(stderr, "beampack: sweep interrupted during %s = %s: %s\n",
+                   options.param.c_str(), values[k].c_str(),
+                   k == 0 ? "no value ended, nothing written"
+                          : "that value and the rest are not in sweep.csv");
+      if (k == 0) return 1;  // a table of no rows is no result (the --out folder it made goes)
       break;
     }
     const Figures& f = r.figures;
@@ -1134,7 +1143,6 @@ int sweep_command(const SweepOptions& options) {
     std::fflush(stdout);
   }
   const fs::path out(options.run.out_dir);
-  write_atomically((out / "sweep.csv").string(), [&](std::ostream& o) { o << csv; });
   Chart chart{"vaporized fraction against " + options.param,
               options.param,
               "vaporized fraction",
@@ -1142,7 +1150,9 @@ int sweep_command(const SweepOptions& options) {
               false,
               {vv},
               named ? values : std::vector<std::string>{}};
-  write_atomically((out / "sweep.svg").string(), [&](std::ostream& o) { o << render_svg(chart); });
+  write_atomically(
+      {{(out / "sweep.csv").string(), [&](std::ostream& o) { o << csv; }},
+       {(out / "sweep.svg").string(), [&](std::ostream& o) { o << render_svg(chart); }}});
   const double total = seconds_since(start);
   std::printf("sweep: %zu run%s in %.2f s; %s/sweep.csv, %s/sweep.svg\n", vv.x.size(),
               plural(static_cast<long long>(vv.x.size())), total, options.run.out_dir.c_str(),

@@ -6,8 +6,10 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <memory>
 
 #include "geometry/error.h"
+#include "tools/quit_cleanup.h"
 
 namespace beampack::tools {
 
@@ -17,44 +19,69 @@ std::string exact(double v) {
   return std::string(buf, r.ptr);
 }
 
-void write_atomically(const std::string& path, const std::function<void(std::ostream&)>& fill) {
-  const std::string tmp = path + ".tmp." + std::to_string(::getpid());
-  {
-    std::ofstream out(tmp, std::ios::binary);
-    // A failed run, not bad input: the command checked --out was writable before it started.
-    if (!out) throw RunError("output file \"" + path + "\": cannot write in its directory");
-    try {
-      fill(out);
-    } catch (...) {  // an error or an interrupt while filling: leave no half-written file behind
-      out.close();
-      std::filesystem::remove(tmp);
-      throw;
-    }
-    out.flush();
-    if (!out) {
-      std::filesystem::remove(tmp);
-      throw RunError("output file \"" + path + "\": write failed (disk full?)");
-    }
-  }
+namespace {
+
+// A file being staged: its temporary beside it, registered for a second interrupt to remove.
+struct Staged {
+  std::string path, tmp;
+  QuitRemovesFile on_quit;
+  explicit Staged(const std::string& p)
+      : path(p), tmp(p + ".tmp." + std::to_string(::getpid())), on_quit(tmp) {}
+};
+
+void remove_temporaries(const std::vector<std::unique_ptr<Staged>>& staged) {
   std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::filesystem::remove(tmp);
-    throw RunError("output file \"" + path + "\": rename failed: " + ec.message());
+  for (const auto& s : staged) std::filesystem::remove(s->tmp, ec);
+}
+
+void stage(const Staged& s, const std::function<void(std::ostream&)>& fill) {
+  std::ofstream out(s.tmp, std::ios::binary);
+  // A failed run, not bad input: the command checked --out was writable before it started.
+  if (!out) throw RunError("output file \"" + s.path + "\": cannot write in its directory");
+  fill(out);
+  out.flush();
+  if (!out) throw RunError("output file \"" + s.path + "\": write failed (disk full?)");
+}
+
+}  // namespace
+
+void write_atomically(const std::vector<OutputFile>& files) {
+  std::vector<std::unique_ptr<Staged>> staged;
+  try {  // an error or an interrupt while filling: no file is replaced, no temporary is left
+    for (const OutputFile& f : files) {
+      staged.push_back(std::make_unique<Staged>(f.path));
+      stage(*staged.back(), f.fill);
+    }
+  } catch (...) {
+    remove_temporaries(staged);
+    throw;
+  }
+  for (std::size_t k = 0; k < staged.size(); ++k) {
+    std::error_code ec;
+    std::filesystem::rename(staged[k]->tmp, staged[k]->path, ec);
+    if (!ec) continue;
+    remove_temporaries(staged);
+    throw RunError("output file \"" + staged[k]->path + "\": rename failed: " + ec.message() +
+                   (k > 0 ? " (the files before it in the set were replaced)" : ""));
   }
 }
 
-void write_particles_csv(const std::string& path, const Particles& p,
+void write_atomically(const std::string& path, const std::function<void(std::ostream&)>& fill) {
+  write_atomically({OutputFile{path, fill}});
+}
+
+OutputFile particles_csv(const std::string& path, const Particles& p,
                          const std::vector<double>& absorbed_J) {
-  write_atomically(path, [&](std::ostream& out) {
-    out << "id,x,y,z,r,temperature_K,phase,absorbed_J\n";
-    for (std::size_t i = 0; i < p.size(); ++i) {
-      const Vec3& c = p.centre[i];
-      out << i << ',' << exact(c.x()) << ',' << exact(c.y()) << ',' << exact(c.z()) << ','
-          << exact(p.radius[i]) << ',' << exact(p.temperature[i]) << ',' << phase_name(p.phase[i])
-          << ',' << exact(i < absorbed_J.size() ? absorbed_J[i] : 0.0) << '\n';
-    }
-  });
+  return {path, [&p, &absorbed_J](std::ostream& out) {
+            out << "id,x,y,z,r,temperature_K,phase,absorbed_J\n";
+            for (std::size_t i = 0; i < p.size(); ++i) {
+              const Vec3& c = p.centre[i];
+              out << i << ',' << exact(c.x()) << ',' << exact(c.y()) << ',' << exact(c.z()) << ','
+                  << exact(p.radius[i]) << ',' << exact(p.temperature[i]) << ','
+                  << phase_name(p.phase[i]) << ','
+                  << exact(i < absorbed_J.size() ? absorbed_J[i] : 0.0) << '\n';
+            }
+          }};
 }
 
 namespace {

@@ -11,11 +11,22 @@
 
 namespace beampack::tools {
 
-// Writes through `fill`, then renames; InputError if the directory is not writable.
-void write_atomically(const std::string& path, const std::function<void(std::ostream&)>& fill);
+// An output file and what fills it.
+struct OutputFile {
+  std::string path;
+  std::function<void(std::ostream&)> fill;
+};
 
-// id,x,y,z,r,temperature_K,phase,absorbed_J for every particle, vaporised ones included.
-void write_particles_csv(const std::string& path, const Particles& p,
+// Writes through `fill`, then renames; RunError if it cannot be written.
+void write_atomically(const std::string& path, const std::function<void(std::ostream&)>& fill);
+// A set of files that belong together (a run's particles.csv and its summary.json): every one is
+// written to its temporary first, and only when all are whole are they renamed into place, in
+// order. A failure while writing (a full disk) replaces none of them.
+void write_atomically(const std::vector<OutputFile>& files);
+
+// id,x,y,z,r,temperature_K,phase,absorbed_J for every particle, vaporised ones included (the
+// file refers to p and absorbed_J: they must outlive the write).
+OutputFile particles_csv(const std::string& path, const Particles& p,
                          const std::vector<double>& absorbed_J);
 
 // A ParaView PolyData frame: points with radius, temperature, phase, absorbed energy, alive.
