@@ -1026,6 +1026,24 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
     ++compared;
   }
   EXPECT_EQ(compared, 13u);  // 5 frames, 5 ray files, particles.pvd, particles.csv, history.csv
+  // A checkpoint folder whose early frames were deleted (to save space): the resumed series
+  // leaves them out of particles.pvd, with a warning, rather than name files that are not there.
+  const fs::path thinned = fresh_dir("series_thinned"), resumed = fresh_dir("series_resumed");
+  for (const fs::directory_entry& e : fs::directory_iterator(whole))
+    fs::copy_file(e.path(), thinned / e.path().filename());
+  fs::remove(thinned / "particles_0000.vtp");
+  const Result t = run("run --resume " + thinned.string() + " --out " + resumed.string());
+  ASSERT_EQ(t.code, 0) << t.output;
+  EXPECT_NE(t.output.find("1 frame of the pulses before the checkpoint is not there "
+                          "(particles_0000.vtp); particles.pvd leaves it out"),
+            std::string::npos)
+      << t.output;
+  const std::string pvd = file_text(resumed / "particles.pvd");
+  EXPECT_EQ(pvd.find("particles_0000.vtp"), std::string::npos) << pvd;
+  for (const char* frame : {"particles_0001.vtp", "particles_0004.vtp"}) {
+    EXPECT_NE(pvd.find(frame), std::string::npos) << pvd;
+    EXPECT_TRUE(fs::exists(resumed / frame)) << frame;
+  }
 }
 
 // A checkpoint holds its particles: a file packing's run resumes after the file has moved (a

@@ -837,6 +837,25 @@ void refuse_to_resume_a_finished_run(const fs::path& dir) {
                              : " (it kept no periodic checkpoint to start again from)"));
 }
 
+// The checkpoint's frames that are no longer in its folder (deleted to save space, say) leave the
+// series, with a warning naming them: particles.pvd names no file that is not there.
+void drop_missing_frames(const fs::path& from, RunRecord& record) {
+  std::string missing;
+  std::size_t count = 0;
+  std::erase_if(record.frames, [&](const std::pair<std::string, double>& frame) {
+    std::error_code ec;
+    if (fs::is_regular_file(from / frame.first, ec)) return false;
+    missing += (count++ > 0 ? ", " : "") + frame.first;
+    return true;
+  });
+  if (count > 0)
+    std::fprintf(stderr,
+                 "beampack: warning: --resume %s: %zu frame%s of the pulses before the checkpoint "
+                 "%s not there (%s); particles.pvd leaves %s out\n",
+                 from.c_str(), count, plural(static_cast<long long>(count)),
+                 count == 1 ? "is" : "are", missing.c_str(), count == 1 ? "it" : "them");
+}
+
 // A run resumed into another folder than its checkpoint's continues the frames and ray paths
 // of the pulses before the checkpoint, which stay in the checkpoint's folder: copied, so the
 // new folder holds the whole series (particles.pvd names every frame).
@@ -1021,9 +1040,12 @@ int run_command(const RunOptions& options) {
   if (saved) sim.read_state(*saved);
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
   if (!into_checkpoint_folder) remove_earlier_run(out_dir);
+  if (saved) drop_missing_frames(options.resume, record);
   if (saved && !into_checkpoint_folder)
     carry_earlier_files(options.resume, out_dir, record, config.output,
                         std::max(sim.figures().pulse - 1, 0));
+  if (saved && !record.frames.empty())  // the series as it now stands, before any new frame
+    write_pvd((fs::path(out_dir) / "particles.pvd").string(), record.frames);
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);
   bool checkpoint_due = false;
