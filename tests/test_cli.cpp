@@ -831,6 +831,24 @@ TEST(Cli, ValidatePassesAndConfigRoundTrips) {
   const Result again = run("config " + (dir / "full.toml").string());
   ASSERT_EQ(again.code, 0) << again.output;
   EXPECT_EQ(again.output, c.output);
+  // Keys the scene does not read (the quick preset's packing.seed = 7 with a lattice) are printed
+  // apart, as comments with their values: the printed file runs without a warning about them.
+  const Result lattice =
+      run("config --preset quick --set packing.source=lattice --set packing.count=216");
+  ASSERT_EQ(lattice.code, 0) << lattice.output;
+  const std::string& text = lattice.output;
+  EXPECT_NE(text.find("\n# packing.seed = 7  # applies to packing.source = \"random-overlap\" or "
+                      "\"rsa\" only (it is \"lattice\")\n"),
+            std::string::npos)
+      << text;
+  const std::size_t packing = text.find("[packing]\n"), end = text.find("\n\n", packing);
+  ASSERT_NE(packing, std::string::npos) << text;
+  EXPECT_EQ(text.substr(packing, end - packing).find("seed"), std::string::npos) << text;
+  EXPECT_NE(text.substr(packing, end - packing).find("radius_ratio"), std::string::npos) << text;
+  const Result quiet = run("run " + write(dir / "lattice.toml", text) +
+                           " --set pulses.count=1 --quiet --out " + (dir / "lattice").string());
+  ASSERT_EQ(quiet.code, 0) << quiet.output;
+  EXPECT_EQ(quiet.output.find("warning"), std::string::npos) << quiet.output;
 }
 
 TEST(Cli, ParaViewFilesHoldTheValuesOfParticlesCsv) {

@@ -99,8 +99,7 @@ int print_config(RunSources sources) {
   sources.xi_always_read = true;  // the run file printed may be converge's
   const RunConfig config = load_run_config(sources);
   warn_of_ignored_keys({&config});
-  std::cout << "# beampack run file: every key with the value a run would use\n"
-            << config.resolved << "\n";
+  std::cout << run_file_text(config);
   return 0;
 }
 

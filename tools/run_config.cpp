@@ -326,7 +326,8 @@ struct KeyUse {
 // pulses.xi is among them unless `xi_always_read` (converge's time-step ladder uses it whatever the
 // pulse duration); a sweep over thermal.dt, its other decider, may hold it too.
 std::vector<std::string> check_unread_keys(const Params& p, const SimulationSpec& s,
-                                           const PaperStepUse& paper, bool xi_always_read) {
+                                           const PaperStepUse& paper, bool xi_always_read,
+                                           std::vector<UnreadKey>& unread) {
   const std::string& source = s.packing.source;
   const std::string is_source = " (it is " + p.shown("packing.source") + ")";
   const std::string is_profile = " (it is " + p.shown("beam.profile") + ")";
@@ -364,6 +365,7 @@ std::vector<std::string> check_unread_keys(const Params& p, const SimulationSpec
   std::vector<std::string> ignored;
   for (const KeyUse& use : uses) {
     if (use.applies || p.swept(use.decider)) continue;
+    unread.push_back({use.key, use.needs});
     if (p.set_on_command_line(use.key))
       p.fail(use.key, p.shown(use.key), use.needs + ", so this run would ignore it");
     if (p.set_in_run_file(use.key) && p.differs_from_default(use.key))
@@ -400,7 +402,7 @@ RunConfig read_config(Params& p, const RunSources& sources) {
   c.output.frames = p.flag("output.frames", false);
   c.output.rays = p.flag("output.rays", false);
   p.check_all_used();  // first: a misspelt key is named before what it would have changed
-  c.ignored_keys = check_unread_keys(p, c.sim, use, sources.xi_always_read);
+  c.ignored_keys = check_unread_keys(p, c.sim, use, sources.xi_always_read, c.unread_keys);
   derive_paper_step(c, use);
   check_steps_per_crossing(p, c.sim, use.dt);
   validate_beam(c.sim.beam, c.sim.packing.sample_size);
@@ -434,6 +436,31 @@ RunConfig load_run_config(const RunSources& sources) {
   } catch (const InputError& e) {  // a library check of several keys: where were they set?
     throw InputError(locate(e.what(), p.origins()));
   }
+}
+
+std::string run_file_text(const RunConfig& c) {
+  toml::table read = c.resolved;
+  std::ostringstream unread;
+  for (const UnreadKey& u : c.unread_keys) {
+    const std::size_t dot = u.key.rfind('.');
+    auto* section = read.get_as<toml::table>(u.key.substr(0, dot));
+    const toml::node* value = section ? section->get(u.key.substr(dot + 1)) : nullptr;
+    if (!value) continue;
+    toml::table one;
+    one.insert(u.key.substr(dot + 1), *value);
+    std::ostringstream line;
+    line << one;
+    unread << "# " << u.key.substr(0, dot + 1) << line.str() << "  # " << u.needs << '\n';
+    section->erase(u.key.substr(dot + 1));
+  }
+  std::ostringstream text;
+  text << "# beampack run file: every key with the value a run would use\n" << read << "\n";
+  if (!unread.str().empty())
+    text << "\n# Keys this scene does not read, with the values they would take; to use one once "
+            "what "
+            "it\n# needs holds, put it under its [section] without the section's name:\n"
+         << unread.str();
+  return text.str();
 }
 
 void warn_of_ignored_keys(const std::vector<const RunConfig*>& configs) {

@@ -17,6 +17,11 @@ struct OutputSpec {
   bool rays = false;    // output.rays: rays_NNNN.vtp, the paths of each pulse's rays
 };
 
+// A key of the run file this scene does not read, and what would make it apply.
+struct UnreadKey {
+  std::string key, needs;
+};
+
 struct RunConfig {
   SimulationSpec sim;
   OutputSpec output;
@@ -29,6 +34,8 @@ struct RunConfig {
   // Keys a run file sets to other values than their defaults that this scene ignores: one line
   // each, for the command to print as warnings (beampack: warning: ...).
   std::vector<std::string> ignored_keys;
+  // Every key this scene does not read (whoever set it): `beampack config` prints them apart.
+  std::vector<UnreadKey> unread_keys;
 };
 
 struct RunSources {
@@ -51,6 +58,10 @@ struct RunSources {
 
 // InputError (exit code 2) for any bad key, type or value, naming file and line.
 RunConfig load_run_config(const RunSources& sources);
+
+// The text `beampack config` prints: the resolved run file, and the keys this scene does not read
+// apart, as comments with their values (a run of the file then warns of none of them).
+std::string run_file_text(const RunConfig& config);
 
 // The configurations' ignored_keys on stderr as warnings, each line once (a sweep's runs share
 // their run file).
