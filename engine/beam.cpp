@@ -8,6 +8,7 @@
 #include <numbers>
 #include <sstream>
 
+#include "geometry/compensated_sum.h"
 #include "geometry/error.h"
 #include "geometry/random.h"
 
@@ -77,11 +78,13 @@ std::vector<Eigen::Vector2d> stratified_disk(std::size_t n) {
   return p;
 }
 
-// sum_k I_k A_r, in ray order (as the tracer's ledger sums the rays' energies).
+// sum_k I_k A_r, compensated, in ray order (as the tracer's ledger sums the rays' energies): a
+// plain sum of a flat beam's million equal terms drifts 3e-11 from the exact one, and normalising
+// to it made the rays carry that much more or less than P.
 double delivered_power(const std::vector<double>& intensity, double ray_area) {
-  double sum = 0.0;
-  for (double i : intensity) sum += i * ray_area;
-  return sum;
+  CompensatedSum sum;
+  for (double i : intensity) sum.add(i * ray_area);
+  return sum.value();
 }
 
 // Scale I_k = I_0 f_k with I_0 = P / (A_r sum f): sum I_k A_r = P (MODEL.md section 2). The

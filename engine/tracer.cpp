@@ -23,6 +23,7 @@
 
 #include "engine/fresnel.h"
 #include "geometry/check.h"
+#include "geometry/compensated_sum.h"
 #include "geometry/error.h"
 #include "geometry/ray_sphere.h"
 
@@ -251,13 +252,13 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   next_event_.resize((l.first + count + chunk - 1) / chunk);
   // The injected energy, summed in ray order beside the blocks (into a local: the ledger shares a
   // cache line with the array headers the blocks read).
-  double injected = s.ledger.injected;
+  double injected = s.ledger.injected, injected_low = s.ledger.injected_low;
   tbb::task_group summing;
   summing.run([&] {
     const IeeeFloatMode ieee;
-    double sum = injected;  // in a register, stored once
-    for (double e : energies) sum += e;
-    injected = sum;
+    double value = injected, low = injected_low;  // in registers, stored once
+    for (double e : energies) add_compensated(value, low, e);
+    injected = value, injected_low = low;
   });
   std::vector<std::size_t> traced(blocks);
   try {
@@ -279,7 +280,7 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
     throw;
   }
   summing.wait();
-  s.ledger.injected = injected;
+  s.ledger.injected = injected, s.ledger.injected_low = injected_low;
   const std::size_t queries = std::accumulate(traced.begin(), traced.end(), std::size_t{0});
   s.primary_segments += queries;
   s.reused_primaries += count - queries;
@@ -727,6 +728,14 @@ void RayState::check_values(std::size_t particles, const std::string& source) co
   for (const double v : {l.injected, l.absorbed, l.escaped, l.cutoff, clock})
     if (!(std::isfinite(v) && v >= 0))
       throw InputError(source + ": a ledger entry or the clock is " + std::to_string(v));
+  // A low part is what its sum rounded away: within half an ulp of it, either sign.
+  for (const auto& [value, low] : {std::pair{l.injected, l.injected_low},
+                                   {l.absorbed, l.absorbed_low},
+                                   {l.escaped, l.escaped_low},
+                                   {l.cutoff, l.cutoff_low}})
+    if (!(std::abs(low) <= 1e-15 * value))
+      throw InputError(source + ": a ledger entry's low part is " + std::to_string(low) +
+                       " against its " + std::to_string(value) + " J");
 }
 
 void Tracer::write_first_hits(StateWriter& out) const {
@@ -767,15 +776,16 @@ void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits,
   for (const Event& e : c.events) {
     BEAMPACK_DCHECK(std::isfinite(e.energy) && e.energy >= 0.0,
                     "ray %u: an event of %g J into bin %u", e.ray, e.energy, e.bin);
+    OpticsLedger& l = t.ledger;
     if (e.bin == kEscapedBin) {
-      t.ledger.escaped += e.energy;
+      add_compensated(l.escaped, l.escaped_low, e.energy);
     } else if (e.bin == kCutoffBin) {
-      t.ledger.cutoff += e.energy;
+      add_compensated(l.cutoff, l.cutoff_low, e.energy);
     } else {
       double& deposit = deposits[e.bin];
       if (deposited && deposit == 0 && e.energy != 0) deposited->push_back(e.bin);
       deposit += e.energy;
-      t.ledger.absorbed += e.energy;
+      add_compensated(l.absorbed, l.absorbed_low, e.energy);
     }
   }
   t.primary += c.primary;

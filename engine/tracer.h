@@ -92,6 +92,10 @@ struct OpticsLedger {
   double escaped = 0.0;
   double cutoff = 0.0;
   double in_flight() const { return injected - absorbed - escaped - cutoff; }
+  // What the four sums above have rounded away (add_compensated): they take millions of ray
+  // energies a pulse, and plain sums drifted (a flat beam's twenty pulses of 1e6 rays: the ledger
+  // open by 1.5e-10 of the injected energy).
+  double injected_low = 0.0, absorbed_low = 0.0, escaped_low = 0.0, cutoff_low = 0.0;
 };
 
 // A ray array: growing it leaves the new elements unwritten (a launch writes every field of every

@@ -82,6 +82,35 @@ TEST(OpticsTracer, LedgerClosesOnA1e4Packing) {
   }
 }
 
+// A flat beam's rays carry equal energies: summed one by one onto a running total, their rounding
+// errors all lean one way (a million rays: injected 3e-11 short of P tau a pulse, 1e-9 after a
+// hundred pulses). The ledger's sums keep the bits each addition loses: the injected energy is
+// the pulses' P tau to round-off, however many rays, and the ledger closes as tightly.
+TEST(OpticsTracer, InjectedEnergyIsThePulsesPowerTimesDurationForAMillionEqualRays) {
+  BeamSpec flat;
+  flat.profile = "flat";
+  flat.sampling = "stratified";
+  flat.rays = 1'000'000;
+  OpticsSpec spec = optics_for(1.4);
+  spec.max_bounces = 1;  // first hits only: the sums, not the tracing, are under test
+  const Particles p = random_overlap_packing(200, kD, 0.325, 3);
+  Tracer tracer(p, spec);
+  const Beam beam = make_beam(flat, kD);
+  const double tau = 3e-13;
+  std::vector<double> deposits;
+  constexpr int kPulses = 4;
+  for (int k = 0; k < kPulses; ++k) {
+    tracer.launch(beam, tau);
+    while (tracer.advance(kAll, deposits) > 0) {
+    }
+  }
+  const OpticsLedger& l = tracer.ledger();
+  const double expected = kPulses * flat.power * tau;
+  EXPECT_NEAR(l.injected, expected, 1e-14 * expected);
+  EXPECT_GT(l.absorbed, 0.01 * expected);
+  EXPECT_NEAR(l.absorbed + l.escaped + l.cutoff, l.injected, 1e-14 * expected);
+}
+
 TEST(OpticsTracer, CutoffAndBounceLimitEndRaysIntoTheCutoffBin) {
   OpticsSpec spec = optics_for(20.0);
   spec.max_bounces = 2;

@@ -508,9 +508,9 @@ RunResult run_scene(const RunConfig& config, bool quiet, const std::string& labe
 
 namespace {
 
-// Format 2 added the wall time before the checkpoint, format 3 the pulses between checkpoints;
-// format 1 is "beampack-checkpoint".
-constexpr const char* kCheckpointMagic = "beampack-checkpoint-3";
+// Format 2 added the wall time before the checkpoint, format 3 the pulses between checkpoints,
+// format 4 the optics ledger's low parts; format 1 is "beampack-checkpoint".
+constexpr const char* kCheckpointMagic = "beampack-checkpoint-4";
 
 // What a run accumulates besides the simulation's own state: the history rows and the frames.
 struct RunRecord {
@@ -551,7 +551,8 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   StateReader r(std::move(bytes), path.string());
   const std::string magic = r.text();
-  if (magic == "beampack-checkpoint" || magic == "beampack-checkpoint-2")
+  if (magic == "beampack-checkpoint" || magic == "beampack-checkpoint-2" ||
+      magic == "beampack-checkpoint-3")
     throw InputError(path.string() + ": a checkpoint of an earlier beampack (" + magic +
                      "); this one reads " + kCheckpointMagic);
   if (magic != kCheckpointMagic) throw InputError(path.string() + ": not a beampack checkpoint");
