@@ -759,6 +759,11 @@ Tracer::FirstHits Tracer::read_first_hits(StateReader& in) const {
                        std::to_string(particles_.size()));
   for (const double t : f.t)
     if (!(t >= 0)) throw InputError("checkpoint: a first hit at distance " + std::to_string(t));
+  // A kept hit's point and normal are used as they are (NaN origins: deposits of NaN).
+  for (std::size_t k = 0; k < n; ++k)
+    if (f.particle[k] != kNoParticle && !(f.origin[k].allFinite() && f.normal[k].allFinite()))
+      throw InputError("checkpoint: first hit " + std::to_string(k) +
+                       " has a point or normal that is not finite");
   return f;
 }
 

@@ -1671,6 +1671,65 @@ TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
   EXPECT_NE(end.output.find("output file \"" + particles + "\": write failed"), std::string::npos)
       << end.output;
   EXPECT_FALSE(fs::exists(dir / "end")) << end.output;
+  // Without the shell ignoring SIGXFSZ first, the limit's signal killed the process (status 153)
+  // amid its temporaries; beampack ignores it, so the write fails as on a full disk.
+  const Result plain = run("run --preset quick --quiet --out " + (dir / "plain").string(),
+                           "sh -c \"ulimit -f 8; exec \\\"\\$0\\\" \\\"\\$@\\\"\"");
+  EXPECT_EQ(plain.code, 1) << plain.output;
+  EXPECT_NE(plain.output.find("write failed"), std::string::npos) << plain.output;
+  EXPECT_FALSE(fs::exists(dir / "plain")) << plain.output;
+}
+
+// A path named in bytes that are not UTF-8 cannot be held by a run file, config or summary.json
+// (UTF-8 text): a packing file there is refused before the run (the run computed to its end, then
+// lost its results writing summary.json). A failure's message quoting such an --out folder is
+// kept in summary.json with U+FFFD for the bad byte.
+TEST(Cli, PathsThatAreNotUtf8AreRefusedOrKeptReadable) {
+  const fs::path dir = fresh_dir("not_utf8");
+  const fs::path odd = dir / "d\xFF";
+  fs::create_directories(odd);
+  write(odd / "bed.xyz", "5e-4 5e-4 5e-4 1e-4\n");
+  const std::string file =
+      write(odd / "run.toml", "[packing]\nsource = \"file\"\nfile = \"bed.xyz\"\n");
+  const Result refused = run("run '" + file + "' --quiet --out " + (dir / "out").string());
+  EXPECT_EQ(refused.code, 2) << refused.output;
+  EXPECT_NE(refused.output.find("`packing.file` = \"" + dir.string() +
+                                "/d\\xFF/bed.xyz\": the path is not valid UTF-8"),
+            std::string::npos)
+      << refused.output;
+  EXPECT_FALSE(fs::exists(dir / "out"));
+  const fs::path out = dir / "mid\xFF";
+  const Result failed = run_with_file_size_limit(
+      200,
+      "run --preset quick --quiet --set beam.rays=2000 --set output.frames=true "
+      "--checkpoint-every 2 --out '" +
+          out.string() + "'");
+  EXPECT_EQ(failed.code, 1) << failed.output;
+  const std::string summary = file_text(out / "summary.json");
+  EXPECT_NE(summary.find("mid\xEF\xBF\xBD"), std::string::npos) << summary;
+  EXPECT_EQ(read_json(out / "summary.json")["pulses"], 2);
+}
+
+// Swept values are written as they were given: a file name with a quote is one quoted CSV cell
+// (its quotes doubled), and `&` or `<` in the chart's category labels is escaped (the SVG was
+// not well-formed XML).
+TEST(Cli, SweptNamesAreQuotedInTheTableAndEscapedInTheChart) {
+  const fs::path dir = fresh_dir("sweep_names");
+  const std::string bed = "5e-4 5e-4 5e-4 1e-4\n";
+  const std::string amp = write(dir / "a&b.xyz", bed), quote = write(dir / "e\"f<.xyz", bed);
+  const Result r =
+      run("sweep --preset quick --set packing.source=file --set pulses.count=1 "
+          "--param packing.file --values '" +
+          amp + "," + quote + "' --quiet --out " + (dir / "out").string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  const std::string csv = file_text(dir / "out" / "sweep.csv");
+  EXPECT_NE(csv.find("\n\"" + (dir / "e\"\"f<.xyz").string() + "\","), std::string::npos) << csv;
+  EXPECT_NE(csv.find("\n" + amp + ","), std::string::npos) << csv;
+  const std::string svg = file_text(dir / "out" / "sweep.svg");
+  EXPECT_NE(svg.find("a&amp;b.xyz"), std::string::npos) << svg;
+  EXPECT_NE(svg.find("f&lt;.xyz"), std::string::npos) << svg;
+  EXPECT_EQ(svg.find("a&b"), std::string::npos) << svg;
+  EXPECT_EQ(svg.find("f<"), std::string::npos) << svg;
 }
 
 // Files of beampack's names in a folder that holds no beampack run (no summary.json of one, no

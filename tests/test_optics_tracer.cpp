@@ -1072,5 +1072,38 @@ TEST(OpticsTracer, CheckpointWithAWrongLiveCountIsRefused) {
   EXPECT_THROW(tracer.restore(state), InputError);  // a library caller's state, the same check
 }
 
+// A checkpoint's kept first hits are used as they are read: a hit whose normal or point is not
+// finite (a damaged file, its checksum recomputed) is refused, not turned into NaN deposits.
+TEST(OpticsTracer, KeptFirstHitsThatAreNotFiniteAreRefused) {
+  Tracer tracer(packing_1e4(), optics_for(1.4));
+  tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+  std::vector<double> deposits;
+  while (tracer.advance(kAll, deposits) > 0) {
+  }
+  const auto round_trip = [&tracer] {
+    StateWriter out;
+    tracer.write_first_hits(out);
+    StateReader in(out.finish(), "test");
+    return tracer.read_first_hits(in);
+  };
+  Tracer::FirstHits hits = round_trip();
+  const auto hit = std::find_if(hits.particle.begin(), hits.particle.end(),
+                                [](std::uint32_t p) { return p != kNoParticle; });
+  ASSERT_NE(hit, hits.particle.end());
+  const auto k = static_cast<std::size_t>(hit - hits.particle.begin());
+  for (const bool normal : {true, false}) {
+    Tracer::FirstHits damaged = hits;
+    (normal ? damaged.normal[k] : damaged.origin[k]).x() = std::nan("");
+    tracer.restore_first_hits(damaged);
+    try {
+      round_trip();
+      FAIL() << "a first hit with a NaN " << (normal ? "normal" : "point") << " was accepted";
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find("first hit " + std::to_string(k)), std::string::npos)
+          << e.what();
+    }
+  }
+}
+
 }  // namespace
 }  // namespace beampack

@@ -150,11 +150,10 @@ void merge_layer(toml::table& merged, std::map<std::string, KeyOrigin>& origin,
 // TOML files must be valid UTF-8, and toml++ 3.3 reaches undefined behaviour on some invalid
 // sequences inside strings (fuzz/regressions/run_config/invalid_utf8_in_string.toml):
 // refuse overlong forms, surrogates, code points above U+10FFFF and stray bytes first.
-void reject_invalid_utf8(std::string_view text, const std::string& source) {
-  std::size_t line = 1;
+// Where text stops being valid UTF-8 (npos: nowhere).
+std::size_t first_invalid_utf8(std::string_view text) {
   for (std::size_t i = 0; i < text.size();) {
     const auto b = static_cast<unsigned char>(text[i]);
-    if (b == '\n') ++line;
     if (b < 0x80) {
       ++i;
       continue;
@@ -172,14 +171,32 @@ void reject_invalid_utf8(std::string_view text, const std::string& source) {
     }
     ok = ok && !(extra == 2 && cp < 0x800) && !(extra == 3 && (cp < 0x10000 || cp > 0x10FFFF)) &&
          !(cp >= 0xD800 && cp <= 0xDFFF);
-    if (!ok) {
-      char hex[8];
-      std::snprintf(hex, sizeof hex, "\\x%02X", b);
-      throw InputError(source + ":" + std::to_string(line) + ": byte " + hex +
-                       " is not valid UTF-8 (TOML files must be UTF-8)");
-    }
+    if (!ok) return i;
     i += std::size_t(extra) + 1;
   }
+  return std::string_view::npos;
+}
+
+// A path for a message: bytes outside printable ASCII as \xNN (the terminal may not show them).
+std::string bytes_shown(std::string_view text) {
+  std::string out = "\"";
+  for (const char c : text) {
+    const auto b = static_cast<unsigned char>(c);
+    char hex[8];
+    std::snprintf(hex, sizeof hex, "\\x%02X", b);
+    out += b >= 0x20 && b < 0x7F ? std::string(1, c) : std::string(hex);
+  }
+  return out + "\"";
+}
+
+void reject_invalid_utf8(std::string_view text, const std::string& source) {
+  const std::size_t at = first_invalid_utf8(text);
+  if (at == std::string_view::npos) return;
+  char hex[8];
+  std::snprintf(hex, sizeof hex, "\\x%02X", static_cast<unsigned char>(text[at]));
+  const auto line = 1 + std::count(text.begin(), text.begin() + std::ptrdiff_t(at), '\n');
+  throw InputError(source + ":" + std::to_string(line) + ": byte " + hex +
+                   " is not valid UTF-8 (TOML files must be UTF-8)");
 }
 
 // The code point of the (already validated) UTF-8 sequence at text[i]; advances i past it.
@@ -484,6 +501,12 @@ std::string Params::path(const std::string& key) {
                                            ? std::filesystem::path(o->file).parent_path()
                                            : std::filesystem::path();
   const std::string resolved = std::filesystem::absolute(folder / v).lexically_normal().string();
+  // The run file's folder may be named in any bytes; config, checkpoints and summary.json hold
+  // the path as UTF-8 text (a summary of such a path failed at the run's end, losing the run).
+  if (first_invalid_utf8(resolved) != std::string_view::npos)
+    fail(key, bytes_shown(resolved),
+         "the path is not valid UTF-8 (run files, config and summary.json hold it as UTF-8 "
+         "text); rename the file or the folders on its path");
   record(key, toml::value<std::string>(resolved));
   return resolved;
 }

@@ -115,6 +115,9 @@ void install_interrupt_handler() {
   // Output piped into a reader that quits early (`| head`): the lines are lost, not the run's
   // files, which sweep and converge write after their per-run lines.
   std::signal(SIGPIPE, SIG_IGN);
+  // A file-size limit (`ulimit -f`): a write past it fails as a full disk does (a failed run that
+  // leaves no half file), instead of the signal killing the process amid its temporaries.
+  std::signal(SIGXFSZ, SIG_IGN);
 }
 
 std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config, bool quiet,
@@ -527,6 +530,13 @@ std::string toml_text(const toml::table& table) {
   return s.str();
 }
 
+// summary.json's text. A string that is not UTF-8 (a failure's message quoting a path named in
+// other bytes) is written with U+FFFD in place of its bad bytes: nlohmann's default throws,
+// and the run's results were lost at its end.
+std::string json_text(const nlohmann::json& j) {
+  return j.dump(2, ' ', false, nlohmann::json::error_handler_t::replace);
+}
+
 // `wall_seconds`: the run's wall time so far, resumed runs included.
 OutputFile checkpoint_file(const fs::path& path, const Simulation& sim, const RunRecord& record,
                            double wall_seconds) {
@@ -896,7 +906,7 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
   j["failed"] = {{"message", failure}, {"time_s", failed_at}};
   write_atomically(
       {{(out / "history.csv").string(), [&](std::ostream& o) { o << record.history; }},
-       {(out / "summary.json").string(), [&](std::ostream& o) { o << j.dump(2) << '\n'; }}});
+       {(out / "summary.json").string(), [&](std::ostream& o) { o << json_text(j) << '\n'; }}});
   std::fprintf(stderr,
                "beampack: the run failed at t = %.6g s, after %d pulse%s had ended; %s holds them "
                "(history.csv, and summary.json as at the last one's end, with the failure; no "
@@ -984,7 +994,7 @@ int finish_run(const Simulation& sim, const RunConfig& config, const RunRecord& 
   files.push_back({(out / "history.csv").string(), [&](std::ostream& o) { o << record.history; }});
   files.push_back(particles_csv((out / "particles.csv").string(), sim.particles(), sim.absorbed()));
   files.push_back({(out / "summary.json").string(),
-                   [&](std::ostream& o) { o << summary_json(sim, r, config).dump(2) << '\n'; }});
+                   [&](std::ostream& o) { o << json_text(summary_json(sim, r, config)) << '\n'; }});
   write_atomically(files);
   print_table(sim, r);
   warn_of_late_pulses(config.sim, r.counts);
@@ -1070,6 +1080,15 @@ void refuse_run_only_outputs(const RunConfig& config, const char* command) {
 
 namespace {
 
+// A swept value as a CSV cell (RFC 4180): one holding a quote, a comma or a line break is quoted,
+// its quotes doubled (`pk/e"f.xyz` made the row unreadable).
+std::string csv_cell(const std::string& value) {
+  if (value.find_first_of("\",\r\n") == std::string::npos) return value;
+  std::string out = "\"";
+  for (const char c : value) out += c == '"' ? std::string("\"\"") : std::string(1, c);
+  return out + '"';
+}
+
 // The cells after the first of a CSV row with the header's columns, all empty: ",,,...".
 std::string empty_cells(const std::string& header) {
   return std::string(static_cast<std::size_t>(std::count(header.begin(), header.end(), ',')), ',');
@@ -1144,7 +1163,7 @@ int sweep_command(const SweepOptions& options) {
       r = run_scene(configs[k], options.run.quiet, label);
     } catch (const std::exception& e) {
       code = std::max(code, report_failed_run(label, e, "its row in sweep.csv is empty"));
-      csv += values[k] + empty_cells(header) + '\n';
+      csv += csv_cell(values[k]) + empty_cells(header) + '\n';
       continue;
     }
     if (r.interrupted) {
@@ -1156,8 +1175,8 @@ int sweep_command(const SweepOptions& options) {
       break;
     }
     const Figures& f = r.figures;
-    csv += values[k] + ',' + figure_columns(f) + ',' + std::to_string(r.counts.steps) + ',' +
-           exact(r.wall_seconds) + '\n';
+    csv += csv_cell(values[k]) + ',' + figure_columns(f) + ',' + std::to_string(r.counts.steps) +
+           ',' + exact(r.wall_seconds) + '\n';
     vv.x.push_back(named ? double(k) : xs[k]);
     vv.y.push_back(f.vaporized_fraction);
     std::printf("%-24s %s = %-10s v_v = %.4f  melted = %.4f  T_max = %s  (%.2f s)\n", "sweep",

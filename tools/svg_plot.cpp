@@ -70,6 +70,27 @@ std::vector<double> ticks(const Axis& a) {
   return t;
 }
 
+// Text as XML character data: a swept file name `a&b.xyz` or `c<d.xyz` made the chart malformed.
+std::string xml_text(const std::string& text) {
+  std::string out;
+  for (const char c : text) {
+    switch (c) {
+      case '&':
+        out += "&amp;";
+        break;
+      case '<':
+        out += "&lt;";
+        break;
+      case '>':
+        out += "&gt;";
+        break;
+      default:
+        out += c;
+    }
+  }
+  return out;
+}
+
 }  // namespace
 
 std::string render_svg(const Chart& chart) {
@@ -88,7 +109,7 @@ std::string render_svg(const Chart& chart) {
   o << "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"" << kWidth << "\" height=\"" << kHeight
     << "\" font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"100%\" height=\"100%\" "
        "fill=\"white\"/>\n";
-  o << "<text x=\"" << kWidth / 2 - 60 << "\" y=\"22\" font-size=\"14\">" << chart.title
+  o << "<text x=\"" << kWidth / 2 - 60 << "\" y=\"22\" font-size=\"14\">" << xml_text(chart.title)
     << "</text>\n";
   o << "<rect x=\"" << kLeft << "\" y=\"" << kTop << "\" width=\"" << w << "\" height=\"" << h
     << "\" fill=\"none\" stroke=\"black\"/>\n";
@@ -104,7 +125,8 @@ std::string render_svg(const Chart& chart) {
         categories ? chart.x_categories[std::size_t(std::lround(fx))] : tick_label(fx, ax.log);
     o << "<line x1=\"" << x << "\" y1=\"" << kTop + h << "\" x2=\"" << x << "\" y2=\""
       << kTop + h + 5 << "\" stroke=\"black\"/>"
-      << "<text x=\"" << x - 15 << "\" y=\"" << kTop + h + 20 << "\">" << label << "</text>\n";
+      << "<text x=\"" << x - 15 << "\" y=\"" << kTop + h + 20 << "\">" << xml_text(label)
+      << "</text>\n";
   }
   for (double fy : ticks(ay)) {
     const double y = kTop + h * (1 - (fy - ay.lo) / (ay.hi - ay.lo));
@@ -112,10 +134,10 @@ std::string render_svg(const Chart& chart) {
       << "\" stroke=\"black\"/>"
       << "<text x=\"" << 8 << "\" y=\"" << y + 4 << "\">" << tick_label(fy, ay.log) << "</text>\n";
   }
-  o << "<text x=\"" << kLeft + w / 2 - 40 << "\" y=\"" << kHeight - 15 << "\">" << chart.x_label
-    << "</text>\n";
-  o << "<text transform=\"translate(18," << kTop + h / 2 + 40 << ") rotate(-90)\">" << chart.y_label
-    << "</text>\n";
+  o << "<text x=\"" << kLeft + w / 2 - 40 << "\" y=\"" << kHeight - 15 << "\">"
+    << xml_text(chart.x_label) << "</text>\n";
+  o << "<text transform=\"translate(18," << kTop + h / 2 + 40 << ") rotate(-90)\">"
+    << xml_text(chart.y_label) << "</text>\n";
   bool zeros = false;  // on a log y axis a 0 sits on the lower edge as a hollow circle
   for (std::size_t k = 0; k < chart.series.size(); ++k) {
     const Series& s = chart.series[k];
@@ -134,7 +156,7 @@ std::string render_svg(const Chart& chart) {
     o << "<path d=\"" << path.str() << "\" fill=\"none\" stroke=\"" << colour
       << "\" stroke-width=\"1.5\"/>\n";
     o << "<text x=\"" << kWidth - kRight + 10 << "\" y=\"" << kTop + 15 + 18 * k << "\" fill=\""
-      << colour << "\">" << s.label << "</text>\n";
+      << colour << "\">" << xml_text(s.label) << "</text>\n";
   }
   if (zeros)
     o << "<text x=\"" << kWidth - kRight + 10 << "\" y=\"" << kTop + h
