@@ -399,6 +399,71 @@ TEST(ThermalStiff, CgAtItsIterationCapRefusesTheStep) {
   expect_solver_refuses(model, 1e6 * explicit_limit(p), "did not reach thermal.tolerance");
 }
 
+// A corrector pass starts from the last pass's change. With a heat capacity 1e17 times below the
+// latent band's (c_solid = 1e-14 J/(kg K), inside the run file's range), the predictor's change
+// is ~1e17 K: the fixed-point iteration's first update cancelled it to exactly 0 and the step was
+// refused as divergent (also under "auto", which had picked fixed-point for the corrector). A
+// guess worse than none is dropped, and "auto" factorises when an iterative solve fails.
+TEST(ThermalStiff, ACorrectorFarFromThePredictorStillSolvesEverySolver) {
+  const double r = 1e-4;
+  Material m;
+  m.c_solid = 1e-14;
+  m.conductivity = 100;
+  const double g = 100.0 * std::numbers::pi * (r * r - 0.5625 * r * r) / (1.5 * r);
+  const double mass = 1000.0 * 4.0 / 3.0 * std::numbers::pi * r * r * r / 1e6;  // m / M
+  const double c_predictor = mass * m.c_solid, c_band = mass * (m.c_solid + m.latent_melt);
+  auto step = [&](const std::string& solver, double dt) {
+    Particles p;
+    p.add(Vec3::Zero(), r, 0, 590.0);
+    p.add(Vec3(1.5 * r, 0, 0), r, 0, 590.0);
+    ThermalSpec spec;
+    spec.solver = solver;
+    ThermalModel model(p, {m}, spec);
+    model.set_contacts(find_contacts(p));
+    const StepReport report = model.step(dt, {c_band * 20.0, 0.0});
+    EXPECT_TRUE(report.phase_corrected) << solver;
+    EXPECT_NEAR(model.ledger().imbalance(), 0.0, 1e-9 * model.ledger().absorbed) << solver;
+    return p.temperature;
+  };
+  // Fixed-point throughout (each pass contracts: dt 2 G / c = 0.01 for the predictor).
+  const double gentle = 0.01 * c_predictor / (2.0 * g);
+  const auto direct = step("direct", gentle);
+  const auto fixed_point = step("fixed-point", gentle);
+  for (int i = 0; i < 2; ++i) EXPECT_NEAR(fixed_point[i], direct[i], 1e-6) << i;
+  EXPECT_GT(direct[0], 599.0);  // heated up to the melt band (the corrector applied it)
+  // Stiff for the predictor (auto factorises), gentle for the corrector (auto: fixed-point).
+  const double stiff = 1e3 * c_predictor / (2.0 * g);
+  const auto reference = step("direct", stiff);
+  const auto automatic = step("auto", stiff);
+  for (int i = 0; i < 2; ++i) EXPECT_NEAR(automatic[i], reference[i], 1e-6) << i;
+}
+
+// "auto" promises an answer: when the fixed-point iteration it picked fails (here: a cap of 3
+// iterations where a contraction of 0.05 needs ~8), the step is factorised instead; asked for by
+// name, the fixed-point iteration's failure is the step's.
+TEST(ThermalStiff, AutoFactorisesWhenItsFixedPointIterationFails) {
+  const double r = 1e-4;
+  const Material m = conductive();
+  const double g = 100.0 * std::numbers::pi * (r * r - 0.5625 * r * r) / (1.5 * r);
+  const double c = 1000.0 * 4.0 / 3.0 * std::numbers::pi * r * r * r * 1000.0 / 1e6;  // m C_S / M
+  auto step = [&](const std::string& solver) {
+    Particles p;
+    p.add(Vec3::Zero(), r, 0, 500.0);
+    p.add(Vec3(1.5 * r, 0, 0), r, 0, 300.0);
+    ThermalSpec spec;
+    spec.solver = solver;
+    spec.max_iterations = 3;
+    ThermalModel model(p, {m}, spec);
+    model.set_contacts(find_contacts(p));
+    const StepReport report = model.step(0.05 * c / (2.0 * g), {});
+    EXPECT_EQ(report.solver, solver == "auto" ? "direct" : solver);
+    return p.temperature;
+  };
+  EXPECT_THROW(step("fixed-point"), SolverRefusal);
+  const auto automatic = step("auto"), direct = step("direct");
+  for (int i = 0; i < 2; ++i) EXPECT_EQ(automatic[i], direct[i]) << i;
+}
+
 // Stagnation (solvers.cpp): just below the limit the iteration converges, but too slowly for the
 // cap. Two equal spheres, backward Euler: the iteration (3.11) theta <- theta + (b - A theta) / c
 // has the matrix -dt G / c [[1, -1], [-1, 1]], eigenvalues 0 and -2 dt G / c. With 2 dt G / c =

@@ -662,24 +662,27 @@ void ThermalModel::keep_energy_of_components(const System& s, const Eigen::Vecto
 // The iterative solvers solve for the step's change, A (theta1 - theta0) = dt Q(theta0) + dH (the
 // drive), so that their tolerances measure what the step changes. Against the temperatures
 // themselves (from 0 K without walls) a deposit below tolerance * c theta stopped CG before its
-// first iteration, and the step lost that heat. False when CG failed under "auto": the caller
-// then factorises (auto promised a stable answer).
+// first iteration, and the step lost that heat. False when an iterative solve failed under
+// "auto": the caller then factorises (auto promised a stable answer).
 bool ThermalModel::solve_change(const SparseMatrix& a, const Eigen::VectorXd& c,
                                 const Eigen::VectorXd& drive, double rho,
                                 const Eigen::VectorXd& theta0, Eigen::VectorXd& theta1,
                                 StepReport& report) const {
   Eigen::VectorXd change = theta1 - theta0;  // the first guess: 0, or the corrector's last pass
+  // A last pass whose capacities were orders of magnitude below this pass's (c_solid = 1e-14 and
+  // a latent band) left a change of 1e18 K; the first update cancelled it to exactly 0 and the
+  // fixed-point iteration read that as divergence. A guess worse than none is not taken.
+  if (!change.isZero(0.0) && (drive - a * change).squaredNorm() > drive.squaredNorm())
+    change.setZero();
   SolveStats stats;
-  if (report.solver == "fixed-point") {
-    stats = fixed_point_solve(a, c, drive, change, spec_.tolerance, spec_.max_iterations, rho);
-  } else {
-    try {
-      stats = cg_solve(a, drive, change, spec_.tolerance, spec_.max_iterations);
-    } catch (const RunError&) {
-      if (spec_.solver != "auto") throw;
-      report.solver = "direct";
-      return false;
-    }
+  try {
+    stats = report.solver == "fixed-point"
+                ? fixed_point_solve(a, c, drive, change, spec_.tolerance, spec_.max_iterations, rho)
+                : cg_solve(a, drive, change, spec_.tolerance, spec_.max_iterations);
+  } catch (const RunError&) {
+    if (spec_.solver != "auto") throw;
+    report.solver = "direct";
+    return false;
   }
   theta1 = theta0 + change;
   report.iterations += stats.iterations;
