@@ -24,6 +24,13 @@ void require(bool ok, const std::string& message) {
   if (!ok) throw InputError(message);
 }
 
+// The same for checks run on every particle: the message (streams, number formatting) is built
+// only when the check fails. Built every time, they took most of a 1e6-row file's read.
+template <class Message>
+void require_lazily(bool ok, const Message& message) {
+  if (!ok) throw InputError(message());
+}
+
 std::string str(double v) {
   std::ostringstream s;
   s << v;
@@ -161,18 +168,22 @@ Particles lattice_packing(std::size_t count, double size, double radius_ratio) {
 // volume, hence mass, rounds to 0 or overflows, or a centre +- r beyond the doubles.
 void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>& centre_columns,
                   const std::string& where) {
-  require(centre.allFinite(), where + "its centre is not a finite number");
-  require(r > 0, where + "radius r = " + str(r) + ": must be > 0");
-  require(r <= kMaxParticleRadius, where + "radius r = " + str(r) + ": must be <= " +
-                                       str(kMaxParticleRadius) + " " + kMaxParticleRadiusWhy);
+  require_lazily(centre.allFinite(), [&] { return where + "its centre is not a finite number"; });
+  require_lazily(r > 0, [&] { return where + "radius r = " + str(r) + ": must be > 0"; });
+  require_lazily(r <= kMaxParticleRadius, [&] {
+    return where + "radius r = " + str(r) + ": must be <= " + str(kMaxParticleRadius) + " " +
+           kMaxParticleRadiusWhy;
+  });
   const double volume = 4.0 / 3.0 * std::numbers::pi * r * r * r;
-  require(volume > 0 && std::isfinite(volume),
-          where + "radius r = " + str(r) + ": its volume " + str(volume) +
-              " is not a positive finite double (|r| must be at least ~1e-100)");
+  require_lazily(volume > 0 && std::isfinite(volume), [&] {
+    return where + "radius r = " + str(r) + ": its volume " + str(volume) +
+           " is not a positive finite double (|r| must be at least ~1e-100)";
+  });
   for (int k = 0; k < 3; ++k)
-    require(
-        std::isfinite(std::abs(centre[k]) + r),
-        where + "centre +- radius overflows in column " + std::to_string(centre_columns[k] + 1));
+    require_lazily(std::isfinite(std::abs(centre[k]) + r), [&] {
+      return where + "centre +- radius overflows in column " +
+             std::to_string(centre_columns[k] + 1);
+    });
 }
 
 namespace {
@@ -225,36 +236,6 @@ std::string file_key(const std::string& path) {
   return "packing.file = \"" + path + "\": ";
 }
 
-// The lines of a packing file that hold something, '#' comments cut, each split into columns and
-// numbered for messages. Both formats read through it, so they skip and number lines alike.
-class PackingLines {
- public:
-  PackingLines(std::istream& in, const std::string& path) : in_(in), path_(path) {}
-  PackingLines(const PackingLines&) = delete;  // cols_ views into line_
-
-  bool next() {
-    while (std::getline(in_, line_)) {
-      ++number_;
-      std::string_view text = line_;
-      if (number_ == 1 && text.starts_with("\xEF\xBB\xBF")) text.remove_prefix(3);  // a UTF-8 BOM
-      if (auto hash = text.find('#'); hash != std::string_view::npos) text = text.substr(0, hash);
-      cols_ = split_columns(text);
-      if (!cols_.empty()) return true;
-    }
-    return false;
-  }
-  const std::vector<std::string_view>& cols() const { return cols_; }
-  std::size_t number() const { return number_; }
-  std::string where() const { return path_ + ":" + std::to_string(number_) + ": "; }
-  const std::string& path() const { return path_; }
-
- private:
-  std::istream& in_;
-  std::string path_, line_;
-  std::vector<std::string_view> cols_;
-  std::size_t number_ = 0;
-};
-
 // A file's text as a message quotes it: control bytes as \xNN (a NUL cut the message short).
 std::string shown(std::string_view text) {
   std::string out;
@@ -271,14 +252,75 @@ std::string shown(std::string_view text) {
   return out;
 }
 
+// The lines of a packing file that hold something, '#' comments cut, each split into columns and
+// numbered for messages. Both formats read through it, so they skip and number lines alike.
+class PackingLines {
+ public:
+  PackingLines(std::istream& in, const std::string& path) : in_(in), path_(path) {}
+  PackingLines(const PackingLines&) = delete;  // cols_ views into line_
+
+  bool next() {
+    while (read_line()) {
+      ++number_;
+      std::string_view text = line_;
+      if (number_ == 1 && text.starts_with("\xEF\xBB\xBF")) text.remove_prefix(3);  // a UTF-8 BOM
+      refuse_control_bytes(text);
+      if (auto hash = text.find('#'); hash != std::string_view::npos) text = text.substr(0, hash);
+      cols_ = split_columns(text);
+      if (!cols_.empty()) return true;
+    }
+    return false;
+  }
+  const std::vector<std::string_view>& cols() const { return cols_; }
+  std::size_t number() const { return number_; }
+  std::string where() const { return path_ + ":" + std::to_string(number_) + ": "; }
+  const std::string& path() const { return path_; }
+
+ private:
+  // A line of a packing file is a few dozen bytes; one of a megabyte is not text (a 20 GB sparse
+  // file was read into memory as one line, until memory ran out).
+  static constexpr std::size_t kMaxLine = 1 << 20;
+
+  bool read_line() {
+    line_.clear();
+    std::streambuf* buffer = in_.rdbuf();
+    for (int c = buffer->sbumpc(); c != '\n'; c = buffer->sbumpc()) {
+      if (c == std::char_traits<char>::eof()) return !line_.empty();
+      if (line_.size() == kMaxLine)
+        throw InputError(path_ + ":" + std::to_string(number_ + 1) + ": a line longer than " +
+                         std::to_string(kMaxLine) + " bytes: not a text file of particle rows");
+      line_.push_back(static_cast<char>(c));
+    }
+    return true;
+  }
+  // Tabs and carriage returns separate columns; other control bytes (a NUL) mean binary data,
+  // which was taken as a header line and read past without a word.
+  void refuse_control_bytes(std::string_view text) const {
+    for (const char c : text) {
+      const auto b = static_cast<unsigned char>(c);
+      if ((b < 0x20 && c != '\t' && c != '\r') || b == 0x7F)
+        throw InputError(where() + "byte " + shown(std::string_view(&c, 1)) +
+                         ": not a text file of particle rows (binary data?)");
+    }
+  }
+
+  std::istream& in_;
+  std::string path_, line_;
+  std::vector<std::string_view> cols_;
+  std::size_t number_ = 0;
+};
+
 // Column k of a row (numbered from 1 in messages, as editors number them) as a finite number.
 double finite_column(const std::vector<std::string_view>& cols, std::size_t k,
                      const std::string& where) {
-  const std::string named =
-      where + "column " + std::to_string(k + 1) + " '" + shown(cols[k]) + "' is not ";
+  const auto named = [&](const char* what) {
+    return [&, what] {
+      return where + "column " + std::to_string(k + 1) + " '" + shown(cols[k]) + "' is not " + what;
+    };
+  };
   double v = 0;
-  require(parse_number(cols[k], v), named + "a number");
-  require(std::isfinite(v), named + "finite");
+  require_lazily(parse_number(cols[k], v), named("a number"));
+  require_lazily(std::isfinite(v), named("finite"));
   return v;
 }
 
@@ -300,21 +342,26 @@ Particles read_plain_columns(PackingLines& lines, double default_radius) {
     const auto& cols = lines.cols();
     const std::string where = lines.where();
     if (!seen_data && is_header(cols)) {  // one header line (no column a number) before the data
-      require(!seen_header, where + "a second header line; one is allowed, before the data");
+      require(!seen_header, where + "no column is a number (first: '" + shown(cols[0]) +
+                                "'), and one header line is allowed, before the data (numbers " +
+                                "as 1.5e-4: not Fortran's 1.5D-4 or hex)");
       seen_header = true;
       continue;
     }
     seen_data = true;
-    require(cols.size() == need, where + "expected " + std::to_string(need) + " columns (" +
-                                     layout + "), found " + std::to_string(cols.size()) +
-                                     (need == 4 && cols.size() == 3
-                                          ? "; for x y z rows give the radius with packing.radius"
-                                          : ""));
+    require_lazily(cols.size() == need, [&] {
+      return where + "expected " + std::to_string(need) + " columns (" + layout + "), found " +
+             std::to_string(cols.size()) +
+             (need == 4 && cols.size() == 3 ? "; for x y z rows give the radius with packing.radius"
+                                            : "");
+    });
     double v[4] = {0, 0, 0, default_radius};
     for (std::size_t k = 0; k < need; ++k) v[k] = finite_column(cols, k, where);
     add_checked_sphere(p, {v[0], v[1], v[2]}, v[3], {0, 1, 2}, where);
   } while (lines.next());
-  require(p.size() > 0, file_key(lines.path()) + "holds no particle (a header line only)");
+  require(p.size() > 0, file_key(lines.path()) +
+                            "holds no particle (a header line only, no column of it a number; "
+                            "numbers as 1.5e-4: not Fortran's 1.5D-4 or hex)");
   return p;
 }
 

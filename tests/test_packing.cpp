@@ -211,18 +211,32 @@ TEST(PackingFile, EachErrorNamesItsLine) {
             std::string::npos);
   EXPECT_NE(read_error("plus_minus", "+-1 2 3 1\n").find(":1: column 1 '+-1' is not a number"),
             std::string::npos);
-  // A NUL or other control byte is shown, not left to end the message.
+  // A NUL or other control byte is binary data, refused and shown (not left to end the message);
+  // a header line of them was taken as a header and read past.
   EXPECT_NE(read_error("nul", std::string("1 2 0.3\0x 1\n", 12))
-                .find(":1: column 3 '0.3\\x00x' is not a number"),
+                .find(":1: byte \\x00: not a text file of particle rows"),
             std::string::npos)
       << read_error("nul", std::string("1 2 0.3\0x 1\n", 12));
+  EXPECT_NE(read_error("nul_header", std::string(100, '\0') + "\n1 2 3 1\n")
+                .find(":1: byte \\x00: not a text file"),
+            std::string::npos);
+  // No line of a text file of rows is a megabyte long: reading stops there (a 20 GB sparse file
+  // was read as one line until memory ran out).
+  EXPECT_NE(read_error("long_line", "x y z r\n" + std::string(2 << 20, '1') + "\n")
+                .find(":2: a line longer than 1048576 bytes"),
+            std::string::npos);
   EXPECT_NE(
       read_error("header_late", "1 2 3 1\nx y z r\n").find(":2: column 1 'x' is not a number"),
       std::string::npos);
   // Before the data: one header, and a typo in the first data line is an error, not a header.
-  EXPECT_NE(
-      read_error("two_headers", "x y z r\nid x y z\n1 2 3 1\n").find(":2: a second header line"),
-      std::string::npos);
+  EXPECT_NE(read_error("two_headers", "x y z r\nid x y z\n1 2 3 1\n")
+                .find(":2: no column is a number (first: 'id'), and one header line is allowed"),
+            std::string::npos);
+  // Numbers in another notation than C's read as words: the message says which notation reads.
+  EXPECT_NE(read_error("fortran", "5.0D-4 5.0D-4 5.0D-4 1.0D-4\n")
+                .find("a header line only, no column of it a number; numbers as 1.5e-4: not "
+                      "Fortran's 1.5D-4"),
+            std::string::npos);
   EXPECT_NE(read_error("typo_first", "1.0e-3x 2 3 1\n4 5 6 1\n")
                 .find(":1: column 1 '1.0e-3x' is not a number"),
             std::string::npos);
@@ -230,7 +244,7 @@ TEST(PackingFile, EachErrorNamesItsLine) {
   EXPECT_NE(read_error("empty", "").find("holds no particle (no data line)"), std::string::npos);
   EXPECT_NE(read_error("comments", "# x y z r\n\n# nothing\n").find("holds no particle"),
             std::string::npos);
-  EXPECT_NE(read_error("header_only", "x y z r\n").find("holds no particle (a header line only)"),
+  EXPECT_NE(read_error("header_only", "x y z r\n").find("holds no particle (a header line only"),
             std::string::npos);
   try {
     read_packing_file("/nonexistent/beampack.xyz");
