@@ -297,6 +297,13 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"material.conductivity", "underflows to 0"});  // was 0, silently
   expect_input_error("below_double_file", "[material]\nconductivity = [1.0, 2e-999]\n", "",
                      {"run.toml:2", "2e-999: underflows to 0"});
+  // TOML's underscores between digits (1e-4_00 is 1e-400): the same number, the same refusal (it
+  // ran with conductivity 0, silently).
+  expect_input_error("below_double_underscore", "",
+                     "--preset quick --set material.conductivity=1e-4_00",
+                     {"material.conductivity", "1e-4_00", "underflows to 0"});
+  expect_input_error("below_double_underscore_file", "[material]\nconductivity = 1e-4_00\n", "",
+                     {"run.toml:2", "1e-4_00: underflows to 0"});
   expect_input_error("wall_conductance", "",
                      "--preset quick --set thermal.walls=z- --set thermal.wall_conductance=-0.5",
                      {"thermal.wall_conductance", "-0.5", "or -1"});

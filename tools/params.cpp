@@ -302,7 +302,10 @@ constexpr const char* kUnderflow = "underflows to 0 (nonzero numbers must be >= 
 // A number written beyond the doubles' range: +1 above it (1e400: the TOML parser refuses it, so
 // it reaches the reader as text), -1 below it (1e-400: the parser rounds it to 0 without a
 // word), 0 within it or not a number.
-int beyond_doubles(const std::string& token) {
+// TOML allows underscores between digits (1e-4_00 is 1e-400), strtod does not: they are dropped.
+int beyond_doubles(const std::string& written) {
+  std::string token = written;
+  std::erase(token, '_');
   char* end = nullptr;
   errno = 0;
   const double v = std::strtod(token.c_str(), &end);
