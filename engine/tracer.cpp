@@ -62,10 +62,10 @@ void check_span(const Particles& p) {
   int axis = 0;
   const double span = (box.upper - box.lower).maxCoeff(&axis);
   double r_min = std::numeric_limits<double>::infinity();
-  std::size_t low = p.size(), high = p.size();
+  std::size_t low = p.size(), high = p.size(), smallest = p.size();
   for (std::size_t i = 0; i < p.size(); ++i) {
     if (!p.alive[i] || !(p.radius[i] > 0.0)) continue;  // r <= 0: removed (the scene's rule)
-    r_min = std::min(r_min, p.radius[i]);
+    if (p.radius[i] < r_min) r_min = p.radius[i], smallest = i;
     if (low == p.size() || p.centre[i][axis] - p.radius[i] < p.centre[low][axis] - p.radius[low])
       low = i;
     if (high == p.size() || p.centre[i][axis] + p.radius[i] > p.centre[high][axis] + p.radius[high])
@@ -82,9 +82,10 @@ void check_span(const Particles& p) {
     << "xyz"[axis] << ", " << span / r_min << " times its smallest radius (" << r_min
     << " m): rays find hits to the digits a grazing "
     << "ray needs only across <= " << kMaxSpanRadii << " radii. Particles " << low << " at "
-    << at(low) << " and " << high << " at " << at(high)
-    << " bound it (counted from 0: a packing file's rows in order, a stray row?; or a generated "
-    << "packing's radius far below its spacing, packing.radius_ratio)";
+    << at(low) << " and " << high << " at " << at(high) << " bound it, particle " << smallest
+    << " at " << at(smallest) << " has the smallest radius (counted from 0: a packing file's "
+    << "rows in order, a stray row or a radius in other units?; or a generated packing's radius "
+    << "far below its spacing, packing.radius_ratio)";
   throw InputError(m.str());
 }
 

@@ -672,6 +672,19 @@ TEST(OpticsSphere, APackingTooWideForItsSmallestSphereIsRefused) {
       EXPECT_NE(m.find("Particles 0 at (0.5, 0.5, 0.5) and 2 at"), std::string::npos) << m;
     }
   }
+  // The cause may be a radius, not a place: the smallest sphere is named too (the message named
+  // only the ends, here one particle twice).
+  Particles tiny;
+  tiny.add(Vec3(0.5, 0.5, 0.5), r);
+  tiny.add(Vec3(0.5, 0.5, 0.6), 1e-90);
+  try {
+    Tracer tracer(tiny, OpticsSpec{});
+    FAIL() << "a packing 1e88 of its smallest radius across was accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("particle 1 at (0.5, 0.5, 0.6) has the smallest radius"),
+              std::string::npos)
+        << e.what();
+  }
   Particles dead;  // a far one removed, or of radius 0, is no part of the span
   dead.add(Vec3(0.5, 0.5, 0.5), r);
   dead.add(Vec3(0.6, 0.5, 0.5), r);
