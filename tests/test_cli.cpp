@@ -1717,6 +1717,24 @@ TEST(Cli, PathsThatAreNotUtf8AreRefusedOrKeptReadable) {
   EXPECT_EQ(read_json(out / "summary.json")["pulses"], 2);
 }
 
+// A converge whose reference absorbs nothing (no pulse) has errors of 0 everywhere: a table that
+// reads as perfect convergence. It says so.
+TEST(Cli, AConvergeOfNothingAbsorbedSaysItsErrorsMeasureNothing) {
+  const fs::path dir = fresh_dir("converge_nothing");
+  const Result r =
+      run("converge --preset quick --set pulses.count=0 --quiet --out " + (dir / "out").string());
+  EXPECT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("warning: converge: the time step ladder's reference run absorbed no "
+                          "energy, so every error of it is 0 and measures nothing"),
+            std::string::npos)
+      << r.output;
+  const Result real =
+      run("converge --preset quick --set pulses.count=1 --set beam.rays=100 "
+          "--quiet --out " +
+          (dir / "real").string());
+  EXPECT_EQ(real.output.find("absorbed no energy"), std::string::npos) << real.output;
+}
+
 // Swept values are written as they were given: a file name with a quote is one quoted CSV cell
 // (its quotes doubled), and `&` or `<` in the chart's category labels is escaped (the SVG was
 // not well-formed XML).

@@ -129,6 +129,11 @@ int converge_command(const RunOptions& options) {
     if (ladder.rungs.empty()) continue;
     any_rung = true;
     const RunResult& ref = ladder.rungs.front().result;
+    if (!(ref.figures.energy.absorbed > 0))  // no pulse, no particle, or a beam that meets none
+      std::fprintf(stderr,
+                   "beampack: warning: converge: the %s ladder's reference run absorbed no "
+                   "energy, so every error of it is 0 and measures nothing\n",
+                   ladder.name.c_str());
     Series series{ladder.name, {}, {}};
     for (const Rung& rung : ladder.rungs) {
       const RunResult& r = rung.result;
