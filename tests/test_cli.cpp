@@ -1516,6 +1516,15 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
     EXPECT_EQ(empty.code, 2) << values << ": " << empty.output;
     EXPECT_NE(empty.output.find("is empty"), std::string::npos) << empty.output;
   }
+  // A comma inside a TOML string is the value's own: a multi-face thermal.walls is one value.
+  const Result walls =
+      run("sweep --preset quick --set pulses.count=1 --param thermal.walls "
+          "--values '\"z-,x+\",\"y-\"' --quiet --out " +
+          (out / "walls").string());
+  ASSERT_EQ(walls.code, 0) << walls.output;
+  const auto wall_rows = read_csv(out / "walls" / "sweep.csv");
+  ASSERT_EQ(wall_rows.size(), 2u) << walls.output;
+  EXPECT_NE(walls.output.find("thermal.walls = \"z-,x+\""), std::string::npos) << walls.output;
   for (const char* set : {"material.conductivity=3", " material.conductivity =3"}) {
     const Result swept = run("sweep --preset quick --set '" + std::string(set) +
                              "' --param material.conductivity --values 1 --out " + out.string());

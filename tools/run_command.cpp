@@ -1096,14 +1096,37 @@ std::string empty_cells(const std::string& header) {
 
 }  // namespace
 
+namespace {
+
+// --values at its commas, but not at one inside a TOML string or array: `"z-,x+",y-` is two
+// values (a multi-face thermal.walls could not be swept). A trailing comma leaves an empty value.
+std::vector<std::string> split_values(const std::string& arg) {
+  std::vector<std::string> items(1);
+  char quote = 0;
+  int depth = 0;
+  for (const char c : arg) {
+    if (quote == 0 && c == ',' && depth == 0) {
+      items.emplace_back();
+      continue;
+    }
+    if (quote != 0 && c == quote) quote = 0;
+    else if (quote == 0 && (c == '"' || c == '\'')) quote = c;
+    else if (quote == 0 && (c == '[' || c == '{')) ++depth;
+    else if (quote == 0 && (c == ']' || c == '}') && depth > 0) --depth;
+    items.back() += c;
+  }
+  return items;
+}
+
+}  // namespace
+
 // The swept values, trimmed; an empty one ("1,,2", a stray comma) is refused, not dropped, and so
 // is a --set of the swept key (--values would override it without a word).
 std::vector<std::string> sweep_values(const SweepOptions& options) {
   std::vector<std::string> items;
   for (const std::string& arg : options.values) {
-    std::stringstream list(arg);
-    for (std::string item; std::getline(list, item, ',');) items.push_back(item);
-    if (!arg.empty() && arg.back() == ',') items.push_back("");
+    const std::vector<std::string> split = split_values(arg);
+    items.insert(items.end(), split.begin(), split.end());
   }
   std::vector<std::string> values;
   for (const std::string& item : items) {
