@@ -706,6 +706,16 @@ TEST(Cli, UnwritableOutputDirectoryIsBadInput) {
               std::string::npos)
         << at_file.output;
   }
+  // A link that leads nowhere, or to itself, was reported as "File exists".
+  fs::create_symlink(dir / "missing" / "x", dir / "dangling");
+  fs::create_symlink(dir / "loop", dir / "loop");
+  for (const fs::path& link : {dir / "dangling", dir / "loop" / "sub"}) {
+    const Result linked = run("run --preset quick --quiet --out " + link.string());
+    EXPECT_EQ(linked.code, 2) << linked.output;
+    EXPECT_NE(linked.output.find("a symbolic link on its path leads nowhere, or in a loop"),
+              std::string::npos)
+        << linked.output;
+  }
 }
 
 // Bad input found only while the packing is made: the folders the command made for --out are

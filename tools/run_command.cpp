@@ -451,7 +451,11 @@ OutDir::OutDir(const std::string& dir) {
     if (made) made_.push_back(walked);
   }
   if (ec || !fs::is_directory(dir)) {
-    const std::string why = ec ? ec.message() : "it exists and is not a directory";
+    std::error_code link_ec;  // a dangling link or a loop reads as "File exists"
+    const bool dangling = fs::is_symlink(fs::symlink_status(walked, link_ec));
+    const std::string why = dangling ? "a symbolic link on its path leads nowhere, or in a loop"
+                            : ec     ? ec.message()
+                                     : "it exists and is not a directory";
     remove_empty_made();
     throw InputError("--out " + dir + ": cannot create the output directory (" + why + ")");
   }
