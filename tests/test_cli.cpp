@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 
 #include <sys/wait.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <array>
@@ -1197,6 +1198,18 @@ TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
   const Result r = run("run --resume " + copy.string() + " --quiet");
   EXPECT_EQ(r.code, 2) << r.output;
   EXPECT_NE(r.output.find("damaged or truncated"), std::string::npos) << r.output;
+  // A file larger than the machine's memory (sparse: no disk is used) is refused before it is
+  // read; it was read whole, for minutes, until memory ran out (exit 1, std::bad_alloc).
+  const fs::path huge = fresh_dir("ck_huge");
+  std::ofstream(huge / "checkpoint.bin").close();
+  const auto memory = static_cast<std::uintmax_t>(::sysconf(_SC_PHYS_PAGES)) *
+                      static_cast<std::uintmax_t>(::sysconf(_SC_PAGE_SIZE));
+  fs::resize_file(huge / "checkpoint.bin", memory + 1);
+  const Result too_big = run("run --resume " + huge.string() + " --quiet");
+  fs::remove(huge / "checkpoint.bin");
+  EXPECT_EQ(too_big.code, 2) << too_big.output;
+  EXPECT_NE(too_big.output.find("more than this machine's memory"), std::string::npos)
+      << too_big.output;
   // As if written on a machine of the other byte order: the layout tag's first word reversed.
   std::string swapped = bytes;
   std::reverse(swapped.begin(), swapped.begin() + 4);
