@@ -75,6 +75,23 @@ TEST(RunReport, ACheckpointsRunRecordIsCheckedAsItIsRead) {
   EXPECT_NE(message(1.0, 0, {{"particles_0003.vtp", nan}}).find("not finite"), std::string::npos);
 }
 
+// The history rows a checkpoint carries into history.csv are printable text: a byte edited into
+// them (the checksum recomputed) went into history.csv as it was, invalid UTF-8 and all.
+TEST(RunReport, ACheckpointsHistoryRowsAreText) {
+  EXPECT_NO_THROW(check_history_text("time_s,pulse\n1e-12,1\n", "ck.bin"));
+  for (const std::string& bad :
+       {std::string("1e-12,\xFF\n"), std::string("1e-12,1\0\n", 8), std::string("1e-12\r\n")}) {
+    try {
+      check_history_text(bad, "ck.bin");
+      FAIL() << "accepted " << bad;
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find("ck.bin: its history rows hold byte \\x"),
+                std::string::npos)
+          << e.what();
+    }
+  }
+}
+
 // An output file is written beside itself and renamed into place; a fill that throws (an error or
 // an interrupt mid-write) leaves neither the file nor its temporary behind.
 TEST(RunReport, AWriteThatThrowsLeavesNoFileBehind) {

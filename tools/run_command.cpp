@@ -591,6 +591,7 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   }
   check_checkpoint_record(record.earlier_seconds, record.checkpoint_every, record.frames,
                           path.string());
+  check_history_text(record.history, path.string());
   return r;
 }
 
@@ -761,6 +762,17 @@ constexpr const char* kPulseFileNumber = R"(_\d{4,}\.vtp)";
 bool is_frame_name(const std::string& name) {
   static const std::regex frame(std::string("particles") + kPulseFileNumber);
   return std::regex_match(name, frame);
+}
+
+void check_history_text(const std::string& history, const std::string& source) {
+  for (std::size_t i = 0; i < history.size(); ++i) {
+    const auto b = static_cast<unsigned char>(history[i]);
+    if ((b >= 0x20 && b < 0x7F) || b == '\n') continue;
+    char hex[8];
+    std::snprintf(hex, sizeof hex, "\\x%02X", b);
+    throw InputError(source + ": its history rows hold byte " + hex + " at " + std::to_string(i) +
+                     " (a checkpoint edited by hand?)");
+  }
 }
 
 void check_checkpoint_record(double earlier_seconds, int checkpoint_every,

@@ -66,6 +66,9 @@ class PulsePace {
 void check_checkpoint_record(double earlier_seconds, int checkpoint_every,
                              const std::vector<std::pair<std::string, double>>& frames,
                              const std::string& source);
+// InputError naming `source` unless a checkpoint's history rows are text (printable ASCII lines,
+// as history.csv is written): a byte edited into them went into history.csv as it was.
+void check_history_text(const std::string& history, const std::string& source);
 
 // Runs one scene and writes summary.json, particles.csv, history.csv (and frames). Returns the
 // exit code: 0 done, 1 interrupted or failed.
