@@ -1,5 +1,6 @@
 #pragma once
 // Input files (run files, packing files) are looked at before they are opened.
+#include <cstdio>
 #include <filesystem>
 #include <string>
 
@@ -16,6 +17,14 @@ inline bool unsafe_input_file(const std::string& path) {
   if (!std::filesystem::exists(st) || std::filesystem::is_regular_file(st)) return false;
   return !(std::filesystem::is_fifo(st) &&
            (path.starts_with("/dev/fd/") || path.starts_with("/proc/self/fd/")));
+}
+
+// A byte of an input as a message shows it: \xNN (a NUL, a control byte or one that is not UTF-8
+// would not show, or would cut the message short).
+inline std::string escaped_byte(unsigned char b) {
+  char hex[8];
+  std::snprintf(hex, sizeof hex, "\\x%02X", b);
+  return hex;
 }
 
 }  // namespace beampack

@@ -241,13 +241,7 @@ std::string shown(std::string_view text) {
   std::string out;
   for (const char c : text) {
     const auto b = static_cast<unsigned char>(c);
-    if (b >= 0x20 && b != 0x7F) {
-      out += c;
-      continue;
-    }
-    char hex[8];
-    std::snprintf(hex, sizeof hex, "\\x%02X", b);
-    out += hex;
+    out += b >= 0x20 && b != 0x7F ? std::string(1, c) : escaped_byte(b);
   }
   return out;
 }

@@ -182,9 +182,7 @@ std::string bytes_shown(std::string_view text) {
   std::string out = "\"";
   for (const char c : text) {
     const auto b = static_cast<unsigned char>(c);
-    char hex[8];
-    std::snprintf(hex, sizeof hex, "\\x%02X", b);
-    out += b >= 0x20 && b < 0x7F ? std::string(1, c) : std::string(hex);
+    out += b >= 0x20 && b < 0x7F ? std::string(1, c) : escaped_byte(b);
   }
   return out + "\"";
 }
@@ -192,10 +190,9 @@ std::string bytes_shown(std::string_view text) {
 void reject_invalid_utf8(std::string_view text, const std::string& source) {
   const std::size_t at = first_invalid_utf8(text);
   if (at == std::string_view::npos) return;
-  char hex[8];
-  std::snprintf(hex, sizeof hex, "\\x%02X", static_cast<unsigned char>(text[at]));
   const auto line = 1 + std::count(text.begin(), text.begin() + std::ptrdiff_t(at), '\n');
-  throw InputError(source + ":" + std::to_string(line) + ": byte " + hex +
+  throw InputError(source + ":" + std::to_string(line) + ": byte " +
+                   escaped_byte(static_cast<unsigned char>(text[at])) +
                    " is not valid UTF-8 (TOML files must be UTF-8)");
 }
 
@@ -227,11 +224,8 @@ std::string ascii_for_toml(std::string_view text, const std::string& source) {
   auto refuse = [&](std::size_t i, const char* where) {
     std::string bytes;
     for (std::size_t j = i;
-         j < text.size() && j < i + 4 && static_cast<unsigned char>(text[j]) >= 0x80; ++j) {
-      char hex[8];
-      std::snprintf(hex, sizeof hex, "\\x%02X", static_cast<unsigned char>(text[j]));
-      bytes += hex;
-    }
+         j < text.size() && j < i + 4 && static_cast<unsigned char>(text[j]) >= 0x80; ++j)
+      bytes += escaped_byte(static_cast<unsigned char>(text[j]));
     throw InputError(source + ":" + std::to_string(line) + ": unexpected character " + bytes + " " +
                      where);
   };

@@ -25,6 +25,7 @@
 #include <unistd.h>
 
 #include "geometry/error.h"
+#include "geometry/input_file.h"
 #include "tools/params.h"
 #include "tools/quit_cleanup.h"
 #include "tools/svg_plot.h"
@@ -768,10 +769,8 @@ void check_history_text(const std::string& history, const std::string& source) {
   for (std::size_t i = 0; i < history.size(); ++i) {
     const auto b = static_cast<unsigned char>(history[i]);
     if ((b >= 0x20 && b < 0x7F) || b == '\n') continue;
-    char hex[8];
-    std::snprintf(hex, sizeof hex, "\\x%02X", b);
-    throw InputError(source + ": its history rows hold byte " + hex + " at " + std::to_string(i) +
-                     " (a checkpoint edited by hand?)");
+    throw InputError(source + ": its history rows hold byte " + escaped_byte(b) + " at " +
+                     std::to_string(i) + " (a checkpoint edited by hand?)");
   }
 }
 
