@@ -154,7 +154,8 @@ TEST(RunReport, AQuitRemovesTemporariesAndEmptyMadeFolders) {
   fs::create_directories(inner);
   fs::create_directories(kept);
   const auto touch = [](const fs::path& p) { std::ofstream(p) << "x"; };
-  const std::string temporary = (kept / "summary.json.tmp.").string() + std::to_string(::getpid());
+  const std::string temporary = temporary_path((kept / "summary.json").string());
+  ASSERT_TRUE(temporary.ends_with(".json.tmp." + std::to_string(::getpid()))) << temporary;
   const std::string other = (kept / "summary.json").string();
   touch(temporary);
   touch(other);

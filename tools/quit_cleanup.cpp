@@ -9,6 +9,7 @@ namespace beampack::tools {
 namespace {
 
 constexpr std::size_t kPathBytes = 4096;
+constexpr char kTemporaryInfix[] = ".tmp.";  // temporary_path's, before the pid
 
 // A temporary file's slot: free, being filled (the handler leaves it), or holding a path.
 enum SlotState : int { kFree = 0, kFilling = 1, kHeld = 2 };
@@ -25,17 +26,17 @@ constexpr int kMaxFolders = 64;
 char folders[kMaxFolders][kPathBytes];
 std::atomic<int> folder_count{0};
 
-// Every temporary file this process writes ends in ".tmp.<pid>" (writers.cpp): the handler
-// unlinks no name without that ending, even one read part way through a slot's reuse on another
-// thread.
+// Every temporary file this process writes is a temporary_path: the handler unlinks no name
+// without its ending, even one read part way through a slot's reuse on another thread.
 bool ends_as_temporary(const char* path) noexcept {
-  char suffix[32] = ".tmp.";
+  char suffix[32];
+  std::memcpy(suffix, kTemporaryInfix, sizeof kTemporaryInfix);
   long pid = static_cast<long>(::getpid());
   char digits[24];
   int n = 0;
   do digits[n++] = static_cast<char>('0' + pid % 10), pid /= 10;
   while (pid > 0);
-  std::size_t k = 5;
+  std::size_t k = sizeof kTemporaryInfix - 1;
   while (n > 0) suffix[k++] = digits[--n];
   suffix[k] = '\0';
   const std::size_t length = ::strnlen(path, kPathBytes);
@@ -43,6 +44,10 @@ bool ends_as_temporary(const char* path) noexcept {
 }
 
 }  // namespace
+
+std::string temporary_path(const std::string& path) {
+  return path + kTemporaryInfix + std::to_string(::getpid());
+}
 
 QuitRemovesFile::QuitRemovesFile(const std::string& path) noexcept {
   if (path.size() >= kPathBytes) return;

@@ -9,6 +9,10 @@
 
 namespace beampack::tools {
 
+// The temporary an output file is written to before it is renamed into place: path.tmp.<pid>.
+// The handler removes no file whose name does not end so.
+std::string temporary_path(const std::string& path);
+
 // A temporary output file, registered while it lives (from before it is opened until after it is
 // renamed or removed). A name too long to keep, or beyond the slots, is not registered.
 class QuitRemovesFile {

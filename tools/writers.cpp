@@ -1,7 +1,5 @@
 #include "tools/writers.h"
 
-#include <unistd.h>
-
 #include <charconv>
 #include <cstdio>
 #include <filesystem>
@@ -25,8 +23,7 @@ namespace {
 struct Staged {
   std::string path, tmp;
   QuitRemovesFile on_quit;
-  explicit Staged(const std::string& p)
-      : path(p), tmp(p + ".tmp." + std::to_string(::getpid())), on_quit(tmp) {}
+  explicit Staged(const std::string& p) : path(p), tmp(temporary_path(p)), on_quit(tmp) {}
 };
 
 void remove_temporaries(const std::vector<std::unique_ptr<Staged>>& staged) {
