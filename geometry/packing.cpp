@@ -325,6 +325,9 @@ void add_checked_sphere(Particles& p, const Vec3& centre, double r,
   p.add(centre, r);
 }
 
+// What a row of words may have meant to be: numbers in another notation than C's read as words.
+constexpr const char* kNumberNotation = "numbers as 1.5e-4: not Fortran's 1.5D-4 or hex";
+
 // Columns x y z r (or x y z with default_radius > 0) after at most one header line; `lines`
 // stands on the first line that holds something.
 Particles read_plain_columns(PackingLines& lines, double default_radius) {
@@ -337,8 +340,8 @@ Particles read_plain_columns(PackingLines& lines, double default_radius) {
     const std::string where = lines.where();
     if (!seen_data && is_header(cols)) {  // one header line (no column a number) before the data
       require(!seen_header, where + "no column is a number (first: '" + shown(cols[0]) +
-                                "'), and one header line is allowed, before the data (numbers " +
-                                "as 1.5e-4: not Fortran's 1.5D-4 or hex)");
+                                "'), and one header line is allowed, before the data (" +
+                                kNumberNotation + ")");
       seen_header = true;
       continue;
     }
@@ -354,8 +357,8 @@ Particles read_plain_columns(PackingLines& lines, double default_radius) {
     add_checked_sphere(p, {v[0], v[1], v[2]}, v[3], {0, 1, 2}, where);
   } while (lines.next());
   require(p.size() > 0, file_key(lines.path()) +
-                            "holds no particle (a header line only, no column of it a number; "
-                            "numbers as 1.5e-4: not Fortran's 1.5D-4 or hex)");
+                            "holds no particle (a header line only, no column of it a number; " +
+                            kNumberNotation + ")");
   return p;
 }
 

@@ -123,11 +123,9 @@ int converge_command(const RunOptions& options) {
               true,
               {}};
   int code = 0;
-  bool any_rung = false;
   for (Ladder& ladder : all) {
     code = std::max(code, run_ladder(ladder, options.quiet));
     if (ladder.rungs.empty()) continue;
-    any_rung = true;
     const RunResult& ref = ladder.rungs.front().result;
     if (!(ref.figures.energy.absorbed > 0))  // no pulse, no particle, or a beam that meets none
       std::fprintf(stderr,
@@ -157,7 +155,9 @@ int converge_command(const RunOptions& options) {
     }
     chart.series.push_back(series);
   }
-  if (!any_rung && stop_requested().load()) {  // a table of no rows is no result
+  const bool no_rung =
+      std::all_of(all.begin(), all.end(), [](const Ladder& l) { return l.rungs.empty(); });
+  if (no_rung && stop_requested().load()) {  // a table of no rows is no result
     std::fprintf(stderr, "beampack: converge interrupted before any rung ended: nothing written\n");
     return std::max(code, 1);
   }

@@ -443,22 +443,20 @@ std::string run_file_text(const RunConfig& c) {
   std::ostringstream unread;
   for (const UnreadKey& u : c.unread_keys) {
     const std::size_t dot = u.key.rfind('.');
+    const std::string name = u.key.substr(dot + 1);
     auto* section = read.get_as<toml::table>(u.key.substr(0, dot));
-    const toml::node* value = section ? section->get(u.key.substr(dot + 1)) : nullptr;
+    const toml::node* value = section ? section->get(name) : nullptr;
     if (!value) continue;
-    toml::table one;
-    one.insert(u.key.substr(dot + 1), *value);
-    std::ostringstream line;
-    line << one;
-    unread << "# " << u.key.substr(0, dot + 1) << line.str() << "  # " << u.needs << '\n';
-    section->erase(u.key.substr(dot + 1));
+    toml::table one;  // `name = value` as TOML writes it
+    one.insert(name, *value);
+    unread << "# " << u.key.substr(0, dot + 1) << one << "  # " << u.needs << '\n';
+    section->erase(name);
   }
   std::ostringstream text;
   text << "# beampack run file: every key with the value a run would use\n" << read << "\n";
   if (!unread.str().empty())
-    text << "\n# Keys this scene does not read, with the values they would take; to use one once "
-            "what "
-            "it\n# needs holds, put it under its [section] without the section's name:\n"
+    text << "\n# Keys this scene does not read, with the values they would take; to use one once\n"
+            "# what it needs holds, put it under its [section] without the section's name:\n"
          << unread.str();
   return text.str();
 }
