@@ -78,6 +78,9 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
       spec_.optics.reuse_primaries && spec_.pulses.count > 1 && !spec_.beam.resample;
   tracer_ = std::make_unique<Tracer>(particles_, optics);
   tracer_->keep_undo(spec_.max_staggers > 0);  // the stagger's redo takes a step back
+  // The ray scene and bounce grid (~1 s at 10^6 particles) are built here, at set-up, for a run
+  // that launches pulses; one without pulses never builds them.
+  if (spec_.pulses.count > 0) tracer_->build_scene();
   thermal_ = std::make_unique<ThermalModel>(particles_, spec_.materials, spec_.thermal);
   // Leave out what the scene does not need: without conductivity or walls there is no graph.
   if (needs_conduction(spec_)) {
@@ -415,8 +418,12 @@ std::array<StageTime, Simulation::kStages> Simulation::stages() const {
 std::string Simulation::skip_reason(int stage) const {
   if (stage == kRebuild)
     return "no contact graph (no conductivity, no walls) and no particle vaporised";
-  if (launched_ == 0)
-    return spec_.pulses.count == 0 ? "`pulses.count` = 0: no pulse" : "no step taken yet";
+  if (launched_ == 0 && spec_.pulses.count > 0) return "no step taken yet";
+  if (launched_ == 0) {
+    const bool unbuilt = stage == kTrace && !tracer_->has_scene();
+    return unbuilt ? "`pulses.count` = 0: no pulse, no ray scene or bounce grid built"
+                   : "`pulses.count` = 0: no pulse";
+  }
   if (stage == kTrace) return "no ray was live in any step";
   if (stage == kHeat)
     return particles_.size() == 0 ? "no particles" : "no step had a positive length";

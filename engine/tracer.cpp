@@ -217,13 +217,21 @@ void Tracer::keep_before(std::uint32_t r, Chunk& c) const {
 Tracer::Tracer(const Particles& particles, OpticsSpec spec)
     : particles_(particles), spec_(std::move(spec)) {
   validate(spec_, particles);
-  scene_ = std::make_unique<EmbreeScene>(particles, spec_.scene_update, 4096, 0.1,
+  box_ = particles.bounds();
+  state_.polarised = spec_.polarisation.linear;
+}
+
+void Tracer::build_scene() {
+  if (scene_) return;
+  scene_ = std::make_unique<EmbreeScene>(particles_, spec_.scene_update, 4096, 0.1,
                                          spec_.spheres_per_primitive, spec_.embree_config);
   // The grid serves bounced rays only: with optics.max_bounces = 1 every ray ends at its first hit.
   if (spec_.bounce_search == BounceSearch::grid && spec_.max_bounces > 1)
-    grid_ = std::make_unique<SphereGrid>(particles, spec_.grid_cell_factor);
-  box_ = particles.bounds();
-  state_.polarised = spec_.polarisation.linear;
+    grid_ = std::make_unique<SphereGrid>(particles_, spec_.grid_cell_factor);
+  // Both were built without the particles no longer alive; the others removed since come now.
+  std::vector<std::uint32_t> removed = std::exchange(removed_unbuilt_, {});
+  std::erase_if(removed, [&](std::uint32_t p) { return !particles_.alive[p]; });
+  remove_particles(removed);
 }
 
 Tracer::~Tracer() = default;
@@ -236,6 +244,7 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   if (energies.size() != beam.size())
     throw InputError("launch: " + std::to_string(energies.size()) + " energies for " +
                      std::to_string(beam.size()) + " rays");
+  build_scene();
   compact_if_sparse();
   undo_.held = false;
   const bool moved_live_rays = rebase_clock();  // each pulse starts at 0 on the path clock
@@ -808,6 +817,7 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
   if (!(path_budget >= 0.0))
     throw InputError("advance: path budget " + std::to_string(path_budget) + " must be >= 0");
   if (deposits.size() < particles_.size()) deposits.resize(particles_.size(), 0.0);
+  if (has_live_rays()) build_scene();
   RayState& s = state_;
   const std::size_t n = s.live.size();
   const double end_clock = s.clock + path_budget;
@@ -914,6 +924,14 @@ void Tracer::undo_advance() {
 // removal itself does not look at the rays.
 void Tracer::remove_particles(std::span<const std::uint32_t> ids) {
   undo_.held = false;
+  if (!scene_) {
+    for (std::uint32_t p : ids)
+      if (p >= particles_.size())
+        throw InputError("remove_particles: particle id " + std::to_string(p) + " >= count " +
+                         std::to_string(particles_.size()));
+    removed_unbuilt_.insert(removed_unbuilt_.end(), ids.begin(), ids.end());
+    return;
+  }
   scene_->remove(ids);
   if (grid_) grid_->remove(ids);
 }

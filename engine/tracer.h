@@ -178,8 +178,15 @@ struct RayState {
 
 class Tracer {
  public:
+  // Checks the spec against the particles. The ray scene and the bounce grid are built on first
+  // need (a launch, or an advance with live rays): a tracer that never traces builds neither.
   Tracer(const Particles& particles, OpticsSpec spec);
   ~Tracer();
+
+  // Builds the ray scene (and the bounce grid) now, if not yet built: for a caller that wants its
+  // time and its errors at set-up rather than at the first launch.
+  void build_scene();
+  bool has_scene() const { return scene_ != nullptr; }
 
   // Adds the beam's rays (energy E_k = I_k A_r tau each) to the live rays, starting on a plane
   // upstream of every particle, in the beam's (tiled) order: 16 consecutive rays are a packet.
@@ -252,7 +259,6 @@ class Tracer {
   // (last_advance_path and the chunk counts are the advance's before it again).
   void undo_advance();
 
-  const EmbreeScene& scene() const { return *scene_; }
   bool has_grid() const { return grid_ != nullptr; }  // built only when bounced rays can exist
   const Box& box() const { return box_; }
 
@@ -299,6 +305,7 @@ class Tracer {
   OpticsSpec spec_;
   std::unique_ptr<EmbreeScene> scene_;
   std::unique_ptr<SphereGrid> grid_;  // bounced rays (BounceSearch::grid, max_bounces > 1)
+  std::vector<std::uint32_t> removed_unbuilt_;  // removed before the scene was built, in order
   Box box_;  // all particles grown by their radii: leaving it means escaped
   RayState state_;
   bool record_segments_ = false;

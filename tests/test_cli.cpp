@@ -1422,8 +1422,22 @@ TEST(Cli, ALongSetUpIsAnnounced) {
       run("run --preset zohdi2013 --set packing.count=200000 --set pulses.count=0 --out " +
           out.string());
   ASSERT_EQ(big.code, 0) << big.output;
-  EXPECT_NE(big.output.find("setting up 200000 particles and 1000 rays a pulse"), std::string::npos)
+  // Without pulses or conduction only the packing is set up: no contacts, no ray scene.
+  EXPECT_NE(big.output.find("setting up 200000 particles and 1000 rays a pulse (packing)\n"),
+            std::string::npos)
       << big.output;
+  EXPECT_NE(big.output.find("skipped: `pulses.count` = 0: no pulse, no ray scene or bounce grid "
+                            "built\n"),
+            std::string::npos)
+      << big.output;
+  const Result conducting =
+      run("run --preset zohdi2013 --set packing.count=200000 --set pulses.count=1 "
+          "--set material.conductivity=10 --set thermal.dt=1e-3 --out " +
+          out.string());
+  ASSERT_EQ(conducting.code, 0) << conducting.output;
+  EXPECT_NE(conducting.output.find("rays a pulse (packing, contacts, ray scene)\n"),
+            std::string::npos)
+      << conducting.output;
   const Result quiet =
       run("run --preset zohdi2013 --set packing.count=200000 --set pulses.count=0 --quiet --out " +
           out.string());

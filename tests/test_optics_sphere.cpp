@@ -602,7 +602,7 @@ TEST(OpticsSphere, EmbreeErrorsAreThrownNamingTheCodeAndTheTask) {
 }
 
 // A device configuration Embree refuses (OpticsSpec::embree_config) is a RunError naming the
-// configuration and Embree's error code, from the scene and from the tracer that builds one.
+// configuration and Embree's error code, from the scene and from the tracer when it builds one.
 TEST(OpticsSphere, ADeviceConfigurationEmbreeRefusesIsNamed) {
   const Particles p = random_overlap_packing(50, 1e-3, 0.325, 3);
   constexpr const char* kRefused = "rtcNewDevice(\"threads=abc\") failed (RTC_ERROR_";
@@ -611,7 +611,8 @@ TEST(OpticsSphere, ADeviceConfigurationEmbreeRefusesIsNamed) {
       {kRefused});
   OpticsSpec spec;
   spec.embree_config = "threads=abc";
-  expect_run_error([&] { Tracer tracer(p, spec); }, {kRefused});
+  Tracer tracer(p, spec);  // the scene, and so the device, comes at the first need
+  expect_run_error([&] { tracer.build_scene(); }, {kRefused});
 }
 
 }  // namespace

@@ -561,22 +561,27 @@ TEST(OpticsTracer, RemovingThenTracingEqualsAPackingWithout) {
   for (std::size_t i = 0; i < p.size(); ++i)
     if (!gone[i]) new_id[i] = static_cast<std::uint32_t>(without.add(p.centre[i], p.radius[i]));
   for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::mask_only, SceneUpdate::rebuild,
-                           SceneUpdate::refit, SceneUpdate::bricks}) {
-    Tracer tracer(p, optics_for(1.4, true, mode));
-    tracer.remove_particles(victims);
-    tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
-    std::vector<double> removed_run;
-    tracer.advance(kAll, removed_run);
-    const Traced fresh = trace(without, optics_for(1.4), BeamSpec{});
-    EXPECT_EQ(tracer.hits(), fresh.hits);
-    for (std::size_t i = 0; i < p.size(); ++i) {
-      if (gone[i]) {
-        EXPECT_EQ(removed_run[i], 0.0);
-      } else {
-        ASSERT_NEAR(removed_run[i], fresh.deposits[new_id[i]], 1e-12 * fresh.ledger.injected) << i;
+                           SceneUpdate::refit, SceneUpdate::bricks})
+    for (bool built : {false, true}) {  // removed before the scene's first build, or after it
+      SCOPED_TRACE("scene update " + std::to_string(static_cast<int>(mode)) +
+                   (built ? ", removed after the build" : ", removed before it"));
+      Tracer tracer(p, optics_for(1.4, true, mode));
+      if (built) tracer.build_scene();
+      tracer.remove_particles(victims);
+      tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+      std::vector<double> removed_run;
+      tracer.advance(kAll, removed_run);
+      const Traced fresh = trace(without, optics_for(1.4), BeamSpec{});
+      EXPECT_EQ(tracer.hits(), fresh.hits);
+      for (std::size_t i = 0; i < p.size(); ++i) {
+        if (gone[i]) {
+          EXPECT_EQ(removed_run[i], 0.0);
+        } else {
+          ASSERT_NEAR(removed_run[i], fresh.deposits[new_id[i]], 1e-12 * fresh.ledger.injected)
+              << i;
+        }
       }
     }
-  }
 }
 
 // Every per-ray array, the ledger and the path clock of two states.
@@ -1025,8 +1030,10 @@ namespace {
 TEST(OpticsTracer, NoBounceGridWhenNoRayCanBounce) {
   OpticsSpec one = optics_for(1.4);
   one.max_bounces = 1;
-  EXPECT_FALSE(Tracer(packing_1e4(), one).has_grid());
-  EXPECT_TRUE(Tracer(packing_1e4(), optics_for(1.4)).has_grid());
+  Tracer single(packing_1e4(), one), bouncing(packing_1e4(), optics_for(1.4));
+  single.build_scene(), bouncing.build_scene();
+  EXPECT_FALSE(single.has_grid());
+  EXPECT_TRUE(bouncing.has_grid());
   OpticsSpec embree = one;
   embree.bounce_search = BounceSearch::embree;
   const Traced a = trace(packing_1e4(), one, BeamSpec{}),
@@ -1103,6 +1110,30 @@ TEST(OpticsTracer, KeptFirstHitsThatAreNotFiniteAreRefused) {
           << e.what();
     }
   }
+}
+
+}  // namespace
+}  // namespace beampack
+
+namespace beampack {
+namespace {
+
+// The ray scene and the bounce grid are built on first need: a tracer that never launches (a run
+// without pulses) builds neither, removing particles from it builds nothing, and an out-of-range
+// id is refused at once all the same.
+TEST(OpticsTracer, ATracerThatNeverTracesBuildsNoScene) {
+  Tracer tracer(packing_1e4(), optics_for(1.4));
+  std::vector<double> deposits;
+  EXPECT_EQ(tracer.advance(kAll, deposits), 0u);
+  const std::uint32_t ids[] = {3, 7};
+  tracer.remove_particles(ids);
+  EXPECT_FALSE(tracer.has_scene());
+  EXPECT_FALSE(tracer.has_grid());
+  const std::uint32_t beyond[] = {static_cast<std::uint32_t>(packing_1e4().size())};
+  EXPECT_THROW(tracer.remove_particles(beyond), InputError);
+  tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
+  EXPECT_TRUE(tracer.has_scene());
+  EXPECT_TRUE(tracer.has_grid());
 }
 
 }  // namespace

@@ -100,11 +100,18 @@ bool set_up_takes_seconds(std::size_t particles, std::size_t rays) {
   return particles >= 200'000 || rays >= 1'000'000;
 }
 
-void announce_set_up(std::size_t particles, std::size_t rays, const std::string& label) {
-  std::fprintf(
-      stderr,
-      "beampack: %ssetting up %zu particles and %zu rays a pulse (packing, contacts, ray scene)\n",
-      label.c_str(), particles, rays);
+// What the set-up builds: the contacts only for conduction, the ray scene only for pulses.
+std::string set_up_parts(const SimulationSpec& sim) {
+  std::string parts = "packing";
+  if (needs_conduction(sim)) parts += ", contacts";
+  if (sim.pulses.count > 0) parts += ", ray scene";
+  return parts;
+}
+
+void announce_set_up(std::size_t particles, std::size_t rays, const std::string& parts,
+                     const std::string& label) {
+  std::fprintf(stderr, "beampack: %ssetting up %zu particles and %zu rays a pulse (%s)\n",
+               label.c_str(), particles, rays, parts.c_str());
 }
 
 }  // namespace
@@ -136,9 +143,10 @@ std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config, b
   reading_input.store(false);
   // The worker owns a copy of the configuration and its share of the result: when an interrupt
   // leaves it running, the caller's frame is gone before it ends.
-  const auto counted = [quiet, label, rays = config.sim.beam.rays](std::size_t particles) {
+  const auto counted = [quiet, label, rays = config.sim.beam.rays,
+                        parts = set_up_parts(config.sim)](std::size_t particles) {
     if (!quiet && !stop_requested().load() && set_up_takes_seconds(particles, rays))
-      announce_set_up(particles, rays, label);
+      announce_set_up(particles, rays, parts, label);
   };
   std::thread worker([shared, config, counted] {
     std::unique_ptr<Simulation> sim;
