@@ -100,9 +100,9 @@ Particles random_overlap_packing(std::size_t count, double size, double radius_r
 
 Particles rsa_packing(std::size_t count, double size, double solid_fraction, std::uint64_t seed) {
   check_common(count, size);
-  require(std::isfinite(solid_fraction) && solid_fraction > 0 && solid_fraction <= 0.5,
+  require(std::isfinite(solid_fraction) && solid_fraction > 0 && solid_fraction < 0.5,
           "packing.solid_fraction = " + str(solid_fraction) +
-              ": must be > 0 and <= 0.5 (the run file's limits); random sequential addition jams "
+              ": must be > 0 and < 0.5 (the run file's limits); random sequential addition jams "
               "near 0.38");
   Particles p;
   if (count == 0) return p;

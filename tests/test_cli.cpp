@@ -254,7 +254,12 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
   expect_input_error("zero_direction", "[beam]\ndirection_x = 0.0\n", "",
                      {"run.toml:2", "beam.direction_x", "must not be zero"});
   expect_input_error("cutoff_one", "[optics]\ncutoff = 1.0\n", "",
-                     {"run.toml:2", "optics.cutoff", "must be < 1"});
+                     {"run.toml:2", "`optics.cutoff` = 1: must be >= 0 and < 1"});
+  expect_input_error("cutoff_above_one", "[optics]\ncutoff = 1.5\n", "",
+                     {"run.toml:2", "`optics.cutoff` = 1.5: must be >= 0 and < 1"});
+  expect_input_error("rsa_half", "",
+                     "--preset quick --set packing.source=rsa --set packing.solid_fraction=0.5",
+                     {"`packing.solid_fraction` = 0.5: must be > 0 and < 0.5"});
   expect_input_error("gaussian", "",
                      "--preset quick --set beam.profile=gaussian --set beam.gaussian_width=1e-9",
                      {"beam.gaussian_width", "1e-09", "underflows"});

@@ -103,6 +103,12 @@ TEST(Packing, RsaBeyondJammingIsAClearErrorInBoundedWork) {
     EXPECT_NE(m.find("jams"), std::string::npos) << m;
   }
   EXPECT_THROW(rsa_packing(10, 1.0, 0.7, 1), InputError);
+  try {  // refused at once, not after the placements: the limit is open
+    rsa_packing(10, 1.0, 0.5, 1);
+    FAIL() << "rsa accepted 0.5";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("must be > 0 and < 0.5"), std::string::npos) << e.what();
+  }
 }
 
 TEST(Packing, LatticeIsSimpleCubic) {

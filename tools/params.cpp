@@ -524,7 +524,8 @@ void Params::fail(const std::string& key, const std::string& value,
   throw InputError(where(key) + "`" + key + "` = " + value + ": " + limit);
 }
 
-double Params::number(const std::string& key, double fallback, double lo, double hi, bool lo_open) {
+double Params::number(const std::string& key, double fallback, double lo, double hi, bool lo_open,
+                      bool hi_open) {
   double v = fallback;
   if (const toml::node* node = find(key)) {
     if (node->is_integer()) v = double(node->as_integer()->get());
@@ -535,9 +536,11 @@ double Params::number(const std::string& key, double fallback, double lo, double
     if (!std::isfinite(v)) fail(key, repr(*node), "must be finite");
   }
   const bool below = lo_open ? !(v > lo) : !(v >= lo);
-  if (below || !(v <= hi)) {
+  const bool above = hi_open ? !(v < hi) : !(v <= hi);
+  if (below || above) {
     std::string range = std::string(lo_open ? "must be > " : "must be >= ") + fmt(lo);
-    if (hi < std::numeric_limits<double>::max()) range += " and <= " + fmt(hi);
+    if (hi < std::numeric_limits<double>::max())
+      range += (hi_open ? " and < " : " and <= ") + fmt(hi);
     fail(key, fmt(v), range);
   }
   record(key, toml::value<double>(v));

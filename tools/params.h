@@ -34,8 +34,9 @@ class Params {
   void merge_assignment(const std::string& key_equals_value, const std::string& origin = "",
                         bool swept = false);
 
-  double number(const std::string& key, double fallback, double lo, double hi,
-                bool lo_open = false);
+  // A number in [lo, hi], or with lo_open / hi_open the interval open at that end.
+  double number(const std::string& key, double fallback, double lo, double hi, bool lo_open = false,
+                bool hi_open = false);
   std::int64_t integer(const std::string& key, std::int64_t fallback, std::int64_t lo,
                        std::int64_t hi);
   std::string text(const std::string& key, const std::string& fallback);

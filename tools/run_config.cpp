@@ -116,7 +116,7 @@ void read_packing(Params& p, PackingSpec& s) {
       p.choice("packing.source", "random-overlap", {"random-overlap", "rsa", "lattice", "file"});
   s.count = std::size_t(p.integer("packing.count", 1000, 0, 100'000'000));
   s.radius_ratio = p.number("packing.radius_ratio", 0.325, 0, 10, true);
-  s.solid_fraction = p.number("packing.solid_fraction", 0.3, 0, 0.5, true);
+  s.solid_fraction = p.number("packing.solid_fraction", 0.3, 0, 0.5, true, true);
   s.seed = std::uint64_t(p.integer("packing.seed", 1, 0, std::numeric_limits<std::int64_t>::max()));
   // A later layer that switches to another source (`--set packing.source=rsa` over a run file
   // with a file) drops the file keys; within one layer they contradict and are refused below.
@@ -165,9 +165,7 @@ void read_optics(Params& p, OpticsSpec& o) {
                 p.number("optics.k_liquid", 0.0, 0, kMaxIndex)};
   m.mu_hat = p.number("optics.mu_hat", 1.0, kMinMu, kMaxMu);
   o.materials = {m};
-  o.cutoff = p.number("optics.cutoff", 1e-10, 0, 1);
-  if (o.cutoff == 1.0)
-    p.fail("optics.cutoff", "1", "must be < 1 (a ray would end before its first hit)");
+  o.cutoff = p.number("optics.cutoff", 1e-10, 0, 1, false, true);  // 1 would end every ray unused
   o.max_bounces = int(p.integer("optics.max_bounces", 1000, 1, 1'000'000));
   double degrees = 0.0;
   const std::string word = p.number_or_word("optics.polarisation", degrees, 0, 180, {"unpolarised"},
