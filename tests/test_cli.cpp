@@ -868,6 +868,13 @@ TEST(Cli, ValidatePassesAndConfigRoundTrips) {
   ASSERT_NE(packing, std::string::npos) << text;
   EXPECT_EQ(text.substr(packing, end - packing).find("seed"), std::string::npos) << text;
   EXPECT_NE(text.substr(packing, end - packing).find("radius_ratio"), std::string::npos) << text;
+  // The file keys too, read by a file's packing only (the section held `file = ''`).
+  EXPECT_EQ(text.substr(packing, end - packing).find("\nfile"), std::string::npos) << text;
+  EXPECT_EQ(text.substr(packing, end - packing).find("\nradius ="), std::string::npos) << text;
+  EXPECT_NE(text.find("\n# packing.file = ''  # applies to packing.source = \"file\" only (it is "
+                      "\"lattice\")\n"),
+            std::string::npos)
+      << text;
   const Result quiet = run("run " + write(dir / "lattice.toml", text) +
                            " --set pulses.count=1 --quiet --out " + (dir / "lattice").string());
   ASSERT_EQ(quiet.code, 0) << quiet.output;

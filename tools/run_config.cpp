@@ -338,6 +338,10 @@ std::vector<std::string> check_unread_keys(const Params& p, const SimulationSpec
       {"packing.count", source != "file", "packing.source",
        "applies to generated packings only; with packing.source = \"file\" the file gives the "
        "count"},
+      {"packing.file", source == "file", "packing.source",
+       "applies to packing.source = \"file\" only" + is_source},
+      {"packing.radius", source == "file", "packing.source",
+       "applies to packing.source = \"file\" only" + is_source},
       {"packing.radius_ratio", source == "random-overlap" || source == "lattice", "packing.source",
        "applies to packing.source = \"random-overlap\" or \"lattice\" only" + is_source},
       {"packing.solid_fraction", source == "rsa", "packing.source",
