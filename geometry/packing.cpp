@@ -145,14 +145,19 @@ Particles rsa_packing(std::size_t count, double size, double solid_fraction, std
   return p;
 }
 
+std::string lattice_count_problem(std::size_t count) {
+  const auto n = static_cast<std::size_t>(std::llround(std::cbrt(double(count))));
+  if (n * n * n == count) return "";
+  return "a lattice needs a cube number (n^3, e.g. " + std::to_string(n * n * n) + ")";
+}
+
 Particles lattice_packing(std::size_t count, double size, double radius_ratio) {
   check_common(count, size);
   require(std::isfinite(radius_ratio) && radius_ratio > 0,
           "packing.radius_ratio = " + str(radius_ratio) + ": must be > 0");
+  const std::string problem = lattice_count_problem(count);
+  require(problem.empty(), "packing.count = " + std::to_string(count) + ": " + problem);
   const auto n = static_cast<std::size_t>(std::llround(std::cbrt(double(count))));
-  require(n * n * n == count, "packing.count = " + std::to_string(count) +
-                                  ": a lattice needs a cube number (n^3, e.g. " +
-                                  std::to_string(n * n * n) + ")");
   Particles p;
   const double a = size / double(std::max<std::size_t>(n, 1));
   p.reserve(count);

@@ -54,6 +54,8 @@ Particles rsa_packing(std::size_t count, double size, double solid_fraction, std
 // Simple cubic lattice of count = n^3 spheres, spacing a = D / n, centres at (k + 1/2) a,
 // radius L a (with the paper's R / V^(1/3) = L, V = a^3).
 Particles lattice_packing(std::size_t count, double size, double radius_ratio);
+// Why a lattice cannot have `count` spheres ("": it can), for the run file's check.
+std::string lattice_count_problem(std::size_t count);
 
 // Columns x y z r (or x y z with default_radius > 0); '#' comments, blank lines and one header
 // line (no column a number) before the data allowed. InputError with "path:line:" for missing

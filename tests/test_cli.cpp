@@ -442,6 +442,19 @@ TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
             std::string::npos)
       << sweep.output;
   EXPECT_FALSE(fs::exists(dir / "out" / "sweep.csv"));
+  // A lattice's count that is not a cube is known before the first run too (the 216 run went
+  // first, then 200 failed in the packing).
+  const Result lattice = run(
+      "sweep --preset quick --set packing.source=lattice --param packing.count --values 216,200 "
+      "--quiet --out " +
+      (dir / "lattice").string());
+  EXPECT_EQ(lattice.code, 2) << lattice.output;
+  EXPECT_NE(lattice.output.find("--param packing.count --values 200: `packing.count` = 200: a "
+                                "lattice needs a cube number (n^3, e.g. 216)"),
+            std::string::npos)
+      << lattice.output;
+  EXPECT_FALSE(fs::exists(dir / "lattice" / "sweep.csv"));
+  EXPECT_EQ(lattice.output.find("packing.count = 216"), std::string::npos) << lattice.output;
   const Result xi = run("sweep --preset quick --param pulses.xi --values 0.1,0.2 --quiet --out " +
                         (dir / "xi").string());
   EXPECT_EQ(xi.code, 2) << xi.output;

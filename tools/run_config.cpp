@@ -115,6 +115,9 @@ void read_packing(Params& p, PackingSpec& s) {
   s.source =
       p.choice("packing.source", "random-overlap", {"random-overlap", "rsa", "lattice", "file"});
   s.count = std::size_t(p.integer("packing.count", 1000, 0, 100'000'000));
+  if (const std::string problem = lattice_count_problem(s.count);
+      s.source == "lattice" && !problem.empty())  // known before any run of a sweep starts
+    p.fail("packing.count", std::to_string(s.count), problem);
   s.radius_ratio = p.number("packing.radius_ratio", 0.325, 0, 10, true);
   s.solid_fraction = p.number("packing.solid_fraction", 0.3, 0, 0.5, true, true);
   s.seed = std::uint64_t(p.integer("packing.seed", 1, 0, std::numeric_limits<std::int64_t>::max()));
