@@ -103,6 +103,14 @@ Simulation::~Simulation() = default;
 // be a normal double, and the run's whole energy in it must warm it by a finite amount: otherwise
 // the first solve gives infinities (density 1e-300, a radius of 1e-120 m, M = 1e300). Refused as
 // input, naming the keys and the particle.
+// ", from `packing.radius_ratio` = 1e-300" when the spec's packing gave particle i its radius.
+std::string Simulation::radius_origin(std::size_t i) const {
+  const PackingSpec& p = spec_.packing;
+  const std::string setting = radius_setting(p);
+  const double given = p.source == "file" ? p.file_radius : packing_radius(p);
+  return !setting.empty() && particles_.radius[i] == given ? ", from " + setting : "";
+}
+
 void Simulation::check_thermal_masses(double run_energy) const {
   for (std::size_t i = 0; i < particles_.size(); ++i) {
     const std::size_t k = particles_.material[i];
@@ -116,8 +124,9 @@ void Simulation::check_thermal_masses(double run_energy) const {
     const std::string key =
         spec_.materials.size() == 1 ? "material" : "material[" + std::to_string(k) + "]";
     std::ostringstream msg;
-    msg << "particle " << i << " (radius " << particles_.radius[i] << " m) has a thermal mass `"
-        << key << ".density` x volume x min(`" << key << ".c_solid`, `" << key << ".c_liquid`) / "
+    msg << "particle " << i << " (radius " << particles_.radius[i] << " m" << radius_origin(i)
+        << ") has a thermal mass `" << key << ".density` x volume x min(`" << key << ".c_solid`, `"
+        << key << ".c_liquid`) / "
         << "`thermal.time_scaling` = " << m.density << " x " << particles_.volume(i) << " x "
         << std::min(m.c_solid, m.c_liquid) << " / " << spec_.thermal.time_scaling << " = "
         << mass_heat << " J/K: must be a finite normal number that the run's " << run_energy

@@ -163,6 +163,7 @@ class Simulation {
   double volume_fraction(Phase phase) const;
   std::string skip_reason(int stage) const;
   void check_thermal_masses(double run_energy) const;
+  std::string radius_origin(std::size_t particle) const;
   void check_step_limit() const;
   void check_substeps(double step, const std::string& made_by) const;
   StepReport heat_step(double dt);

@@ -630,6 +630,12 @@ double packing_radius(const PackingSpec& s) {
   return s.radius_ratio * s.sample_size / std::cbrt(n);
 }
 
+std::string radius_setting(const PackingSpec& s) {
+  if (s.source == "rsa") return "`packing.solid_fraction` = " + str(s.solid_fraction);
+  if (s.source != "file") return "`packing.radius_ratio` = " + str(s.radius_ratio);
+  return s.file_radius > 0 ? "`packing.radius` = " + str(s.file_radius) : "";
+}
+
 Particles make_packing(const PackingSpec& spec) {
   Particles p;
   if (spec.source == "random-overlap")

@@ -28,6 +28,9 @@ Particles make_packing(const PackingSpec& spec);
 // for a file, the median of its radii (the paper's R when sizes differ, remark after (3.11)),
 // read from the file, 0 for an empty one.
 double packing_radius(const PackingSpec& spec);
+// The key that sets every sphere's radius, with its value (`packing.radius_ratio` = 0.325), or ""
+// when the radii are a file's own: for messages about a radius the user did not write.
+std::string radius_setting(const PackingSpec& spec);
 // The largest radius a particle may have, m, and why, as error messages give it after
 // "must be <= 1e+06" (a file's radius and packing.radius alike): at 1e20 m no ray met one.
 constexpr double kMaxParticleRadius = 1e6;

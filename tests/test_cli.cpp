@@ -239,6 +239,11 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"--set packing.file=x.csv", "needs packing.source = \"file\""});
   expect_input_error("thermal_mass", "", "--preset quick --set material.density=1e-300",
                      {"--set material.density=1e-300", "thermal mass"});
+  // A radius the user did not write names the key that set it.
+  expect_input_error("rsa_radius", "",
+                     "--preset quick --set packing.source=rsa --set packing.solid_fraction=1e-300",
+                     {"--set packing.solid_fraction=1e-300: particle 0 (radius 1.06078e-104 m, "
+                      "from `packing.solid_fraction` = 1e-300) has a thermal mass"});
   expect_input_error("set", "", "--preset quick --set material.conductivity=-3",
                      {"--set material.conductivity=-3", "material.conductivity", "must be >= 0"});
   expect_input_error("syntax", "[beam\nrays = 3\n", "", {"run.toml:1"});
