@@ -746,24 +746,21 @@ TEST(Cli, UnwritableOutputDirectoryIsBadInput) {
 // removed again; a folder that was there before stays.
 TEST(Cli, AnInputErrorFoundDuringSetUpLeavesNoEmptyFolder) {
   const fs::path dir = fresh_dir("no_empty_out");
-  const std::string lattice =
-      " --preset quick --quiet --set packing.source=lattice --set packing.count=10 --out ";
-  const Result r = run("run" + lattice + (dir / "made" / "here").string());
+  // RSA beyond jamming: in the run file's range, found when the packing is made.
+  const std::string jammed =
+      " --preset quick --quiet --set packing.source=rsa --set packing.solid_fraction=0.45 --out ";
+  const Result r = run("run" + jammed + (dir / "made" / "here").string());
   EXPECT_EQ(r.code, 2) << r.output;
-  EXPECT_NE(r.output.find("a lattice needs a cube number"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("RSA jams near 0.38"), std::string::npos) << r.output;
   EXPECT_FALSE(fs::exists(dir / "made"));
-  const Result rsa =
-      run("run --preset quick --quiet --set packing.source=rsa --set packing.solid_fraction=0.45 "
-          "--out " +
-          (dir / "rsa/").string());
-  EXPECT_EQ(rsa.code, 2) << rsa.output;
-  EXPECT_NE(rsa.output.find("RSA jams near 0.38"), std::string::npos) << rsa.output;
+  const Result slash = run("run" + jammed + (dir / "rsa/").string());
+  EXPECT_EQ(slash.code, 2) << slash.output;
   EXPECT_FALSE(fs::exists(dir / "rsa"));
-  const Result kept = run("run" + lattice + dir.string());
+  const Result kept = run("run" + jammed + dir.string());
   EXPECT_EQ(kept.code, 2) << kept.output;
   EXPECT_TRUE(fs::is_directory(dir));
   // `a/../b` makes `a` on the way to `b` (it was left behind: only `b` was known as made).
-  const Result detour = run("run" + lattice + (dir / "a" / ".." / "b").string());
+  const Result detour = run("run" + jammed + (dir / "a" / ".." / "b").string());
   EXPECT_EQ(detour.code, 2) << detour.output;
   EXPECT_FALSE(fs::exists(dir / "a"));
   EXPECT_FALSE(fs::exists(dir / "b"));
@@ -774,14 +771,13 @@ TEST(Cli, AnInputErrorFoundDuringSetUpLeavesNoEmptyFolder) {
   EXPECT_TRUE(fs::exists(dir / "c" / ".." / "d" / "summary.json"));
   // converge stops a ladder whose reference rung fails (the others would have nothing to be
   // compared with): one error per ladder, not one per rung, and the table has no row.
-  const Result converge = run("converge" + lattice + (dir / "conv").string());
+  const Result converge = run("converge" + jammed + (dir / "conv").string());
   EXPECT_EQ(converge.code, 2) << converge.output;
   std::size_t errors = 0;
-  for (std::size_t at = 0; (at = converge.output.find("a lattice needs", at)) != std::string::npos;
-       ++at)
+  for (std::size_t at = 0; (at = converge.output.find("RSA jams", at)) != std::string::npos; ++at)
     ++errors;
   EXPECT_EQ(errors, 3u) << converge.output;
-  EXPECT_NE(converge.output.find("time step 2.51593e-14: error:"), std::string::npos)
+  EXPECT_NE(converge.output.find("time step 1.35575e-14: error:"), std::string::npos)
       << converge.output;
   EXPECT_NE(converge.output.find("its other rungs not run"), std::string::npos) << converge.output;
   EXPECT_TRUE(read_csv(dir / "conv" / "convergence.csv").empty());
