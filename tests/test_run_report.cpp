@@ -280,6 +280,20 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
         << e.what();
     EXPECT_NE(std::string(e.what()).find("; lower `packing.count`"), std::string::npos) << e.what();
   }
+  // Without pulses neither the rays' state nor the ray scene is made: 100 bytes a particle and
+  // 45 a ray (102 and 47 measured), so 10^8 particles fit, 3 10^8 do not.
+  SimulationSpec untraced = particles;
+  untraced.pulses.count = 0;
+  EXPECT_NO_THROW(refuse_beyond_memory(untraced, k24GiB));
+  EXPECT_GE(least_memory_need(untraced), 1e10);
+  untraced.packing.count = 300'000'000;
+  try {
+    refuse_beyond_memory(untraced, k24GiB);
+    ADD_FAILURE() << "3 10^8 particles fit in 24 GiB";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("(45 bytes per ray, 100 per particle)"), std::string::npos)
+        << e.what();
+  }
   particles.packing.source = "file";  // counted when the file is read: only the rays are known
   EXPECT_NO_THROW(refuse_beyond_memory(particles, k24GiB));
   particles.packing.file = "bed.xyz";

@@ -497,20 +497,29 @@ std::string locate(const std::string& message, const std::map<std::string, std::
 // 1760 MB with 4 10^6 (437 bytes per ray); 57 MB with 10^5 particles, 468 MB with 10^6 (457 bytes
 // per particle without conduction, 600 with). The contacts conduction needs: 141 bytes more per
 // particle with K = 100, 58 with walls and K = 0 (526 MB). Rounded down: a bound that refuses only
-// the hopeless.
+// the hopeless. Without pulses (no ray state, no ray scene; 2026-12-03): 108 MB with 10^6
+// particles, 413 MB with 4 10^6 (102 bytes per particle); 195 MB with 4 10^6 rays (47 per ray).
 constexpr double kBytesPerRay = 400;
 constexpr double kBytesPerParticle = 400;
+constexpr double kBytesPerRayUntraced = 45;          // the beam alone
+constexpr double kBytesPerParticleUntraced = 100;    // the particles alone
 constexpr double kContactBytesWithWalls = 50;        // per particle, walls alone (K = 0)
 constexpr double kContactBytesWithConduction = 100;  // per particle, conductivity > 0
 
 namespace {
 
-// The bytes a particle needs at least: itself, and the contacts when the scene conducts.
+// The bytes a particle needs at least: itself (and its share of the ray scene when pulses come),
+// and the contacts when the scene conducts.
 double bytes_per_particle(const SimulationSpec& s) {
   const double contacts = conducts_between_particles(s) ? kContactBytesWithConduction
                           : needs_conduction(s)         ? kContactBytesWithWalls
                                                         : 0.0;
-  return kBytesPerParticle + contacts;
+  return (s.pulses.count > 0 ? kBytesPerParticle : kBytesPerParticleUntraced) + contacts;
+}
+
+// The bytes a ray of the beam needs at least: its state as it is traced, or the beam alone.
+double bytes_per_ray(const SimulationSpec& s) {
+  return s.pulses.count > 0 ? kBytesPerRay : kBytesPerRayUntraced;
 }
 
 }  // namespace
@@ -526,7 +535,7 @@ double paper_step(const PackingSpec& packing, double xi, const Particles* partic
 double least_memory_need(const SimulationSpec& s, std::size_t file_particles) {
   const double particles =
       s.packing.source == "file" ? double(file_particles) : double(s.packing.count);
-  return kBytesPerRay * double(s.beam.rays) + bytes_per_particle(s) * particles;
+  return bytes_per_ray(s) * double(s.beam.rays) + bytes_per_particle(s) * particles;
 }
 
 double machine_memory() {
@@ -545,13 +554,13 @@ void refuse_beyond_memory(const SimulationSpec& s, double available, std::size_t
                                            std::to_string(file_particles) + " particles)"
                                      : "`packing.count` = " + std::to_string(s.packing.count);
   const std::string rays = "`beam.rays` = " + std::to_string(s.beam.rays);
-  const double ray_bytes = kBytesPerRay * double(s.beam.rays);
+  const double ray_bytes = bytes_per_ray(s) * double(s.beam.rays);
   const bool by_rays = ray_bytes >= need - ray_bytes;
   std::ostringstream m;
   m << (by_rays ? rays : particles) << ": the run needs at least " << std::setprecision(3)
     << need / 1e9 << " GB "
     << (need == ray_bytes ? "for its rays alone" : "with " + (by_rays ? particles : rays)) << " ("
-    << kBytesPerRay << " bytes per ray, " << bytes_per_particle(s) << " per particle"
+    << bytes_per_ray(s) << " bytes per ray, " << bytes_per_particle(s) << " per particle"
     << (needs_conduction(s) ? " with its contacts" : "") << "), more than the " << available / 1e9
     << " GB of this machine; lower "
     << (by_rays ? "`beam.rays`"
