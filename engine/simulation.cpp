@@ -82,11 +82,10 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
   // that launches pulses; one without pulses never builds them.
   if (spec_.pulses.count > 0) tracer_->build_scene();
   thermal_ = std::make_unique<ThermalModel>(particles_, spec_.materials, spec_.thermal);
-  // Leave out what the scene does not need: without conductivity or walls there is no graph.
-  if (needs_conduction(spec_)) {
-    StageClock clock(stages_[kRebuild]);
-    thermal_->set_contacts(find_contacts(particles_));
-  }
+  // Leave out what the scene does not need: without conductivity or walls there is no graph, and
+  // without pulses no step that would conduct (nor a state to resume with rays: read_state
+  // refuses one that launched more pulses than pulses.count).
+  if (spec_.pulses.count > 0) build_contact_graph();
   check_step_limit();
   absorbed_.assign(particles_.size(), 0.0);
   deposits_.assign(particles_.size(), 0.0);
@@ -98,6 +97,14 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
 }
 
 Simulation::~Simulation() = default;
+
+// The contact graph the heat conducts over, when the scene conducts.
+void Simulation::build_contact_graph() {
+  if (!needs_conduction(spec_)) return;
+  StageClock clock(stages_[kRebuild]);
+  thermal_->set_contacts(find_contacts(particles_));
+  contacts_built_ = true;
+}
 
 // Every particle's thermal mass rho V C / M (M = thermal.time_scaling, as the solver uses it) must
 // be a normal double, and the run's whole energy in it must warm it by a finite amount: otherwise
@@ -425,6 +432,8 @@ std::array<StageTime, Simulation::kStages> Simulation::stages() const {
 
 // Why stage k has not run so far: the condition under which the loop of step() leaves it out.
 std::string Simulation::skip_reason(int stage) const {
+  if (stage == kRebuild && needs_conduction(spec_) && !contacts_built_)
+    return "`pulses.count` = 0: no pulse, no contact graph built";
   if (stage == kRebuild)
     return "no contact graph (no conductivity, no walls) and no particle vaporised";
   if (launched_ == 0 && spec_.pulses.count > 0) return "no step taken yet";

@@ -162,6 +162,7 @@ class Simulation {
   void swap_phases(PhaseOverride& seen);
   double volume_fraction(Phase phase) const;
   std::string skip_reason(int stage) const;
+  void build_contact_graph();
   void check_thermal_masses(double run_energy) const;
   std::string radius_origin(std::size_t particle) const;
   void check_step_limit() const;
@@ -174,6 +175,7 @@ class Simulation {
   std::vector<double> ray_energy_;  // E_k of beam_'s rays in a pulse (computed with the beam)
   std::unique_ptr<Tracer> tracer_;
   std::unique_ptr<ThermalModel> thermal_;
+  bool contacts_built_ = false;        // build_contact_graph
   std::vector<double> absorbed_;       // cumulative J per particle
   std::vector<double> deposits_;       // this step's dH
   std::vector<std::uint32_t> heated_;  // the particles with a deposit this step (zero elsewhere)

@@ -98,8 +98,12 @@ TEST(SimulationStages, NoPulseSkipsTracingAndHeat) {
   spec.pulses.count = 0;
   Simulation sim(spec);
   sim.run();
-  expect_skipped(sim, "trace", "`pulses.count` = 0");
+  expect_skipped(sim, "trace", "`pulses.count` = 0: no pulse, no ray scene or bounce grid built");
   expect_skipped(sim, "heat", "`pulses.count` = 0");
+  // Nor does it build what only steps use: the ray scene, the grid, the contact graph.
+  EXPECT_FALSE(sim.tracer().has_scene());
+  EXPECT_FALSE(sim.tracer().has_grid());
+  expect_skipped(sim, "rebuild", "`pulses.count` = 0: no pulse, no contact graph built");
 }
 
 TEST(SimulationStages, AnEmptyPackingTracesButHasNoHeatToConduct) {

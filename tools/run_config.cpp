@@ -511,9 +511,10 @@ namespace {
 // The bytes a particle needs at least: itself (and its share of the ray scene when pulses come),
 // and the contacts when the scene conducts.
 double bytes_per_particle(const SimulationSpec& s) {
-  const double contacts = conducts_between_particles(s) ? kContactBytesWithConduction
-                          : needs_conduction(s)         ? kContactBytesWithWalls
-                                                        : 0.0;
+  const double contacts = s.pulses.count == 0             ? 0.0
+                          : conducts_between_particles(s) ? kContactBytesWithConduction
+                          : needs_conduction(s)           ? kContactBytesWithWalls
+                                                          : 0.0;
   return (s.pulses.count > 0 ? kBytesPerParticle : kBytesPerParticleUntraced) + contacts;
 }
 
