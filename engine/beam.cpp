@@ -43,7 +43,7 @@ void validate_beam(const BeamSpec& s, double sample_size) {
     bad("beam.gaussian_width", s.gaussian_width, "must be > 0 and finite");
   const double norm = s.direction.norm();
   if (!std::isfinite(norm) || std::abs(norm - 1.0) > 1e-9)
-    bad("beam.direction", "|d| = " + std::to_string(norm), "must be a unit vector");
+    bad("beam.direction", "|d| = " + shown_number(norm), "must be a unit vector");
   if (!(sample_size > 0.0) || !std::isfinite(sample_size))
     bad("sample.size", sample_size, "must be > 0 and finite");
 }

@@ -43,14 +43,17 @@ bool needs_conduction(const SimulationSpec& spec) {
   return !spec.thermal.walls.empty() || conducts_between_particles(spec);
 }
 
-Simulation::Simulation(SimulationSpec spec) : Simulation(spec, make_packing(spec.packing)) {}
+Simulation::Simulation(SimulationSpec spec) : Simulation(spec, make_packing(spec.packing), true) {}
 
 Simulation::Simulation(SimulationSpec spec, Particles particles)
-    : spec_(std::move(spec)), particles_(std::move(particles)) {
-  if (spec_.pulses.count < 0) throw InputError("`pulses.count` must be >= 0");
-  if (!(spec_.pulses.duration > 0) || !std::isfinite(spec_.pulses.duration))
-    throw InputError("`pulses.duration` = " + std::to_string(spec_.pulses.duration) +
-                     ": must be > 0");
+    : Simulation(spec, std::move(particles), spec.packing.source == "file") {}  // a file's, read
+
+Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_from_spec)
+    : spec_(std::move(spec)),
+      particles_(std::move(particles)),
+      packing_from_spec_(packing_from_spec) {
+  check_particles(particles_);
+  check_run_numbers();
   use_beam(make_beam(spec_.beam, spec_.packing.sample_size));
   // With new rays per pulse, the first pulses' draws are checked now, as input.
   for (int k = 1; spec_.beam.resample && k < std::min(spec_.pulses.count, 64); ++k) {
@@ -98,6 +101,23 @@ Simulation::Simulation(SimulationSpec spec, Particles particles)
 
 Simulation::~Simulation() = default;
 
+// The spec's own numbers, for library callers (the run file's ranges hold them for the CLI): a
+// negative or NaN thermal.dt read as "pulse", a negative period or stagger cap ran without a word.
+void Simulation::check_run_numbers() const {
+  const auto refuse = [](const char* key, double value, const char* limit) {
+    throw InputError(std::string("`") + key + "` = " + shown_number(value) + ": " + limit);
+  };
+  const PulseSpec& p = spec_.pulses;
+  if (p.count < 0) refuse("pulses.count", p.count, "must be >= 0");
+  if (!(p.duration > 0) || !std::isfinite(p.duration))
+    refuse("pulses.duration", p.duration, "must be > 0 and finite");
+  if (!(p.period >= 0) || !std::isfinite(p.period))
+    refuse("pulses.period", p.period, "must be >= 0 (0: each pulse when the last has ended)");
+  if (!(spec_.dt >= 0) || !std::isfinite(spec_.dt))
+    refuse("thermal.dt", spec_.dt, "must be >= 0 (0: one step per pulse flight)");
+  if (spec_.max_staggers < 0) refuse("thermal.max_staggers", spec_.max_staggers, "must be >= 0");
+}
+
 // The contact graph the heat conducts over, when the scene conducts.
 void Simulation::build_contact_graph() {
   if (!needs_conduction(spec_)) return;
@@ -113,6 +133,7 @@ void Simulation::build_contact_graph() {
 // ", from `packing.radius_ratio` = 1e-300" when the spec's packing gave particle i its radius.
 std::string Simulation::radius_origin(std::size_t i) const {
   const PackingSpec& p = spec_.packing;
+  if (!packing_from_spec_) return "";
   const std::string setting = radius_setting(p);
   const double given = p.source == "file" ? p.file_radius : packing_radius(p);
   return !setting.empty() && particles_.radius[i] == given ? ", from " + setting : "";

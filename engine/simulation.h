@@ -106,7 +106,7 @@ class Simulation {
   static constexpr int kStages = 5;
 
   explicit Simulation(SimulationSpec spec);              // packing from spec.packing
-  Simulation(SimulationSpec spec, Particles particles);  // packing given
+  Simulation(SimulationSpec spec, Particles particles);  // packing given (spec.packing unused)
   ~Simulation();
 
   // One time step of MODEL.md section 5; false once every pulse has been launched and ended.
@@ -162,6 +162,8 @@ class Simulation {
   void swap_phases(PhaseOverride& seen);
   double volume_fraction(Phase phase) const;
   std::string skip_reason(int stage) const;
+  Simulation(SimulationSpec spec, Particles particles, bool packing_from_spec);
+  void check_run_numbers() const;
   void build_contact_graph();
   void check_thermal_masses(double run_energy) const;
   std::string radius_origin(std::size_t particle) const;
@@ -175,7 +177,8 @@ class Simulation {
   std::vector<double> ray_energy_;  // E_k of beam_'s rays in a pulse (computed with the beam)
   std::unique_ptr<Tracer> tracer_;
   std::unique_ptr<ThermalModel> thermal_;
-  bool contacts_built_ = false;        // build_contact_graph
+  bool packing_from_spec_;       // the particles are spec_.packing's (radius_origin names its keys)
+  bool contacts_built_ = false;  // build_contact_graph
   std::vector<double> absorbed_;       // cumulative J per particle
   std::vector<double> deposits_;       // this step's dH
   std::vector<std::uint32_t> heated_;  // the particles with a deposit this step (zero elsewhere)

@@ -25,6 +25,7 @@
 #include "geometry/check.h"
 #include "geometry/compensated_sum.h"
 #include "geometry/error.h"
+#include "geometry/packing.h"
 #include "geometry/ray_sphere.h"
 
 namespace beampack {
@@ -92,7 +93,7 @@ void check_span(const Particles& p) {
 void validate(const OpticsSpec& spec, const Particles& particles) {
   check_span(particles);
   if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
-    throw InputError("`optics.cutoff` = " + std::to_string(spec.cutoff) + ": must be in [0, 1)");
+    throw InputError("`optics.cutoff` = " + shown_number(spec.cutoff) + ": must be in [0, 1)");
   if (spec.chunk_rays < 1 || spec.chunk_rays > kMaxChunkRays)
     throw InputError("optics chunk_rays = " + std::to_string(spec.chunk_rays) +
                      ": must be in [1, " + std::to_string(kMaxChunkRays) + "]");
@@ -216,7 +217,9 @@ void Tracer::keep_before(std::uint32_t r, Chunk& c) const {
 
 Tracer::Tracer(const Particles& particles, OpticsSpec spec)
     : particles_(particles), spec_(std::move(spec)) {
+  check_particles(particles);
   validate(spec_, particles);
+  particle_count_ = particles.size();
   box_ = particles.bounds();
   state_.polarised = spec_.polarisation.linear;
 }
@@ -236,6 +239,23 @@ void Tracer::build_scene() {
 
 Tracer::~Tracer() = default;
 
+// A beam made by hand (library callers; make_beam checks its own): a direction that is not a unit
+// vector let every ray escape, a NaN energy made the ledger NaN.
+void Tracer::check_launch(const Beam& beam, std::span<const double> energies) const {
+  const double norm = beam.direction.norm();
+  if (!(std::abs(norm - 1.0) <= 1e-9))
+    throw InputError("launch: the beam's direction has |d| = " + shown_number(norm) +
+                     ": must be a unit vector");
+  for (std::size_t k = 0; k < energies.size(); ++k)
+    if (!(energies[k] >= 0.0) || !std::isfinite(energies[k]))
+      throw InputError("launch: ray " + std::to_string(k) + "'s energy " +
+                       shown_number(energies[k]) + " J: must be >= 0 and finite");
+  if (particles_.size() != particle_count_)
+    throw InputError("launch: the particles were " + std::to_string(particle_count_) +
+                     " when the tracer took them and are " + std::to_string(particles_.size()) +
+                     " now: a tracer's particles keep their count");
+}
+
 void Tracer::launch(const Beam& beam, double pulse_duration) {
   launch(beam, beam.ray_energies(pulse_duration));
 }
@@ -244,6 +264,7 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
   if (energies.size() != beam.size())
     throw InputError("launch: " + std::to_string(energies.size()) + " energies for " +
                      std::to_string(beam.size()) + " rays");
+  check_launch(beam, energies);
   build_scene();
   compact_if_sparse();
   undo_.held = false;
@@ -815,7 +836,7 @@ void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits,
 std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
                             std::vector<std::uint32_t>* deposited) {
   if (!(path_budget >= 0.0))
-    throw InputError("advance: path budget " + std::to_string(path_budget) + " must be >= 0");
+    throw InputError("advance: path budget " + shown_number(path_budget) + " must be >= 0");
   if (deposits.size() < particles_.size()) deposits.resize(particles_.size(), 0.0);
   if (has_live_rays()) build_scene();
   RayState& s = state_;

@@ -180,7 +180,10 @@ class Tracer {
  public:
   // Checks the spec against the particles. The ray scene and the bounce grid are built on first
   // need (a launch, or an advance with live rays): a tracer that never traces builds neither.
+  // The tracer keeps a reference to `particles`: they must outlive it, keep their count, and
+  // change only through it (remove_particles) or in their temperatures and phases.
   Tracer(const Particles& particles, OpticsSpec spec);
+  Tracer(const Particles&& particles, OpticsSpec spec) = delete;  // a temporary would dangle
   ~Tracer();
 
   // Builds the ray scene (and the bounce grid) now, if not yet built: for a caller that wants its
@@ -272,6 +275,7 @@ class Tracer {
     Vec3 field;
     std::size_t first;
   };
+  void check_launch(const Beam& beam, std::span<const double> energies) const;
   double start_plane(const Beam& beam) const;
   Vec3 beam_field(const Vec3& direction) const;
   void reset_first_hits_for(const Vec3& direction, double upstream, std::size_t count);
@@ -305,6 +309,7 @@ class Tracer {
   OpticsSpec spec_;
   std::unique_ptr<EmbreeScene> scene_;
   std::unique_ptr<SphereGrid> grid_;  // bounced rays (BounceSearch::grid, max_bounces > 1)
+  std::size_t particle_count_ = 0;    // at construction: the count must stay
   std::vector<std::uint32_t> removed_unbuilt_;  // removed before the scene was built, in order
   Box box_;  // all particles grown by their radii: leaving it means escaped
   RayState state_;

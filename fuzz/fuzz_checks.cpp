@@ -119,7 +119,7 @@ std::string check_resolved(const toml::table& table, const std::string& prefix =
   return bug;
 }
 
-std::string check_particles(const Particles& p) {
+std::string particle_bug(const Particles& p) {
   for (std::size_t i = 0; i < p.size(); ++i) {
     const Vec3& c = p.centre[i];
     const double r = p.radius[i];
@@ -178,9 +178,9 @@ Outcome check_run_file(std::span<const std::uint8_t> bytes) {
 
 Outcome check_packing_file(std::span<const std::uint8_t> bytes) {
   const std::string path = scratch_file("packing.txt", bytes);
-  Outcome four = guarded([&] { return check_particles(read_packing_file(path, 0.0)); });
+  Outcome four = guarded([&] { return particle_bug(read_packing_file(path, 0.0)); });
   if (!four.bug.empty()) return four;
-  Outcome three = guarded([&] { return check_particles(read_packing_file(path, 1e-5)); });
+  Outcome three = guarded([&] { return particle_bug(read_packing_file(path, 1e-5)); });
   if (!three.bug.empty()) three.bug = "(x y z, radius 1e-5) " + three.bug;
   return three.bug.empty() ? four : three;  // the x y z r reading, unless x y z found a bug
 }

@@ -1,9 +1,18 @@
 #pragma once
 // Errors a user can fix: bad input (exit code 2). Messages name the key, the value and the limit.
+#include <sstream>
 #include <stdexcept>
 #include <string>
 
 namespace beampack {
+
+// A number as messages show it: 6 significant digits, with an exponent when it needs one ("1e-13",
+// where std::to_string gives "0.000000").
+inline std::string shown_number(double v) {
+  std::ostringstream s;
+  s << v;
+  return s.str();
+}
 
 class InputError : public std::runtime_error {
  public:

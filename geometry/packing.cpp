@@ -32,9 +32,7 @@ void require_lazily(bool ok, const Message& message) {
 }
 
 std::string str(double v) {
-  std::ostringstream s;
-  s << v;
-  return s.str();
+  return shown_number(v);
 }
 
 void check_common(std::size_t count, double size) {
@@ -168,27 +166,62 @@ Particles lattice_packing(std::size_t count, double size, double radius_ratio) {
   return p;
 }
 
+namespace {
+
 // The checks every particle of a packing passes, whichever file format (or checkpoint) gave it.
 // Finite numbers can still make a sphere the physics cannot hold (found by fuzz/): a radius whose
-// volume, hence mass, rounds to 0 or overflows, or a centre +- r beyond the doubles.
-void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>& centre_columns,
-                  const std::string& where) {
-  require_lazily(centre.allFinite(), [&] { return where + "its centre is not a finite number"; });
-  require_lazily(r > 0, [&] { return where + "radius r = " + str(r) + ": must be > 0"; });
+// volume, hence mass, rounds to 0 or overflows, or a centre +- r beyond the doubles. `at()` gives
+// the message's prefix, built only for a sphere that fails.
+template <class Where>
+void check_sphere_at(const Vec3& centre, double r, const std::array<std::size_t, 3>& centre_columns,
+                     const Where& at) {
+  const auto where = [&] { return std::string(at()); };
+  require_lazily(centre.allFinite(), [&] { return where() + "its centre is not a finite number"; });
+  require_lazily(r > 0, [&] { return where() + "radius r = " + str(r) + ": must be > 0"; });
   require_lazily(r <= kMaxParticleRadius, [&] {
-    return where + "radius r = " + str(r) + ": must be <= " + str(kMaxParticleRadius) + " " +
+    return where() + "radius r = " + str(r) + ": must be <= " + str(kMaxParticleRadius) + " " +
            kMaxParticleRadiusWhy;
   });
   const double volume = 4.0 / 3.0 * std::numbers::pi * r * r * r;
   require_lazily(volume > 0 && std::isfinite(volume), [&] {
-    return where + "radius r = " + str(r) + ": its volume " + str(volume) +
+    return where() + "radius r = " + str(r) + ": its volume " + str(volume) +
            " is not a positive finite double (|r| must be at least ~1e-100)";
   });
   for (int k = 0; k < 3; ++k)
     require_lazily(std::isfinite(std::abs(centre[k]) + r), [&] {
-      return where + "centre +- radius overflows in column " +
+      return where() + "centre +- radius overflows in column " +
              std::to_string(centre_columns[k] + 1);
     });
+}
+
+}  // namespace
+
+void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>& centre_columns,
+                  const std::string& where) {
+  check_sphere_at(centre, r, centre_columns, [&] { return where; });
+}
+
+void check_particles(const Particles& p) {
+  const std::size_t n = p.size();
+  for (std::size_t size :
+       {p.centre.size(), p.material.size(), p.temperature.size(), p.phase.size(), p.alive.size()})
+    require_lazily(size == n, [&] {
+      return "particles: the arrays differ in length (" + std::to_string(p.centre.size()) +
+             " centres, " + std::to_string(n) + " radii, " + std::to_string(p.material.size()) +
+             " materials, " + std::to_string(p.temperature.size()) + " temperatures, " +
+             std::to_string(p.phase.size()) + " phases, " + std::to_string(p.alive.size()) +
+             " live flags); Particles::add keeps them equal";
+    });
+  for (std::size_t i = 0; i < n; ++i) {
+    const auto at = [i] { return "particle " + std::to_string(i) + ": "; };
+    check_sphere_at(p.centre[i], p.radius[i], {0, 1, 2}, at);
+    const double t = p.temperature[i];
+    require_lazily(t > 0 && std::isfinite(t),
+                   [&] { return at() + "temperature " + str(t) + " K: must be > 0 and finite"; });
+    require_lazily(p.alive[i] <= 1, [&] {
+      return at() + "live flag " + std::to_string(p.alive[i]) + ": must be 0 or 1";
+    });
+  }
 }
 
 namespace {

@@ -41,6 +41,10 @@ constexpr const char* kMaxParticleRadiusWhy =
 // `where`, naming the file's column of x, y or z (centre_columns) that overflows.
 void check_sphere(const Vec3& centre, double r, const std::array<std::size_t, 3>& centre_columns,
                   const std::string& where);
+// What a library caller's particles must hold before a tracer or a simulation takes them: arrays
+// of one length, every sphere as check_sphere asks (column k + 1 is coordinate k), temperatures
+// finite and > 0 K, live flags 0 or 1. InputError naming the first particle that fails.
+void check_particles(const Particles& particles);
 
 // The middle radius (the mean of the middle two for an even count); 0 for no particles.
 double median_radius(const Particles& particles);

@@ -2,6 +2,9 @@
 
 #include <algorithm>
 #include <numbers>
+#include <string>
+
+#include "geometry/error.h"
 
 namespace beampack {
 
@@ -38,6 +41,9 @@ std::size_t Particles::add(const Vec3& c, double r, std::uint16_t material_id,
 }
 
 void Particles::remove(std::size_t i) {
+  if (i >= size())
+    throw InputError("Particles::remove: particle " + std::to_string(i) + " >= count " +
+                     std::to_string(size()));
   alive[i] = 0;
   phase[i] = Phase::vapor;
 }

@@ -686,13 +686,19 @@ TEST(OpticsSphere, APackingTooWideForItsSmallestSphereIsRefused) {
               std::string::npos)
         << e.what();
   }
-  Particles dead;  // a far one removed, or of radius 0, is no part of the span
+  Particles dead;  // a far one removed is no part of the span
   dead.add(Vec3(0.5, 0.5, 0.5), r);
   dead.add(Vec3(0.6, 0.5, 0.5), r);
   dead.add(Vec3(1e20, 0.5, 0.5), r);
-  dead.add(Vec3(0.7, 0.5, 0.5), 0.0);
   dead.remove(2);
   EXPECT_NO_THROW(Tracer(dead, OpticsSpec{}));
+  dead.add(Vec3(0.7, 0.5, 0.5), 0.0);  // a sphere of radius 0 is no sphere: refused by name
+  try {
+    Tracer tracer(dead, OpticsSpec{});
+    ADD_FAILURE() << "a sphere of radius 0 was accepted";
+  } catch (const InputError& e) {
+    EXPECT_STREQ(e.what(), "particle 3: radius r = 0: must be > 0");
+  }
 }
 
 }  // namespace

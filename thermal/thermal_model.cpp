@@ -10,6 +10,7 @@
 
 #include "geometry/check.h"
 #include "geometry/error.h"
+#include "geometry/packing.h"
 #include "thermal/phase.h"
 
 namespace beampack {
@@ -58,6 +59,7 @@ void ThermalSpec::validate() const {
 ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials, ThermalSpec spec)
     : p_(particles), materials_(std::move(materials)), spec_(std::move(spec)) {
   serial_ = new_serial();
+  check_particles(p_);
   spec_.validate();
   if (materials_.empty()) input_error("material", "(none)", "at least one material is needed");
   for (std::size_t k = 0; k < materials_.size(); ++k)
