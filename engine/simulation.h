@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <array>
 #include <atomic>
+#include <cmath>
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -52,6 +53,16 @@ struct EnergyLedger {
   double stored = 0, vaporized = 0, walls = 0;  // heat
   double optics_imbalance() const { return injected - absorbed - escaped - cutoff - in_flight; }
   double heat_imbalance() const { return absorbed - stored - vaporized - walls; }
+  // The heat ledger's scale: the absorbed energy, or the gross flow out of it when larger (walls
+  // that heat: a faint beam's 1e-43 J against 3.7e-7 J stored from the walls read as open by
+  // 1e34), and the imbalance relative to it (NaN stays NaN).
+  double heat_scale() const {
+    return std::max(absorbed, std::abs(stored) + vaporized + std::abs(walls));
+  }
+  double heat_error() const {
+    const double scale = heat_scale();
+    return scale > 0 ? std::abs(heat_imbalance()) / scale : std::abs(heat_imbalance());
+  }
   // How far a ledger may be open, relative: the optics one to round-off (it closes by
   // construction), the heat one to the solver's tolerance, max(1e-6, 1e4 thermal.tolerance).
   static constexpr double kOpticsTolerance = 1e-9;

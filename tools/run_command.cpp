@@ -387,7 +387,7 @@ void print_table(const Simulation& sim, const RunResult& r) {
   std::printf("  %-26s %14.6e\n", "lost to walls", e.walls);
   std::printf("  %-26s %14.3e (optics) %10.3e (heat)\n", "imbalance, relative",
               e.optics_imbalance() / std::max(e.injected, 1e-300),
-              e.heat_imbalance() / std::max(e.absorbed, 1e-300));
+              e.heat_imbalance() / std::max(e.heat_scale(), 1e-300));
   std::printf("stages, s\n");
   const auto stage_times = sim.stages();
   for (int k = 0; k < Simulation::kStages; ++k) {
@@ -415,7 +415,7 @@ void print_table(const Simulation& sim, const RunResult& r) {
 
 std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e) {
   const double optics = e.injected > 0 ? std::abs(e.optics_imbalance()) / e.injected : 0.0;
-  const double heat = e.absorbed > 0 ? std::abs(e.heat_imbalance()) / e.absorbed : 0.0;
+  const double heat = e.heat_error();
   const double heat_limit = EnergyLedger::heat_tolerance(spec.thermal.tolerance);
   std::vector<std::string> out;
   char text[640];
@@ -429,8 +429,9 @@ std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const 
   if (!(heat <= heat_limit)) {
     std::snprintf(
         text, sizeof text,
-        "the heat ledger is open by %.3g of the absorbed energy (more "
-        "than %.3g, from `thermal.tolerance` = %g). Every solver keeps each cluster's "
+        "the heat ledger is open by %.3g of the energy it moves (the absorbed energy, or "
+        "what is stored, vaporised and exchanged with walls if more; more than %.3g, from "
+        "`thermal.tolerance` = %g). Every solver keeps each cluster's "
         "energy to round-off, so the likely cause is a step whose temperature rises are "
         "below ~1e-13 of the temperatures (a faint beam, large or dense particles, "
         "`thermal.time_scaling` near 1): doubles cannot hold them; raise "

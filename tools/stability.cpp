@@ -64,7 +64,7 @@ Outcome run_cell(const Cell& c) {
     const Figures f = sim.figures();
     const EnergyLedger& e = f.energy;
     o.optics_error = e.injected > 0 ? std::abs(e.optics_imbalance()) / e.injected : 0;
-    o.heat_error = e.absorbed > 0 ? std::abs(e.heat_imbalance()) / e.absorbed : 0;
+    o.heat_error = e.heat_error();
     // Bounded: no particle below the initial 300 K (nothing cools it without walls), none above
     // what all the absorbed energy could do to the lightest particle, and all finite.
     const auto& t = sim.particles().temperature;
@@ -83,9 +83,7 @@ Outcome run_cell(const Cell& c) {
     // The heat ledger closes to round-off whatever the solver: the iterative ones restore each
     // component's energy after they stop (they lost up to 1.8e-9 of it in the cooling cells
     // before, within the tolerance-sized bound this grid used to apply; the worst now is 4e-12).
-    const double heat_bound =
-        1e-10 * std::max(e.absorbed, std::abs(e.stored) + e.vaporized + std::abs(e.walls));
-    const bool ledgers = o.optics_error < 1e-12 && std::abs(e.heat_imbalance()) <= heat_bound;
+    const bool ledgers = o.optics_error < 1e-12 && o.heat_error <= 1e-10;
     o.status = o.bounded && ledgers ? "ok" : "FAIL";
     if (!ledgers) o.note = "ledger does not close";
   } catch (const InputError& e) {
