@@ -78,9 +78,22 @@ SolveStats cg_solve(const SparseMatrix& a, const Eigen::VectorXd& rhs, Eigen::Ve
   cg.compute(a);
   const Eigen::VectorXd guess = theta;
   theta = cg.solveWithGuess(rhs, guess);
-  if (!theta.allFinite())  // not a cap it reached: a defect (the matrix or right side)
-    throw RunError("thermal conjugate gradients returned a non-finite temperature change after " +
-                   std::to_string(cg.iterations()) + " iterations");
+  if (!theta.allFinite()) {
+    // From finite inputs: CG broke down (a search direction of zero energy p^T A p), as it does
+    // on a step matrix singular to doubles (two spheres at K = 1e20, dt G / c ~ 1e25), which the
+    // factorisation grounds. From non-finite ones: a defect upstream.
+    const bool finite_inputs =
+        rhs.allFinite() && guess.allFinite() &&
+        Eigen::Map<const Eigen::VectorXd>(a.valuePtr(), a.nonZeros()).allFinite();
+    if (!finite_inputs)
+      throw RunError("thermal conjugate gradients returned a non-finite temperature change after " +
+                     std::to_string(cg.iterations()) + " iterations");
+    throw SolverRefusal(
+        "thermal conjugate gradients broke down after " + std::to_string(cg.iterations()) +
+        " iterations (a non-finite change from finite inputs): the step's matrix is too stiff "
+        "for them (conductances beyond ~1e15 times the capacities per step); use "
+        "thermal.solver = \"direct\" (or \"auto\"), or a shorter thermal.dt");
+  }
   if (cg.info() != Eigen::Success) {
     std::ostringstream msg;
     msg << "thermal conjugate gradients did not reach thermal.tolerance = " << tolerance
