@@ -83,7 +83,7 @@ struct Figures {
   int pulse = 0;                  // pulses launched so far
   double vaporized_fraction = 0;  // v_v, volume of vaporised / volume of all particles
   double melted_fraction = 0;     // volume liquid now / volume of all particles
-  double max_temperature = 0;     // K, peak over the run so far (none without particles)
+  double max_temperature = 0;     // K, peak over the run so far (0 without particles: none)
   std::size_t particles = 0;      // particles in the scene, vaporised ones included
   EnergyLedger energy;
 };
