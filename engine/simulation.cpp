@@ -126,10 +126,6 @@ void Simulation::build_contact_graph() {
   contacts_built_ = true;
 }
 
-// Every particle's thermal mass rho V C / M (M = thermal.time_scaling, as the solver uses it) must
-// be a normal double, and the run's whole energy in it must warm it by a finite amount: otherwise
-// the first solve gives infinities (density 1e-300, a radius of 1e-120 m, M = 1e300). Refused as
-// input, naming the keys and the particle.
 // ", from `packing.radius_ratio` = 1e-300" when the spec's packing gave particle i its radius.
 std::string Simulation::radius_origin(std::size_t i) const {
   const PackingSpec& p = spec_.packing;
@@ -139,6 +135,10 @@ std::string Simulation::radius_origin(std::size_t i) const {
   return !setting.empty() && particles_.radius[i] == given ? ", from " + setting : "";
 }
 
+// Every particle's thermal mass rho V C / M (M = thermal.time_scaling, as the solver uses it) must
+// be a normal double, and the run's whole energy in it must warm it by a finite amount: otherwise
+// the first solve gives infinities (density 1e-300, a radius of 1e-120 m, M = 1e300). Refused as
+// input, naming the keys and the particle.
 void Simulation::check_thermal_masses(double run_energy) const {
   for (std::size_t i = 0; i < particles_.size(); ++i) {
     const std::size_t k = particles_.material[i];
