@@ -52,7 +52,9 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
     : spec_(std::move(spec)),
       particles_(std::move(particles)),
       packing_from_spec_(packing_from_spec) {
-  check_particles(particles_);
+  // A caller's particles; the spec's were made or read with these checks, and the thermal-mass
+  // check below names the key behind a radius that fails them.
+  if (!packing_from_spec_) check_particles(particles_);
   check_run_numbers();
   use_beam(make_beam(spec_.beam, spec_.packing.sample_size));
   // With new rays per pulse, the first pulses' draws are checked now, as input.
@@ -566,6 +568,10 @@ void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
   require_in_state(s.launched >= 0 && s.launched <= spec.pulses.count,
                    std::to_string(s.launched) +
                        " pulses launched, of pulses.count = " + std::to_string(spec.pulses.count));
+  // Rays come only from a launch: live rays before any would be traced, and heated without the
+  // contact graph a spec without pulses does not build.
+  require_in_state(s.launched > 0 || s.rays.live_count == 0,
+                   std::to_string(s.rays.live_count) + " live rays and no pulse launched");
   require_in_state(s.counts.particles == p.size(),
                    "its counts are of " + std::to_string(s.counts.particles) + " particles");
   const ThermalLedger& h = s.heat.ledger;

@@ -53,11 +53,13 @@ struct EnergyLedger {
   double stored = 0, vaporized = 0, walls = 0;  // heat
   double optics_imbalance() const { return injected - absorbed - escaped - cutoff - in_flight; }
   double heat_imbalance() const { return absorbed - stored - vaporized - walls; }
-  // The heat ledger's scale: the absorbed energy, or the gross flow out of it when larger (walls
-  // that heat: a faint beam's 1e-43 J against 3.7e-7 J stored from the walls read as open by
-  // 1e34), and the imbalance relative to it (NaN stays NaN).
+  // The heat ledger's scale: the larger of the heat that came in (absorbed, and from walls that
+  // heat) and the heat that went (stored, vaporised, to walls that cool), each counted once (a
+  // faint beam's 1e-43 J against 3.7e-7 J from the walls read as open by 1e34); and the
+  // imbalance relative to it (NaN stays NaN).
   double heat_scale() const {
-    return std::max(absorbed, std::abs(stored) + vaporized + std::abs(walls));
+    return std::max(absorbed + std::max(-walls, 0.0),
+                    std::abs(stored) + vaporized + std::max(walls, 0.0));
   }
   double heat_error() const {
     const double scale = heat_scale();

@@ -94,6 +94,9 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
   check_span(particles);
   if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
     throw InputError("`optics.cutoff` = " + shown_number(spec.cutoff) + ": must be in [0, 1)");
+  if (!(spec.grid_cell_factor > 0.0) || !std::isfinite(spec.grid_cell_factor))
+    throw InputError("optics grid_cell_factor = " + shown_number(spec.grid_cell_factor) +
+                     ": must be > 0 and finite");
   if (spec.chunk_rays < 1 || spec.chunk_rays > kMaxChunkRays)
     throw InputError("optics chunk_rays = " + std::to_string(spec.chunk_rays) +
                      ": must be in [1, " + std::to_string(kMaxChunkRays) + "]");
@@ -224,17 +227,31 @@ Tracer::Tracer(const Particles& particles, OpticsSpec spec)
   state_.polarised = spec_.polarisation.linear;
 }
 
+// Built whole or not at all: a build that throws (an Embree device refusing its configuration)
+// leaves the tracer as it was, and the next call tries again.
 void Tracer::build_scene() {
   if (scene_) return;
-  scene_ = std::make_unique<EmbreeScene>(particles_, spec_.scene_update, 4096, 0.1,
-                                         spec_.spheres_per_primitive, spec_.embree_config);
+  check_particle_count("the ray scene's build");
+  auto scene = std::make_unique<EmbreeScene>(particles_, spec_.scene_update, 4096, 0.1,
+                                             spec_.spheres_per_primitive, spec_.embree_config);
   // The grid serves bounced rays only: with optics.max_bounces = 1 every ray ends at its first hit.
+  std::unique_ptr<SphereGrid> grid;
   if (spec_.bounce_search == BounceSearch::grid && spec_.max_bounces > 1)
-    grid_ = std::make_unique<SphereGrid>(particles_, spec_.grid_cell_factor);
+    grid = std::make_unique<SphereGrid>(particles_, spec_.grid_cell_factor);
   // Both were built without the particles no longer alive; the others removed since come now.
-  std::vector<std::uint32_t> removed = std::exchange(removed_unbuilt_, {});
+  std::vector<std::uint32_t> removed = removed_unbuilt_;
   std::erase_if(removed, [&](std::uint32_t p) { return !particles_.alive[p]; });
-  remove_particles(removed);
+  scene->remove(removed);
+  if (grid) grid->remove(removed);
+  scene_ = std::move(scene), grid_ = std::move(grid);
+  removed_unbuilt_.clear();
+}
+
+void Tracer::check_particle_count(const char* when) const {
+  if (particles_.size() != particle_count_)
+    throw InputError(std::string(when) + ": the particles were " + std::to_string(particle_count_) +
+                     " when the tracer took them and are " + std::to_string(particles_.size()) +
+                     " now: a tracer's particles keep their count");
 }
 
 Tracer::~Tracer() = default;
@@ -250,10 +267,7 @@ void Tracer::check_launch(const Beam& beam, std::span<const double> energies) co
     if (!(energies[k] >= 0.0) || !std::isfinite(energies[k]))
       throw InputError("launch: ray " + std::to_string(k) + "'s energy " +
                        shown_number(energies[k]) + " J: must be >= 0 and finite");
-  if (particles_.size() != particle_count_)
-    throw InputError("launch: the particles were " + std::to_string(particle_count_) +
-                     " when the tracer took them and are " + std::to_string(particles_.size()) +
-                     " now: a tracer's particles keep their count");
+  check_particle_count("launch");
 }
 
 void Tracer::launch(const Beam& beam, double pulse_duration) {

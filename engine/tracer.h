@@ -178,8 +178,9 @@ struct RayState {
 
 class Tracer {
  public:
-  // Checks the spec against the particles. The ray scene and the bounce grid are built on first
-  // need (a launch, or an advance with live rays): a tracer that never traces builds neither.
+  // Checks the particles and the spec's values. The ray scene and the bounce grid are built on
+  // first need (a launch, or an advance with live rays), so Embree's own errors (a device
+  // configuration it refuses) come from build_scene: a tracer that never traces builds neither.
   // The tracer keeps a reference to `particles`: they must outlive it, keep their count, and
   // change only through it (remove_particles) or in their temperatures and phases.
   Tracer(const Particles& particles, OpticsSpec spec);
@@ -262,7 +263,8 @@ class Tracer {
   // (last_advance_path and the chunk counts are the advance's before it again).
   void undo_advance();
 
-  bool has_grid() const { return grid_ != nullptr; }  // built only when bounced rays can exist
+  // Built with the scene (so not before it), and only when bounced rays can exist.
+  bool has_grid() const { return grid_ != nullptr; }
   const Box& box() const { return box_; }
 
  private:
@@ -276,6 +278,7 @@ class Tracer {
     std::size_t first;
   };
   void check_launch(const Beam& beam, std::span<const double> energies) const;
+  void check_particle_count(const char* when) const;
   double start_plane(const Beam& beam) const;
   Vec3 beam_field(const Vec3& direction) const;
   void reset_first_hits_for(const Vec3& direction, double upstream, std::size_t count);

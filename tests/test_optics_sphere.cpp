@@ -613,6 +613,10 @@ TEST(OpticsSphere, ADeviceConfigurationEmbreeRefusesIsNamed) {
   spec.embree_config = "threads=abc";
   Tracer tracer(p, spec);  // the scene, and so the device, comes at the first need
   expect_run_error([&] { tracer.build_scene(); }, {kRefused});
+  // Nothing half-built: the next need tries again (and fails again), not traces without it.
+  EXPECT_FALSE(tracer.has_scene());
+  expect_run_error([&] { tracer.launch(make_beam(BeamSpec{}, 1e-3), 1e-9); }, {kRefused});
+  EXPECT_EQ(tracer.ledger().injected, 0.0);
 }
 
 }  // namespace

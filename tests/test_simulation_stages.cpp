@@ -314,6 +314,8 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
           {[&](StateParts& s) { s.peak = nan; }, "its time, next pulse time or peak"},
           {[](StateParts& s) { s.launched = 99; }, "99 pulses launched, of pulses.count = 5"},
           {[](StateParts& s) { s.launched = -5; }, "-5 pulses launched"},
+          // Rays before any launch: a spec without pulses would trace and heat them unconducted.
+          {[](StateParts& s) { s.launched = 0; }, "live rays and no pulse launched"},
           {[](StateParts& s) { s.counts.particles = 7; }, "its counts are of 7 particles"},
           {[&](StateParts& s) { s.ledger.walls = nan; }, "a heat ledger entry is nan"},
           {[&](StateParts& s) { s.stages[1].first = nan; }, "a stage time is not finite"},

@@ -82,9 +82,10 @@ SolveStats cg_solve(const SparseMatrix& a, const Eigen::VectorXd& rhs, Eigen::Ve
     // From finite inputs: CG broke down (a search direction of zero energy p^T A p), as it does
     // on a step matrix singular to doubles (two spheres at K = 1e20, dt G / c ~ 1e25), which the
     // factorisation grounds. From non-finite ones: a defect upstream.
-    const bool finite_inputs =
-        rhs.allFinite() && guess.allFinite() &&
-        Eigen::Map<const Eigen::VectorXd>(a.valuePtr(), a.nonZeros()).allFinite();
+    bool finite_inputs = rhs.allFinite() && guess.allFinite();  // and the stored values:
+    for (int k = 0; k < a.outerSize(); ++k)
+      for (SparseMatrix::InnerIterator it(a, k); it; ++it)
+        finite_inputs &= std::isfinite(it.value());
     if (!finite_inputs)
       throw RunError("thermal conjugate gradients returned a non-finite temperature change after " +
                      std::to_string(cg.iterations()) + " iterations");

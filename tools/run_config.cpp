@@ -562,8 +562,8 @@ void refuse_beyond_memory(const SimulationSpec& s, double available, std::size_t
     << need / 1e9 << " GB "
     << (need == ray_bytes ? "for its rays alone" : "with " + (by_rays ? particles : rays)) << " ("
     << bytes_per_ray(s) << " bytes per ray, " << bytes_per_particle(s) << " per particle"
-    << (needs_conduction(s) ? " with its contacts" : "") << "), more than the " << available / 1e9
-    << " GB of this machine; lower "
+    << (needs_conduction(s) && s.pulses.count > 0 ? " with its contacts" : "")
+    << "), more than the " << available / 1e9 << " GB of this machine; lower "
     << (by_rays ? "`beam.rays`"
         : file  ? "the particle count"
                 : "`packing.count`");
