@@ -429,8 +429,8 @@ std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const 
   if (!(heat <= heat_limit)) {
     std::snprintf(
         text, sizeof text,
-        "the heat ledger is open by %.3g of the energy it moves (the absorbed energy, or "
-        "what is stored, vaporised and exchanged with walls if more; more than %.3g, from "
+        "the heat ledger is open by %.3g of the energy it moves (the larger of the heat in, "
+        "absorbed and from walls, and out, stored, vaporised and to walls; more than %.3g, from "
         "`thermal.tolerance` = %g). Every solver keeps each cluster's "
         "energy to round-off, so the likely cause is a step whose temperature rises are "
         "below ~1e-13 of the temperatures (a faint beam, large or dense particles, "
