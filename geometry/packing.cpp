@@ -31,13 +31,9 @@ void require_lazily(bool ok, const Message& message) {
   if (!ok) throw InputError(message());
 }
 
-std::string str(double v) {
-  return shown_number(v);
-}
-
 void check_common(std::size_t count, double size) {
   require(count <= 100'000'000, "packing.count = " + std::to_string(count) + ": must be <= 1e8");
-  require(std::isfinite(size) && size > 0, "sample.size = " + str(size) + ": must be > 0");
+  require(std::isfinite(size) && size > 0, "sample.size = " + shown_number(size) + ": must be > 0");
 }
 
 // Interleaves the low 21 bits of x, y, z (a Morton code).
@@ -80,7 +76,7 @@ Particles random_overlap_packing(std::size_t count, double size, double radius_r
                                  std::uint64_t seed) {
   check_common(count, size);
   require(std::isfinite(radius_ratio) && radius_ratio > 0,
-          "packing.radius_ratio = " + str(radius_ratio) + ": must be > 0");
+          "packing.radius_ratio = " + shown_number(radius_ratio) + ": must be > 0");
   Particles p;
   if (count == 0) return p;
   PackingSpec spec;
@@ -99,7 +95,7 @@ Particles random_overlap_packing(std::size_t count, double size, double radius_r
 Particles rsa_packing(std::size_t count, double size, double solid_fraction, std::uint64_t seed) {
   check_common(count, size);
   require(std::isfinite(solid_fraction) && solid_fraction > 0 && solid_fraction < 0.5,
-          "packing.solid_fraction = " + str(solid_fraction) +
+          "packing.solid_fraction = " + shown_number(solid_fraction) +
               ": must be > 0 and < 0.5 (the run file's limits); random sequential addition jams "
               "near 0.38");
   Particles p;
@@ -108,7 +104,7 @@ Particles rsa_packing(std::size_t count, double size, double solid_fraction, std
   spec.source = "rsa", spec.count = count, spec.sample_size = size;
   spec.solid_fraction = solid_fraction;
   const double r = packing_radius(spec);
-  require(2 * r < size, "packing.solid_fraction = " + str(solid_fraction) +
+  require(2 * r < size, "packing.solid_fraction = " + shown_number(solid_fraction) +
                             ": spheres wider than the sample; raise packing.count");
   Box centres;
   centres.grow(Vec3::Constant(r), 0.0);
@@ -127,11 +123,11 @@ Particles rsa_packing(std::size_t count, double size, double solid_fraction, std
     });
     if (overlaps) {
       if (++failures >= max_failures_in_a_row) {
-        throw InputError("packing.solid_fraction = " + str(solid_fraction) + ": rsa placed only " +
-                         std::to_string(p.size()) + " of " + std::to_string(count) +
-                         " spheres (reached " +
-                         str(solid_fraction * double(p.size()) / double(count)) + ") before " +
-                         std::to_string(max_failures_in_a_row) +
+        throw InputError("packing.solid_fraction = " + shown_number(solid_fraction) +
+                         ": rsa placed only " + std::to_string(p.size()) + " of " +
+                         std::to_string(count) + " spheres (reached " +
+                         shown_number(solid_fraction * double(p.size()) / double(count)) +
+                         ") before " + std::to_string(max_failures_in_a_row) +
                          " failed tries in a row; use a lower fraction (RSA jams near 0.38)");
       }
       continue;
@@ -152,7 +148,7 @@ std::string lattice_count_problem(std::size_t count) {
 Particles lattice_packing(std::size_t count, double size, double radius_ratio) {
   check_common(count, size);
   require(std::isfinite(radius_ratio) && radius_ratio > 0,
-          "packing.radius_ratio = " + str(radius_ratio) + ": must be > 0");
+          "packing.radius_ratio = " + shown_number(radius_ratio) + ": must be > 0");
   const std::string problem = lattice_count_problem(count);
   require(problem.empty(), "packing.count = " + std::to_string(count) + ": " + problem);
   const auto n = static_cast<std::size_t>(std::llround(std::cbrt(double(count))));
@@ -177,14 +173,15 @@ void check_sphere_at(const Vec3& centre, double r, const std::array<std::size_t,
                      const Where& at) {
   const auto where = [&] { return std::string(at()); };
   require_lazily(centre.allFinite(), [&] { return where() + "its centre is not a finite number"; });
-  require_lazily(r > 0, [&] { return where() + "radius r = " + str(r) + ": must be > 0"; });
+  require_lazily(r > 0,
+                 [&] { return where() + "radius r = " + shown_number(r) + ": must be > 0"; });
   require_lazily(r <= kMaxParticleRadius, [&] {
-    return where() + "radius r = " + str(r) + ": must be <= " + str(kMaxParticleRadius) + " " +
-           kMaxParticleRadiusWhy;
+    return where() + "radius r = " + shown_number(r) +
+           ": must be <= " + shown_number(kMaxParticleRadius) + " " + kMaxParticleRadiusWhy;
   });
   const double volume = 4.0 / 3.0 * std::numbers::pi * r * r * r;
   require_lazily(volume > 0 && std::isfinite(volume), [&] {
-    return where() + "radius r = " + str(r) + ": its volume " + str(volume) +
+    return where() + "radius r = " + shown_number(r) + ": its volume " + shown_number(volume) +
            " is not a positive finite double (|r| must be at least ~1e-100)";
   });
   for (int k = 0; k < 3; ++k)
@@ -216,8 +213,9 @@ void check_particles(const Particles& p) {
     const auto at = [i] { return "particle " + std::to_string(i) + ": "; };
     check_sphere_at(p.centre[i], p.radius[i], {0, 1, 2}, at);
     const double t = p.temperature[i];
-    require_lazily(t > 0 && std::isfinite(t),
-                   [&] { return at() + "temperature " + str(t) + " K: must be > 0 and finite"; });
+    require_lazily(t > 0 && std::isfinite(t), [&] {
+      return at() + "temperature " + shown_number(t) + " K: must be > 0 and finite";
+    });
     require_lazily(p.alive[i] <= 1, [&] {
       return at() + "live flag " + std::to_string(p.alive[i]) + ": must be 0 or 1";
     });
@@ -664,9 +662,9 @@ double packing_radius(const PackingSpec& s) {
 }
 
 std::string radius_setting(const PackingSpec& s) {
-  if (s.source == "rsa") return "`packing.solid_fraction` = " + str(s.solid_fraction);
-  if (s.source != "file") return "`packing.radius_ratio` = " + str(s.radius_ratio);
-  return s.file_radius > 0 ? "`packing.radius` = " + str(s.file_radius) : "";
+  if (s.source == "rsa") return "`packing.solid_fraction` = " + shown_number(s.solid_fraction);
+  if (s.source != "file") return "`packing.radius_ratio` = " + shown_number(s.radius_ratio);
+  return s.file_radius > 0 ? "`packing.radius` = " + shown_number(s.file_radius) : "";
 }
 
 Particles make_packing(const PackingSpec& spec) {

@@ -47,12 +47,6 @@ std::string repr(const toml::node& node) {
   return s.str();
 }
 
-std::string fmt(double v) {
-  std::ostringstream s;
-  s << v;
-  return s.str();
-}
-
 std::size_t edit_distance(const std::string& a, const std::string& b) {
   std::vector<std::size_t> row(b.size() + 1);
   for (std::size_t j = 0; j <= b.size(); ++j) row[j] = j;
@@ -476,7 +470,7 @@ bool Params::differs_from_default(const std::string& key) const {
 std::string Params::shown(const std::string& key) const {
   const toml::node* node = resolved_.at_path(key).node();
   if (!node) return "";
-  if (const auto* v = node->as_floating_point()) return fmt(v->get());
+  if (const auto* v = node->as_floating_point()) return shown_number(v->get());
   if (const auto* w = node->as_string()) return "\"" + w->get() + "\"";
   return repr(*node);
 }
@@ -538,10 +532,10 @@ double Params::number(const std::string& key, double fallback, double lo, double
   const bool below = lo_open ? !(v > lo) : !(v >= lo);
   const bool above = hi_open ? !(v < hi) : !(v <= hi);
   if (below || above) {
-    std::string range = std::string(lo_open ? "must be > " : "must be >= ") + fmt(lo);
+    std::string range = std::string(lo_open ? "must be > " : "must be >= ") + shown_number(lo);
     if (hi < std::numeric_limits<double>::max())
-      range += (hi_open ? " and < " : " and <= ") + fmt(hi);
-    fail(key, fmt(v), range);
+      range += (hi_open ? " and < " : " and <= ") + shown_number(hi);
+    fail(key, shown_number(v), range);
   }
   record(key, toml::value<double>(v));
   number_defaults_[key] = fallback;

@@ -23,13 +23,6 @@ namespace {
 
 constexpr double kBig = std::numeric_limits<double>::max();
 
-// A number as a message shows it (%g-like: 300, 1e-09).
-std::string number_text(double v) {
-  std::ostringstream s;
-  s << v;
-  return s.str();
-}
-
 // An upper limit beyond which a run's arithmetic breaks, physically generous, with its unit and
 // why. Measured with the quick preset (each key alone, or with walls within reach): conductivity
 // 1e308 and wall conductance 1e306 gave non-finite temperatures (exit 1, no key named); latent
@@ -99,7 +92,7 @@ double capped(const Params& p, const std::string& key, double value, const Cap& 
   std::array<char, 32> shown;
   const auto end = std::to_chars(shown.data(), shown.data() + shown.size(), value).ptr;
   p.fail(key, std::string(shown.data(), end),
-         "must be <= " + number_text(cap.limit) + " " + cap.why);
+         "must be <= " + shown_number(cap.limit) + " " + cap.why);
 }
 
 double number_up_to(Params& p, const std::string& key, double fallback, double lo, const Cap& cap,
@@ -132,7 +125,7 @@ void read_packing(Params& p, PackingSpec& s) {
     p.fail("packing.file", "\"" + s.file + "\"",
            "needs packing.source = \"file\" (it is \"" + s.source + "\")");
   if (s.source != "file" && s.file_radius != 0.0)
-    p.fail("packing.radius", number_text(s.file_radius),
+    p.fail("packing.radius", shown_number(s.file_radius),
            "applies to packing.source = \"file\" only");
   if (s.source == "file" && s.file.empty())
     p.fail("packing.file", "\"\"", "required with packing.source = \"file\"");
@@ -199,7 +192,7 @@ std::vector<Wall> read_walls(Params& p, double size) {
   const double reach = p.number("thermal.wall_reach", 0, 0, kBig);
   const double conductance = number_up_to(p, "thermal.wall_conductance", -1, -1, kWallConductance);
   if (conductance < 0 && conductance != -1)
-    p.fail("thermal.wall_conductance", number_text(conductance),
+    p.fail("thermal.wall_conductance", shown_number(conductance),
            "must be >= 0 (W/K per particle) or -1 (pi K R, from material.conductivity)");
   std::vector<Wall> walls;
   std::vector<std::string> seen;
@@ -254,9 +247,9 @@ void check_steps_per_crossing(Params& p, const SimulationSpec& s, bool paper) {
   const double crossing = s.packing.sample_size / kSpeedOfLight;
   if (steps_per_crossing(s) > kMaxStepsPerCrossing)
     p.fail("thermal.dt",
-           paper ? "\"paper\" (xi R / c = " + number_text(s.dt) + " s)" : number_text(s.dt),
-           "must be >= sample.size / c / 1e9 = " + number_text(crossing / kMaxStepsPerCrossing) +
-               " s (light crosses the sample in " + number_text(crossing) + " s)");
+           paper ? "\"paper\" (xi R / c = " + shown_number(s.dt) + " s)" : shown_number(s.dt),
+           "must be >= sample.size / c / 1e9 = " + shown_number(crossing / kMaxStepsPerCrossing) +
+               " s (light crosses the sample in " + shown_number(crossing) + " s)");
 }
 
 // tau: seconds, or "auto" = xi R / c (the paper's ray time step: derive_paper_step), or from
@@ -395,8 +388,8 @@ RunConfig read_config(Params& p, const RunSources& sources) {
   if (saved_packing && c.sim.packing.source == "file")
     c.packing = std::make_shared<const Particles>(saved_packing(c.sim));
   if (!(c.sim.packing.initial_temperature < m.vapor_temperature)) {
-    p.fail("material.initial_temperature", number_text(c.sim.packing.initial_temperature),
-           "must be < material.vapor_temperature = " + number_text(m.vapor_temperature) +
+    p.fail("material.initial_temperature", shown_number(c.sim.packing.initial_temperature),
+           "must be < material.vapor_temperature = " + shown_number(m.vapor_temperature) +
                " (every particle would start as vapour)");
   }
   PaperStepUse use;
