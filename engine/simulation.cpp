@@ -43,6 +43,16 @@ bool needs_conduction(const SimulationSpec& spec) {
   return !spec.thermal.walls.empty() || conducts_between_particles(spec);
 }
 
+bool builds_ray_scene(const SimulationSpec& spec) {
+  return spec.pulses.count > 0;
+}
+
+// Without pulses no step conducts, and no resumed state has rays that would: read_state refuses
+// live rays without a launch, and launches beyond pulses.count.
+bool builds_contact_graph(const SimulationSpec& spec) {
+  return builds_ray_scene(spec) && needs_conduction(spec);
+}
+
 Simulation::Simulation(SimulationSpec spec) : Simulation(spec, make_packing(spec.packing), true) {}
 
 Simulation::Simulation(SimulationSpec spec, Particles particles)
@@ -85,12 +95,14 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
   tracer_->keep_undo(spec_.max_staggers > 0);  // the stagger's redo takes a step back
   // The ray scene and bounce grid (~1 s at 10^6 particles) are built here, at set-up, for a run
   // that launches pulses; one without pulses never builds them.
-  if (spec_.pulses.count > 0) tracer_->build_scene();
+  if (builds_ray_scene(spec_)) tracer_->build_scene();
   thermal_ = std::make_unique<ThermalModel>(particles_, spec_.materials, spec_.thermal);
   // Leave out what the scene does not need: without conductivity or walls there is no graph, and
-  // without pulses no step that would conduct (nor a state to resume with rays: read_state
-  // refuses one that launched more pulses than pulses.count).
-  if (spec_.pulses.count > 0) build_contact_graph();
+  // without pulses no step that would conduct.
+  if (builds_contact_graph(spec_)) {
+    StageClock clock(stages_[kRebuild]);
+    thermal_->set_contacts(find_contacts(particles_));
+  }
   check_step_limit();
   absorbed_.assign(particles_.size(), 0.0);
   deposits_.assign(particles_.size(), 0.0);
@@ -118,14 +130,6 @@ void Simulation::check_run_numbers() const {
   if (!(spec_.dt >= 0) || !std::isfinite(spec_.dt))
     refuse("thermal.dt", spec_.dt, "must be >= 0 (0: one step per pulse flight)");
   if (spec_.max_staggers < 0) refuse("thermal.max_staggers", spec_.max_staggers, "must be >= 0");
-}
-
-// The contact graph the heat conducts over, when the scene conducts.
-void Simulation::build_contact_graph() {
-  if (!needs_conduction(spec_)) return;
-  StageClock clock(stages_[kRebuild]);
-  thermal_->set_contacts(find_contacts(particles_));
-  contacts_built_ = true;
 }
 
 // ", from `packing.radius_ratio` = 1e-300" when the spec's packing gave particle i its radius.
@@ -455,7 +459,7 @@ std::array<StageTime, Simulation::kStages> Simulation::stages() const {
 
 // Why stage k has not run so far: the condition under which the loop of step() leaves it out.
 std::string Simulation::skip_reason(int stage) const {
-  if (stage == kRebuild && needs_conduction(spec_) && !contacts_built_)
+  if (stage == kRebuild && needs_conduction(spec_) && !builds_contact_graph(spec_))
     return "`pulses.count` = 0: no pulse, no contact graph built";
   if (stage == kRebuild)
     return "no contact graph (no conductivity, no walls) and no particle vaporised";

@@ -45,6 +45,10 @@ struct SimulationSpec {
 bool needs_conduction(const SimulationSpec& spec);
 // Whether a material's conductivity is > 0: heat flows between particles, not only to walls.
 bool conducts_between_particles(const SimulationSpec& spec);
+// What a simulation's set-up builds: the ray scene and bounce grid only for pulses, and the
+// contact graph only for pulses into a scene that conducts (without pulses no step runs).
+bool builds_ray_scene(const SimulationSpec& spec);
+bool builds_contact_graph(const SimulationSpec& spec);
 
 // Energy ledger of a run, J (MODEL.md section 6).
 struct EnergyLedger {
@@ -177,7 +181,6 @@ class Simulation {
   std::string skip_reason(int stage) const;
   Simulation(SimulationSpec spec, Particles particles, bool packing_from_spec);
   void check_run_numbers() const;
-  void build_contact_graph();
   void check_thermal_masses(double run_energy) const;
   std::string radius_origin(std::size_t particle) const;
   void check_step_limit() const;
@@ -190,8 +193,7 @@ class Simulation {
   std::vector<double> ray_energy_;  // E_k of beam_'s rays in a pulse (computed with the beam)
   std::unique_ptr<Tracer> tracer_;
   std::unique_ptr<ThermalModel> thermal_;
-  bool packing_from_spec_;       // the particles are spec_.packing's (radius_origin names its keys)
-  bool contacts_built_ = false;  // build_contact_graph
+  bool packing_from_spec_;  // the particles are spec_.packing's (radius_origin names its keys)
   std::vector<double> absorbed_;       // cumulative J per particle
   std::vector<double> deposits_;       // this step's dH
   std::vector<std::uint32_t> heated_;  // the particles with a deposit this step (zero elsewhere)

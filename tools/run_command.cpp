@@ -100,12 +100,11 @@ bool set_up_takes_seconds(std::size_t particles, std::size_t rays) {
   return particles >= 200'000 || rays >= 1'000'000;
 }
 
-// What the set-up builds: the contacts only for conduction, both they and the ray scene only for
-// pulses.
+// What the set-up builds.
 std::string set_up_parts(const SimulationSpec& sim) {
   std::string parts = "packing";
-  if (needs_conduction(sim) && sim.pulses.count > 0) parts += ", contacts";
-  if (sim.pulses.count > 0) parts += ", ray scene";
+  if (builds_contact_graph(sim)) parts += ", contacts";
+  if (builds_ray_scene(sim)) parts += ", ray scene";
   return parts;
 }
 

@@ -501,19 +501,18 @@ constexpr double kContactBytesWithConduction = 100;  // per particle, conductivi
 
 namespace {
 
-// The bytes a particle needs at least: itself (and its share of the ray scene when pulses come),
-// and the contacts when the scene conducts.
+// The bytes a particle needs at least: itself (and its share of the ray scene when one is built),
+// and the contacts when the set-up builds them.
 double bytes_per_particle(const SimulationSpec& s) {
-  const double contacts = s.pulses.count == 0             ? 0.0
+  const double contacts = !builds_contact_graph(s)        ? 0.0
                           : conducts_between_particles(s) ? kContactBytesWithConduction
-                          : needs_conduction(s)           ? kContactBytesWithWalls
-                                                          : 0.0;
-  return (s.pulses.count > 0 ? kBytesPerParticle : kBytesPerParticleUntraced) + contacts;
+                                                          : kContactBytesWithWalls;
+  return (builds_ray_scene(s) ? kBytesPerParticle : kBytesPerParticleUntraced) + contacts;
 }
 
 // The bytes a ray of the beam needs at least: its state as it is traced, or the beam alone.
 double bytes_per_ray(const SimulationSpec& s) {
-  return s.pulses.count > 0 ? kBytesPerRay : kBytesPerRayUntraced;
+  return builds_ray_scene(s) ? kBytesPerRay : kBytesPerRayUntraced;
 }
 
 }  // namespace
@@ -555,8 +554,8 @@ void refuse_beyond_memory(const SimulationSpec& s, double available, std::size_t
     << need / 1e9 << " GB "
     << (need == ray_bytes ? "for its rays alone" : "with " + (by_rays ? particles : rays)) << " ("
     << bytes_per_ray(s) << " bytes per ray, " << bytes_per_particle(s) << " per particle"
-    << (needs_conduction(s) && s.pulses.count > 0 ? " with its contacts" : "")
-    << "), more than the " << available / 1e9 << " GB of this machine; lower "
+    << (builds_contact_graph(s) ? " with its contacts" : "") << "), more than the "
+    << available / 1e9 << " GB of this machine; lower "
     << (by_rays ? "`beam.rays`"
         : file  ? "the particle count"
                 : "`packing.count`");
