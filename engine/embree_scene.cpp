@@ -526,10 +526,8 @@ void EmbreeScene::limit_memory(std::size_t bytes) {
 
 void EmbreeScene::remove(std::span<const std::uint32_t> ids) {
   Impl& im = *impl_;
+  check_removal_ids(ids, removed_.size());
   for (std::uint32_t p : ids) {
-    if (p >= removed_.size())
-      throw InputError("remove_particles: particle id " + std::to_string(p) + " >= count " +
-                       std::to_string(removed_.size()));
     if (!removed_[p]) im.spheres[im.rank[p]].radius *= -1.0;  // masked in the callback from now on
     removed_[p] = 1;
   }

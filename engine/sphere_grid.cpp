@@ -84,10 +84,8 @@ void SphereGrid::for_cells(const Sphere& sphere, Visit&& visit) const {
 
 // Negates the radius of the particle and of every entry that copies it.
 void SphereGrid::remove(std::span<const std::uint32_t> ids) {
+  check_removal_ids(ids, spheres_.size());
   for (std::uint32_t p : ids) {
-    if (p >= spheres_.size())
-      throw InputError("remove_particles: particle id " + std::to_string(p) + " >= count " +
-                       std::to_string(spheres_.size()));
     Sphere& sphere = spheres_[p];
     sphere.radius = -std::abs(sphere.radius);
     for_cells(sphere, [&](std::size_t c) {

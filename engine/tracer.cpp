@@ -960,10 +960,7 @@ void Tracer::undo_advance() {
 void Tracer::remove_particles(std::span<const std::uint32_t> ids) {
   undo_.held = false;
   if (!scene_) {
-    for (std::uint32_t p : ids)
-      if (p >= particles_.size())
-        throw InputError("remove_particles: particle id " + std::to_string(p) + " >= count " +
-                         std::to_string(particles_.size()));
+    check_removal_ids(ids, particles_.size());
     removed_unbuilt_.insert(removed_unbuilt_.end(), ids.begin(), ids.end());
     return;
   }

@@ -139,8 +139,17 @@ Particles rsa_packing(std::size_t count, double size, double solid_fraction, std
   return p;
 }
 
+namespace {
+
+// n, the spheres along an edge of a lattice of about `count`: the nearest whole cube root.
+std::size_t lattice_side(std::size_t count) {
+  return static_cast<std::size_t>(std::llround(std::cbrt(double(count))));
+}
+
+}  // namespace
+
 std::string lattice_count_problem(std::size_t count) {
-  const auto n = static_cast<std::size_t>(std::llround(std::cbrt(double(count))));
+  const std::size_t n = lattice_side(count);
   if (n * n * n == count) return "";
   return "a lattice needs a cube number (n^3, e.g. " + std::to_string(n * n * n) + ")";
 }
@@ -151,7 +160,7 @@ Particles lattice_packing(std::size_t count, double size, double radius_ratio) {
           "packing.radius_ratio = " + shown_number(radius_ratio) + ": must be > 0");
   const std::string problem = lattice_count_problem(count);
   require(problem.empty(), "packing.count = " + std::to_string(count) + ": " + problem);
-  const auto n = static_cast<std::size_t>(std::llround(std::cbrt(double(count))));
+  const std::size_t n = lattice_side(count);
   Particles p;
   const double a = size / double(std::max<std::size_t>(n, 1));
   p.reserve(count);
@@ -171,23 +180,20 @@ namespace {
 template <class Where>
 void check_sphere_at(const Vec3& centre, double r, const std::array<std::size_t, 3>& centre_columns,
                      const Where& at) {
-  const auto where = [&] { return std::string(at()); };
-  require_lazily(centre.allFinite(), [&] { return where() + "its centre is not a finite number"; });
-  require_lazily(r > 0,
-                 [&] { return where() + "radius r = " + shown_number(r) + ": must be > 0"; });
+  require_lazily(centre.allFinite(), [&] { return at() + "its centre is not a finite number"; });
+  require_lazily(r > 0, [&] { return at() + "radius r = " + shown_number(r) + ": must be > 0"; });
   require_lazily(r <= kMaxParticleRadius, [&] {
-    return where() + "radius r = " + shown_number(r) +
+    return at() + "radius r = " + shown_number(r) +
            ": must be <= " + shown_number(kMaxParticleRadius) + " " + kMaxParticleRadiusWhy;
   });
   const double volume = 4.0 / 3.0 * std::numbers::pi * r * r * r;
   require_lazily(volume > 0 && std::isfinite(volume), [&] {
-    return where() + "radius r = " + shown_number(r) + ": its volume " + shown_number(volume) +
+    return at() + "radius r = " + shown_number(r) + ": its volume " + shown_number(volume) +
            " is not a positive finite double (|r| must be at least ~1e-100)";
   });
   for (int k = 0; k < 3; ++k)
     require_lazily(std::isfinite(std::abs(centre[k]) + r), [&] {
-      return where() + "centre +- radius overflows in column " +
-             std::to_string(centre_columns[k] + 1);
+      return at() + "centre +- radius overflows in column " + std::to_string(centre_columns[k] + 1);
     });
 }
 

@@ -40,6 +40,13 @@ std::size_t Particles::add(const Vec3& c, double r, std::uint16_t material_id,
   return radius.size() - 1;
 }
 
+void check_removal_ids(std::span<const std::uint32_t> ids, std::size_t count) {
+  for (std::uint32_t p : ids)
+    if (p >= count)
+      throw InputError("remove_particles: particle id " + std::to_string(p) + " >= count " +
+                       std::to_string(count));
+}
+
 void Particles::remove(std::size_t i) {
   if (i >= size())
     throw InputError("Particles::remove: particle " + std::to_string(i) + " >= count " +

@@ -2,6 +2,7 @@
 // Particle state as a structure of flat arrays (LAMMPS' atom->x, atom->temperature).
 // The Embree user geometry and the thermal module index straight into these arrays.
 #include <cstdint>
+#include <span>
 #include <vector>
 
 #include "geometry/vec3.h"
@@ -33,5 +34,9 @@ struct Particles {
   Box bounds() const;
   double volume(std::size_t i) const;
 };
+
+// The ids a remove_particles names, each < count, checked before any is removed: InputError
+// naming the first beyond.
+void check_removal_ids(std::span<const std::uint32_t> ids, std::size_t count);
 
 }  // namespace beampack
