@@ -66,7 +66,13 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
   // check below names the key behind a radius that fails them.
   if (!packing_from_spec_) check_particles(particles_);
   check_run_numbers();
-  use_beam(make_beam(spec_.beam, spec_.packing.sample_size));
+  // A run without pulses draws no rays, only checks the beam's keys: at 10^7 rays the draw alone
+  // took 3 s and 0.45 GB.
+  if (builds_ray_scene(spec_)) {
+    use_beam(make_beam(spec_.beam, spec_.packing.sample_size));
+  } else {
+    validate_beam(spec_.beam, spec_.packing.sample_size);
+  }
   // With new rays per pulse, the first pulses' draws are checked now, as input.
   for (int k = 1; spec_.beam.resample && k < std::min(spec_.pulses.count, 64); ++k) {
     try {

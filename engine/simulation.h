@@ -145,6 +145,7 @@ class Simulation {
   // Time and calls per stage; a stage that never ran says why (the run reports what it skipped).
   std::array<StageTime, kStages> stages() const;
   const SimulationSpec& spec() const { return spec_; }
+  // The rays every pulse launches (pulse 0's until a launch resamples); without pulses, none.
   const Beam& beam() const { return beam_; }
   const Tracer& tracer() const { return *tracer_; }
   // Ray paths: while on, the segments of accepted steps are kept until taken.

@@ -290,18 +290,22 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
         << e.what();
     EXPECT_NE(std::string(e.what()).find("; lower `packing.count`"), std::string::npos) << e.what();
   }
-  // Without pulses neither the rays' state nor the ray scene is made: 100 bytes a particle and
-  // 45 a ray (102 and 47 measured), so 10^8 particles fit, 3 10^8 do not.
+  // Without pulses no ray is drawn and no ray scene made: 100 bytes a particle (102 measured), so
+  // 10^8 particles fit, 3 10^8 do not, and rays cost nothing, however many.
   SimulationSpec untraced = particles;
   untraced.pulses.count = 0;
   EXPECT_NO_THROW(refuse_beyond_memory(untraced, k24GiB));
   EXPECT_GE(least_memory_need(untraced), 1e10);
+  untraced.beam.rays = 1'000'000'000;
+  EXPECT_NO_THROW(refuse_beyond_memory(untraced, k24GiB));
   untraced.packing.count = 300'000'000;
   try {
     refuse_beyond_memory(untraced, k24GiB);
     ADD_FAILURE() << "3 10^8 particles fit in 24 GiB";
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("(45 bytes per ray, 100 per particle)"), std::string::npos)
+    EXPECT_NE(std::string(e.what()).find("at least 30 GB without pulses (no rays drawn) (100 bytes "
+                                         "per particle)"),
+              std::string::npos)
         << e.what();
   }
   particles.packing.source = "file";  // counted when the file is read: only the rays are known
@@ -332,10 +336,11 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
     refuse_beyond_memory(conducting, k24GiB);
     ADD_FAILURE() << "6 10^7 conducting particles fit in 24 GiB";
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find(
-                  "at least 30 GB with `beam.rays` = 1000 (400 bytes per ray, 500 per particle "
-                  "with its contacts)"),
-              std::string::npos)
+    EXPECT_NE(
+        std::string(e.what()).find(
+            "at least 30 GB with `beam.rays` = 1000 (400 bytes per ray, 500 bytes per particle "
+            "with its contacts)"),
+        std::string::npos)
         << e.what();
   }
   rays.packing.source = "file";

@@ -100,10 +100,29 @@ TEST(SimulationStages, NoPulseSkipsTracingAndHeat) {
   sim.run();
   expect_skipped(sim, "trace", "`pulses.count` = 0: no pulse, no ray scene or bounce grid built");
   expect_skipped(sim, "heat", "`pulses.count` = 0");
-  // Nor does it build what only steps use: the ray scene, the grid, the contact graph.
+  // Nor does it build what only pulses and steps use: the rays, the ray scene, the grid, the
+  // contact graph.
+  EXPECT_EQ(sim.beam().size(), 0u);
   EXPECT_FALSE(sim.tracer().has_scene());
   EXPECT_FALSE(sim.tracer().has_grid());
   expect_skipped(sim, "rebuild", "`pulses.count` = 0: no pulse, no contact graph built");
+}
+
+// Drawing no rays is not checking no keys: a beam key out of its range is refused all the same.
+TEST(SimulationStages, NoPulseStillRefusesABadBeam) {
+  SimulationSpec spec = quick_spec();
+  spec.pulses.count = 0;
+  spec.beam.direction = Vec3(1, 1, 0);
+  EXPECT_THROW(
+      {
+        try {
+          Simulation sim(spec);
+        } catch (const InputError& e) {
+          EXPECT_NE(std::string(e.what()).find("`beam.direction`"), std::string::npos) << e.what();
+          throw;
+        }
+      },
+      InputError);
 }
 
 TEST(SimulationStages, AnEmptyPackingTracesButHasNoHeatToConduct) {

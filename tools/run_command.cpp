@@ -711,7 +711,7 @@ void warn_of_walls_touching_nothing(const Simulation& sim) {
 void warn_if_beam_meets_nothing(const Simulation& sim) {
   const Particles& p = sim.particles();
   const Beam& beam = sim.beam();
-  if (p.size() == 0) return;
+  if (p.size() == 0 || beam.size() == 0) return;  // no particles, or no pulses
   Vec3 lo = p.centre[0], hi = p.centre[0];
   for (std::size_t i = 0; i < p.size(); ++i) {
     const Vec3 off = p.centre[i] - beam.centre;

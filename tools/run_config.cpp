@@ -491,10 +491,9 @@ std::string locate(const std::string& message, const std::map<std::string, std::
 // per particle without conduction, 600 with). The contacts conduction needs: 141 bytes more per
 // particle with K = 100, 58 with walls and K = 0 (526 MB). Rounded down: a bound that refuses only
 // the hopeless. Without pulses (no ray state, no ray scene; 2026-12-03): 108 MB with 10^6
-// particles, 413 MB with 4 10^6 (102 bytes per particle); 195 MB with 4 10^6 rays (47 per ray).
+// particles, 413 MB with 4 10^6 (102 bytes per particle); no rays are drawn (2026-12-03).
 constexpr double kBytesPerRay = 400;
 constexpr double kBytesPerParticle = 400;
-constexpr double kBytesPerRayUntraced = 45;          // the beam alone
 constexpr double kBytesPerParticleUntraced = 100;    // the particles alone
 constexpr double kContactBytesWithWalls = 50;        // per particle, walls alone (K = 0)
 constexpr double kContactBytesWithConduction = 100;  // per particle, conductivity > 0
@@ -510,9 +509,9 @@ double bytes_per_particle(const SimulationSpec& s) {
   return (builds_ray_scene(s) ? kBytesPerParticle : kBytesPerParticleUntraced) + contacts;
 }
 
-// The bytes a ray of the beam needs at least: its state as it is traced, or the beam alone.
+// The bytes a ray of the beam needs at least: its state as it is traced; none without pulses.
 double bytes_per_ray(const SimulationSpec& s) {
-  return builds_ray_scene(s) ? kBytesPerRay : kBytesPerRayUntraced;
+  return builds_ray_scene(s) ? kBytesPerRay : 0.0;
 }
 
 }  // namespace
@@ -549,11 +548,14 @@ void refuse_beyond_memory(const SimulationSpec& s, double available, std::size_t
   const std::string rays = "`beam.rays` = " + std::to_string(s.beam.rays);
   const double ray_bytes = bytes_per_ray(s) * double(s.beam.rays);
   const bool by_rays = ray_bytes >= need - ray_bytes;
+  const std::string with = need == ray_bytes ? "for its rays alone"
+                           : ray_bytes == 0  ? "without pulses (no rays drawn)"
+                                             : "with " + (by_rays ? particles : rays);
   std::ostringstream m;
   m << (by_rays ? rays : particles) << ": the run needs at least " << std::setprecision(3)
-    << need / 1e9 << " GB "
-    << (need == ray_bytes ? "for its rays alone" : "with " + (by_rays ? particles : rays)) << " ("
-    << bytes_per_ray(s) << " bytes per ray, " << bytes_per_particle(s) << " per particle"
+    << need / 1e9 << " GB " << with << " (";
+  if (ray_bytes > 0) m << bytes_per_ray(s) << " bytes per ray, ";
+  m << bytes_per_particle(s) << " bytes per particle"
     << (builds_contact_graph(s) ? " with its contacts" : "") << "), more than the "
     << available / 1e9 << " GB of this machine; lower "
     << (by_rays ? "`beam.rays`"
