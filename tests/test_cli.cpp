@@ -868,6 +868,17 @@ TEST(Cli, ValidatePassesAndConfigRoundTrips) {
   const Result again = run("config " + (dir / "full.toml").string());
   ASSERT_EQ(again.code, 0) << again.output;
   EXPECT_EQ(again.output, c.output);
+  // Numbers as written: the shortest form that reads back to the same double, not 17 digits.
+  EXPECT_NE(c.output.find("\ndiameter_fraction = 0.3\n"), std::string::npos) << c.output;
+  EXPECT_NE(c.output.find("\ntime_scaling = 1e6\n"), std::string::npos) << c.output;
+  EXPECT_NE(c.output.find("\npower = 6000.0\n"), std::string::npos) << c.output;
+  const Result exact =
+      run("config --preset zohdi2013 --set material.conductivity=0.1234567890123456789 --set "
+          "material.density=1.5e-7");
+  ASSERT_EQ(exact.code, 0) << exact.output;
+  EXPECT_NE(exact.output.find("\nconductivity = 0.12345678901234568\n"), std::string::npos)
+      << exact.output;
+  EXPECT_NE(exact.output.find("\ndensity = 1.5e-7\n"), std::string::npos) << exact.output;
   // Keys the scene does not read (the quick preset's packing.seed = 7 with a lattice) are printed
   // apart, as comments with their values: the printed file runs without a warning about them.
   const Result lattice =

@@ -436,6 +436,51 @@ RunConfig load_run_config(const RunSources& sources) {
   }
 }
 
+namespace {
+
+// A float in the shortest form that reads back to the same double, as TOML: 0.3, 6000.0, 1e-10,
+// 1e6 (toml++ 3.3 writes 17 digits, 0.29999999999999999, and a run file is read by people).
+std::string toml_float(double v) {
+  if (!std::isfinite(v)) return v != v ? "nan" : v > 0 ? "inf" : "-inf";
+  std::array<char, 32> buf;
+  std::string s(buf.data(), std::to_chars(buf.data(), buf.data() + buf.size(), v).ptr);
+  const std::size_t e = s.find('e');
+  if (e == std::string::npos) return s.find('.') == std::string::npos ? s + ".0" : s;
+  std::string exponent = s.substr(e + 1);  // "+06" -> "6", "-10" stays
+  if (exponent[0] == '+') exponent.erase(0, 1);
+  const bool negative = exponent[0] == '-';
+  exponent.erase(0, exponent.find_first_not_of("-0"));
+  return s.substr(0, e + 1) + (negative ? "-" : "") + exponent;
+}
+
+// `name = value` as a run file line.
+std::string key_line(const std::string& name, const toml::node& value) {
+  if (const auto* f = value.as_floating_point()) return name + " = " + toml_float(f->get());
+  std::ostringstream line;
+  toml::table one;
+  one.insert(name, value);
+  line << one;
+  return line.str();
+}
+
+// A resolved run file: top-level keys, then one [section] of keys per table.
+std::string toml_text(const toml::table& t) {
+  std::ostringstream text;
+  for (const auto& [name, value] : t)
+    if (!value.is_table()) text << key_line(std::string(name.str()), value) << '\n';
+  bool first = true;
+  for (const auto& [name, value] : t) {
+    if (!value.is_table()) continue;
+    text << (first ? "" : "\n") << '[' << name.str() << "]\n";
+    for (const auto& [key, v] : *value.as_table())
+      text << key_line(std::string(key.str()), v) << '\n';
+    first = false;
+  }
+  return text.str();
+}
+
+}  // namespace
+
 std::string run_file_text(const RunConfig& c) {
   toml::table read = c.resolved;
   std::ostringstream unread;
@@ -445,13 +490,12 @@ std::string run_file_text(const RunConfig& c) {
     auto* section = read.get_as<toml::table>(u.key.substr(0, dot));
     const toml::node* value = section ? section->get(name) : nullptr;
     if (!value) continue;
-    toml::table one;  // `name = value` as TOML writes it
-    one.insert(name, *value);
-    unread << "# " << u.key.substr(0, dot + 1) << one << "  # " << u.needs << '\n';
+    unread << "# " << u.key.substr(0, dot + 1) << key_line(name, *value) << "  # " << u.needs
+           << '\n';
     section->erase(name);
   }
   std::ostringstream text;
-  text << "# beampack run file: every key with the value a run would use\n" << read << "\n";
+  text << "# beampack run file: every key with the value a run would use\n" << toml_text(read);
   if (!unread.str().empty())
     text << "\n# Keys this scene does not read, with the values they would take; to use one once\n"
             "# what it needs holds, put it under its [section] without the section's name:\n"
