@@ -538,12 +538,6 @@ struct RunRecord {
   int checkpoint_every = 0;    // --checkpoint-every of the run: a resume keeps it
 };
 
-std::string toml_text(const toml::table& table) {
-  std::ostringstream s;
-  s << table;
-  return s.str();
-}
-
 // summary.json's text. A string that is not UTF-8 (a failure's message quoting a path named in
 // other bytes) is written with U+FFFD in place of its bad bytes: nlohmann's default throws,
 // and the run's results were lost at its end.

@@ -463,7 +463,8 @@ std::string key_line(const std::string& name, const toml::node& value) {
   return line.str();
 }
 
-// A resolved run file: top-level keys, then one [section] of keys per table.
+}  // namespace
+
 std::string toml_text(const toml::table& t) {
   std::ostringstream text;
   for (const auto& [name, value] : t)
@@ -478,8 +479,6 @@ std::string toml_text(const toml::table& t) {
   }
   return text.str();
 }
-
-}  // namespace
 
 std::string run_file_text(const RunConfig& c) {
   toml::table read = c.resolved;

@@ -63,6 +63,10 @@ RunConfig load_run_config(const RunSources& sources);
 // apart, as comments with their values (a run of the file then warns of none of them).
 std::string run_file_text(const RunConfig& config);
 
+// A resolved run file as TOML: top-level keys, then one [section] of keys per table; numbers in
+// the shortest form that reads back to the same double.
+std::string toml_text(const toml::table& t);
+
 // The configurations' ignored_keys on stderr as warnings, each line once (a sweep's runs share
 // their run file).
 void warn_of_ignored_keys(const std::vector<const RunConfig*>& configs);
