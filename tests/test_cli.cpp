@@ -836,6 +836,66 @@ TEST(Cli, ACommandWhoseOutputCannotBeWrittenFails) {
   }
 }
 
+// The results of run, sweep and converge are their files: printed lines that standard output could
+// not take are said to be lost (a warning; the exit code stays the run's). A closed standard
+// output is held on /dev/null, so no file the run writes takes its descriptor; config, whose
+// printed file is its result, fails on it.
+TEST(Cli, LostStandardOutputIsSaid) {
+  const fs::path dir = fresh_dir("lost_stdout");
+  const Result full =
+      run("run --preset quick --quiet --out " + (dir / "full").string() + " >/dev/full)", "(");
+  EXPECT_EQ(full.code, 0) << full.output;
+  EXPECT_NE(full.output.find("warning: standard output could not be written"), std::string::npos)
+      << full.output;
+  EXPECT_TRUE(fs::exists(dir / "full" / "summary.json"));
+  const Result closed =
+      run("run --preset quick --quiet --out " + (dir / "closed").string() + " >&-)", "(");
+  EXPECT_EQ(closed.code, 0) << closed.output;
+  EXPECT_NE(closed.output.find("warning: standard output is closed"), std::string::npos)
+      << closed.output;
+  EXPECT_EQ(read_csv(dir / "closed" / "particles.csv").size(), 200u);
+  const Result config = run("config --preset quick >&-)", "(");
+  EXPECT_EQ(config.code, 1) << config.output;
+  EXPECT_NE(config.output.find("error: standard output is closed"), std::string::npos)
+      << config.output;
+}
+
+// A folder where a command writes one of its files failed the final rename after the whole run,
+// leaving the files before it in the set replaced: refused before the first run (exit code 2),
+// the earlier run's files left as they were.
+TEST(Cli, AFolderWhereAnOutputGoesIsRefusedBeforeTheRun) {
+  const fs::path dir = fresh_dir("folder_at_output");
+  ASSERT_EQ(run("run --preset quick --quiet --out " + dir.string()).code, 0);
+  const std::string history = file_text(dir / "history.csv");
+  fs::remove(dir / "summary.json");
+  fs::create_directories(dir / "summary.json" / "x");
+  const Result r = run("run --preset quick --quiet --set pulses.count=1 --out " + dir.string());
+  EXPECT_EQ(r.code, 2) << r.output;
+  EXPECT_NE(r.output.find((dir / "summary.json").string() +
+                          " is a folder where the command writes a file"),
+            std::string::npos)
+      << r.output;
+  EXPECT_EQ(file_text(dir / "history.csv"), history);
+  fs::create_directories(dir / "sweep.csv");
+  const Result s =
+      run("sweep --preset quick --quiet --param material.conductivity --values 0,1 --out " +
+          dir.string());
+  EXPECT_EQ(s.code, 2) << s.output;
+  EXPECT_NE(s.output.find("sweep.csv is a folder"), std::string::npos) << s.output;
+}
+
+// A run file that sets no key (empty, or comments only) runs on everything else's values: said,
+// since a file saved empty by mistake otherwise passes for the scene it was meant to hold.
+TEST(Cli, ARunFileThatSetsNoKeyIsAnnounced) {
+  const fs::path dir = fresh_dir("empty_run_file");
+  const std::string file = write(dir / "run.toml", "# nothing yet\n");
+  const Result r = run("run " + file + " --preset quick --set pulses.count=0 --quiet --out " +
+                       (dir / "out").string());
+  EXPECT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("warning: the run file " + file + " sets no key"), std::string::npos)
+      << r.output;
+}
+
 // A wall within whose reach no particle lies takes no heat: announced, as it usually means a
 // reach too short for the packing (a DEM bed's top face lies below the cube's).
 TEST(Cli, AWallThatTouchesNoParticleIsAnnounced) {
@@ -1299,6 +1359,9 @@ TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
   const Result r = run("run --resume " + dir.string() + " --quiet");
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_EQ(file_text(dir / "particles.csv"), file_text(whole / "particles.csv"));
+  // The interrupt's checkpoint is spent once the resumed run has finished: none is left over to
+  // be offered as a periodic checkpoint to run again from.
+  EXPECT_FALSE(fs::exists(dir / "checkpoint.bin"));
 }
 
 namespace {
@@ -1354,6 +1417,35 @@ TEST(Cli, AnInterruptDeliveredTwiceAtOnceStopsCleanly) {
   EXPECT_EQ(r.status, 1) << r.printed;
   ASSERT_TRUE(fs::exists(dir / "out" / "summary.json")) << r.printed;
   EXPECT_TRUE(bool(read_json(dir / "out" / "summary.json")["interrupted"]));
+}
+
+// A hang-up (the terminal closed, the ssh session lost) stops the run as Ctrl-C does, with its
+// results and checkpoint (exit code 1); before, the signal killed it amid its temporary files.
+TEST(Cli, AHangUpStopsTheRunAsAnInterruptDoes) {
+  const fs::path dir = fresh_dir("hang_up");
+  const Interrupted r = interrupt(dir, long_steps("300000") + (dir / "out").string(), kSetUpDone,
+                                  "sleep 0.1; kill -HUP $p");
+  EXPECT_EQ(r.status, 1) << r.printed;
+  ASSERT_TRUE(fs::exists(dir / "out" / "summary.json")) << r.printed;
+  EXPECT_TRUE(bool(read_json(dir / "out" / "summary.json")["interrupted"]));
+  EXPECT_TRUE(fs::exists(dir / "out" / "checkpoint.bin"));
+}
+
+// Standard error closed by the caller (`2>&-`) is held on /dev/null: before, the next file opened
+// took descriptor 2, and an interrupt's note written there broke a row of particles.csv.
+TEST(Cli, AClosedStandardErrorIsHeldOnDevNull) {
+  const fs::path dir = fresh_dir("closed_stderr");
+  const std::string script =
+      write(dir / "closed.sh", std::string(BEAMPACK_CLI) + " " + long_steps("300000") +
+                                   (dir / "out").string() + " >/dev/null 2>&- & p=$!\n" +
+                                   "for i in $(seq 500); do l=$(readlink /proc/$p/fd/2); "
+                                   "[ \"$l\" = /dev/null ] && break; sleep 0.01; done\n"
+                                   "wait $p; echo \"$l $?\"\n");
+  std::FILE* pipe = popen(("bash " + script).c_str(), "r");
+  std::array<char, 256> line{};
+  const std::string seen = std::fgets(line.data(), line.size(), pipe) ? line.data() : "";
+  pclose(pipe);
+  EXPECT_EQ(seen, "/dev/null 0\n") << "descriptor 2 and exit status: " << seen;
 }
 
 // A step of seconds cannot stop before its end: a first interrupt says the run will stop after

@@ -25,6 +25,7 @@ struct Ladder {
   std::vector<std::string> values;  // finest first
   std::vector<RunConfig> configs;   // one per value, resolved before any run
   std::vector<Rung> rungs;          // the rungs that finished
+  bool cut = false;                 // an interrupt left rungs out
 };
 
 std::vector<Ladder> ladders(const RunConfig& base) {
@@ -54,7 +55,11 @@ std::vector<Ladder> ladders(const RunConfig& base) {
 // ladder stops there. Returns the exit code so far.
 int run_ladder(Ladder& ladder, bool quiet) {
   int code = 0;
-  for (std::size_t k = 0; k < ladder.values.size() && !stop_requested().load(); ++k) {
+  for (std::size_t k = 0; k < ladder.values.size(); ++k) {
+    if (stop_requested().load()) {
+      ladder.cut = true;
+      break;
+    }
     const std::string rung = ladder.name + " " + ladder.values[k], label = rung + ": ";
     try {
       RunResult r = run_scene(ladder.configs[k], quiet, label);
@@ -63,6 +68,7 @@ int run_ladder(Ladder& ladder, bool quiet) {
                      "beampack: converge interrupted during %s; that rung and the rest "
                      "are not in convergence.csv\n",
                      rung.c_str());
+        ladder.cut = true;
         break;
       }
       ladder.rungs.push_back({ladder.values[k], std::move(r)});
@@ -99,9 +105,14 @@ int converge_command(const RunOptions& options) {
   RunSources read_xi = options.sources;
   read_xi.xi_always_read = true;  // the time-step ladder is made of xi R / c
   RunConfig base = load_run_config(read_xi);
-  warn_of_ignored_keys({&base});  // the rungs' runs read the same keys
+  warn_of_input({&base});  // the rungs' runs read the same keys
   const auto threads = limit_threads(options.threads);
   const OutDir out_folder(options.out_dir);  // an unusable --out fails before the runs, not after
+  const fs::path out(options.out_dir);
+  const std::vector<std::string> tables = {"convergence.csv", "convergence.svg"};
+  refuse_non_files_at_outputs(out, [&](const fs::path& p) {
+    return std::find(tables.begin(), tables.end(), p.filename().string()) != tables.end();
+  });
   std::vector<Ladder> all = ladders(base);
   base.packing.reset();  // each rung reads its packing when it runs: one copy at a time
   for (Ladder& ladder : all)
@@ -157,17 +168,19 @@ int converge_command(const RunOptions& options) {
   }
   const bool no_rung =
       std::all_of(all.begin(), all.end(), [](const Ladder& l) { return l.rungs.empty(); });
-  if (no_rung && stop_requested().load()) {  // a table of no rows is no result
-    std::fprintf(stderr, "beampack: converge interrupted before any rung ended: nothing written\n");
+  const bool cut = std::any_of(all.begin(), all.end(), [](const Ladder& l) { return l.cut; });
+  if (no_rung && cut) {  // a table of no rows is no result
+    std::fprintf(stderr,
+                 "beampack: converge interrupted before any rung ended: nothing written%s\n",
+                 earlier_tables_note(out, tables).c_str());
     return std::max(code, 1);
   }
-  const fs::path out(options.out_dir);
   write_atomically(
       {{(out / "convergence.csv").string(), [&](std::ostream& o) { o << csv; }},
        {(out / "convergence.svg").string(), [&](std::ostream& o) { o << render_svg(chart); }}});
   std::printf("converge: %s/convergence.csv, %s/convergence.svg\n", options.out_dir.c_str(),
               options.out_dir.c_str());
-  return stop_requested().load() ? std::max(code, 1) : code;
+  return cut ? std::max(code, 1) : code;
 }
 
 }  // namespace beampack::tools

@@ -98,24 +98,48 @@ int list_presets() {
 int print_config(RunSources sources) {
   sources.xi_always_read = true;  // the run file printed may be converge's
   const RunConfig config = load_run_config(sources);
-  warn_of_ignored_keys({&config});
+  warn_of_input({&config});
   std::cout << run_file_text(config);
   return 0;
+}
+
+// Standard output closed by the caller (`>&-`): held open on /dev/null, what goes there is lost.
+bool stdout_closed = false;
+
+// Why what was printed did not all reach standard output; "" when it did.
+std::string stdout_loss() {
+  std::cout.flush();
+  if (stdout_closed) return "is closed";
+  if (std::cout && std::fflush(stdout) == 0 && !std::ferror(stdout)) return "";
+  return std::string("could not be written (") + std::strerror(errno) + ")";
 }
 
 // What validate, presets and config print is their product: one that could not be written (a
 // full disk, a closed pipe, /dev/full) is a failed command, not an empty success.
 int output_written(int code) {
-  std::cout.flush();
-  if (std::cout && std::fflush(stdout) == 0 && !std::ferror(stdout)) return code;
-  std::fprintf(stderr, "beampack: error: standard output could not be written (%s)\n",
-               std::strerror(errno));
+  const std::string loss = stdout_loss();
+  if (loss.empty()) return code;
+  std::fprintf(stderr, "beampack: error: standard output %s\n", loss.c_str());
   return code == 0 ? 1 : code;
+}
+
+// run, sweep and converge: their results are the --out folder's files; a printed table that
+// standard output could not take (/dev/full, a reader that stopped early) is said to be lost.
+int table_written(int code) {
+  const std::string loss = stdout_loss();
+  if (!loss.empty())
+    std::fprintf(stderr,
+                 "beampack: warning: standard output %s: the printed lines are lost; the results "
+                 "are in the --out folder's files\n",
+                 loss.c_str());
+  return code;
 }
 
 }  // namespace
 
 int main(int argc, char** argv) {
+  stdout_closed = keep_standard_streams_open();
+  install_interrupt_handler();
   const CLI::Range kThreads(0, 4096);
   CLI::App app{"beampack: laser processing of packed powders (Zohdi 2013)", "beampack"};
   app.require_subcommand(1);
@@ -180,15 +204,14 @@ int main(int argc, char** argv) {
   } catch (const CLI::ParseError& e) {
     return app.exit(e) == 0 ? 0 : 2;
   }
-  install_interrupt_handler();
   try {
     if (run_cmd->parsed()) {
       run.out_set = run_cmd->count("--out") > 0;
       run.checkpoint_set = run_cmd->count("--checkpoint-every") > 0;
-      return exit_code(run_command(run));
+      return exit_code(table_written(run_command(run)));
     }
-    if (sweep_cmd->parsed()) return exit_code(sweep_command(sweep));
-    if (converge_cmd->parsed()) return exit_code(converge_command(converge));
+    if (sweep_cmd->parsed()) return exit_code(table_written(sweep_command(sweep)));
+    if (converge_cmd->parsed()) return exit_code(table_written(converge_command(converge)));
     if (validate_cmd->parsed())
       return output_written(stiff ? run_stability_report(quiet_validate)
                                   : run_validate(quiet_validate));

@@ -374,6 +374,7 @@ void Params::merge_toml_file(const std::string& path) {
     throw InputError(path + ":" + std::to_string(e.source().begin.line) + ": " +
                      std::string(e.description()));
   }
+  if (layer.empty()) empty_file_ = path;
   merge_layer(merged_, origin_, layer, {path, path, ++layers_}, true);
 }
 

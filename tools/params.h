@@ -29,6 +29,8 @@ class Params {
   // Layers apply in order: later ones override earlier ones key by key.
   void merge_toml_text(const std::string& text, const std::string& source);  // preset
   void merge_toml_file(const std::string& path);
+  // A run file merged that set no key (empty, or comments only): "" when there is none.
+  const std::string& empty_file() const { return empty_file_; }
   // --set KEY=VALUE; `origin` names it in messages (default "--set KEY=VALUE"); `swept` for a
   // value of sweep's --param or of a converge ladder.
   void merge_assignment(const std::string& key_equals_value, const std::string& origin = "",
@@ -92,6 +94,7 @@ class Params {
   toml::table merged_;
   std::map<std::string, KeyOrigin> origin_;  // key -> the layer that set it
   int layers_ = 0;
+  std::string empty_file_;  // a run file that set no key ("" when none did)
   std::set<std::string> used_;
   toml::table resolved_;
   std::map<std::string, double> number_defaults_;  // key -> fallback of number() and integer()

@@ -3,6 +3,7 @@
 #include <tbb/global_control.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <chrono>
 #include <condition_variable>
 #include <csignal>
@@ -21,6 +22,7 @@
 #include <string_view>
 #include <thread>
 
+#include <fcntl.h>
 #include <signal.h>
 #include <unistd.h>
 
@@ -114,12 +116,36 @@ void announce_set_up(std::size_t particles, std::size_t rays, const std::string&
                label.c_str(), particles, rays, parts.c_str());
 }
 
+// SIGQUIT (Ctrl-\\) asks to quit at once, with a core dump where the system keeps them: the
+// temporary file being written and the empty --out folders go first, as for a second interrupt.
+void on_quit(int signal) {
+  remove_on_quit();
+  std::signal(signal, SIG_DFL);
+  ::kill(::getpid(), signal);
+}
+
 }  // namespace
+
+// Descriptors 0-2 closed by the caller (`2>&-`) would be taken by the next files opened: the
+// interrupt note, written to descriptor 2, then landed in a row of particles.csv. They are held
+// open on /dev/null instead.
+bool keep_standard_streams_open() {
+  bool stdout_closed = false;
+  for (int fd = 0; fd <= 2; ++fd)
+    if (::fcntl(fd, F_GETFD) == -1 && errno == EBADF) {
+      stdout_closed |= fd == STDOUT_FILENO;
+      const int null = ::open("/dev/null", fd == 0 ? O_RDONLY : O_WRONLY);
+      if (null >= 0 && null != fd) ::close(null);  // lowest free descriptor: null == fd
+    }
+  return stdout_closed;
+}
 
 void install_interrupt_handler() {
   stop_requested();  // the flag exists before a signal can arrive
   std::signal(SIGINT, on_interrupt);
   std::signal(SIGTERM, on_interrupt);
+  std::signal(SIGHUP, on_interrupt);  // the terminal closed, or the ssh session lost
+  std::signal(SIGQUIT, on_quit);
   // Output piped into a reader that quits early (`| head`): the lines are lost, not the run's
   // files, which sweep and converge write after their per-run lines.
   std::signal(SIGPIPE, SIG_IGN);
@@ -834,6 +860,32 @@ void refuse_outputs_over_inputs(const fs::path& dir,
   }
 }
 
+void refuse_non_files_at_outputs(const fs::path& dir,
+                                 const std::function<bool(const fs::path&)>& is_output) {
+  for (const fs::directory_entry& e : fs::directory_iterator(dir)) {
+    const std::string name = e.path().filename().string();
+    if (!is_output(e.path()) || name.find(".tmp.") != std::string::npos) continue;
+    std::error_code ec;
+    const fs::file_type type = fs::symlink_status(e.path(), ec).type();
+    if (ec || type == fs::file_type::regular || type == fs::file_type::symlink) continue;
+    throw InputError("--out " + dir.string() + ": " + e.path().string() + " is " +
+                     (type == fs::file_type::directory ? "a folder" : "not a regular file") +
+                     " where the command writes a file: move it or choose another --out");
+  }
+}
+
+std::string earlier_tables_note(const fs::path& dir, const std::vector<std::string>& names) {
+  std::string found;
+  for (const std::string& name : names) {
+    std::error_code ec;
+    if (fs::is_regular_file(dir / name, ec)) found += (found.empty() ? "" : " and ") + name;
+  }
+  if (found.empty()) return "";
+  const bool two = found.find(" and ") != std::string::npos;
+  return " (" + found + " in " + dir.string() + (two ? " are" : " is") +
+         " an earlier run's, left as they were)";
+}
+
 // A new run into a directory that holds an earlier one: that run's results, checkpoint and
 // frames would outlive it (a new run that fails would leave them looking like its own, and
 // `--resume` would continue the earlier run over the new outputs), so they go: beampack's own
@@ -1024,6 +1076,11 @@ int finish_run(const Simulation& sim, const RunConfig& config, const RunRecord& 
   files.push_back({(out / "summary.json").string(),
                    [&](std::ostream& o) { o << json_text(summary_json(sim, r, config)) << '\n'; }});
   write_atomically(files);
+  // A run resumed into its folder from an interrupt's checkpoint, and now finished: that
+  // checkpoint is spent (a later --resume would offer it as a periodic one to run again from).
+  // Periodic checkpoints (--checkpoint-every) are kept.
+  std::error_code ec;
+  if (!r.interrupted && record.checkpoint_every == 0) fs::remove(out / "checkpoint.bin", ec);
   print_table(sim, r);
   warn_of_late_pulses(config.sim, r.counts);
   warn_of_capped_phase_steps(config.sim, r.counts);
@@ -1055,7 +1112,7 @@ int run_command(const RunOptions& options) {
   if (!options.resume.empty())
     resume_from_checkpoint(options, into_checkpoint_folder, record, saved, sources);
   RunConfig config = load_run_config(sources);
-  warn_of_ignored_keys({&config});
+  warn_of_input({&config});
   warn_of_many_steps(config.sim);
   warn_if_walls_take_no_heat(config.sim);
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
@@ -1064,6 +1121,7 @@ int run_command(const RunOptions& options) {
   const OutDir out_folder(out_dir);
   refuse_outputs_over_inputs(
       out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});
+  refuse_non_files_at_outputs(out_dir, is_output_name);
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
   const std::unique_ptr<Simulation> owned = set_up_unless_interrupted(config, options.quiet);
@@ -1193,7 +1251,12 @@ int sweep_command(const SweepOptions& options) {
   }
   std::vector<const RunConfig*> resolved;
   for (const RunConfig& c : configs) resolved.push_back(&c);
-  warn_of_ignored_keys(resolved);
+  warn_of_input(resolved);
+  const fs::path out(options.run.out_dir);
+  const std::vector<std::string> tables = {"sweep.csv", "sweep.svg"};
+  refuse_non_files_at_outputs(out, [&](const fs::path& p) {
+    return std::find(tables.begin(), tables.end(), p.filename().string()) != tables.end();
+  });
   const std::string header = options.param + ',' + kFigureColumns + ",steps,wall_seconds";
   std::string csv = header + '\n';
   Series vv{"vaporized fraction", {}, {}};
@@ -1207,6 +1270,7 @@ int sweep_command(const SweepOptions& options) {
   }
   const auto start = Clock::now();
   int code = 0;  // a value that fails leaves its row empty; the others still run and are written
+  bool cut = false;  // an interrupt left values out (one after the last value ends leaves none)
   for (std::size_t k = 0; k < configs.size(); ++k) {
     const std::string label = "sweep " + options.param + " = " + values[k] + ": ";
     RunResult r;
@@ -1218,11 +1282,13 @@ int sweep_command(const SweepOptions& options) {
       continue;
     }
     if (r.interrupted) {
-      std::fprintf(stderr, "beampack: sweep interrupted during %s = %s: %s\n",
-                   options.param.c_str(), values[k].c_str(),
-                   k == 0 ? "no value ended, nothing written"
-                          : "that value and the rest are not in sweep.csv");
+      std::fprintf(
+          stderr, "beampack: sweep interrupted during %s = %s: %s\n", options.param.c_str(),
+          values[k].c_str(),
+          k == 0 ? ("no value ended, nothing written" + earlier_tables_note(out, tables)).c_str()
+                 : "that value and the rest are not in sweep.csv");
       if (k == 0) return 1;  // a table of no rows is no result (the --out folder it made goes)
+      cut = true;
       break;
     }
     const Figures& f = r.figures;
@@ -1235,7 +1301,6 @@ int sweep_command(const SweepOptions& options) {
                 peak_text(f, "%.0f K").c_str(), r.wall_seconds);
     std::fflush(stdout);
   }
-  const fs::path out(options.run.out_dir);
   Chart chart{"vaporized fraction against " + options.param,
               options.param,
               "vaporized fraction",
@@ -1250,7 +1315,7 @@ int sweep_command(const SweepOptions& options) {
   std::printf("sweep: %zu run%s in %.2f s; %s/sweep.csv, %s/sweep.svg\n", vv.x.size(),
               plural(static_cast<long long>(vv.x.size())), total, options.run.out_dir.c_str(),
               options.run.out_dir.c_str());
-  return stop_requested().load() ? std::max(code, 1) : code;
+  return cut ? std::max(code, 1) : code;
 }
 
 }  // namespace beampack::tools

@@ -5,6 +5,7 @@
 #include <atomic>
 #include <exception>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -27,7 +28,14 @@ struct RunOptions {
 
 // The flag Ctrl-C sets: runs stop after the current step and write what they have.
 std::atomic<bool>& stop_requested();
+// SIGINT, SIGTERM and SIGHUP stop a run after its step; SIGQUIT quits at once, leaving no
+// temporary file. Installed before the command line is read: one arriving that early ends the
+// command with its message and exit code 1, not by the signal.
 void install_interrupt_handler();
+// Descriptors 0-2 that the caller closed are held open on /dev/null, so no file the run writes
+// takes their place (an interrupt note written to stderr would land in it). True when standard
+// output was closed: what is printed there is lost, and the command says so.
+bool keep_standard_streams_open();
 
 // The simulation of `config`, set up on a worker thread while this one watches stop_requested():
 // a set-up of millions of particles takes seconds and writes nothing, so Ctrl-C during it ends
@@ -112,6 +120,16 @@ std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const 
 // A run of a sweep or converge that threw: one line on stderr naming `label`, the error and
 // `consequence`; returns the exit code it calls for (2 bad input, 1 a failed run).
 int report_failed_run(const std::string& label, const std::exception& e, const char* consequence);
+// InputError (before the first run) when an entry of `dir` that `is_output` names, where the
+// command will write a file, is a folder or another non-file: the final rename would fail after
+// the whole run. Symbolic links pass: a rename replaces the link.
+void refuse_non_files_at_outputs(
+    const std::filesystem::path& dir,
+    const std::function<bool(const std::filesystem::path&)>& is_output);
+// For a sweep or converge that writes nothing: " (sweep.csv and sweep.svg in DIR are an earlier
+// run's, left as they were)" for those of `names` that are there, "" when none is.
+std::string earlier_tables_note(const std::filesystem::path& dir,
+                                const std::vector<std::string>& names);
 // InputError when a sweep or converge run file asks for output.frames or output.rays.
 void refuse_run_only_outputs(const RunConfig& config, const char* command);
 

@@ -400,7 +400,11 @@ RunConfig read_config(Params& p, const RunSources& sources) {
   c.output.frames = p.flag("output.frames", false);
   c.output.rays = p.flag("output.rays", false);
   p.check_all_used();  // first: a misspelt key is named before what it would have changed
-  c.ignored_keys = check_unread_keys(p, c.sim, use, sources.xi_always_read, c.unread_keys);
+  c.input_warnings = check_unread_keys(p, c.sim, use, sources.xi_always_read, c.unread_keys);
+  if (!p.empty_file().empty())
+    c.input_warnings.push_back("the run file " + p.empty_file() +
+                               " sets no key: every value is the preset's, a --set's or the "
+                               "default (`beampack config` prints them)");
   derive_paper_step(c, use);
   check_steps_per_crossing(p, c.sim, use.dt);
   validate_beam(c.sim.beam, c.sim.packing.sample_size);
@@ -502,10 +506,10 @@ std::string run_file_text(const RunConfig& c) {
   return text.str();
 }
 
-void warn_of_ignored_keys(const std::vector<const RunConfig*>& configs) {
+void warn_of_input(const std::vector<const RunConfig*>& configs) {
   std::set<std::string> said;
   for (const RunConfig* c : configs)
-    for (const std::string& line : c->ignored_keys)
+    for (const std::string& line : c->input_warnings)
       if (said.insert(line).second) std::fprintf(stderr, "beampack: warning: %s\n", line.c_str());
 }
 

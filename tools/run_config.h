@@ -31,9 +31,10 @@ struct RunConfig {
   // xi R / c), so that the simulation does not read the file again; null otherwise.
   std::shared_ptr<const Particles> packing;
   std::map<std::string, std::string> origins;  // key -> where a layer set it ("run.toml:7")
-  // Keys a run file sets to other values than their defaults that this scene ignores: one line
-  // each, for the command to print as warnings (beampack: warning: ...).
-  std::vector<std::string> ignored_keys;
+  // What the input asks that this scene ignores: keys a run file sets to other values than their
+  // defaults that it does not read, a run file that sets no key. One line each, for the command to
+  // print as warnings (beampack: warning: ...).
+  std::vector<std::string> input_warnings;
   // Every key this scene does not read (whoever set it): `beampack config` prints them apart.
   std::vector<UnreadKey> unread_keys;
 };
@@ -67,9 +68,9 @@ std::string run_file_text(const RunConfig& config);
 // the shortest form that reads back to the same double.
 std::string toml_text(const toml::table& t);
 
-// The configurations' ignored_keys on stderr as warnings, each line once (a sweep's runs share
+// The configurations' input_warnings on stderr as warnings, each line once (a sweep's runs share
 // their run file).
-void warn_of_ignored_keys(const std::vector<const RunConfig*>& configs);
+void warn_of_input(const std::vector<const RunConfig*>& configs);
 
 // `message` with the place that set the first key it names ("run.toml:7: ..."), unless it
 // already starts with one: for errors found after the run file was read.
