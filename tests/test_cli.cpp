@@ -1030,9 +1030,13 @@ TEST(Cli, ConvergeWritesLaddersWithTheFinestAsReference) {
     const bool first = per_ladder[row.at("ladder")]++ == 0;
     const double e = std::stod(row.at("vaporized_fraction_error"));
     const double l2 = std::stod(row.at("temperature_l2_error_K"));
-    ASSERT_TRUE(std::isfinite(e) && std::isfinite(l2));
+    const double peak = std::stod(row.at("peak_temperature_K"));
+    const double peak_error = std::stod(row.at("peak_temperature_error_K"));
+    ASSERT_TRUE(std::isfinite(e) && std::isfinite(l2) && std::isfinite(peak_error));
+    EXPECT_GE(peak, 300.0) << row.at("ladder");  // the preset's initial temperature at least
     if (first) {
       EXPECT_EQ(l2, 0.0) << row.at("ladder");  // the reference against itself
+      EXPECT_EQ(peak_error, 0.0) << row.at("ladder");
     }
     EXPECT_GT(std::stod(row.at("wall_seconds")), 0.0);
     EXPECT_FALSE(row.at("resolution").empty());  // INTERFACE.md's name for the rung's value
@@ -1040,6 +1044,13 @@ TEST(Cli, ConvergeWritesLaddersWithTheFinestAsReference) {
     EXPECT_GT(std::stod(row.at("end_time_s")), 0.0) << row.at("ladder");
   }
   EXPECT_EQ(per_ladder.size(), 3u);
+  // What no rung measures, the reference's own error, is bounded by nothing: the step from it to
+  // the next rung is said for each ladder.
+  std::size_t said = 0;
+  for (std::size_t at = r.output.find(" the reference ("); at != std::string::npos;
+       at = r.output.find(" the reference (", at + 1))
+    ++said;
+  EXPECT_EQ(said, 3u) << r.output;
   // --set beam.rays=50 is the other ladders' ray count; the rays ladder varies its own (`rays`
   // counts a run's rays over its pulses).
   for (const auto& row : rows) {
