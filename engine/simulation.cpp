@@ -224,6 +224,69 @@ void Simulation::launch_pulse_if_due() {
   next_pulse_time_ = launched_ * spec_.pulses.period;
 }
 
+namespace {
+
+// A wall within whose reach no particle lies takes no heat: legal, but not what naming it asks.
+void warn_of_walls_touching_nothing(const SimulationSpec& spec, const Particles& p,
+                                    std::vector<std::string>& warnings) {
+  for (const Wall& w : spec.thermal.walls) {
+    std::size_t touching = 0;
+    for (std::size_t i = 0; i < p.size(); ++i) touching += touches(w, p, i);
+    if (touching > 0 || p.size() == 0) continue;
+    warnings.push_back(std::string("the wall ") + "xyz"[w.axis] + (w.position > 0 ? '+' : '-') +
+                       " (`thermal.walls`) touches no particle: none lies within "
+                       "`thermal.wall_reach` = " +
+                       shown_number(w.reach) + " m of it, so it takes no heat");
+  }
+}
+
+// A beam whose tube meets no particle is legal but almost always a misplaced sample (a file
+// packing whose coordinates lie outside the cube [0, D]^3 the beam is centred on): say so.
+void warn_if_beam_meets_nothing(const SimulationSpec& spec, const Particles& p, const Beam& beam,
+                                std::vector<std::string>& warnings) {
+  if (p.size() == 0 || beam.size() == 0) return;  // no particles, or no pulses
+  Vec3 lo = p.centre[0], hi = p.centre[0];
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    const Vec3 off = p.centre[i] - beam.centre;
+    const Vec3 across = off - off.dot(beam.direction) * beam.direction;
+    if (across.norm() < beam.radius + p.radius[i]) return;
+    lo = lo.cwiseMin(p.centre[i]), hi = hi.cwiseMax(p.centre[i]);
+  }
+  std::ostringstream m;
+  const auto span = [&](int axis) {
+    return " [" + shown_number(lo[axis]) + ", " + shown_number(hi[axis]) + "]";
+  };
+  m << "the beam (disk of radius " << shown_number(beam.radius) << " m centred at ("
+    << shown_number(beam.centre.x()) << ", " << shown_number(beam.centre.y()) << ", "
+    << shown_number(beam.centre.z()) << ") m on the face of the sample cube [0, "
+    << shown_number(spec.packing.sample_size)
+    << "]^3 m, `sample.size`) meets no particle: the particles' centres span x" << span(0) << ", y"
+    << span(1) << ", z" << span(2) << " m";
+  warnings.push_back(m.str());
+}
+
+// Without particles every ray escapes at once: a pulse's flight is 0, so with the automatic
+// period and one step per flight no step has a length and time stays 0 in history.csv.
+void warn_if_time_stands_still(const SimulationSpec& spec, const Particles& p,
+                               std::vector<std::string>& warnings) {
+  if (spec.dt > 0 || spec.pulses.period > 0 || spec.pulses.count == 0) return;
+  if (p.alive_count() > 0) return;
+  warnings.push_back(
+      "no particles: every ray escapes at once, so with `pulses.period` = \"auto\" and "
+      "`thermal.dt` = \"pulse\" no step has a length and time stays 0; set `pulses.period` (s) "
+      "or `thermal.dt` (s) for a time axis");
+}
+
+}  // namespace
+
+std::vector<std::string> Simulation::scene_warnings() const {
+  std::vector<std::string> warnings;
+  warn_if_beam_meets_nothing(spec_, particles_, beam_, warnings);
+  warn_of_walls_touching_nothing(spec_, particles_, warnings);
+  warn_if_time_stands_still(spec_, particles_, warnings);
+  return warnings;
+}
+
 // The beam of the pulses from now on, with its rays' energies in a pulse.
 void Simulation::use_beam(Beam beam) {
   beam_ = std::move(beam);

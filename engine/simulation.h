@@ -145,6 +145,11 @@ class Simulation {
   // Time and calls per stage; a stage that never ran says why (the run reports what it skipped).
   std::array<StageTime, kStages> stages() const;
   const SimulationSpec& spec() const { return spec_; }
+  // What the scene as set up will not do though its spec names it, one line each: a beam whose
+  // tube meets no particle, a wall that touches none, time that cannot advance. Legal, and almost
+  // always a mistake (a file packing outside the cube the beam is centred on); the CLI prints them
+  // as warnings.
+  std::vector<std::string> scene_warnings() const;
   // The rays every pulse launches (pulse 0's until a launch resamples); without pulses, none.
   const Beam& beam() const { return beam_; }
   const Tracer& tracer() const { return *tracer_; }

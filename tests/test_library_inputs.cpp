@@ -145,4 +145,25 @@ TEST(LibraryInputs, OnlyTheSpecsOwnPackingIsNamedAsTheCauseOfARadius) {
 }
 
 }  // namespace
+// What the command line warns of once a run is set up, a library caller reads from the simulation:
+// particles placed away from the cube the beam is centred on, a wall out of their reach.
+TEST(LibraryInputs, AMisplacedSceneIsSaidToTheCaller) {
+  SimulationSpec spec = one_pulse();
+  EXPECT_TRUE(Simulation(spec, three_spheres()).scene_warnings().empty());
+  Particles far = three_spheres();
+  for (Vec3& c : far.centre) c += Vec3(0, 5e-3, 0);  // beside the cube [0, 1 mm]^3
+  const std::vector<std::string> beside = Simulation(spec, far).scene_warnings();
+  ASSERT_EQ(beside.size(), 1u);
+  EXPECT_NE(beside[0].find("meets no particle"), std::string::npos) << beside[0];
+  Wall wall;
+  wall.axis = 2;
+  wall.position = kD;  // z+: the spheres reach 0.6 mm of the 1 mm cube
+  wall.reach = 1e-5;
+  spec.thermal.walls = {wall};
+  const std::vector<std::string> lonely = Simulation(spec, three_spheres()).scene_warnings();
+  ASSERT_EQ(lonely.size(), 1u);
+  EXPECT_NE(lonely[0].find("the wall z+ (`thermal.walls`) touches no particle"), std::string::npos)
+      << lonely[0];
+}
+
 }  // namespace beampack

@@ -711,56 +711,6 @@ void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts) {
           : "with `thermal.dt` = \"pulse\" a step is a whole pulse flight, longer than the period");
 }
 
-// A wall within whose reach no particle lies takes no heat: legal, but not what naming it asks.
-void warn_of_walls_touching_nothing(const Simulation& sim) {
-  const Particles& p = sim.particles();
-  for (const Wall& w : sim.spec().thermal.walls) {
-    std::size_t touching = 0;
-    for (std::size_t i = 0; i < p.size(); ++i) touching += touches(w, p, i);
-    if (touching > 0 || p.size() == 0) continue;
-    std::fprintf(
-        stderr,
-        "beampack: warning: the wall %c%c (`thermal.walls`) touches no particle: none lies within "
-        "`thermal.wall_reach` = %g m of it, so it takes no heat\n",
-        "xyz"[w.axis], w.position > 0 ? '+' : '-', w.reach);
-  }
-}
-
-// A beam whose tube meets no particle is legal but almost always a misplaced sample (a file
-// packing whose coordinates lie outside the cube [0, D]^3 the beam is centred on): say so.
-void warn_if_beam_meets_nothing(const Simulation& sim) {
-  const Particles& p = sim.particles();
-  const Beam& beam = sim.beam();
-  if (p.size() == 0 || beam.size() == 0) return;  // no particles, or no pulses
-  Vec3 lo = p.centre[0], hi = p.centre[0];
-  for (std::size_t i = 0; i < p.size(); ++i) {
-    const Vec3 off = p.centre[i] - beam.centre;
-    const Vec3 across = off - off.dot(beam.direction) * beam.direction;
-    if (across.norm() < beam.radius + p.radius[i]) return;
-    lo = lo.cwiseMin(p.centre[i]), hi = hi.cwiseMax(p.centre[i]);
-  }
-  std::fprintf(stderr,
-               "beampack: warning: the beam (disk of radius %g m centred at (%g, %g, %g) m on the "
-               "face of the sample cube [0, %g]^3 m, `sample.size`) meets no particle: the "
-               "particles' centres span x [%g, %g], y [%g, %g], z [%g, %g] m\n",
-               beam.radius, beam.centre.x(), beam.centre.y(), beam.centre.z(),
-               sim.spec().packing.sample_size, lo.x(), hi.x(), lo.y(), hi.y(), lo.z(), hi.z());
-}
-
-// Without particles every ray escapes at once: a pulse's flight is 0, so with the automatic
-// period and one step per flight no step has a length and time stays 0 in history.csv.
-void warn_if_time_stands_still(const Simulation& sim) {
-  const SimulationSpec& spec = sim.spec();
-  const Particles& p = sim.particles();
-  if (spec.dt > 0 || spec.pulses.period > 0 || spec.pulses.count == 0) return;
-  if (p.alive_count() > 0) return;
-  std::fprintf(
-      stderr,
-      "beampack: warning: no particles: every ray escapes at once, so with `pulses.period` = "
-      "\"auto\" and `thermal.dt` = \"pulse\" no step has a length and time stays 0; set "
-      "`pulses.period` (s) or `thermal.dt` (s) for a time axis\n");
-}
-
 // The first `bytes` of a regular file; "" for anything else (a FIFO would block the open).
 std::string head_of(const fs::path& file, std::size_t bytes) {
   std::error_code ec;
@@ -1131,9 +1081,8 @@ int run_command(const RunOptions& options) {
   }
   config.packing.reset();  // the simulation holds its own copy
   Simulation& sim = *owned;
-  warn_if_beam_meets_nothing(sim);
-  warn_of_walls_touching_nothing(sim);
-  warn_if_time_stands_still(sim);
+  for (const std::string& warning : sim.scene_warnings())
+    std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
   if (saved) sim.read_state(*saved);
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
   if (!into_checkpoint_folder) remove_earlier_run(out_dir);
