@@ -256,6 +256,26 @@ std::vector<std::string> svg_texts(const std::string& svg, const std::string& at
 // the lower edge, said in a note (it used to be drawn at 1e-6 as if measured, and labels repeated).
 // A scene beyond the machine's memory is refused before set-up, naming the key that needs the
 // most: it ended in std::bad_alloc (exit 1) after minutes of allocation.
+// Temperatures risen so far that the solves' accuracy in kelvin nears the melting-to-vapour gap
+// (beam.power = 1e20 W: a particle beside the hottest ended 2 K below its initial temperature,
+// and the solvers disagreed on v_v) are said; a run of ordinary temperatures says nothing.
+TEST(RunReport, TemperaturesBeyondTheSolvesResolutionOfThePhasesAreSaid) {
+  SimulationSpec spec;  // tolerance 1e-10, theta_m 600 K, theta_v 700 K, from 300 K
+  Figures f;
+  f.max_temperature = 4e2 + 300;
+  EXPECT_FALSE(phase_resolution_warning(spec, f));
+  f.max_temperature = 4e17 + 300;
+  const auto said = phase_resolution_warning(spec, f);
+  ASSERT_TRUE(said);
+  EXPECT_NE(said->find("misplace a particle beside the hottest by ~4e+07 K, against 100 K"),
+            std::string::npos)
+      << *said;
+  f.max_temperature = 4e10 + 300;  // 4 K against 100 K: the phases are resolved
+  EXPECT_FALSE(phase_resolution_warning(spec, f));
+  spec.thermal.tolerance = 1e-8;  // 400 K
+  EXPECT_TRUE(phase_resolution_warning(spec, f));
+}
+
 TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
   constexpr double k24GiB = 24.0 * (1 << 30);
   SimulationSpec paper;  // 1000 rays on 1000 particles

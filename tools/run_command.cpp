@@ -467,6 +467,29 @@ std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const 
   return out;
 }
 
+std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f) {
+  if (spec.materials.empty()) return std::nullopt;
+  double gap = std::numeric_limits<double>::infinity();
+  for (const Material& m : spec.materials)
+    gap = std::min(gap, m.vapor_temperature - m.melt_temperature);
+  // Relative accuracy of a step's solve: the tolerance, or round-off for the direct solver.
+  const double accuracy = std::max(spec.thermal.tolerance, 1e-15);
+  const double rise = f.max_temperature - spec.packing.initial_temperature;
+  const double misplaced = accuracy * rise;
+  if (!(misplaced > 0.1 * gap)) return std::nullopt;
+  char text[640];
+  std::snprintf(
+      text, sizeof text,
+      "the peak temperature rose %.3g K, and the heat solves, accurate to %.3g of a step's largest "
+      "change (`thermal.tolerance`, or round-off), may misplace a particle beside the hottest by "
+      "~%.3g K, against %.3g K between `material.melt_temperature` and `vapor_temperature`: "
+      "whether "
+      "such a particle melted or vaporised may depend on the solver (a review saw one end 2 K "
+      "below its initial temperature); lower `thermal.tolerance` or the energy of a pulse",
+      rise, accuracy, misplaced, gap);
+  return std::string(text);
+}
+
 int report_failed_run(const std::string& label, const std::exception& e, const char* consequence) {
   const bool input = dynamic_cast<const InputError*>(&e) != nullptr;
   std::fprintf(stderr, "beampack: %s%s %s (%s)\n", label.c_str(),
@@ -1037,6 +1060,8 @@ int finish_run(const Simulation& sim, const RunConfig& config, const RunRecord& 
   warn_of_unsettled_staggers(config.sim, r.counts);
   for (const std::string& warning : open_ledger_warnings(config.sim, r.figures.energy))
     std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
+  if (const auto warning = phase_resolution_warning(config.sim, r.figures))
+    std::fprintf(stderr, "beampack: warning: %s\n", warning->c_str());
   if (!r.interrupted) return 0;
   const std::string where = r.figures.pulse > 0
                                 ? "in pulse " + std::to_string(r.figures.pulse) + " of " +

@@ -7,6 +7,7 @@
 #include <filesystem>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -119,6 +120,9 @@ class OutDir {
 std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e);
 // A run of a sweep or converge that threw: one line on stderr naming `label`, the error and
 // `consequence`; returns the exit code it calls for (2 bad input, 1 a failed run).
+// A run whose temperatures rose so far that the heat solves' relative accuracy, in kelvin, nears
+// the gap between melting and vaporising: one warning saying so; none otherwise.
+std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f);
 int report_failed_run(const std::string& label, const std::exception& e, const char* consequence);
 // InputError (before the first run) when an entry of `dir` that `is_output` names, where the
 // command will write a file, is a folder or another non-file: the final rename would fail after
