@@ -1442,6 +1442,21 @@ TEST(Cli, AHangUpStopsTheRunAsAnInterruptDoes) {
   EXPECT_TRUE(fs::exists(dir / "out" / "checkpoint.bin"));
 }
 
+// A hang-up the caller ignores (`nohup`, `trap '' HUP`) stays ignored: the run goes on to its end.
+TEST(Cli, AnIgnoredHangUpLeavesTheRunGoing) {
+  const fs::path dir = fresh_dir("ignored_hang_up");
+  const std::string script = write(
+      dir / "nohup.sh", "trap '' HUP\n" + std::string(BEAMPACK_CLI) + " " + long_steps("300000") +
+                            (dir / "out").string() + " >/dev/null 2>" + (dir / "err").string() +
+                            " & p=$!\nsleep 0.3; kill -HUP $p; wait $p; echo \"status $?\"\n");
+  std::FILE* pipe = popen(("bash " + script).c_str(), "r");
+  std::array<char, 256> line{};
+  const std::string seen = std::fgets(line.data(), line.size(), pipe) ? line.data() : "";
+  pclose(pipe);
+  EXPECT_EQ(seen, "status 0\n") << file_text(dir / "err");
+  EXPECT_FALSE(bool(read_json(dir / "out" / "summary.json")["interrupted"]));
+}
+
 // Standard error closed by the caller (`2>&-`) is held on /dev/null: before, the next file opened
 // took descriptor 2, and an interrupt's note written there broke a row of particles.csv.
 TEST(Cli, AClosedStandardErrorIsHeldOnDevNull) {

@@ -261,6 +261,7 @@ std::vector<std::string> svg_texts(const std::string& svg, const std::string& at
 // and the solvers disagreed on v_v) are said; a run of ordinary temperatures says nothing.
 TEST(RunReport, TemperaturesBeyondTheSolvesResolutionOfThePhasesAreSaid) {
   SimulationSpec spec;  // tolerance 1e-10, theta_m 600 K, theta_v 700 K, from 300 K
+  spec.materials.front().conductivity = 100;
   Figures f;
   f.max_temperature = 4e2 + 300;
   EXPECT_FALSE(phase_resolution_warning(spec, f));
@@ -274,6 +275,16 @@ TEST(RunReport, TemperaturesBeyondTheSolvesResolutionOfThePhasesAreSaid) {
   EXPECT_FALSE(phase_resolution_warning(spec, f));
   spec.thermal.tolerance = 1e-8;  // 400 K
   EXPECT_TRUE(phase_resolution_warning(spec, f));
+  // No iterative solve to blame: the direct solver's round-off (4e-5 K), no conduction at all,
+  // or explicit steps.
+  spec.thermal.solver = "direct";
+  EXPECT_FALSE(phase_resolution_warning(spec, f));
+  spec.thermal.solver = "auto";
+  spec.materials.front().conductivity = 0;
+  EXPECT_FALSE(phase_resolution_warning(spec, f));
+  spec.materials.front().conductivity = 100;
+  spec.thermal.phi = 0;
+  EXPECT_FALSE(phase_resolution_warning(spec, f));
 }
 
 TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {

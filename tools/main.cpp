@@ -129,8 +129,8 @@ int table_written(int code) {
   const std::string loss = stdout_loss();
   if (!loss.empty())
     std::fprintf(stderr,
-                 "beampack: warning: standard output %s: the printed lines are lost; the results "
-                 "are in the --out folder's files\n",
+                 "beampack: warning: standard output %s: the printed lines are lost; what the "
+                 "command wrote is in its --out folder\n",
                  loss.c_str());
   return code;
 }

@@ -126,6 +126,13 @@ void on_quit(int signal) {
 
 }  // namespace
 
+// `handler` for `signal`, unless the process started with it ignored (SIG_IGN is inherited).
+void catch_unless_ignored(int signal, void (*handler)(int)) {
+  struct sigaction now {};
+  if (::sigaction(signal, nullptr, &now) == 0 && now.sa_handler == SIG_IGN) return;
+  std::signal(signal, handler);
+}
+
 // Descriptors 0-2 closed by the caller (`2>&-`) would be taken by the next files opened: the
 // interrupt note, written to descriptor 2, then landed in a row of particles.csv. They are held
 // open on /dev/null instead.
@@ -144,8 +151,10 @@ void install_interrupt_handler() {
   stop_requested();  // the flag exists before a signal can arrive
   std::signal(SIGINT, on_interrupt);
   std::signal(SIGTERM, on_interrupt);
-  std::signal(SIGHUP, on_interrupt);  // the terminal closed, or the ssh session lost
-  std::signal(SIGQUIT, on_quit);
+  // The terminal closed or the ssh session lost; SIGQUIT (Ctrl-\\). Both unless the caller
+  // ignores them: `nohup` ignores SIGHUP, and a script's background jobs SIGQUIT.
+  catch_unless_ignored(SIGHUP, on_interrupt);
+  catch_unless_ignored(SIGQUIT, on_quit);
   // Output piped into a reader that quits early (`| head`): the lines are lost, not the run's
   // files, which sweep and converge write after their per-run lines.
   std::signal(SIGPIPE, SIG_IGN);
@@ -468,12 +477,15 @@ std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const 
 }
 
 std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f) {
-  if (spec.materials.empty()) return std::nullopt;
+  // Without a solve there is no tolerance to blame: no conduction, or explicit steps (phi = 0).
+  if (spec.materials.empty() || !needs_conduction(spec) || spec.thermal.phi == 0)
+    return std::nullopt;
   double gap = std::numeric_limits<double>::infinity();
   for (const Material& m : spec.materials)
     gap = std::min(gap, m.vapor_temperature - m.melt_temperature);
   // Relative accuracy of a step's solve: the tolerance, or round-off for the direct solver.
-  const double accuracy = std::max(spec.thermal.tolerance, 1e-15);
+  const double accuracy =
+      spec.thermal.solver == "direct" ? 1e-15 : std::max(spec.thermal.tolerance, 1e-15);
   const double rise = f.max_temperature - spec.packing.initial_temperature;
   const double misplaced = accuracy * rise;
   if (!(misplaced > 0.1 * gap)) return std::nullopt;
@@ -583,8 +595,9 @@ struct RunRecord {
   std::string config_text;
   std::string history = history_header();
   std::vector<std::pair<std::string, double>> frames;
-  double earlier_seconds = 0;  // wall time of the runs this one resumes
-  int checkpoint_every = 0;    // --checkpoint-every of the run: a resume keeps it
+  double earlier_seconds = 0;     // wall time of the runs this one resumes
+  int checkpoint_every = 0;       // --checkpoint-every of the run: a resume keeps it
+  bool resumed_in_place = false;  // --resume into the checkpoint's own folder
 };
 
 // summary.json's text. A string that is not UTF-8 (a failure's message quoting a path named in
@@ -835,7 +848,8 @@ void refuse_outputs_over_inputs(const fs::path& dir,
 
 void refuse_non_files_at_outputs(const fs::path& dir,
                                  const std::function<bool(const fs::path&)>& is_output) {
-  for (const fs::directory_entry& e : fs::directory_iterator(dir)) {
+  std::error_code listed;  // a folder that may be written but not listed (mode 300) is not checked
+  for (const fs::directory_entry& e : fs::directory_iterator(dir, listed)) {
     const std::string name = e.path().filename().string();
     if (!is_output(e.path()) || name.find(".tmp.") != std::string::npos) continue;
     std::error_code ec;
@@ -856,7 +870,7 @@ std::string earlier_tables_note(const fs::path& dir, const std::vector<std::stri
   if (found.empty()) return "";
   const bool two = found.find(" and ") != std::string::npos;
   return " (" + found + " in " + dir.string() + (two ? " are" : " is") +
-         " an earlier run's, left as they were)";
+         " an earlier run's, left as " + (two ? "they were)" : "it was)");
 }
 
 // A new run into a directory that holds an earlier one: that run's results, checkpoint and
@@ -1053,7 +1067,8 @@ int finish_run(const Simulation& sim, const RunConfig& config, const RunRecord& 
   // checkpoint is spent (a later --resume would offer it as a periodic one to run again from).
   // Periodic checkpoints (--checkpoint-every) are kept.
   std::error_code ec;
-  if (!r.interrupted && record.checkpoint_every == 0) fs::remove(out / "checkpoint.bin", ec);
+  if (!r.interrupted && record.resumed_in_place && record.checkpoint_every == 0)
+    fs::remove(out / "checkpoint.bin", ec);
   print_table(sim, r);
   warn_of_late_pulses(config.sim, r.counts);
   warn_of_capped_phase_steps(config.sim, r.counts);
@@ -1093,6 +1108,7 @@ int run_command(const RunOptions& options) {
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
   if (options.resume.empty() || options.checkpoint_set)
     record.checkpoint_every = options.checkpoint_every;
+  record.resumed_in_place = into_checkpoint_folder;
   const OutDir out_folder(out_dir);
   refuse_outputs_over_inputs(
       out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});

@@ -30,8 +30,9 @@ struct RunOptions {
 // The flag Ctrl-C sets: runs stop after the current step and write what they have.
 std::atomic<bool>& stop_requested();
 // SIGINT, SIGTERM and SIGHUP stop a run after its step; SIGQUIT quits at once, leaving no
-// temporary file. Installed before the command line is read: one arriving that early ends the
-// command with its message and exit code 1, not by the signal.
+// temporary file (SIGHUP and SIGQUIT only when not ignored: `nohup` keeps a run going).
+// Installed before the command line is read: one arriving that early stops a run, sweep or
+// converge before its first step, not by the signal.
 void install_interrupt_handler();
 // Descriptors 0-2 that the caller closed are held open on /dev/null, so no file the run writes
 // takes their place (an interrupt note written to stderr would land in it). True when standard
