@@ -1442,13 +1442,14 @@ TEST(Cli, AHangUpStopsTheRunAsAnInterruptDoes) {
   EXPECT_TRUE(fs::exists(dir / "out" / "checkpoint.bin"));
 }
 
-// A hang-up the caller ignores (`nohup`, `trap '' HUP`) stays ignored: the run goes on to its end.
+// A hang-up the caller ignores (`nohup`, `trap '' HUP`) stays ignored: the run goes on to its end
+// (3 pulses of 3e6 rays: about 3 s, the hang-up sent after 1 s).
 TEST(Cli, AnIgnoredHangUpLeavesTheRunGoing) {
   const fs::path dir = fresh_dir("ignored_hang_up");
   const std::string script = write(
-      dir / "nohup.sh", "trap '' HUP\n" + std::string(BEAMPACK_CLI) + " " + long_steps("300000") +
+      dir / "nohup.sh", "trap '' HUP\n" + std::string(BEAMPACK_CLI) + " " + long_steps("3000000") +
                             (dir / "out").string() + " >/dev/null 2>" + (dir / "err").string() +
-                            " & p=$!\nsleep 0.3; kill -HUP $p; wait $p; echo \"status $?\"\n");
+                            " & p=$!\nsleep 1; kill -HUP $p; wait $p; echo \"status $?\"\n");
   std::FILE* pipe = popen(("bash " + script).c_str(), "r");
   std::array<char, 256> line{};
   const std::string seen = std::fgets(line.data(), line.size(), pipe) ? line.data() : "";
