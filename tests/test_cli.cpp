@@ -1415,6 +1415,13 @@ std::string long_steps(const char* rays) {
 }
 const char* kSetUpDone = "touches no particle";
 
+// A run stopped by a signal as Ctrl-C stops it: exit code 1, its results written as interrupted.
+void expect_stopped_cleanly(const Interrupted& r, const fs::path& out) {
+  EXPECT_EQ(r.status, 1) << r.printed;
+  ASSERT_TRUE(fs::exists(out / "summary.json")) << r.printed;
+  EXPECT_TRUE(bool(read_json(out / "summary.json")["interrupted"]));
+}
+
 }  // namespace
 
 // An interrupt sent to the process and to its process group (what `timeout -s INT` and batch
@@ -1425,9 +1432,7 @@ TEST(Cli, AnInterruptDeliveredTwiceAtOnceStopsCleanly) {
   // Both arrive during the first step, after which the run stops and writes what it has.
   const Interrupted r = interrupt(dir, long_steps("300000") + (dir / "out").string(), kSetUpDone,
                                   "sleep 0.1; kill -INT $p; sleep 0.02; kill -INT $p");
-  EXPECT_EQ(r.status, 1) << r.printed;
-  ASSERT_TRUE(fs::exists(dir / "out" / "summary.json")) << r.printed;
-  EXPECT_TRUE(bool(read_json(dir / "out" / "summary.json")["interrupted"]));
+  expect_stopped_cleanly(r, dir / "out");
 }
 
 // A hang-up (the terminal closed, the ssh session lost) stops the run as Ctrl-C does, with its
@@ -1436,9 +1441,7 @@ TEST(Cli, AHangUpStopsTheRunAsAnInterruptDoes) {
   const fs::path dir = fresh_dir("hang_up");
   const Interrupted r = interrupt(dir, long_steps("300000") + (dir / "out").string(), kSetUpDone,
                                   "sleep 0.1; kill -HUP $p");
-  EXPECT_EQ(r.status, 1) << r.printed;
-  ASSERT_TRUE(fs::exists(dir / "out" / "summary.json")) << r.printed;
-  EXPECT_TRUE(bool(read_json(dir / "out" / "summary.json")["interrupted"]));
+  expect_stopped_cleanly(r, dir / "out");
   EXPECT_TRUE(fs::exists(dir / "out" / "checkpoint.bin"));
 }
 
