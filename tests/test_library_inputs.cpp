@@ -14,6 +14,7 @@
 #include "engine/tracer.h"
 #include "geometry/error.h"
 #include "geometry/packing.h"
+#include "tests/expect_error.h"
 #include "thermal/thermal_model.h"
 
 namespace beampack {
@@ -23,12 +24,7 @@ constexpr double kD = 1e-3;
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 void expect_refused(const std::function<void()>& call, const std::string& message) {
-  try {
-    call();
-    ADD_FAILURE() << "accepted; expected: " << message;
-  } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find(message), std::string::npos) << e.what();
-  }
+  testing::expect_error<InputError>(call, message);
 }
 
 Particles three_spheres() {

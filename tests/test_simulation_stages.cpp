@@ -14,6 +14,7 @@
 #include "engine/simulation.h"
 #include "engine/state_io.h"
 #include "geometry/error.h"
+#include "tests/expect_error.h"
 
 namespace beampack {
 namespace {
@@ -113,16 +114,7 @@ TEST(SimulationStages, NoPulseStillRefusesABadBeam) {
   SimulationSpec spec = quick_spec();
   spec.pulses.count = 0;
   spec.beam.direction = Vec3(1, 1, 0);
-  EXPECT_THROW(
-      {
-        try {
-          Simulation sim(spec);
-        } catch (const InputError& e) {
-          EXPECT_NE(std::string(e.what()).find("`beam.direction`"), std::string::npos) << e.what();
-          throw;
-        }
-      },
-      InputError);
+  testing::expect_error<InputError>([&] { Simulation sim(spec); }, "`beam.direction`");
 }
 
 TEST(SimulationStages, AnEmptyPackingTracesButHasNoHeatToConduct) {
@@ -525,13 +517,8 @@ TEST(SimulationStages, AResampledPulseThatCannotSampleTheProfileIsRefusedUpFront
   spec.pulses.count = 3;
   ASSERT_NO_THROW(make_beam(spec.beam, kD, 0));
   spec.beam.resample = true;
-  try {
-    Simulation sim(spec);
-    FAIL() << "accepted";
-  } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("pulse 2's rays (`beam.resample`)"), std::string::npos)
-        << e.what();
-  }
+  testing::expect_error<InputError>([&] { Simulation sim(spec); },
+                                    "pulse 2's rays (`beam.resample`)");
 }
 
 }  // namespace

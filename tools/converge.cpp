@@ -127,9 +127,7 @@ int converge_command(const RunOptions& options) {
   const OutDir out_folder(options.out_dir);  // an unusable --out fails before the runs, not after
   const fs::path out(options.out_dir);
   const std::vector<std::string> tables = {"convergence.csv", "convergence.svg"};
-  refuse_non_files_at_outputs(out, [&](const fs::path& p) {
-    return std::find(tables.begin(), tables.end(), p.filename().string()) != tables.end();
-  });
+  refuse_non_files_at_outputs(out, tables);
   std::vector<Ladder> all = ladders(base);
   base.packing.reset();  // each rung reads its packing when it runs: one copy at a time
   for (Ladder& ladder : all)

@@ -124,14 +124,14 @@ void on_quit(int signal) {
   ::kill(::getpid(), signal);
 }
 
-}  // namespace
-
 // `handler` for `signal`, unless the process started with it ignored (SIG_IGN is inherited).
 void catch_unless_ignored(int signal, void (*handler)(int)) {
   struct sigaction now {};
   if (::sigaction(signal, nullptr, &now) == 0 && now.sa_handler == SIG_IGN) return;
   std::signal(signal, handler);
 }
+
+}  // namespace
 
 // Descriptors 0-2 closed by the caller (`2>&-`) would be taken by the next files opened: the
 // interrupt note, written to descriptor 2, then landed in a row of particles.csv. They are held
@@ -495,9 +495,8 @@ std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, 
       "the peak temperature rose %.3g K, and the heat solves, accurate to %.3g of a step's largest "
       "change (`thermal.tolerance`, or round-off), may misplace a particle beside the hottest by "
       "~%.3g K, against %.3g K between `material.melt_temperature` and `vapor_temperature`: "
-      "whether "
-      "such a particle melted or vaporised may depend on the solver (a review saw one end 2 K "
-      "below its initial temperature); lower `thermal.tolerance` or the energy of a pulse",
+      "whether such a particle melted or vaporised may depend on the solver (a review saw one end "
+      "2 K below its initial temperature); lower `thermal.tolerance` or the energy of a pulse",
       rise, accuracy, misplaced, gap);
   return std::string(text);
 }
@@ -859,6 +858,12 @@ void refuse_non_files_at_outputs(const fs::path& dir,
                      (type == fs::file_type::directory ? "a folder" : "not a regular file") +
                      " where the command writes a file: move it or choose another --out");
   }
+}
+
+void refuse_non_files_at_outputs(const fs::path& dir, const std::vector<std::string>& names) {
+  refuse_non_files_at_outputs(dir, [&](const fs::path& p) {
+    return std::find(names.begin(), names.end(), p.filename().string()) != names.end();
+  });
 }
 
 std::string earlier_tables_note(const fs::path& dir, const std::vector<std::string>& names) {
@@ -1244,9 +1249,7 @@ int sweep_command(const SweepOptions& options) {
   warn_of_input(resolved);
   const fs::path out(options.run.out_dir);
   const std::vector<std::string> tables = {"sweep.csv", "sweep.svg"};
-  refuse_non_files_at_outputs(out, [&](const fs::path& p) {
-    return std::find(tables.begin(), tables.end(), p.filename().string()) != tables.end();
-  });
+  refuse_non_files_at_outputs(out, tables);
   const std::string header = options.param + ',' + kFigureColumns + ",steps,wall_seconds";
   std::string csv = header + '\n';
   Series vv{"vaporized fraction", {}, {}};

@@ -119,11 +119,11 @@ class OutDir {
 // The ledgers close within EnergyLedger::kOpticsTolerance of the injected energy and
 // EnergyLedger::heat_tolerance of the absorbed; one message per open one.
 std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e);
-// A run of a sweep or converge that threw: one line on stderr naming `label`, the error and
-// `consequence`; returns the exit code it calls for (2 bad input, 1 a failed run).
 // A run whose temperatures rose so far that the heat solves' relative accuracy, in kelvin, nears
 // the gap between melting and vaporising: one warning saying so; none otherwise.
 std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f);
+// A run of a sweep or converge that threw: one line on stderr naming `label`, the error and
+// `consequence`; returns the exit code it calls for (2 bad input, 1 a failed run).
 int report_failed_run(const std::string& label, const std::exception& e, const char* consequence);
 // InputError (before the first run) when an entry of `dir` that `is_output` names, where the
 // command will write a file, is a folder or another non-file: the final rename would fail after
@@ -131,6 +131,9 @@ int report_failed_run(const std::string& label, const std::exception& e, const c
 void refuse_non_files_at_outputs(
     const std::filesystem::path& dir,
     const std::function<bool(const std::filesystem::path&)>& is_output);
+// The same for a command whose files are `names` (sweep's and converge's tables).
+void refuse_non_files_at_outputs(const std::filesystem::path& dir,
+                                 const std::vector<std::string>& names);
 // For a sweep or converge that writes nothing: " (sweep.csv and sweep.svg in DIR are an earlier
 // run's, left as they were)" for those of `names` that are there, "" when none is.
 std::string earlier_tables_note(const std::filesystem::path& dir,
