@@ -1547,6 +1547,27 @@ TEST(Cli, ASweepInterruptedBeforeItsFirstValueEndsWritesNothing) {
   EXPECT_FALSE(fs::exists(dir / "made")) << r.printed;
 }
 
+// A value that failed leaves only an empty row: interrupted in the next value, the sweep still has
+// no result and writes no table (before, a sweep.csv of one empty row and "0 runs"). The exit
+// code is the failed value's (2: its file is bad input).
+TEST(Cli, ASweepInterruptedAfterOnlyAFailedValueWritesNothing) {
+  const fs::path dir = fresh_dir("interrupt_sweep_after_failure");
+  const std::string flawed = write(dir / "flawed.xyz", "5e-4 5e-4 5e-4 -1\n");
+  const std::string bed = write(dir / "bed.xyz", "5e-4 5e-4 5e-4 1e-4\n");
+  const std::string args =
+      "sweep --preset quick --set packing.source=file --set beam.rays=3000000 "
+      "--set pulses.count=3 --param packing.file --values " +
+      flawed + "," + bed + " --quiet --out " + (dir / "made").string();
+  const Interrupted r =
+      interrupt(dir, args, "row in sweep.csv is empty", "sleep 0.5; kill -INT $p");
+  EXPECT_EQ(r.status, 2) << r.printed;
+  EXPECT_NE(r.printed.find("sweep interrupted during packing.file = " + bed +
+                           ": no value ended, nothing written"),
+            std::string::npos)
+      << r.printed;
+  EXPECT_FALSE(fs::exists(dir / "made")) << r.printed;
+}
+
 // A thermal.dt far below light's crossing time of the sample is legal but makes millions of steps
 // per pulse: the run says so before it starts; a step of a thousandth of the crossing does not.
 TEST(Cli, ATimeStepOfMillionsOfStepsPerCrossingIsAnnounced) {

@@ -1275,12 +1275,16 @@ int sweep_command(const SweepOptions& options) {
       continue;
     }
     if (r.interrupted) {
+      // A table of no results (only failed values' empty rows) is no result: nothing is written
+      // (the --out folder it made goes).
+      const bool none_ended = vv.x.empty();
       std::fprintf(
           stderr, "beampack: sweep interrupted during %s = %s: %s\n", options.param.c_str(),
           values[k].c_str(),
-          k == 0 ? ("no value ended, nothing written" + earlier_tables_note(out, tables)).c_str()
-                 : "that value and the rest are not in sweep.csv");
-      if (k == 0) return 1;  // a table of no rows is no result (the --out folder it made goes)
+          none_ended
+              ? ("no value ended, nothing written" + earlier_tables_note(out, tables)).c_str()
+              : "that value and the rest are not in sweep.csv");
+      if (none_ended) return std::max(code, 1);
       cut = true;
       break;
     }
