@@ -4,7 +4,7 @@
 #include <string>
 #include <vector>
 
-#include "geometry/vec3.h"
+#include "../geometry/vec3.h"
 
 namespace beampack {
 

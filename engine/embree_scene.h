@@ -22,7 +22,7 @@
 #include <span>
 #include <string>
 
-#include "geometry/particles.h"
+#include "../geometry/particles.h"
 
 namespace beampack {
 

@@ -5,7 +5,7 @@
 #include <complex>
 #include <limits>
 
-#include "geometry/vec3.h"
+#include "../geometry/vec3.h"
 
 namespace beampack {
 

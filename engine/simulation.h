@@ -13,11 +13,11 @@
 #include <utility>
 #include <vector>
 
-#include "engine/beam.h"
-#include "engine/state_io.h"
-#include "engine/tracer.h"
-#include "geometry/packing.h"
-#include "thermal/thermal_model.h"
+#include "../geometry/packing.h"
+#include "../thermal/thermal_model.h"
+#include "beam.h"
+#include "state_io.h"
+#include "tracer.h"
 
 namespace beampack {
 

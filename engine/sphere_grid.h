@@ -8,8 +8,8 @@
 #include <span>
 #include <vector>
 
-#include "engine/embree_scene.h"
-#include "geometry/particles.h"
+#include "../geometry/particles.h"
+#include "embree_scene.h"
 
 namespace beampack {
 

@@ -8,7 +8,7 @@
 #include <type_traits>
 #include <vector>
 
-#include "geometry/error.h"
+#include "../geometry/error.h"
 
 namespace beampack {
 

@@ -23,11 +23,11 @@
 #include <utility>
 #include <vector>
 
-#include "engine/beam.h"
-#include "engine/embree_scene.h"
-#include "engine/sphere_grid.h"
-#include "engine/state_io.h"
-#include "geometry/particles.h"
+#include "../geometry/particles.h"
+#include "beam.h"
+#include "embree_scene.h"
+#include "sphere_grid.h"
+#include "state_io.h"
 
 namespace beampack {
 

@@ -3,7 +3,7 @@
 #include <algorithm>
 #include <cstdio>
 
-#include "engine/simulation.h"
+#include <beampack/engine/simulation.h>
 
 int main() {
   using namespace beampack;

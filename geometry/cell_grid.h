@@ -5,7 +5,7 @@
 #include <cstdint>
 #include <vector>
 
-#include "geometry/particles.h"
+#include "particles.h"
 
 namespace beampack {
 

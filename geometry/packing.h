@@ -5,7 +5,7 @@
 #include <cstdint>
 #include <string>
 
-#include "geometry/particles.h"
+#include "particles.h"
 
 namespace beampack {
 

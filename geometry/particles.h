@@ -5,7 +5,7 @@
 #include <span>
 #include <vector>
 
-#include "geometry/vec3.h"
+#include "vec3.h"
 
 namespace beampack {
 

@@ -5,7 +5,7 @@
 #include <cmath>
 #include <limits>
 
-#include "geometry/vec3.h"
+#include "vec3.h"
 
 namespace beampack {
 

@@ -5,9 +5,9 @@
 #include <Eigen/SparseCore>
 #include <vector>
 
-#include "geometry/contact.h"
-#include "geometry/particles.h"
-#include "thermal/material.h"
+#include "../geometry/contact.h"
+#include "../geometry/particles.h"
+#include "material.h"
 
 namespace beampack {
 

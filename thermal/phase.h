@@ -2,8 +2,8 @@
 // Phase change by latent-heat bands (paper, section 4; MODEL.md section 5 step 3).
 #include <cstdint>
 
-#include "geometry/particles.h"
-#include "thermal/material.h"
+#include "../geometry/particles.h"
+#include "material.h"
 
 namespace beampack {
 

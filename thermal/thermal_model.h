@@ -8,11 +8,11 @@
 #include <string>
 #include <vector>
 
-#include "geometry/contact.h"
-#include "geometry/particles.h"
-#include "thermal/conduction.h"
-#include "thermal/material.h"
-#include "thermal/solvers.h"
+#include "../geometry/contact.h"
+#include "../geometry/particles.h"
+#include "conduction.h"
+#include "material.h"
+#include "solvers.h"
 
 namespace beampack {
 

@@ -1,0 +1,42 @@
+# Install.AProjectOfYourOwnBuildsAgainstTheInstalledLibrary (ctest runs this with cmake -P):
+# installs this build into a scratch prefix, builds examples/ against it as another project does
+# (find_package(beampack), #include <beampack/...>), runs the example and checks what it prints.
+#   -DSOURCE=<source tree> -DBUILD=<build tree> -DWORK=<scratch folder> -DCXX=<compiler>
+file(REMOVE_RECURSE ${WORK})
+
+function(step what)
+  execute_process(COMMAND ${ARGN} RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE out)
+  if(NOT code EQUAL 0)
+    message(FATAL_ERROR "${what} failed (${code}):\n${out}")
+  endif()
+  set(printed "${out}" PARENT_SCOPE)
+endfunction()
+
+step("install" ${CMAKE_COMMAND} --install ${BUILD} --prefix ${WORK}/prefix)
+if(EXISTS ${WORK}/prefix/include/engine OR EXISTS ${WORK}/prefix/include/geometry)
+  message(FATAL_ERROR "headers installed outside include/beampack")
+endif()
+step("configuring examples/" ${CMAKE_COMMAND} -S ${SOURCE}/examples -B ${WORK}/build
+     -DCMAKE_PREFIX_PATH=${WORK}/prefix -DCMAKE_CXX_COMPILER=${CXX})
+step("building examples/" ${CMAKE_COMMAND} --build ${WORK}/build)
+step("running the example" ${WORK}/build/run_in_code)
+
+# Five pulses of 3e-9 J each: every pulse line books its absorbed energy within what was injected,
+# and the hottest particle is above the 300 K start.
+string(REGEX MATCHALL "pulse [0-9]+: [^\n]*" pulses "${printed}")
+list(LENGTH pulses count)
+if(NOT count EQUAL 5)
+  message(FATAL_ERROR "expected 5 pulse lines, got ${count}:\n${printed}")
+endif()
+foreach(line IN LISTS pulses)
+  if(NOT line MATCHES "absorbed ([0-9.e+-]+) J of ([0-9.e+-]+) J")
+    message(FATAL_ERROR "no energy in: ${line}")
+  endif()
+  if(NOT CMAKE_MATCH_1 GREATER 0 OR CMAKE_MATCH_1 GREATER CMAKE_MATCH_2)
+    message(FATAL_ERROR "absorbed outside (0, injected]: ${line}")
+  endif()
+endforeach()
+if(NOT printed MATCHES "hottest particle: ([0-9.]+) K" OR NOT CMAKE_MATCH_1 GREATER 300)
+  message(FATAL_ERROR "no heating seen:\n${printed}")
+endif()
+file(REMOVE_RECURSE ${WORK})
