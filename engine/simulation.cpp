@@ -561,7 +561,7 @@ Figures Simulation::figures() const {
   f.pulse = launched_;
   f.vaporized_fraction = volume_fraction(Phase::vapor);
   f.melted_fraction = volume_fraction(Phase::liquid);
-  f.max_temperature = max_temperature_;
+  if (particles_.size() > 0) f.max_temperature = max_temperature_;
   f.particles = particles_.size();
   const OpticsLedger& o = tracer_->ledger();
   const ThermalLedger& h = thermal_->ledger();

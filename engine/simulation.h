@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -85,12 +86,12 @@ struct StageTime {
 
 // The figures a run reports (INTERFACE.md summary.json, history.csv).
 struct Figures {
-  double time = 0;                // s, simulated
-  int pulse = 0;                  // pulses launched so far
-  double vaporized_fraction = 0;  // v_v, volume of vaporised / volume of all particles
-  double melted_fraction = 0;     // volume liquid now / volume of all particles
-  double max_temperature = 0;     // K, peak over the run so far (0 without particles: none)
-  std::size_t particles = 0;      // particles in the scene, vaporised ones included
+  double time = 0;                        // s, simulated
+  int pulse = 0;                          // pulses launched so far
+  double vaporized_fraction = 0;          // v_v, volume of vaporised / volume of all particles
+  double melted_fraction = 0;             // volume liquid now / volume of all particles
+  std::optional<double> max_temperature;  // K, peak over the run so far; none without particles
+  std::size_t particles = 0;              // particles in the scene, vaporised ones included
   EnergyLedger energy;
 };
 

@@ -1961,6 +1961,21 @@ TEST(Cli, AConvergeOfNothingAbsorbedSaysItsErrorsMeasureNothing) {
   EXPECT_EQ(real.output.find("absorbed no energy"), std::string::npos) << real.output;
 }
 
+// An empty bed has no peak temperature in convergence.csv either (as in history.csv): empty
+// cells, not a peak of 0 K and an error of 0 K.
+TEST(Cli, AConvergeOverAnEmptyBedHasNoPeakTemperature) {
+  const fs::path out = fresh_dir("converge_empty_bed");
+  const Result r =
+      run("converge --preset quick --set packing.count=0 --quiet --out " + out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  const auto rows = read_csv(out / "convergence.csv");
+  ASSERT_FALSE(rows.empty());
+  for (const auto& row : rows) {
+    EXPECT_EQ(row.at("peak_temperature_K"), "") << row.at("ladder");
+    EXPECT_EQ(row.at("peak_temperature_error_K"), "") << row.at("ladder");
+  }
+}
+
 // Swept values are written as they were given: a file name with a quote is one quoted CSV cell
 // (its quotes doubled), and `&` or `<` in the chart's category labels is escaped (the SVG was
 // not well-formed XML).

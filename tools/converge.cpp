@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <optional>
 #include <sstream>
 
 #include "geometry/error.h"
@@ -14,6 +15,12 @@
 namespace beampack::tools {
 namespace fs = std::filesystem;
 namespace {
+
+// How far apart two runs' peak temperatures are; none for a scene without particles.
+std::optional<double> peak_difference(const Figures& a, const Figures& b) {
+  if (!a.max_temperature || !b.max_temperature) return std::nullopt;
+  return std::abs(*a.max_temperature - *b.max_temperature);
+}
 
 struct Rung {
   std::string value;  // the --set value
@@ -96,8 +103,7 @@ void say_what_the_reference_leaves_unmeasured(const Ladder& ladder) {
       "(%s): its own error is not measured and may be of that size%s\n",
       ladder.name.c_str(), ladder.rungs[0].value.c_str(),
       std::abs(next.figures.vaporized_fraction - finest.figures.vaporized_fraction),
-      std::abs(next.figures.max_temperature - finest.figures.max_temperature),
-      ladder.rungs[1].value.c_str(),
+      peak_difference(next.figures, finest.figures).value_or(0), ladder.rungs[1].value.c_str(),
       ladder.key == "thermal.dt" ? " (a lower pulses.xi refines the ladder)" : "");
 }
 
@@ -165,7 +171,7 @@ int converge_command(const RunOptions& options) {
       const double vv_error =
           std::abs(r.figures.vaporized_fraction - ref.figures.vaporized_fraction);
       const TemperatureError t = temperature_error(r, ref);
-      const double peak_error = std::abs(r.figures.max_temperature - ref.figures.max_temperature);
+      const std::optional<double> peak_error = peak_difference(r.figures, ref.figures);
       std::ostringstream row;
       row << ladder.name << ',' << ladder.key << ',' << rung.value << ',' << exact(r.wall_seconds)
           << ',' << r.counts.steps << ',' << r.counts.rays << ','
@@ -176,7 +182,7 @@ int converge_command(const RunOptions& options) {
       std::printf(
           "%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %.3g K  peak error %.3g K\n",
           ladder.name.c_str(), rung.value.c_str(), r.wall_seconds, r.figures.vaporized_fraction,
-          vv_error, t.l2, peak_error);
+          vv_error, t.l2, peak_error.value_or(0));
       std::fflush(stdout);
       if (&rung != &ladder.rungs.front()) {
         series.x.push_back(r.wall_seconds);

@@ -275,9 +275,9 @@ std::string stage_note(std::string_view stage, const Counts& c) {
 
 // The peak temperature as printed: a particle-free scene has none (not 0 K).
 std::string peak_text(const Figures& f, const char* format) {
-  if (f.particles == 0) return "- (no particles)";
+  if (!f.max_temperature) return "- (no particles)";
   char text[64];
-  std::snprintf(text, sizeof text, format, f.max_temperature);
+  std::snprintf(text, sizeof text, format, *f.max_temperature);
   return text;
 }
 
@@ -331,10 +331,9 @@ std::string figure_columns(const Figures& f) {
   const EnergyLedger& e = f.energy;
   std::ostringstream s;
   s << exact(f.vaporized_fraction) << ',' << exact(f.melted_fraction) << ','
-    << (f.particles > 0 ? exact(f.max_temperature) : "") << ',' << exact(e.injected) << ','
-    << exact(e.absorbed) << ',' << exact(e.escaped) << ',' << exact(e.cutoff) << ','
-    << exact(e.stored) << ',' << exact(e.vaporized) << ',' << exact(e.walls) << ','
-    << exact(e.in_flight);
+    << exact(f.max_temperature) << ',' << exact(e.injected) << ',' << exact(e.absorbed) << ','
+    << exact(e.escaped) << ',' << exact(e.cutoff) << ',' << exact(e.stored) << ','
+    << exact(e.vaporized) << ',' << exact(e.walls) << ',' << exact(e.in_flight);
   return s.str();
 }
 
@@ -366,7 +365,7 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
   j["vaporized_fraction"] = f.vaporized_fraction;
   j["melted_fraction"] = f.melted_fraction;
   j["max_temperature_K"] =
-      f.particles > 0 ? nlohmann::json(f.max_temperature) : nlohmann::json(nullptr);
+      f.max_temperature ? nlohmann::json(*f.max_temperature) : nlohmann::json(nullptr);
   j["time_s"] = f.time;
   j["pulses"] = f.pulse;
   j["energy_J"] = {{"injected", e.injected},   {"absorbed", e.absorbed}, {"escaped", e.escaped},
@@ -486,7 +485,8 @@ std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, 
   // Relative accuracy of a step's solve: the tolerance, or round-off for the direct solver.
   const double accuracy =
       spec.thermal.solver == "direct" ? 1e-15 : std::max(spec.thermal.tolerance, 1e-15);
-  const double rise = f.max_temperature - spec.packing.initial_temperature;
+  if (!f.max_temperature) return std::nullopt;  // no particles
+  const double rise = *f.max_temperature - spec.packing.initial_temperature;
   const double misplaced = accuracy * rise;
   if (!(misplaced > 0.1 * gap)) return std::nullopt;
   char text[640];

@@ -17,6 +17,10 @@ std::string exact(double v) {
   return std::string(buf, r.ptr);
 }
 
+std::string exact(std::optional<double> v) {
+  return v ? exact(*v) : "";
+}
+
 namespace {
 
 // A file being staged: its temporary beside it, registered for a second interrupt to remove.

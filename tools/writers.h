@@ -2,6 +2,7 @@
 // Output files of a run (INTERFACE.md). Every file is written to a temporary name in the same
 // directory and renamed into place, so an interrupted run never leaves a half-written file.
 #include <functional>
+#include <optional>
 #include <ostream>
 #include <string>
 #include <vector>
@@ -40,5 +41,7 @@ void write_pvd(const std::string& path, const std::vector<std::pair<std::string,
 // The shortest text that reads back as the same double (std::to_chars): 0.064, not
 // 0.064000000000000001.
 std::string exact(double v);
+// A CSV cell: exact(v), or empty when there is no value (a scene without particles has no peak).
+std::string exact(std::optional<double> v);
 
 }  // namespace beampack::tools
