@@ -1,21 +1,46 @@
 #pragma once
-// A refusal checked in one place: `call` throws an E whose message holds `fragment`; a call that
-// returns fails the test, and an error of another type escapes to fail it too.
+// Refusals checked in one place. An error of a type other than the one asked for escapes to fail
+// the test.
 #include <gtest/gtest.h>
 
 #include <functional>
 #include <string>
+#include <string_view>
 
 namespace beampack::testing {
 
-template <class E>
-void expect_error(const std::function<void()>& call, const std::string& fragment) {
+// What error_message gives for a call that returns.
+inline constexpr const char kAccepted[] = "(accepted)";
+
+// `call` throws an E whose message holds every one of `fragments`; a call that returns fails the
+// test, naming the fragments it expected.
+template <class E, class... Fragments>
+void expect_error(const std::function<void()>& call, const Fragments&... fragments) {
+  static_assert(sizeof...(Fragments) > 0, "expect_error: name at least one fragment");
+  const std::string_view parts[] = {std::string_view(fragments)...};
   try {
     call();
-    ADD_FAILURE() << "accepted; expected: " << fragment;
   } catch (const E& e) {
-    EXPECT_NE(std::string(e.what()).find(fragment), std::string::npos) << e.what();
+    const std::string what = e.what();
+    for (const std::string_view part : parts)
+      EXPECT_NE(what.find(part), std::string::npos) << "expected \"" << part << "\" in: " << what;
+    return;
   }
+  std::string expected;
+  for (const std::string_view part : parts)
+    expected += (expected.empty() ? "\"" : ", \"") + std::string(part) + "\"";
+  ADD_FAILURE() << "accepted; expected an error naming " << expected;
+}
+
+// The message of the E that `call` throws, or kAccepted when it returns.
+template <class E>
+std::string error_message(const std::function<void()>& call) {
+  try {
+    call();
+  } catch (const E& e) {
+    return e.what();
+  }
+  return kAccepted;
 }
 
 }  // namespace beampack::testing

@@ -8,6 +8,7 @@
 #include "engine/beam.h"
 #include "geometry/compensated_sum.h"
 #include "geometry/error.h"
+#include "tests/expect_error.h"
 
 namespace beampack {
 namespace {
@@ -275,12 +276,7 @@ TEST(OpticsBeam, BadInputNamesTheKey) {
   auto message = [](auto edit) {
     BeamSpec spec;
     edit(spec);
-    try {
-      make_beam(spec, 1e-3);
-    } catch (const InputError& e) {
-      return std::string(e.what());
-    }
-    return std::string("no error");
+    return testing::error_message<InputError>([&] { make_beam(spec, 1e-3); });
   };
   EXPECT_NE(message([](BeamSpec& s) { s.power = -1; }).find("beam.power"), std::string::npos);
   EXPECT_NE(message([](BeamSpec& s) { s.rays = 0; }).find("beam.rays"), std::string::npos);

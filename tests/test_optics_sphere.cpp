@@ -14,6 +14,7 @@
 #include "geometry/packing.h"
 #include "geometry/random.h"
 #include "geometry/ray_sphere.h"
+#include "tests/expect_error.h"
 #include "tests/optics_reference.h"
 
 namespace beampack {
@@ -125,12 +126,9 @@ TEST(OpticsSphere, PolarisationAngleOutsideItsRangeOrWithAComplexIndexIsRefused)
     OpticsSpec optics;
     optics.polarisation = {true, psi};
     optics.materials[0].n_solid = {1.4, k};
-    try {
-      Tracer tracer(s.particles, optics);
-      FAIL() << "psi " << psi << ", k " << k << " accepted";
-    } catch (const InputError& e) {
-      EXPECT_NE(std::string(e.what()).find("optics.polarisation"), std::string::npos) << e.what();
-    }
+    SCOPED_TRACE(::testing::Message() << "psi " << psi << ", k " << k);
+    testing::expect_error<InputError>([&] { Tracer tracer(s.particles, optics); },
+                                      "optics.polarisation");
   }
 }
 
@@ -539,18 +537,6 @@ TEST(OpticsSphere, OccludedExactlyWhenTheNearestHitIsBeforeTheLimit) {
   EXPECT_LT(occluded, 3 * queries / 4);
 }
 
-// `call` throws a RunError whose message holds every one of `parts`.
-template <class Call>
-void expect_run_error(Call&& call, std::initializer_list<const char*> parts) {
-  try {
-    call();
-    ADD_FAILURE() << "no RunError; expected one naming " << *parts.begin();
-  } catch (const RunError& e) {
-    for (const char* part : parts)
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos) << e.what();
-  }
-}
-
 // Embree's errors are RunErrors on the calling thread, naming Embree's error code and what was
 // being done. A real one: with Embree's allocations limited to 1 kB, the rebuild after a removal
 // runs out of memory. Embree is then left without a structure and would answer every query with
@@ -570,20 +556,21 @@ TEST(OpticsSphere, EmbreeErrorsAreThrownNamingTheCodeAndTheTask) {
   EXPECT_FALSE(scene.occluded1(q, 0));  // t_hit: the nearest hit itself
   scene.limit_memory(1024);
   const std::vector<std::uint32_t> victims = {1, 2, 3};
-  expect_run_error([&] { scene.remove(victims); },
-                   {"updating the particle scene: Embree error RTC_ERROR_OUT_OF_MEMORY (4)",
-                    "limited to 1024 bytes"});
+  testing::expect_error<RunError>(
+      [&] { scene.remove(victims); },
+      "updating the particle scene: Embree error RTC_ERROR_OUT_OF_MEMORY (4)",
+      "limited to 1024 bytes");
   constexpr const char* kFailedUpdate =
       "no structure to trace since updating the particle scene: Embree error "
       "RTC_ERROR_OUT_OF_MEMORY (4)";
   for (int again = 0; again < 2; ++again) {
-    expect_run_error([&] { scene.intersect1(q, 0); },
-                     {"tracing a ray (rtcIntersect1): ", kFailedUpdate});
-    expect_run_error([&] { scene.intersect16(q, ids.data(), 16); },
-                     {"tracing a packet of rays (rtcIntersect16): ", kFailedUpdate});
+    testing::expect_error<RunError>([&] { scene.intersect1(q, 0); },
+                                    "tracing a ray (rtcIntersect1): ", kFailedUpdate);
+    testing::expect_error<RunError>([&] { scene.intersect16(q, ids.data(), 16); },
+                                    "tracing a packet of rays (rtcIntersect16): ", kFailedUpdate);
     t_hit[0] = kNoHit;
-    expect_run_error([&] { scene.occluded1(q, 0); },
-                     {"a shadow query (rtcOccluded1): ", kFailedUpdate});
+    testing::expect_error<RunError>([&] { scene.occluded1(q, 0); },
+                                    "a shadow query (rtcOccluded1): ", kFailedUpdate);
   }
   // Room again: the next removal builds a structure, and the queries answer right.
   scene.limit_memory(std::numeric_limits<std::size_t>::max());
@@ -606,16 +593,16 @@ TEST(OpticsSphere, EmbreeErrorsAreThrownNamingTheCodeAndTheTask) {
 TEST(OpticsSphere, ADeviceConfigurationEmbreeRefusesIsNamed) {
   const Particles p = random_overlap_packing(50, 1e-3, 0.325, 3);
   constexpr const char* kRefused = "rtcNewDevice(\"threads=abc\") failed (RTC_ERROR_";
-  expect_run_error(
-      [&] { EmbreeScene scene(p, SceneUpdate::deferred, 4096, 0.1, 1, "threads=abc"); },
-      {kRefused});
+  testing::expect_error<RunError>(
+      [&] { EmbreeScene scene(p, SceneUpdate::deferred, 4096, 0.1, 1, "threads=abc"); }, kRefused);
   OpticsSpec spec;
   spec.embree_config = "threads=abc";
   Tracer tracer(p, spec);  // the scene, and so the device, comes at the first need
-  expect_run_error([&] { tracer.build_scene(); }, {kRefused});
+  testing::expect_error<RunError>([&] { tracer.build_scene(); }, kRefused);
   // Nothing half-built: the next need tries again (and fails again), not traces without it.
   EXPECT_FALSE(tracer.has_scene());
-  expect_run_error([&] { tracer.launch(make_beam(BeamSpec{}, 1e-3), 1e-9); }, {kRefused});
+  testing::expect_error<RunError>([&] { tracer.launch(make_beam(BeamSpec{}, 1e-3), 1e-9); },
+                                  kRefused);
   EXPECT_EQ(tracer.ledger().injected, 0.0);
 }
 
@@ -637,13 +624,9 @@ TEST(OpticsSphere, IndexThatIsNotAPassiveMaterialIsRefused) {
         std::complex<double>(1.4, 2 * kMaxIndex)}) {
     OpticsSpec optics;
     optics.materials[0].n_solid = n;
-    try {
-      Tracer(s.particles, optics);
-      ADD_FAILURE() << n << " was accepted";
-    } catch (const InputError& e) {
-      EXPECT_NE(std::string(e.what()).find("`optics.n_solid` = "), std::string::npos) << e.what();
-      EXPECT_NE(std::string(e.what()).find("<= 1e6"), std::string::npos) << e.what();
-    }
+    SCOPED_TRACE(::testing::Message() << "n_solid " << n);
+    testing::expect_error<InputError>([&] { Tracer(s.particles, optics); },
+                                      "`optics.n_solid` = ", "<= 1e6");
   }
   for (double mu : {inf, 2 * kMaxMu, 0.5 * kMinMu}) {
     OpticsSpec optics;
@@ -682,14 +665,8 @@ TEST(OpticsSphere, APackingTooWideForItsSmallestSphereIsRefused) {
   Particles tiny;
   tiny.add(Vec3(0.5, 0.5, 0.5), r);
   tiny.add(Vec3(0.5, 0.5, 0.6), 1e-90);
-  try {
-    Tracer tracer(tiny, OpticsSpec{});
-    FAIL() << "a packing 1e88 of its smallest radius across was accepted";
-  } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("particle 1 at (0.5, 0.5, 0.6) has the smallest radius"),
-              std::string::npos)
-        << e.what();
-  }
+  testing::expect_error<InputError>([&] { Tracer tracer(tiny, OpticsSpec{}); },
+                                    "particle 1 at (0.5, 0.5, 0.6) has the smallest radius");
   Particles dead;  // a far one removed is no part of the span
   dead.add(Vec3(0.5, 0.5, 0.5), r);
   dead.add(Vec3(0.6, 0.5, 0.5), r);

@@ -16,6 +16,7 @@
 #include "geometry/contact.h"
 #include "geometry/error.h"
 #include "geometry/packing.h"
+#include "tests/expect_error.h"
 #include "tests/test_dirs.h"
 
 using namespace beampack;
@@ -33,14 +34,10 @@ std::string temp_file(const std::string& name, const std::string& text) {
   return path.string();
 }
 
-// The InputError message of reading `text`, or "" when it parses.
+// The InputError message of reading `text`, or testing::kAccepted when it parses.
 std::string read_error(const std::string& name, const std::string& text, double radius = 0) {
-  try {
-    read_packing_file(temp_file(name, text), radius);
-  } catch (const InputError& e) {
-    return e.what();
-  }
-  return "";
+  return beampack::testing::error_message<InputError>(
+      [&] { read_packing_file(temp_file(name, text), radius); });
 }
 
 }  // namespace
@@ -94,21 +91,12 @@ TEST(Packing, RsaHasNoOverlapsAndReachesTheFraction) {
 }
 
 TEST(Packing, RsaBeyondJammingIsAClearErrorInBoundedWork) {
-  try {
-    rsa_packing(3000, 1.0, 0.45, 1);
-    FAIL() << "rsa reached 0.45";
-  } catch (const InputError& e) {
-    const std::string m = e.what();
-    EXPECT_NE(m.find("packing.solid_fraction = 0.45"), std::string::npos) << m;
-    EXPECT_NE(m.find("jams"), std::string::npos) << m;
-  }
+  beampack::testing::expect_error<InputError>([] { rsa_packing(3000, 1.0, 0.45, 1); },
+                                              "packing.solid_fraction = 0.45", "jams");
   EXPECT_THROW(rsa_packing(10, 1.0, 0.7, 1), InputError);
-  try {  // refused at once, not after the placements: the limit is open
-    rsa_packing(10, 1.0, 0.5, 1);
-    FAIL() << "rsa accepted 0.5";
-  } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("must be > 0 and < 0.5"), std::string::npos) << e.what();
-  }
+  // Refused at once, not after the placements: the limit is open.
+  beampack::testing::expect_error<InputError>([] { rsa_packing(10, 1.0, 0.5, 1); },
+                                              "must be > 0 and < 0.5");
 }
 
 TEST(Packing, LatticeIsSimpleCubic) {
@@ -123,14 +111,7 @@ TEST(Packing, LatticeIsSimpleCubic) {
 }
 
 TEST(Packing, BadParametersNameTheKey) {
-  auto message = [](auto&& make) {
-    try {
-      make();
-    } catch (const InputError& e) {
-      return std::string(e.what());
-    }
-    return std::string();
-  };
+  const auto message = beampack::testing::error_message<InputError>;
   EXPECT_NE(message([] { random_overlap_packing(10, -1, 0.3, 1); }).find("sample.size"),
             std::string::npos);
   EXPECT_NE(message([] { random_overlap_packing(10, 1, NAN, 1); }).find("packing.radius_ratio"),
@@ -252,12 +233,8 @@ TEST(PackingFile, EachErrorNamesItsLine) {
             std::string::npos);
   EXPECT_NE(read_error("header_only", "x y z r\n").find("holds no particle (a header line only"),
             std::string::npos);
-  try {
-    read_packing_file("/nonexistent/beampack.xyz");
-    FAIL();
-  } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("packing.file"), std::string::npos);
-  }
+  beampack::testing::expect_error<InputError>(
+      [] { read_packing_file("/nonexistent/beampack.xyz"); }, "packing.file");
 }
 
 TEST(PackingFile, ReadsTheDemBedWithItsRadius) {
@@ -441,13 +418,10 @@ TEST(PackingDump, MissingRadiusNeedsPackingRadius) {
   // file with packing.radius is.
   for (const char* column : {"radius", "diameter"}) {
     const std::string both = lammps_dump(std::string("id x y z ") + column, {"1 0.1 0.2 0.3 0.02"});
-    try {
-      read_packing_file(temp_file("dump_both_radii", both), 0.01);
-      ADD_FAILURE() << column << ": two radii accepted";
-    } catch (const InputError& e) {
-      EXPECT_NE(std::string(e.what()).find("packing.radius gives one too"), std::string::npos)
-          << e.what();
-    }
+    SCOPED_TRACE(column);
+    beampack::testing::expect_error<InputError>(
+        [&] { read_packing_file(temp_file("dump_both_radii", both), 0.01); },
+        "packing.radius gives one too");
   }
 }
 

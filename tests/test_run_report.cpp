@@ -11,6 +11,7 @@
 #include <regex>
 
 #include "geometry/error.h"
+#include "tests/expect_error.h"
 #include "tests/test_dirs.h"
 #include "tools/converge.h"
 #include "tools/quit_cleanup.h"
@@ -52,19 +53,15 @@ TEST(RunReport, ACheckpointsRunRecordIsCheckedAsItIsRead) {
   using Frames = std::vector<std::pair<std::string, double>>;
   const double nan = std::numeric_limits<double>::quiet_NaN();
   auto message = [](double wall, int every, const Frames& frames) {
-    try {
-      check_checkpoint_record(wall, every, frames, "ck.bin");
-    } catch (const InputError& e) {
-      return std::string(e.what());
-    }
-    return std::string("accepted");
+    return testing::error_message<InputError>(
+        [&] { check_checkpoint_record(wall, every, frames, "ck.bin"); });
   };
   EXPECT_EQ(message(12.5, 2,
                     {{"particles_0000.vtp", 0.0},
                      {"particles_0001.vtp", 1e-12},
                      {"particles_10000.vtp", 2e-12}}),  // pulse_file's names past 9999 pulses
-            "accepted");
-  EXPECT_EQ(message(0.0, 0, {}), "accepted");
+            testing::kAccepted);
+  EXPECT_EQ(message(0.0, 0, {}), testing::kAccepted);
   for (double wall : {nan, -5.0, std::numeric_limits<double>::infinity()})
     EXPECT_NE(message(wall, 0, {}).find("ck.bin: its wall time so far"), std::string::npos);
   EXPECT_NE(message(1.0, -1, {}).find("--checkpoint-every"), std::string::npos);
@@ -81,14 +78,9 @@ TEST(RunReport, ACheckpointsHistoryRowsAreText) {
   EXPECT_NO_THROW(check_history_text("time_s,pulse\n1e-12,1\n", "ck.bin"));
   for (const std::string& bad :
        {std::string("1e-12,\xFF\n"), std::string("1e-12,1\0\n", 8), std::string("1e-12\r\n")}) {
-    try {
-      check_history_text(bad, "ck.bin");
-      FAIL() << "accepted " << bad;
-    } catch (const InputError& e) {
-      EXPECT_NE(std::string(e.what()).find("ck.bin: its history rows hold byte \\x"),
-                std::string::npos)
-          << e.what();
-    }
+    SCOPED_TRACE(bad);
+    testing::expect_error<InputError>([&] { check_history_text(bad, "ck.bin"); },
+                                      "ck.bin: its history rows hold byte \\x");
   }
 }
 
@@ -296,31 +288,15 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
   SimulationSpec rays = paper;
   rays.beam.rays = 100'000'000;  // 44 GB measured by extrapolation: 437 bytes per ray
   EXPECT_GE(least_memory_need(rays), 4e10);
-  try {
-    refuse_beyond_memory(rays, k24GiB);
-    ADD_FAILURE() << "10^8 rays fit in 24 GiB";
-  } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("`beam.rays` = 100000000:"), std::string::npos)
-        << e.what();
-    EXPECT_NE(std::string(e.what()).find("at least 40 GB"), std::string::npos) << e.what();
-    EXPECT_NE(
-        std::string(e.what()).find("more than the 25.8 GB of this machine; lower `beam.rays`"),
-        std::string::npos)
-        << e.what();
-  }
+  testing::expect_error<InputError>([&] { refuse_beyond_memory(rays, k24GiB); },
+                                    "`beam.rays` = 100000000:", "at least 40 GB",
+                                    "more than the 25.8 GB of this machine; lower `beam.rays`");
   SimulationSpec particles = paper;
   particles.packing.count = 100'000'000;
-  try {
-    refuse_beyond_memory(particles, k24GiB);
-    ADD_FAILURE() << "10^8 particles fit in 24 GiB";
-  } catch (const InputError& e) {
-    EXPECT_NE(
-        std::string(e.what()).find(
-            "`packing.count` = 100000000: the run needs at least 40 GB with `beam.rays` = 1000 ("),
-        std::string::npos)
-        << e.what();
-    EXPECT_NE(std::string(e.what()).find("; lower `packing.count`"), std::string::npos) << e.what();
-  }
+  testing::expect_error<InputError>(
+      [&] { refuse_beyond_memory(particles, k24GiB); },
+      "`packing.count` = 100000000: the run needs at least 40 GB with `beam.rays` = 1000 (",
+      "; lower `packing.count`");
   // Without pulses no ray is drawn and no ray scene made: 100 bytes a particle (102 measured), so
   // 10^8 particles fit, 3 10^8 do not, and rays cost nothing, however many.
   SimulationSpec untraced = particles;
@@ -330,30 +306,17 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
   untraced.beam.rays = 1'000'000'000;
   EXPECT_NO_THROW(refuse_beyond_memory(untraced, k24GiB));
   untraced.packing.count = 300'000'000;
-  try {
-    refuse_beyond_memory(untraced, k24GiB);
-    ADD_FAILURE() << "3 10^8 particles fit in 24 GiB";
-  } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("at least 30 GB without pulses (no rays drawn) (100 bytes "
-                                         "per particle)"),
-              std::string::npos)
-        << e.what();
-  }
+  testing::expect_error<InputError>(
+      [&] { refuse_beyond_memory(untraced, k24GiB); },
+      "at least 30 GB without pulses (no rays drawn) (100 bytes per particle)");
   particles.packing.source = "file";  // counted when the file is read: only the rays are known
   EXPECT_NO_THROW(refuse_beyond_memory(particles, k24GiB));
   particles.packing.file = "bed.xyz";
-  try {
-    refuse_beyond_memory(particles, k24GiB, 100'000'000);  // once it is read: its particles count
-    ADD_FAILURE() << "a file of 10^8 particles fits in 24 GiB";
-  } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find(
-                  "`packing.file` = \"bed.xyz\" (100000000 particles): the run needs at "
-                  "least 40 GB with `beam.rays` = 1000"),
-              std::string::npos)
-        << e.what();
-    EXPECT_NE(std::string(e.what()).find("; lower the particle count"), std::string::npos)
-        << e.what();
-  }
+  // Once it is read: its particles count.
+  testing::expect_error<InputError>([&] { refuse_beyond_memory(particles, k24GiB, 100'000'000); },
+                                    "`packing.file` = \"bed.xyz\" (100000000 particles): the run "
+                                    "needs at least 40 GB with `beam.rays` = 1000",
+                                    "; lower the particle count");
   // The contacts conduction needs: 100 bytes more per particle with a conductivity (141 measured),
   // 50 with walls alone (58 measured). 6 10^7 particles need 24 GB without them: they fit.
   SimulationSpec conducting = paper;
@@ -363,28 +326,13 @@ TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
   EXPECT_GE(least_memory_need(conducting), 2.7e10);
   conducting.thermal.walls.clear();
   conducting.materials.front().conductivity = 100;
-  try {
-    refuse_beyond_memory(conducting, k24GiB);
-    ADD_FAILURE() << "6 10^7 conducting particles fit in 24 GiB";
-  } catch (const InputError& e) {
-    EXPECT_NE(
-        std::string(e.what()).find(
-            "at least 30 GB with `beam.rays` = 1000 (400 bytes per ray, 500 bytes per particle "
-            "with its contacts)"),
-        std::string::npos)
-        << e.what();
-  }
+  testing::expect_error<InputError>([&] { refuse_beyond_memory(conducting, k24GiB); },
+                                    "at least 30 GB with `beam.rays` = 1000 (400 bytes per ray, "
+                                    "500 bytes per particle with its contacts)");
   rays.packing.source = "file";
-  try {
-    refuse_beyond_memory(rays, k24GiB);
-    ADD_FAILURE() << "10^8 rays fit in 24 GiB";
-  } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find(
-                  "`beam.rays` = 100000000: the run needs at least 40 GB for its rays alone "
-                  "(400 bytes per ray"),
-              std::string::npos)
-        << e.what();
-  }
+  testing::expect_error<InputError>([&] { refuse_beyond_memory(rays, k24GiB); },
+                                    "`beam.rays` = 100000000: the run needs at least 40 GB for its "
+                                    "rays alone (400 bytes per ray");
   EXPECT_GT(machine_memory(), 1e8);
 }
 
@@ -456,12 +404,7 @@ TEST(RunReport, PulseDurationAndThePapersStepFollowTheirFormulas) {
   typo.sets.push_back("packing.source=\"file\"");
   typo.sets.push_back("packing.file=\"" + (dir / "no such bed.xyz").string() + "\"");
   typo.sets.push_back("beam.rayz=5");
-  try {
-    load_run_config(typo);
-    ADD_FAILURE() << "a misspelt key and a missing file were accepted";
-  } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("unknown key `beam.rayz`"), std::string::npos) << e.what();
-  }
+  testing::expect_error<InputError>([&] { load_run_config(typo); }, "unknown key `beam.rayz`");
 }
 
 TEST(RunReport, LogChartsLabelEachDecadeOnceAndShowZerosAsZeros) {

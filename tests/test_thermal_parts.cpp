@@ -9,18 +9,14 @@
 #include "geometry/contact.h"
 #include "geometry/error.h"
 #include "geometry/packing.h"
+#include "tests/expect_error.h"
 #include "thermal/thermal_model.h"
 
 namespace beampack {
 namespace {
 
-std::string input_message(const auto& f) {
-  try {
-    f();
-  } catch (const InputError& e) {
-    return e.what();
-  }
-  return "(no InputError)";
+std::string input_message(const std::function<void()>& f) {
+  return testing::error_message<InputError>(f);
 }
 
 TEST(ThermalInput, MaterialMessagesNameKeyValueAndLimit) {
@@ -696,12 +692,8 @@ TEST(ThermalState, AStepWhoseSolverFailsChangesNothing) {
   model.step(0.1 * limit, {}), reference.step(0.1 * limit, {});
   const std::vector<double> before = p.temperature;
   const ThermalLedger ledger = model.ledger();
-  try {
-    model.step(2.5 * limit, {200.0 * c, 0.0});
-    FAIL() << "the step did not fail";
-  } catch (const RunError& e) {
-    EXPECT_NE(std::string(e.what()).find("did not converge"), std::string::npos) << e.what();
-  }
+  const auto failing_step = [&] { model.step(2.5 * limit, {200.0 * c, 0.0}); };
+  testing::expect_error<RunError>(failing_step, "did not converge");
   EXPECT_EQ(p.temperature, before);
   EXPECT_EQ(p.phase[0], Phase::solid);
   EXPECT_EQ(model.ledger().absorbed, ledger.absorbed);
