@@ -123,12 +123,14 @@ Particles rsa_packing(std::size_t count, double size, double solid_fraction, std
     });
     if (overlaps) {
       if (++failures >= max_failures_in_a_row) {
-        throw InputError("packing.solid_fraction = " + shown_number(solid_fraction) +
-                         ": rsa placed only " + std::to_string(p.size()) + " of " +
-                         std::to_string(count) + " spheres (reached " +
-                         shown_number(solid_fraction * double(p.size()) / double(count)) +
-                         ") before " + std::to_string(max_failures_in_a_row) +
-                         " failed tries in a row; use a lower fraction (RSA jams near 0.38)");
+        throw InputError(
+            "packing.solid_fraction = " + shown_number(solid_fraction) + ": rsa placed only " +
+            std::to_string(p.size()) + " of " + std::to_string(count) + " spheres (reached " +
+            shown_number(solid_fraction * double(p.size()) / double(count)) + ") before " +
+            std::to_string(max_failures_in_a_row) +
+            " failed tries in a row; use a lower fraction (RSA jams near 0.38 in a large "
+            "packing, lower with few spheres, where the walls leave more gaps) or "
+            "raise packing.count");
       }
       continue;
     }

@@ -97,6 +97,10 @@ TEST(Packing, RsaBeyondJammingIsAClearErrorInBoundedWork) {
   // Refused at once, not after the placements: the limit is open.
   beampack::testing::expect_error<InputError>([] { rsa_packing(10, 1.0, 0.5, 1); },
                                               "must be > 0 and < 0.5");
+  // Few spheres jam sooner: 200 at 0.3 do not fit (2000 do, above), and the error says that more
+  // spheres help, not only a lower fraction.
+  beampack::testing::expect_error<InputError>([] { rsa_packing(200, 1.0, 0.3, 7); },
+                                              "lower with few spheres", "raise packing.count");
 }
 
 TEST(Packing, LatticeIsSimpleCubic) {
