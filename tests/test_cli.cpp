@@ -9,10 +9,12 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
+#include <regex>
 #include <sstream>
 
 #include "tests/test_dirs.h"
@@ -1959,6 +1961,37 @@ TEST(Cli, AConvergeOfNothingAbsorbedSaysItsErrorsMeasureNothing) {
           "--quiet --out " +
           (dir / "real").string());
   EXPECT_EQ(real.output.find("absorbed no energy"), std::string::npos) << real.output;
+}
+
+// `beampack --version` names the version, the sources' git revision, the build type and the
+// compiler, and summary.json keeps the same record: the revision is a commit of this checkout
+// (or "unknown" where the sources are not one).
+TEST(Cli, VersionNamesTheBuildAndEverySummaryRecordsIt) {
+  const Result v = run("--version");
+  ASSERT_EQ(v.code, 0) << v.output;
+  std::smatch m;
+  ASSERT_TRUE(
+      std::regex_match(v.output, m, std::regex("beampack (\\S+) \\(git (\\S+), (\\S+), (.+)\\)\n")))
+      << v.output;
+  EXPECT_EQ(m[1], BEAMPACK_PROJECT_VERSION);
+  const std::string revision = m[2];
+  std::string commit = revision.substr(0, revision.find("-dirty"));
+  if (const auto g = commit.rfind("-g"); g != std::string::npos) commit = commit.substr(g + 2);
+  const std::string git = "git -C " + std::string(BEAMPACK_SOURCE_DIR) + " ";
+  if (revision == "unknown")
+    EXPECT_NE(std::system((git + "rev-parse >/dev/null 2>&1").c_str()), 0)
+        << "git knows the sources";
+  else
+    EXPECT_EQ(std::system((git + "cat-file -e " + commit + "^{commit} 2>/dev/null").c_str()), 0)
+        << revision << " is no commit of " << BEAMPACK_SOURCE_DIR;
+
+  const fs::path out = fresh_dir("version");
+  ASSERT_EQ(run("run --preset quick --set pulses.count=1 --quiet --out " + out.string()).code, 0);
+  const nlohmann::json built = read_json(out / "summary.json")["beampack"];
+  EXPECT_EQ(built["version"], m[1].str());
+  EXPECT_EQ(built["revision"], revision);
+  EXPECT_EQ(built["build_type"], m[3].str());
+  EXPECT_EQ(built["compiler"], m[4].str());
 }
 
 // An empty bed has no peak temperature in convergence.csv either (as in history.csv): empty

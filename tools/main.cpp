@@ -8,6 +8,7 @@
 #include <filesystem>
 #include <iostream>
 
+#include "engine/build_info.h"
 #include "geometry/error.h"
 #include "tools/converge.h"
 #include "tools/run_command.h"
@@ -143,6 +144,10 @@ int main(int argc, char** argv) {
   const CLI::Range kThreads(0, 4096);
   CLI::App app{"beampack: laser processing of packed powders (Zohdi 2013)", "beampack"};
   app.require_subcommand(1);
+  const beampack::BuildInfo built = beampack::build_info();
+  app.set_version_flag("--version", std::string("beampack ") + built.version + " (git " +
+                                        built.revision + ", " + built.build_type + ", " +
+                                        built.compiler + ")");
   RunOptions run;
   SweepOptions sweep;
   bool quiet_validate = false;

@@ -26,6 +26,7 @@
 #include <signal.h>
 #include <unistd.h>
 
+#include "engine/build_info.h"
 #include "geometry/error.h"
 #include "geometry/input_file.h"
 #include "tools/params.h"
@@ -400,6 +401,11 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
   j["wall_seconds"] = r.wall_seconds;
   j["interrupted"] = r.interrupted;
   j["config"] = toml_to_json(config.resolved);
+  const BuildInfo built = build_info();
+  j["beampack"] = {{"version", built.version},
+                   {"revision", built.revision},
+                   {"build_type", built.build_type},
+                   {"compiler", built.compiler}};
   return j;
 }
 

@@ -1,0 +1,17 @@
+#pragma once
+// What built this library, for the record a run keeps of itself (summary.json, beampack
+// --version): results are only comparable when one knows the code that made them.
+
+namespace beampack {
+
+struct BuildInfo {
+  const char* version;     // the project's (CMakeLists.txt), e.g. "0.1.0"
+  const char* revision;    // `git describe --always --dirty` of the sources when built;
+                           // "unknown" outside a git checkout
+  const char* build_type;  // CMAKE_BUILD_TYPE: "Release", "RelWithDebInfo", ...
+  const char* compiler;    // e.g. "gcc 12.2.0"
+};
+
+BuildInfo build_info();
+
+}  // namespace beampack
