@@ -10,6 +10,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -1328,6 +1329,66 @@ TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
   const Result other = run("run --resume " + copy.string() + " --quiet");
   EXPECT_EQ(other.code, 2) << other.output;
   EXPECT_NE(other.output.find("other byte order"), std::string::npos) << other.output;
+}
+
+// A checkpoint keeps the revision of the build that wrote it: a resume by the same build goes on
+// silently, one by another build says so, and summary.json lists the earlier parts' revisions.
+TEST(Cli, AResumeRecordsTheRevisionsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
+  const Result v = run("--version");
+  const std::string ours =
+      v.output.substr(v.output.find("(git ") + 5, v.output.find(',') - v.output.find("(git ") - 5);
+  const fs::path dir = fresh_dir("ck_revision");
+  ASSERT_EQ(run("run --preset quick --quiet --checkpoint-every 2 --out " + dir.string()).code, 0);
+  EXPECT_FALSE(read_json(dir / "summary.json")["beampack"].contains("earlier_parts_revisions"));
+  const std::string written = file_text(dir / "checkpoint.bin");
+  // `written` edited, its checksum (FNV-1a over all but the last 8 bytes) made to hold again, and
+  // resumed in a folder of its own.
+  const auto resume_edited = [&](const std::string& name, const auto& edit) {
+    std::string bytes = written;
+    edit(bytes);
+    std::uint64_t h = 0xcbf29ce484222325ull;
+    for (std::size_t i = 0; i + 8 < bytes.size(); ++i)
+      h = (h ^ static_cast<unsigned char>(bytes[i])) * 0x100000001b3ull;
+    std::memcpy(bytes.data() + bytes.size() - 8, &h, 8);
+    const fs::path folder = fresh_dir(name);
+    std::ofstream(folder / "checkpoint.bin", std::ios::binary)
+        .write(bytes.data(), std::streamsize(bytes.size()));
+    const Result r = run("run --resume " + folder.string() + " --quiet");
+    EXPECT_EQ(r.code, 0) << r.output;
+    return std::pair{r.output, folder};
+  };
+  const std::size_t at = written.find(ours);
+  ASSERT_NE(at, std::string::npos);
+
+  const auto [same_output, same] = resume_edited("ck_revision_same", [](std::string&) {});
+  EXPECT_EQ(same_output.find("written by"), std::string::npos) << same_output;
+  EXPECT_EQ(read_json(same / "summary.json")["beampack"]["earlier_parts_revisions"],
+            nlohmann::json::array({ours}));
+
+  // As another build would have written it: it says so, and its results are the same (the build
+  // changed in name only).
+  const std::string theirs(ours.size(), 'f');
+  const auto [other_output, other] = resume_edited(
+      "ck_revision_other", [&](std::string& b) { b.replace(at, ours.size(), theirs); });
+  EXPECT_NE(other_output.find("warning: --resume: the checkpoint was written by beampack " +
+                              theirs + " and this is beampack " + ours),
+            std::string::npos)
+      << other_output;
+  EXPECT_EQ(read_json(other / "summary.json")["beampack"]["earlier_parts_revisions"],
+            nlohmann::json::array({theirs}));
+  EXPECT_EQ(file_text(same / "particles.csv"), file_text(other / "particles.csv"));
+
+  // Format 4, which kept no revision, is still read: its part's revision is unknown.
+  const auto [old_output, old] = resume_edited("ck_revision_format4", [&](std::string& b) {
+    const std::size_t magic = b.find("beampack-checkpoint-5");
+    b[magic + 20] = '4';
+    b.erase(at - 16, 16 + ours.size());  // the count of revisions, the length and the revision
+  });
+  EXPECT_NE(old_output.find("written by beampack of an unknown revision"), std::string::npos)
+      << old_output;
+  EXPECT_EQ(read_json(old / "summary.json")["beampack"]["earlier_parts_revisions"],
+            nlohmann::json::array({"unknown"}));
+  EXPECT_EQ(file_text(same / "particles.csv"), file_text(old / "particles.csv"));
 }
 
 TEST(Cli, WallsTakeHeatAndTheLedgerStillCloses) {
