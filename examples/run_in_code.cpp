@@ -21,8 +21,10 @@ int main() {
   Simulation sim(spec, std::move(particles));
   sim.on_pulse_end([&](int pulse) {  // pulse: 0-based index; printed from 1 as history.csv does
     const Figures f = sim.figures();
+    // max_temperature is empty only for a scene without particles; this one has 512.
     std::printf("pulse %d: peak %.1f K, vaporised %.4f, absorbed %.3e J of %.3e J\n", pulse + 1,
-                *f.max_temperature, f.vaporized_fraction, f.energy.absorbed, f.energy.injected);
+                f.max_temperature.value(), f.vaporized_fraction, f.energy.absorbed,
+                f.energy.injected);
   });
   sim.run();
   const auto& t = sim.particles().temperature;

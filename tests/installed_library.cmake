@@ -2,6 +2,8 @@
 # installs this build into a scratch prefix, builds examples/ against it as another project does
 # (find_package(beampack), #include <beampack/...>), runs the example and checks what it prints.
 #   -DSOURCE=<source tree> -DBUILD=<build tree> -DWORK=<scratch folder> -DCXX=<compiler>
+#   -DGENERATOR=<the build's generator> -DMAKE_PROGRAM=<its make program>
+#   -DPREFIXES=<the build's CMAKE_PREFIX_PATH, "|" between entries>
 file(REMOVE_RECURSE ${WORK})
 
 function(step what)
@@ -16,8 +18,10 @@ step("install" ${CMAKE_COMMAND} --install ${BUILD} --prefix ${WORK}/prefix)
 if(EXISTS ${WORK}/prefix/include/engine OR EXISTS ${WORK}/prefix/include/geometry)
   message(FATAL_ERROR "headers installed outside include/beampack")
 endif()
+string(REPLACE "|" ";" prefixes "${WORK}/prefix|${PREFIXES}")
 step("configuring examples/" ${CMAKE_COMMAND} -S ${SOURCE}/examples -B ${WORK}/build
-     -DCMAKE_PREFIX_PATH=${WORK}/prefix -DCMAKE_CXX_COMPILER=${CXX})
+     -G ${GENERATOR} -DCMAKE_MAKE_PROGRAM=${MAKE_PROGRAM} "-DCMAKE_PREFIX_PATH=${prefixes}"
+     -DCMAKE_CXX_COMPILER=${CXX})
 step("building examples/" ${CMAKE_COMMAND} --build ${WORK}/build)
 step("running the example" ${WORK}/build/run_in_code)
 

@@ -1337,6 +1337,7 @@ TEST(Cli, AResumeRecordsTheRevisionsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
   const Result v = run("--version");
   const std::string ours =
       v.output.substr(v.output.find("(git ") + 5, v.output.find(',') - v.output.find("(git ") - 5);
+  const bool known = ours != "unknown";  // a build outside git knows no revision of its own
   const fs::path dir = fresh_dir("ck_revision");
   ASSERT_EQ(run("run --preset quick --quiet --checkpoint-every 2 --out " + dir.string()).code, 0);
   EXPECT_FALSE(read_json(dir / "summary.json")["beampack"].contains("earlier_parts_revisions"));
@@ -1353,42 +1354,55 @@ TEST(Cli, AResumeRecordsTheRevisionsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
     const fs::path folder = fresh_dir(name);
     std::ofstream(folder / "checkpoint.bin", std::ios::binary)
         .write(bytes.data(), std::streamsize(bytes.size()));
-    const Result r = run("run --resume " + folder.string() + " --quiet");
-    EXPECT_EQ(r.code, 0) << r.output;
-    return std::pair{r.output, folder};
+    return std::pair{run("run --resume " + folder.string() + " --quiet"), folder};
   };
-  const std::size_t at = written.find(ours);
+  const auto revisions = [](const fs::path& folder) {
+    return read_json(folder / "summary.json")["beampack"]["earlier_parts_revisions"];
+  };
+  const auto expect_warning = [](const Result& r, const std::string& text) {
+    EXPECT_EQ(r.code, 0) << r.output;
+    if (text.empty()) EXPECT_EQ(r.output.find("warning: --resume"), std::string::npos) << r.output;
+    else EXPECT_NE(r.output.find("warning: --resume: " + text), std::string::npos) << r.output;
+  };
+  const std::size_t at = written.find(ours);  // after the magic: count, length, revision
   ASSERT_NE(at, std::string::npos);
 
-  const auto [same_output, same] = resume_edited("ck_revision_same", [](std::string&) {});
-  EXPECT_EQ(same_output.find("written by"), std::string::npos) << same_output;
-  EXPECT_EQ(read_json(same / "summary.json")["beampack"]["earlier_parts_revisions"],
-            nlohmann::json::array({ours}));
+  const auto [same_run, same] = resume_edited("ck_revision_same", [](std::string&) {});
+  expect_warning(same_run, known ? "" : "the revision of both builds is unknown");
+  EXPECT_EQ(revisions(same), nlohmann::json::array({ours}));
 
   // As another build would have written it: it says so, and its results are the same (the build
   // changed in name only).
   const std::string theirs(ours.size(), 'f');
-  const auto [other_output, other] = resume_edited(
+  const auto [other_run, other] = resume_edited(
       "ck_revision_other", [&](std::string& b) { b.replace(at, ours.size(), theirs); });
-  EXPECT_NE(other_output.find("warning: --resume: the checkpoint was written by beampack " +
-                              theirs + " and this is beampack " + ours),
-            std::string::npos)
-      << other_output;
-  EXPECT_EQ(read_json(other / "summary.json")["beampack"]["earlier_parts_revisions"],
-            nlohmann::json::array({theirs}));
+  expect_warning(other_run, known ? "the checkpoint was written by beampack " + theirs +
+                                        " and this is beampack " + ours
+                                  : "the revision of this build is unknown");
+  EXPECT_EQ(revisions(other), nlohmann::json::array({theirs}));
   EXPECT_EQ(file_text(same / "particles.csv"), file_text(other / "particles.csv"));
 
-  // Format 4, which kept no revision, is still read: its part's revision is unknown.
-  const auto [old_output, old] = resume_edited("ck_revision_format4", [&](std::string& b) {
-    const std::size_t magic = b.find("beampack-checkpoint-5");
-    b[magic + 20] = '4';
-    b.erase(at - 16, 16 + ours.size());  // the count of revisions, the length and the revision
+  // Format 4, which kept no revision, is still read: its part's revision is unknown, and unknown
+  // equals no build.
+  const auto [old_run, old] = resume_edited("ck_revision_format4", [&](std::string& b) {
+    b[b.find("beampack-checkpoint-5") + 20] = '4';
+    b.erase(at - 16, 16 + ours.size());
   });
-  EXPECT_NE(old_output.find("written by beampack of an unknown revision"), std::string::npos)
-      << old_output;
-  EXPECT_EQ(read_json(old / "summary.json")["beampack"]["earlier_parts_revisions"],
-            nlohmann::json::array({"unknown"}));
+  expect_warning(old_run, known ? "the revision of the build that wrote the checkpoint is unknown"
+                                : "the revision of both builds is unknown");
+  EXPECT_EQ(revisions(old), nlohmann::json::array({"unknown"}));
   EXPECT_EQ(file_text(same / "particles.csv"), file_text(old / "particles.csv"));
+
+  // A record of no revision, or of one that is not plain text, is a damaged checkpoint.
+  const auto [none, none_folder] = resume_edited(
+      "ck_revision_none", [&](std::string& b) { std::fill_n(b.begin() + (at - 16), 8, '\0'); });
+  EXPECT_EQ(none.code, 2) << none.output;
+  EXPECT_NE(none.output.find("damaged checkpoint: 0 revisions"), std::string::npos) << none.output;
+  const auto [binary, binary_folder] =
+      resume_edited("ck_revision_binary", [&](std::string& b) { b[at] = '\x01'; });
+  EXPECT_EQ(binary.code, 2) << binary.output;
+  EXPECT_NE(binary.output.find("is not a short line of printable text"), std::string::npos)
+      << binary.output;
 }
 
 TEST(Cli, WallsTakeHeatAndTheLedgerStillCloses) {
@@ -2038,12 +2052,19 @@ TEST(Cli, VersionNamesTheBuildAndEverySummaryRecordsIt) {
   const std::string revision = m[2];
   std::string commit = revision.substr(0, revision.find("-dirty"));
   if (const auto g = commit.rfind("-g"); g != std::string::npos) commit = commit.substr(g + 2);
-  const std::string git = "git -C " + std::string(BEAMPACK_SOURCE_DIR) + " ";
+  // Unknown only where the sources are not the top of a git checkout git will read (a tarball, a
+  // copy inside another project's repository).
+  const std::string in_sources = "cd '" + std::string(BEAMPACK_SOURCE_DIR) + "' && ";
   if (revision == "unknown")
-    EXPECT_NE(std::system((git + "rev-parse >/dev/null 2>&1").c_str()), 0)
-        << "git knows the sources";
+    EXPECT_NE(std::system((in_sources + "test \"$(git rev-parse --show-toplevel 2>/dev/null)\" = "
+                                        "\"$(pwd -P)\"")
+                              .c_str()),
+              0)
+        << BEAMPACK_SOURCE_DIR << " is a checkout of its own";
   else
-    EXPECT_EQ(std::system((git + "cat-file -e " + commit + "^{commit} 2>/dev/null").c_str()), 0)
+    EXPECT_EQ(
+        std::system((in_sources + "git cat-file -e " + commit + "^{commit} 2>/dev/null").c_str()),
+        0)
         << revision << " is no commit of " << BEAMPACK_SOURCE_DIR;
 
   const fs::path out = fresh_dir("version");

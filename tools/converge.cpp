@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <optional>
 #include <sstream>
+#include <string>
 
 #include "geometry/error.h"
 #include "tools/converge.h"
@@ -20,6 +21,14 @@ namespace {
 std::optional<double> peak_difference(const Figures& a, const Figures& b) {
   if (!a.max_temperature || !b.max_temperature) return std::nullopt;
   return std::abs(*a.max_temperature - *b.max_temperature);
+}
+
+// A temperature difference as printed: "12.5 K", or "-" without particles.
+std::string kelvin_text(std::optional<double> difference) {
+  if (!difference) return "-";
+  char text[32];
+  std::snprintf(text, sizeof text, "%.3g K", *difference);
+  return text;
 }
 
 struct Rung {
@@ -99,11 +108,12 @@ void say_what_the_reference_leaves_unmeasured(const Ladder& ladder) {
   const RunResult& finest = ladder.rungs[0].result;
   const RunResult& next = ladder.rungs[1].result;
   std::printf(
-      "%-18s the reference (%s) is %.2e in v_v and %.3g K in peak temperature from the next rung "
+      "%-18s the reference (%s) is %.2e in v_v and %s in peak temperature from the next rung "
       "(%s): its own error is not measured and may be of that size%s\n",
       ladder.name.c_str(), ladder.rungs[0].value.c_str(),
       std::abs(next.figures.vaporized_fraction - finest.figures.vaporized_fraction),
-      peak_difference(next.figures, finest.figures).value_or(0), ladder.rungs[1].value.c_str(),
+      kelvin_text(peak_difference(next.figures, finest.figures)).c_str(),
+      ladder.rungs[1].value.c_str(),
       ladder.key == "thermal.dt" ? " (a lower pulses.xi refines the ladder)" : "");
 }
 
@@ -179,10 +189,9 @@ int converge_command(const RunOptions& options) {
           << ',' << exact(t.max) << ',' << t.compared << ',' << exact(r.figures.time) << ','
           << exact(r.figures.max_temperature) << ',' << exact(peak_error) << '\n';
       csv += row.str();
-      std::printf(
-          "%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %.3g K  peak error %.3g K\n",
-          ladder.name.c_str(), rung.value.c_str(), r.wall_seconds, r.figures.vaporized_fraction,
-          vv_error, t.l2, peak_error.value_or(0));
+      std::printf("%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %.3g K  peak error %s\n",
+                  ladder.name.c_str(), rung.value.c_str(), r.wall_seconds,
+                  r.figures.vaporized_fraction, vv_error, t.l2, kelvin_text(peak_error).c_str());
       std::fflush(stdout);
       if (&rung != &ladder.rungs.front()) {
         series.x.push_back(r.wall_seconds);

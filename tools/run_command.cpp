@@ -1026,17 +1026,27 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
 }
 
 // A checkpoint written by another build may not go on as that build would have: said once, with
-// both revisions (summary.json keeps the earlier ones).
+// both revisions (summary.json keeps the earlier ones). An unknown revision (a build outside git,
+// a format-4 checkpoint) equals none, not even another unknown one.
 void warn_of_another_build(const std::vector<std::string>& earlier_parts) {
   const std::string ours = build_info().revision;
   const std::string& last = earlier_parts.back();
-  if (last == ours) return;  // two builds outside git: nothing to tell them apart by
-  std::fprintf(stderr,
-               "beampack: warning: --resume: the checkpoint was written by beampack %s and this "
-               "is beampack %s: the run goes on, but its numbers may differ from those of one "
-               "build running it whole\n",
-               last == "unknown" ? "of an unknown revision" : last.c_str(),
-               ours == "unknown" ? "of an unknown revision" : ours.c_str());
+  if (last == ours && ours != "unknown") return;
+  const char* consequence =
+      "the run goes on, but its numbers may differ from those of one build running it whole";
+  if (last != "unknown" && ours != "unknown")
+    std::fprintf(stderr,
+                 "beampack: warning: --resume: the checkpoint was written by beampack %s and "
+                 "this is beampack %s: %s\n",
+                 last.c_str(), ours.c_str(), consequence);
+  else
+    std::fprintf(stderr,
+                 "beampack: warning: --resume: the revision of %s is unknown, so the checkpoint "
+                 "may come from another build: %s\n",
+                 last == ours        ? "both builds"
+                 : last == "unknown" ? "the build that wrote the checkpoint"
+                                     : "this build",
+                 consequence);
 }
 
 // --resume: the checkpoint's run file and particles stand in for the run's sources.
