@@ -1,7 +1,7 @@
 # Run at every build (cmake -P): writes build_info.cpp with the sources' git revision. The file is
 # rewritten only when its text changes, so an unchanged revision recompiles nothing.
 #   -DSOURCE=<source tree> -DOUT=<build_info.cpp> -DGIT=<git or empty>
-#   -DBEAMPACK_VERSION=<x.y.z> -DBEAMPACK_BUILD_TYPE=<type>
+#   -DBEAMPACK_VERSION=<x.y.z> -DBEAMPACK_BUILD_TYPE=<type> -DBEAMPACK_FLAGS=<compiler flags>
 # Only beampack's own checkout counts: sources copied into another project's repository (a vendored
 # third_party/beampack, a tarball unpacked inside a repository) would otherwise take its commit.
 set(BEAMPACK_REVISION unknown)
@@ -31,4 +31,7 @@ endif()
 if(NOT BEAMPACK_BUILD_TYPE)
   set(BEAMPACK_BUILD_TYPE "none")  # CMAKE_BUILD_TYPE not set: the compiler's default flags
 endif()
+# The flags go into a C string: its quotes and backslashes escaped.
+string(REPLACE "\\" "\\\\" BEAMPACK_FLAGS "${BEAMPACK_FLAGS}")
+string(REPLACE "\"" "\\\"" BEAMPACK_FLAGS "${BEAMPACK_FLAGS}")
 configure_file(${SOURCE}/cmake/build_info.cpp.in ${OUT} @ONLY)

@@ -10,6 +10,7 @@ struct BuildInfo {
                            // "unknown" outside a git checkout
   const char* build_type;  // CMAKE_BUILD_TYPE: "Release", "RelWithDebInfo", ...
   const char* compiler;    // e.g. "gcc 12.2.0"
+  const char* flags;       // CMAKE_CXX_FLAGS and the build type's, e.g. "-O2 -g -DNDEBUG"
 };
 
 BuildInfo build_info();

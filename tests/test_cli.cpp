@@ -2074,6 +2074,11 @@ TEST(Cli, VersionNamesTheBuildAndEverySummaryRecordsIt) {
   EXPECT_EQ(built["revision"], revision);
   EXPECT_EQ(built["build_type"], m[3].str());
   EXPECT_EQ(built["compiler"], m[4].str());
+  // The flags that can change the numbers: an optimised build names its optimisation.
+  ASSERT_TRUE(built["flags"].is_string()) << built.dump();
+  if (m[3] == "Release" || m[3] == "RelWithDebInfo") {
+    EXPECT_NE(built["flags"].get<std::string>().find("-O"), std::string::npos) << built.dump();
+  }
 }
 
 // An empty bed has no peak temperature in convergence.csv either (as in history.csv): empty

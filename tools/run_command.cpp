@@ -407,7 +407,8 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
   j["beampack"] = {{"version", built.version},
                    {"revision", built.revision},
                    {"build_type", built.build_type},
-                   {"compiler", built.compiler}};
+                   {"compiler", built.compiler},
+                   {"flags", built.flags}};
   if (!earlier_parts.empty()) j["beampack"]["earlier_parts_revisions"] = earlier_parts;
   return j;
 }
