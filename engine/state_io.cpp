@@ -26,11 +26,14 @@ std::string layout_tag() {
 
 StateWriter::StateWriter() : buffer_(layout_tag()) {}
 
+std::string with_checksum(std::string body) {
+  const std::uint64_t h = fnv1a(body.data(), body.size());
+  body.append(reinterpret_cast<const char*>(&h), sizeof h);
+  return body;
+}
+
 std::string StateWriter::finish() const {
-  std::string out = buffer_;
-  const std::uint64_t h = fnv1a(buffer_.data(), buffer_.size());
-  out.append(reinterpret_cast<const char*>(&h), sizeof h);
-  return out;
+  return with_checksum(buffer_);
 }
 
 StateReader::StateReader(std::string data, std::string source)

@@ -12,6 +12,10 @@
 
 namespace beampack {
 
+// `body` with its checksum appended: what StateWriter::finish gives for the bytes it wrote, and
+// what StateReader checks.
+std::string with_checksum(std::string body);
+
 class StateWriter {
  public:
   StateWriter();

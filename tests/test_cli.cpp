@@ -10,7 +10,6 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
-#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -18,6 +17,7 @@
 #include <regex>
 #include <sstream>
 
+#include "engine/state_io.h"
 #include "tests/test_dirs.h"
 #include "tools/run_config.h"
 
@@ -1342,15 +1342,12 @@ TEST(Cli, AResumeRecordsTheRevisionsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
   ASSERT_EQ(run("run --preset quick --quiet --checkpoint-every 2 --out " + dir.string()).code, 0);
   EXPECT_FALSE(read_json(dir / "summary.json")["beampack"].contains("earlier_parts_revisions"));
   const std::string written = file_text(dir / "checkpoint.bin");
-  // `written` edited, its checksum (FNV-1a over all but the last 8 bytes) made to hold again, and
-  // resumed in a folder of its own.
+  // `written` edited, its checksum (the last 8 bytes) made to hold again, and resumed in a folder
+  // of its own.
   const auto resume_edited = [&](const std::string& name, const auto& edit) {
-    std::string bytes = written;
-    edit(bytes);
-    std::uint64_t h = 0xcbf29ce484222325ull;
-    for (std::size_t i = 0; i + 8 < bytes.size(); ++i)
-      h = (h ^ static_cast<unsigned char>(bytes[i])) * 0x100000001b3ull;
-    std::memcpy(bytes.data() + bytes.size() - 8, &h, 8);
+    std::string body = written.substr(0, written.size() - 8);
+    edit(body);
+    const std::string bytes = beampack::with_checksum(body);
     const fs::path folder = fresh_dir(name);
     std::ofstream(folder / "checkpoint.bin", std::ios::binary)
         .write(bytes.data(), std::streamsize(bytes.size()));
