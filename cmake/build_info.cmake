@@ -4,7 +4,7 @@
 #   -DBEAMPACK_VERSION=<x.y.z> -DBEAMPACK_BUILD_TYPE=<type> -DBEAMPACK_FLAGS=<compiler flags>
 # Only beampack's own checkout counts: sources copied into another project's repository (a vendored
 # third_party/beampack, a tarball unpacked inside a repository) would otherwise take its commit.
-set(BEAMPACK_REVISION unknown)
+set(BEAMPACK_REVISION unknown)  # kUnknownRevision in engine/build_info.h
 if(GIT AND EXISTS ${SOURCE}/.git)
   execute_process(COMMAND ${GIT} -C ${SOURCE} rev-parse --show-toplevel
                   RESULT_VARIABLE code OUTPUT_VARIABLE top ERROR_QUIET OUTPUT_STRIP_TRAILING_WHITESPACE)

@@ -2079,12 +2079,13 @@ TEST(Cli, VersionNamesTheBuildAndEverySummaryRecordsIt) {
 }
 
 // An empty bed has no peak temperature in convergence.csv either (as in history.csv): empty
-// cells, not a peak of 0 K and an error of 0 K.
+// cells, not a peak of 0 K and an error of 0 K; the console prints '-' for its error.
 TEST(Cli, AConvergeOverAnEmptyBedHasNoPeakTemperature) {
   const fs::path out = fresh_dir("converge_empty_bed");
-  const Result r =
-      run("converge --preset quick --set packing.count=0 --quiet --out " + out.string());
+  const Result r = run("converge --preset quick --set packing.count=0 --out " + out.string());
   ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("peak error -\n"), std::string::npos) << r.output;
+  EXPECT_EQ(r.output.find("peak error 0"), std::string::npos) << r.output;
   const auto rows = read_csv(out / "convergence.csv");
   ASSERT_FALSE(rows.empty());
   for (const auto& row : rows) {

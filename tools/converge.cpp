@@ -25,10 +25,7 @@ std::optional<double> peak_difference(const Figures& a, const Figures& b) {
 
 // A temperature difference as printed: "12.5 K", or "-" without particles.
 std::string kelvin_text(std::optional<double> difference) {
-  if (!difference) return "-";
-  char text[32];
-  std::snprintf(text, sizeof text, "%.3g K", *difference);
-  return text;
+  return shown(difference, "%.3g K", "-");
 }
 
 struct Rung {

@@ -276,10 +276,7 @@ std::string stage_note(std::string_view stage, const Counts& c) {
 
 // The peak temperature as printed: a particle-free scene has none (not 0 K).
 std::string peak_text(const Figures& f, const char* format) {
-  if (!f.max_temperature) return "- (no particles)";
-  char text[64];
-  std::snprintf(text, sizeof text, format, *f.max_temperature);
-  return text;
+  return shown(f.max_temperature, format, "- (no particles)");
 }
 
 // "~12 s left", "~3.5 min left", "~2.0 h left"; empty without an estimate.
@@ -683,7 +680,7 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
                      "); this one reads " + kCheckpointMagic + " and " + kCheckpointMagic4);
   if (magic != kCheckpointMagic && magic != kCheckpointMagic4)
     throw InputError(path.string() + ": not a beampack checkpoint");
-  record.earlier_parts = magic == kCheckpointMagic4 ? std::vector<std::string>{"unknown"}
+  record.earlier_parts = magic == kCheckpointMagic4 ? std::vector<std::string>{kUnknownRevision}
                                                     : read_revisions(r, path.string());
   record.earlier_seconds = r.value<double>();
   record.checkpoint_every = r.value<int>();
@@ -1032,10 +1029,10 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
 void warn_of_another_build(const std::vector<std::string>& earlier_parts) {
   const std::string ours = build_info().revision;
   const std::string& last = earlier_parts.back();
-  if (last == ours && ours != "unknown") return;
+  if (last == ours && ours != kUnknownRevision) return;
   const char* consequence =
       "the run goes on, but its numbers may differ from those of one build running it whole";
-  if (last != "unknown" && ours != "unknown")
+  if (last != kUnknownRevision && ours != kUnknownRevision)
     std::fprintf(stderr,
                  "beampack: warning: --resume: the checkpoint was written by beampack %s and "
                  "this is beampack %s: %s\n",
@@ -1044,9 +1041,9 @@ void warn_of_another_build(const std::vector<std::string>& earlier_parts) {
     std::fprintf(stderr,
                  "beampack: warning: --resume: the revision of %s is unknown, so the checkpoint "
                  "may come from another build: %s\n",
-                 last == ours        ? "both builds"
-                 : last == "unknown" ? "the build that wrote the checkpoint"
-                                     : "this build",
+                 last == ours               ? "both builds"
+                 : last == kUnknownRevision ? "the build that wrote the checkpoint"
+                                            : "this build",
                  consequence);
 }
 

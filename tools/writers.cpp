@@ -21,6 +21,13 @@ std::string exact(std::optional<double> v) {
   return v ? exact(*v) : "";
 }
 
+std::string shown(std::optional<double> v, const char* format, const char* none) {
+  if (!v) return none;
+  char text[64];
+  std::snprintf(text, sizeof text, format, *v);
+  return text;
+}
+
 namespace {
 
 // A file being staged: its temporary beside it, registered for a second interrupt to remove.

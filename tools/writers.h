@@ -43,5 +43,7 @@ void write_pvd(const std::string& path, const std::vector<std::pair<std::string,
 std::string exact(double v);
 // A CSV cell: exact(v), or empty when there is no value (a scene without particles has no peak).
 std::string exact(std::optional<double> v);
+// Console text: v through a printf `format` ("%.3g K"), or `none` when there is no value.
+std::string shown(std::optional<double> v, const char* format, const char* none);
 
 }  // namespace beampack::tools
