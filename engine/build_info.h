@@ -1,6 +1,8 @@
 #pragma once
 // What built this library, for the record a run keeps of itself (summary.json, beampack
 // --version): results are only comparable when one knows the code that made them.
+#include <cstddef>
+#include <string_view>
 
 namespace beampack {
 
@@ -8,10 +10,25 @@ namespace beampack {
 // text), and of the builds behind a format-4 checkpoint.
 inline constexpr const char* kUnknownRevision = "unknown";
 
+// What a revision may hold: 1 to 80 letters, digits or ._+- (cmake/build_info.cmake reduces
+// git's text to this, and the generated build_info.cpp asserts it); a checkpoint whose record
+// holds anything else is damaged.
+inline constexpr std::size_t kMaxRevisionLength = 80;
+constexpr bool is_revision_text(std::string_view s) {
+  if (s.empty() || s.size() > kMaxRevisionLength) return false;
+  for (const char c : s) {
+    const bool plain = (c >= 'A' && c <= 'Z') || (c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') ||
+                       c == '.' || c == '_' || c == '+' || c == '-';
+    if (!plain) return false;
+  }
+  return true;
+}
+
 struct BuildInfo {
-  const char* version;     // the project's (CMakeLists.txt), e.g. "0.1.0"
-  const char* revision;    // `git describe --always --dirty` of the sources when built;
-                           // kUnknownRevision outside a git checkout
+  const char* version;     // the project's (CMakeLists.txt), e.g. "0.2.0"
+  const char* revision;    // the sources' `git describe --always --dirty --abbrev=12` when built,
+                           // with a digest of the uncommitted changes after -dirty, reduced to
+                           // is_revision_text; kUnknownRevision outside beampack's own checkout
   const char* build_type;  // CMAKE_BUILD_TYPE: "Release", "RelWithDebInfo", ...
   const char* compiler;    // e.g. "gcc 12.2.0"
   const char* flags;       // CMAKE_CXX_FLAGS and the build type's, e.g. "-O2 -g -DNDEBUG"

@@ -10,6 +10,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -1331,16 +1332,18 @@ TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
   EXPECT_NE(other.output.find("other byte order"), std::string::npos) << other.output;
 }
 
-// A checkpoint keeps the revision of the build that wrote it: a resume by the same build goes on
-// silently, one by another build says so, and summary.json lists the earlier parts' revisions.
-TEST(Cli, AResumeRecordsTheRevisionsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
+// A checkpoint keeps the build that wrote it (revision, build type, compiler, flags): a resume by
+// the same build goes on silently, one by another build says so, and summary.json lists the
+// earlier parts' builds.
+TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
   const Result v = run("--version");
   const std::string ours =
       v.output.substr(v.output.find("(git ") + 5, v.output.find(',') - v.output.find("(git ") - 5);
   const bool known = ours != "unknown";  // a build outside git knows no revision of its own
   const fs::path dir = fresh_dir("ck_revision");
   ASSERT_EQ(run("run --preset quick --quiet --checkpoint-every 2 --out " + dir.string()).code, 0);
-  EXPECT_FALSE(read_json(dir / "summary.json")["beampack"].contains("earlier_parts_revisions"));
+  const nlohmann::json built = read_json(dir / "summary.json")["beampack"];
+  EXPECT_FALSE(built.contains("earlier_parts"));
   const std::string written = file_text(dir / "checkpoint.bin");
   // `written` edited, its checksum (the last 8 bytes) made to hold again, and resumed in a folder
   // of its own.
@@ -1353,52 +1356,87 @@ TEST(Cli, AResumeRecordsTheRevisionsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
         .write(bytes.data(), std::streamsize(bytes.size()));
     return std::pair{run("run --resume " + folder.string() + " --quiet"), folder};
   };
-  const auto revisions = [](const fs::path& folder) {
-    return read_json(folder / "summary.json")["beampack"]["earlier_parts_revisions"];
+  const auto earlier_parts = [](const fs::path& folder) {
+    return read_json(folder / "summary.json")["beampack"]["earlier_parts"];
   };
   const auto expect_warning = [](const Result& r, const std::string& text) {
     EXPECT_EQ(r.code, 0) << r.output;
     if (text.empty()) EXPECT_EQ(r.output.find("warning: --resume"), std::string::npos) << r.output;
     else EXPECT_NE(r.output.find("warning: --resume: " + text), std::string::npos) << r.output;
   };
-  const std::size_t at = written.find(ours);  // after the magic: count, length, revision
+  // The part's record, after the magic: the count (8 bytes), then four texts (an 8-byte length
+  // and the bytes each): revision, build type, compiler, flags.
+  const std::size_t at = written.find(ours);
   ASSERT_NE(at, std::string::npos);
+  const auto after_text = [&](std::size_t text) {
+    std::uint64_t n = 0;
+    std::memcpy(&n, written.data() + text - 8, 8);
+    return text + n + 8;  // where the next text's bytes begin
+  };
+  const std::size_t flags_at = after_text(after_text(after_text(at)));
+  const std::size_t record_end = flags_at + built["flags"].get<std::string>().size();
+  ASSERT_EQ(written.substr(flags_at, record_end - flags_at), built["flags"]);
 
   const auto [same_run, same] = resume_edited("ck_revision_same", [](std::string&) {});
   expect_warning(same_run, known ? "" : "the revision of both builds is unknown");
-  EXPECT_EQ(revisions(same), nlohmann::json::array({ours}));
+  ASSERT_EQ(earlier_parts(same).size(), 1u);
+  for (const char* key : {"revision", "build_type", "compiler", "flags"})
+    EXPECT_EQ(earlier_parts(same)[0][key], built[key]) << key;
 
-  // As another build would have written it: it says so, and its results are the same (the build
-  // changed in name only).
+  // As another revision would have written it: it says so, and its results are the same (the
+  // build changed in name only).
   const std::string theirs(ours.size(), 'f');
   const auto [other_run, other] = resume_edited(
       "ck_revision_other", [&](std::string& b) { b.replace(at, ours.size(), theirs); });
   expect_warning(other_run, known ? "the checkpoint was written by beampack " + theirs +
                                         " and this is beampack " + ours
                                   : "the revision of this build is unknown");
-  EXPECT_EQ(revisions(other), nlohmann::json::array({theirs}));
+  EXPECT_EQ(earlier_parts(other)[0]["revision"], theirs);
   EXPECT_EQ(file_text(same / "particles.csv"), file_text(other / "particles.csv"));
 
-  // Format 4, which kept no revision, is still read: its part's revision is unknown, and unknown
+  // The same revision built with other flags (a user's -ffast-math) is another build.
+  if (known && record_end > flags_at) {
+    const auto [flags_run, flags] = resume_edited("ck_revision_flags", [&](std::string& b) {
+      std::fill(b.begin() + std::ptrdiff_t(flags_at), b.begin() + std::ptrdiff_t(record_end), 'X');
+    });
+    expect_warning(flags_run, "the checkpoint was written by beampack " + ours + " built as ");
+    EXPECT_NE(flags_run.output.find("flags \"" + std::string(record_end - flags_at, 'X') + "\""),
+              std::string::npos)
+        << flags_run.output;
+  }
+
+  // Format 5 kept the revision alone: the rest is unknown, so even this revision warns.
+  const auto [five_run, five] = resume_edited("ck_revision_format5", [&](std::string& b) {
+    b[b.find("beampack-checkpoint-6") + 20] = '5';
+    b.erase(at + ours.size(), record_end - (at + ours.size()));
+  });
+  expect_warning(five_run, known ? "the checkpoint was written by beampack " + ours +
+                                       " built as unknown, unknown, flags \"unknown\""
+                                 : "the revision of both builds is unknown");
+  EXPECT_EQ(earlier_parts(five)[0]["revision"], ours);
+  EXPECT_EQ(earlier_parts(five)[0]["flags"], "unknown");
+  EXPECT_EQ(file_text(same / "particles.csv"), file_text(five / "particles.csv"));
+
+  // Format 4, which kept no build, is still read: its part's revision is unknown, and unknown
   // equals no build.
   const auto [old_run, old] = resume_edited("ck_revision_format4", [&](std::string& b) {
-    b[b.find("beampack-checkpoint-5") + 20] = '4';
-    b.erase(at - 16, 16 + ours.size());
+    b[b.find("beampack-checkpoint-6") + 20] = '4';
+    b.erase(at - 16, record_end - (at - 16));
   });
   expect_warning(old_run, known ? "the revision of the build that wrote the checkpoint is unknown"
                                 : "the revision of both builds is unknown");
-  EXPECT_EQ(revisions(old), nlohmann::json::array({"unknown"}));
+  EXPECT_EQ(earlier_parts(old)[0]["revision"], "unknown");
   EXPECT_EQ(file_text(same / "particles.csv"), file_text(old / "particles.csv"));
 
-  // A record of no revision, or of one that is not plain text, is a damaged checkpoint.
+  // A record of no build, or a revision that is not plain text, is a damaged checkpoint.
   const auto [none, none_folder] = resume_edited(
       "ck_revision_none", [&](std::string& b) { std::fill_n(b.begin() + (at - 16), 8, '\0'); });
   EXPECT_EQ(none.code, 2) << none.output;
-  EXPECT_NE(none.output.find("damaged checkpoint: 0 revisions"), std::string::npos) << none.output;
+  EXPECT_NE(none.output.find("damaged checkpoint: 0 builds"), std::string::npos) << none.output;
   const auto [binary, binary_folder] =
       resume_edited("ck_revision_binary", [&](std::string& b) { b[at] = '\x01'; });
   EXPECT_EQ(binary.code, 2) << binary.output;
-  EXPECT_NE(binary.output.find("is not a short line of printable text"), std::string::npos)
+  EXPECT_NE(binary.output.find("the revision of part 0 is not"), std::string::npos)
       << binary.output;
 }
 

@@ -30,6 +30,7 @@
 #include "geometry/error.h"
 #include "geometry/input_file.h"
 #include "tools/params.h"
+#include "tools/part_builds.h"
 #include "tools/quit_cleanup.h"
 #include "tools/svg_plot.h"
 #include "tools/writers.h"
@@ -356,9 +357,9 @@ nlohmann::json toml_to_json(const toml::table& table) {
   return j;
 }
 
-// `earlier_parts`: the revisions that ran the parts of a resumed run before this one.
+// `earlier_parts`: the builds that ran the parts of a resumed run before this one.
 nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const RunConfig& config,
-                            const std::vector<std::string>& earlier_parts) {
+                            const std::vector<PartBuild>& earlier_parts) {
   const Figures& f = r.figures;
   const EnergyLedger& e = f.energy;
   nlohmann::json j;
@@ -406,7 +407,7 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
                    {"build_type", built.build_type},
                    {"compiler", built.compiler},
                    {"flags", built.flags}};
-  if (!earlier_parts.empty()) j["beampack"]["earlier_parts_revisions"] = earlier_parts;
+  if (!earlier_parts.empty()) j["beampack"]["earlier_parts"] = part_builds_json(earlier_parts);
   return j;
 }
 
@@ -593,9 +594,11 @@ RunResult run_scene(const RunConfig& config, bool quiet, const std::string& labe
 namespace {
 
 // Format 2 added the wall time before the checkpoint, format 3 the pulses between checkpoints,
-// format 4 the optics ledger's low parts, format 5 the revisions that ran the run so far; format
-// 1 is "beampack-checkpoint". Format 4 is still read (its revisions are "unknown").
-constexpr const char* kCheckpointMagic = "beampack-checkpoint-5";
+// format 4 the optics ledger's low parts, format 5 the revisions that ran the run so far, format 6
+// their build types, compilers and flags; format 1 is "beampack-checkpoint". Formats 5 and 4 are
+// still read (what they did not keep is "unknown").
+constexpr const char* kCheckpointMagic = "beampack-checkpoint-6";
+constexpr const char* kCheckpointMagic5 = "beampack-checkpoint-5";
 constexpr const char* kCheckpointMagic4 = "beampack-checkpoint-4";
 
 // What a run accumulates besides the simulation's own state: the history rows and the frames.
@@ -606,9 +609,9 @@ struct RunRecord {
   double earlier_seconds = 0;     // wall time of the runs this one resumes
   int checkpoint_every = 0;       // --checkpoint-every of the run: a resume keeps it
   bool resumed_in_place = false;  // --resume into the checkpoint's own folder
-  // The revisions (build_info) that ran the parts before this one, in order, one entry per
-  // resume; empty for a run that did not resume.
-  std::vector<std::string> earlier_parts;
+  // The builds that ran the parts before this one, in order, one entry per resume; empty for a
+  // run that did not resume.
+  std::vector<PartBuild> earlier_parts;
 };
 
 // summary.json's text. A string that is not UTF-8 (a failure's message quoting a path named in
@@ -623,9 +626,9 @@ OutputFile checkpoint_file(const fs::path& path, const Simulation& sim, const Ru
                            double wall_seconds) {
   StateWriter w;
   w.text(kCheckpointMagic);
-  w.value<std::uint64_t>(record.earlier_parts.size() + 1);  // and this part
-  for (const std::string& revision : record.earlier_parts) w.text(revision);
-  w.text(build_info().revision);
+  std::vector<PartBuild> parts = record.earlier_parts;
+  parts.push_back(this_build());
+  write_part_builds(w, parts);
   w.value(wall_seconds);
   w.value(record.checkpoint_every);
   w.text(record.config_text);
@@ -636,25 +639,6 @@ OutputFile checkpoint_file(const fs::path& path, const Simulation& sim, const Ru
   auto bytes = std::make_shared<const std::string>(w.finish());
   return {path.string(),
           [bytes](std::ostream& o) { o.write(bytes->data(), std::streamsize(bytes->size())); }};
-}
-
-// The revisions a format-5 checkpoint lists: at least one (the part that wrote it), each a
-// line of printable text.
-std::vector<std::string> read_revisions(StateReader& r, const std::string& path) {
-  const auto count = r.value<std::uint64_t>();
-  if (count == 0 || count > 1'000'000)
-    throw InputError(path + ": damaged checkpoint: " + std::to_string(count) +
-                     " revisions of the run's parts, expected 1 to 1000000");
-  std::vector<std::string> revisions;
-  for (std::uint64_t k = 0; k < count; ++k) {
-    revisions.push_back(r.text());
-    const std::string& revision = revisions.back();
-    if (revision.empty() || revision.size() > 200 ||
-        !std::all_of(revision.begin(), revision.end(), [](char c) { return c > ' ' && c < 127; }))
-      throw InputError(path + ": damaged checkpoint: revision " + std::to_string(k) +
-                       " of the run's parts is not a short line of printable text");
-  }
-  return revisions;
 }
 
 StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
@@ -677,11 +661,13 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   if (magic == "beampack-checkpoint" || magic == "beampack-checkpoint-2" ||
       magic == "beampack-checkpoint-3")
     throw InputError(path.string() + ": a checkpoint of an earlier beampack (" + magic +
-                     "); this one reads " + kCheckpointMagic + " and " + kCheckpointMagic4);
-  if (magic != kCheckpointMagic && magic != kCheckpointMagic4)
+                     "); this one reads " + kCheckpointMagic + ", " + kCheckpointMagic5 + " and " +
+                     kCheckpointMagic4);
+  if (magic != kCheckpointMagic && magic != kCheckpointMagic5 && magic != kCheckpointMagic4)
     throw InputError(path.string() + ": not a beampack checkpoint");
-  record.earlier_parts = magic == kCheckpointMagic4 ? std::vector<std::string>{kUnknownRevision}
-                                                    : read_revisions(r, path.string());
+  record.earlier_parts = magic == kCheckpointMagic4
+                             ? std::vector<PartBuild>{unknown_build()}
+                             : read_part_builds(r, path.string(), magic == kCheckpointMagic);
   record.earlier_seconds = r.value<double>();
   record.checkpoint_every = r.value<int>();
   record.config_text = r.text();
@@ -1023,30 +1009,6 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
                failed_at, ended.figures.pulse, plural(ended.figures.pulse), out.c_str());
 }
 
-// A checkpoint written by another build may not go on as that build would have: said once, with
-// both revisions (summary.json keeps the earlier ones). An unknown revision (a build outside git,
-// a format-4 checkpoint) equals none, not even another unknown one.
-void warn_of_another_build(const std::vector<std::string>& earlier_parts) {
-  const std::string ours = build_info().revision;
-  const std::string& last = earlier_parts.back();
-  if (last == ours && ours != kUnknownRevision) return;
-  const char* consequence =
-      "the run goes on, but its numbers may differ from those of one build running it whole";
-  if (last != kUnknownRevision && ours != kUnknownRevision)
-    std::fprintf(stderr,
-                 "beampack: warning: --resume: the checkpoint was written by beampack %s and "
-                 "this is beampack %s: %s\n",
-                 last.c_str(), ours.c_str(), consequence);
-  else
-    std::fprintf(stderr,
-                 "beampack: warning: --resume: the revision of %s is unknown, so the checkpoint "
-                 "may come from another build: %s\n",
-                 last == ours               ? "both builds"
-                 : last == kUnknownRevision ? "the build that wrote the checkpoint"
-                                            : "this build",
-                 consequence);
-}
-
 // --resume: the checkpoint's run file and particles stand in for the run's sources.
 void resume_from_checkpoint(const RunOptions& options, bool into_checkpoint_folder,
                             RunRecord& record, std::optional<StateReader>& saved,
@@ -1057,7 +1019,7 @@ void resume_from_checkpoint(const RunOptions& options, bool into_checkpoint_fold
                      ": the checkpoint holds its run file; give no run file, --preset or --set");
   if (into_checkpoint_folder) refuse_to_resume_a_finished_run(options.resume);
   saved.emplace(open_checkpoint(fs::path(options.resume) / "checkpoint.bin", record));
-  warn_of_another_build(record.earlier_parts);
+  warn_of_another_build(record.earlier_parts.back());
   sources.text = record.config_text;
   sources.saved_packing = [&saved](const SimulationSpec& spec) {
     return Simulation::saved_packing(*saved, spec);

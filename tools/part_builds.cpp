@@ -1,0 +1,115 @@
+#include "tools/part_builds.h"
+
+#include <cstdio>
+
+#include "engine/build_info.h"
+#include "geometry/error.h"
+
+namespace beampack::tools {
+
+namespace {
+
+constexpr std::size_t kMaxDetail = 4096;  // a build type, compiler or set of flags
+
+bool same_build(const PartBuild& a, const PartBuild& b) {
+  return a.revision != kUnknownRevision && a.revision == b.revision &&
+         a.build_type == b.build_type && a.compiler == b.compiler && a.flags == b.flags;
+}
+
+// "RelWithDebInfo, gcc 12.2.0, flags "-O2 -g -DNDEBUG""
+std::string built_as(const PartBuild& b) {
+  return b.build_type + ", " + b.compiler + ", flags \"" + b.flags + "\"";
+}
+
+std::string read_detail(StateReader& r, const std::string& path, std::uint64_t part,
+                        const char* what) {
+  std::string detail = r.text();
+  if (detail.size() > kMaxDetail)
+    throw InputError(path + ": damaged checkpoint: the " + what + " of the build of part " +
+                     std::to_string(part) + " is " + std::to_string(detail.size()) +
+                     " bytes long, at most " + std::to_string(kMaxDetail));
+  return detail;
+}
+
+}  // namespace
+
+PartBuild this_build() {
+  const BuildInfo b = build_info();
+  return {b.revision, b.build_type, b.compiler, b.flags};
+}
+
+PartBuild unknown_build() {
+  return {kUnknownRevision, kUnknownRevision, kUnknownRevision, kUnknownRevision};
+}
+
+void write_part_builds(StateWriter& w, const std::vector<PartBuild>& parts) {
+  w.value<std::uint64_t>(parts.size());
+  for (const PartBuild& p : parts) {
+    w.text(p.revision);
+    w.text(p.build_type);
+    w.text(p.compiler);
+    w.text(p.flags);
+  }
+}
+
+std::vector<PartBuild> read_part_builds(StateReader& r, const std::string& path,
+                                        bool with_details) {
+  const auto count = r.value<std::uint64_t>();
+  if (count == 0 || count > 1'000'000)
+    throw InputError(path + ": damaged checkpoint: " + std::to_string(count) +
+                     " builds of the run's parts, expected 1 to 1000000");
+  std::vector<PartBuild> parts;
+  for (std::uint64_t k = 0; k < count; ++k) {
+    PartBuild p = unknown_build();
+    p.revision = r.text();
+    if (!is_revision_text(p.revision))
+      throw InputError(path + ": damaged checkpoint: the revision of part " + std::to_string(k) +
+                       " is not 1 to " + std::to_string(kMaxRevisionLength) +
+                       " letters, digits or ._+-");
+    if (with_details) {
+      p.build_type = read_detail(r, path, k, "build type");
+      p.compiler = read_detail(r, path, k, "compiler");
+      p.flags = read_detail(r, path, k, "flags");
+    }
+    parts.push_back(std::move(p));
+  }
+  return parts;
+}
+
+void warn_of_another_build(const PartBuild& last) {
+  const PartBuild ours = this_build();
+  if (same_build(last, ours)) return;
+  const char* consequence =
+      "the run goes on, but its numbers may differ from those of one build running it whole";
+  if (last.revision == kUnknownRevision || ours.revision == kUnknownRevision)
+    std::fprintf(stderr,
+                 "beampack: warning: --resume: the revision of %s is unknown, so the checkpoint "
+                 "may come from another build: %s\n",
+                 last.revision == ours.revision      ? "both builds"
+                 : last.revision == kUnknownRevision ? "the build that wrote the checkpoint"
+                                                     : "this build",
+                 consequence);
+  else if (last.revision != ours.revision)
+    std::fprintf(stderr,
+                 "beampack: warning: --resume: the checkpoint was written by beampack %s and "
+                 "this is beampack %s: %s\n",
+                 last.revision.c_str(), ours.revision.c_str(), consequence);
+  else
+    std::fprintf(stderr,
+                 "beampack: warning: --resume: the checkpoint was written by beampack %s built "
+                 "as %s, and this one is built as %s: %s\n",
+                 last.revision.c_str(), built_as(last).c_str(), built_as(ours).c_str(),
+                 consequence);
+}
+
+nlohmann::json part_builds_json(const std::vector<PartBuild>& parts) {
+  nlohmann::json j = nlohmann::json::array();
+  for (const PartBuild& p : parts)
+    j.push_back({{"revision", p.revision},
+                 {"build_type", p.build_type},
+                 {"compiler", p.compiler},
+                 {"flags", p.flags}});
+  return j;
+}
+
+}  // namespace beampack::tools
