@@ -1989,9 +1989,9 @@ std::vector<std::string> names_in(const fs::path& dir) {
 // names the file; the files written before it stay whole and no half-written file is left, final
 // or temporary. Mid-run: the checkpoint (368 kB) after two frames (45 kB each) and their .pvd;
 // the run then keeps its two pulses (history.csv, summary.json, 1-3 kB, within the limit). At the
-// end: particles.csv (25 kB) fails, and the files of the run's end are one set, so history.csv
-// (1 kB, within the limit) is not written either: no particles.csv or summary.json is missing
-// beside it, and the --out folder the run made, empty, is removed.
+// end: particles.csv (25 kB) fails; the files of the run's end are one set, so none of them is
+// written, but the run keeps its five pulses as after a failed step (it kept nothing, and removed
+// its folder).
 TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
   const fs::path dir = fresh_dir("file_size_limit");
   const std::string frames = "--set beam.rays=2000 --set output.frames=true --checkpoint-every 2";
@@ -2015,14 +2015,20 @@ TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
   const std::string particles = (dir / "end" / "particles.csv").string();
   EXPECT_NE(end.output.find("output file \"" + particles + "\": write failed"), std::string::npos)
       << end.output;
-  EXPECT_FALSE(fs::exists(dir / "end")) << end.output;
+  EXPECT_NE(end.output.find("after 5 pulses had ended"), std::string::npos) << end.output;
+  ASSERT_TRUE(fs::exists(dir / "end")) << end.output;
+  EXPECT_EQ(names_in(dir / "end"), (std::vector<std::string>{"history.csv", "summary.json"}));
+  const nlohmann::json kept_at_end = read_json(dir / "end" / "summary.json");
+  EXPECT_EQ(kept_at_end["pulses"], 5);
+  EXPECT_NE(kept_at_end["failed"]["message"].get<std::string>().find(particles), std::string::npos);
+  EXPECT_EQ(read_csv(dir / "end" / "history.csv").size(), 5u);
   // Without the shell ignoring SIGXFSZ first, the limit's signal killed the process (status 153)
   // amid its temporaries; beampack ignores it, so the write fails as on a full disk.
   const Result plain = run("run --preset quick --quiet --out " + (dir / "plain").string(),
                            "sh -c \"ulimit -f 8; exec \\\"\\$0\\\" \\\"\\$@\\\"\"");
   EXPECT_EQ(plain.code, 1) << plain.output;
   EXPECT_NE(plain.output.find("write failed"), std::string::npos) << plain.output;
-  EXPECT_FALSE(fs::exists(dir / "plain")) << plain.output;
+  EXPECT_EQ(names_in(dir / "plain"), (std::vector<std::string>{"history.csv", "summary.json"}));
 }
 
 // A path named in bytes that are not UTF-8 cannot be held by a run file, config or summary.json

@@ -984,13 +984,15 @@ struct PulsesEnded {
   void note(const Figures& f, const Counts& c) { ++count, figures = f, counts = c; }
 };
 
-// A step that throws leaves the particles part way through it: they are not written (nor a
-// checkpoint), but the pulses the run ended are, as history.csv and a summary.json of the last
-// one's end that says what failed. Hours of pulses are not lost to one that fails (a beam drawn
-// too narrow in pulse 1361, a step needing more sub-steps than allowed).
+// A step that throws leaves the particles part way through it, and a run's end may fail to write
+// them (a full disk): they are not written (nor a checkpoint), but the pulses the run ended are,
+// as history.csv and a summary.json of the last one's end that says what failed. Hours of pulses
+// are not lost to one that fails (a beam drawn too narrow in pulse 1361, a step needing more
+// sub-steps than allowed). `no_particles_because`: why particles.csv is not among them.
 void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, const RunRecord& record,
                                 const PulsesEnded& ended, const RunConfig& config,
-                                const char* failure, double wall_seconds) {
+                                const char* failure, double wall_seconds,
+                                const char* no_particles_because) {
   if (ended.count == 0) return;
   RunResult r;
   r.figures = ended.figures;
@@ -1005,8 +1007,22 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
   std::fprintf(stderr,
                "beampack: the run failed at t = %.6g s, after %d pulse%s had ended; %s holds them "
                "(history.csv, and summary.json as at the last one's end, with the failure; no "
-               "particles.csv: the particles are part way through a step)\n",
-               failed_at, ended.figures.pulse, plural(ended.figures.pulse), out.c_str());
+               "particles.csv: %s)\n",
+               failed_at, ended.figures.pulse, plural(ended.figures.pulse), out.c_str(),
+               no_particles_because);
+}
+
+// keep_pulses_before_failure, or why it could not: the failure itself is what the run reports.
+void try_to_keep_pulses(const fs::path& out, const Simulation& sim, const RunRecord& record,
+                        const PulsesEnded& ended, const RunConfig& config, const char* failure,
+                        double wall_seconds, const char* no_particles_because) {
+  try {
+    keep_pulses_before_failure(out, sim, record, ended, config, failure, wall_seconds,
+                               no_particles_because);
+  } catch (const std::exception& e) {  // a full disk, say
+    std::fprintf(stderr, "beampack: the pulses before the failure could not be written: %s\n",
+                 e.what());
+  }
 }
 
 // --resume: the checkpoint's run file and particles stand in for the run's sources.
@@ -1063,21 +1079,18 @@ void run_steps(Simulation& sim, const RunConfig& config, const fs::path& out, Ru
       progress.update(sim);
     }
   } catch (const std::exception& failure) {
-    try {
-      keep_pulses_before_failure(out, sim, record, ended, config, failure.what(),
-                                 record.earlier_seconds + seconds_since(start));
-    } catch (const std::exception& e) {  // a full disk, say: the failure itself is what to report
-      std::fprintf(stderr, "beampack: the pulses before the failure could not be written: %s\n",
-                   e.what());
-    }
+    try_to_keep_pulses(out, sim, record, ended, config, failure.what(),
+                       record.earlier_seconds + seconds_since(start),
+                       "the particles are part way through a step");
     throw;
   }
 }
 
 // The run's end, finished or interrupted: its files (and a checkpoint when interrupted), its
-// table and its warnings. Returns the exit code.
+// table and its warnings. Returns the exit code. When its files cannot be written, the pulses it
+// ended are kept as after a failed step, and the failure goes on.
 int finish_run(const Simulation& sim, const RunConfig& config, const RunRecord& record,
-               const fs::path& out, Clock::time_point start) {
+               const PulsesEnded& ended, const fs::path& out, Clock::time_point start) {
   RunResult r;
   r.figures = sim.figures();
   r.counts = sim.counts();
@@ -1092,7 +1105,13 @@ int finish_run(const Simulation& sim, const RunConfig& config, const RunRecord& 
   files.push_back({(out / "summary.json").string(), [&](std::ostream& o) {
                      o << json_text(summary_json(sim, r, config, record.earlier_parts)) << '\n';
                    }});
-  write_atomically(files);
+  try {
+    write_atomically(files);
+  } catch (const std::exception& failure) {
+    try_to_keep_pulses(out, sim, record, ended, config, failure.what(), r.wall_seconds,
+                       "its write failed");
+    throw;
+  }
   // A run resumed into its folder from an interrupt's checkpoint, and now finished: that
   // checkpoint is spent (a later --resume would offer it as a periodic one to run again from).
   // Periodic checkpoints (--checkpoint-every) are kept.
@@ -1169,7 +1188,7 @@ int run_command(const RunOptions& options) {
   PulsesEnded ended;
   record_pulse_ends(sim, config.output, out, record, ended, checkpoint_due);
   run_steps(sim, config, out, record, ended, checkpoint_due, options.quiet, start);
-  return finish_run(sim, config, record, out, start);
+  return finish_run(sim, config, record, ended, out, start);
 }
 
 }  // namespace beampack::tools
