@@ -1652,8 +1652,8 @@ TEST(Cli, ASweepInterruptedBeforeItsFirstValueEndsWritesNothing) {
       (dir / "made" / "here").string();
   const Interrupted r = interrupt(dir, args, "setting up", "sleep 0.3; kill -INT $p");
   EXPECT_EQ(r.status, 1) << r.printed;
-  EXPECT_NE(r.printed.find("sweep interrupted during packing.count = 1000000: no value ended, "
-                           "nothing written"),
+  EXPECT_NE(r.printed.find("sweep interrupted during packing.count = 1000000: no value ran to "
+                           "its end: nothing written"),
             std::string::npos)
       << r.printed;
   EXPECT_FALSE(fs::exists(dir / "made")) << r.printed;
@@ -1674,10 +1674,36 @@ TEST(Cli, ASweepInterruptedAfterOnlyAFailedValueWritesNothing) {
       interrupt(dir, args, "row in sweep.csv is empty", "sleep 0.5; kill -INT $p");
   EXPECT_EQ(r.status, 2) << r.printed;
   EXPECT_NE(r.printed.find("sweep interrupted during packing.file = " + bed +
-                           ": no value ended, nothing written"),
+                           ": no value ran to its end: nothing written"),
             std::string::npos)
       << r.printed;
   EXPECT_FALSE(fs::exists(dir / "made")) << r.printed;
+}
+
+// Without an interrupt too, a sweep whose every value failed, or a converge whose every reference
+// rung failed, has no result: no table (before, one of empty rows, or a header alone, and
+// "sweep: 0 runs"), the --out folder it made removed, the failures' exit code (2 for the sweep's
+// bad files, 1 for converge's solver that may not iterate enough).
+TEST(Cli, ASweepOrConvergeWhoseEveryRunFailedWritesNothing) {
+  const fs::path dir = fresh_dir("every_run_failed");
+  const std::string flawed = write(dir / "flawed.xyz", "5e-4 5e-4 5e-4 -1\n");
+  const std::string also_flawed = write(dir / "also_flawed.xyz", "5e-4 5e-4 5e-4 nan\n");
+  const Result sweep =
+      run("sweep --preset quick --set packing.source=file --param packing.file --values " + flawed +
+          "," + also_flawed + " --quiet --out " + (dir / "sweep").string());
+  EXPECT_EQ(sweep.code, 2) << sweep.output;
+  EXPECT_NE(sweep.output.find("sweep: every value failed: nothing written"), std::string::npos)
+      << sweep.output;
+  EXPECT_FALSE(fs::exists(dir / "sweep")) << sweep.output;
+  const Result converge =
+      run("converge --preset quick --set thermal.solver=cg --set thermal.max_iterations=1 "
+          "--quiet --out " +
+          (dir / "converge").string());
+  EXPECT_EQ(converge.code, 1) << converge.output;
+  EXPECT_NE(converge.output.find("converge: every ladder's reference rung failed: nothing written"),
+            std::string::npos)
+      << converge.output;
+  EXPECT_FALSE(fs::exists(dir / "converge")) << converge.output;
 }
 
 // A thermal.dt far below light's crossing time of the sample is legal but makes millions of steps
@@ -2122,19 +2148,23 @@ TEST(Cli, VersionNamesTheBuildAndEverySummaryRecordsIt) {
   }
 }
 
-// An empty bed has no peak temperature in convergence.csv either (as in history.csv): empty
-// cells, not a peak of 0 K and an error of 0 K; the console prints '-' for its error.
+// An empty bed has no peak temperature in convergence.csv either (as in history.csv), nor a
+// temperature field to compare: empty cells, not a peak of 0 K and errors of 0 K; the console
+// prints '-' for its errors.
 TEST(Cli, AConvergeOverAnEmptyBedHasNoPeakTemperature) {
   const fs::path out = fresh_dir("converge_empty_bed");
   const Result r = run("converge --preset quick --set packing.count=0 --out " + out.string());
   ASSERT_EQ(r.code, 0) << r.output;
-  EXPECT_NE(r.output.find("peak error -\n"), std::string::npos) << r.output;
-  EXPECT_EQ(r.output.find("peak error 0"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("T L2 error -  peak error -\n"), std::string::npos) << r.output;
+  EXPECT_EQ(r.output.find(" error 0 K"), std::string::npos) << r.output;
   const auto rows = read_csv(out / "convergence.csv");
   ASSERT_FALSE(rows.empty());
   for (const auto& row : rows) {
     EXPECT_EQ(row.at("peak_temperature_K"), "") << row.at("ladder");
     EXPECT_EQ(row.at("peak_temperature_error_K"), "") << row.at("ladder");
+    EXPECT_EQ(row.at("temperature_l2_error_K"), "") << row.at("ladder");
+    EXPECT_EQ(row.at("temperature_max_error_K"), "") << row.at("ladder");
+    EXPECT_EQ(row.at("temperature_particles"), "0") << row.at("ladder");
   }
 }
 

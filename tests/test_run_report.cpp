@@ -184,13 +184,14 @@ TEST(RunReport, TemperatureErrorsCompareParticlesLiveInBothRuns) {
   rung.alive = {1, 1, 1, 0};  // particle 2 did not; particle 3 did
   const TemperatureError e = temperature_error(rung, reference);
   EXPECT_EQ(e.compared, 2u);
-  EXPECT_DOUBLE_EQ(e.max, 4.0);
-  EXPECT_DOUBLE_EQ(e.l2, std::sqrt((9.0 + 16.0) / 2.0));
+  EXPECT_DOUBLE_EQ(e.max.value(), 4.0);
+  EXPECT_DOUBLE_EQ(e.l2.value(), std::sqrt((9.0 + 16.0) / 2.0));
+  // No particle live in both: no error, not one of 0 K.
   reference.alive = rung.alive = {0, 0, 0, 0};
   const TemperatureError none = temperature_error(rung, reference);
   EXPECT_EQ(none.compared, 0u);
-  EXPECT_EQ(none.l2, 0.0);
-  EXPECT_EQ(none.max, 0.0);
+  EXPECT_FALSE(none.l2);
+  EXPECT_FALSE(none.max);
 }
 
 TEST(RunReport, AClosedLedgerGivesNoWarning) {

@@ -23,7 +23,7 @@ std::optional<double> peak_difference(const Figures& a, const Figures& b) {
   return std::abs(*a.max_temperature - *b.max_temperature);
 }
 
-// A temperature difference as printed: "12.5 K", or "-" without particles.
+// A temperature difference as printed: "12.5 K", or "-" where there is none (no particles).
 std::string kelvin_text(std::optional<double> difference) {
   return shown(difference, "%.3g K", "-");
 }
@@ -118,15 +118,17 @@ void say_what_the_reference_leaves_unmeasured(const Ladder& ladder) {
 
 TemperatureError temperature_error(const RunResult& rung, const RunResult& reference) {
   TemperatureError e;
-  double squares = 0;
+  double squares = 0, largest = 0;
   for (std::size_t i = 0; i < rung.temperature.size(); ++i) {
     if (!(rung.alive[i] && reference.alive[i])) continue;
     const double d = std::abs(rung.temperature[i] - reference.temperature[i]);
     squares += d * d;
-    e.max = std::max(e.max, d);
+    largest = std::max(largest, d);
     ++e.compared;
   }
-  e.l2 = e.compared > 0 ? std::sqrt(squares / double(e.compared)) : 0.0;
+  if (e.compared == 0) return e;
+  e.l2 = std::sqrt(squares / double(e.compared));
+  e.max = largest;
   return e;
 }
 
@@ -186,9 +188,10 @@ int converge_command(const RunOptions& options) {
           << ',' << exact(t.max) << ',' << t.compared << ',' << exact(r.figures.time) << ','
           << exact(r.figures.max_temperature) << ',' << exact(peak_error) << '\n';
       csv += row.str();
-      std::printf("%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %.3g K  peak error %s\n",
+      std::printf("%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %s  peak error %s\n",
                   ladder.name.c_str(), rung.value.c_str(), r.wall_seconds,
-                  r.figures.vaporized_fraction, vv_error, t.l2, kelvin_text(peak_error).c_str());
+                  r.figures.vaporized_fraction, vv_error, kelvin_text(t.l2).c_str(),
+                  kelvin_text(peak_error).c_str());
       std::fflush(stdout);
       if (&rung != &ladder.rungs.front()) {
         series.x.push_back(r.wall_seconds);
@@ -201,11 +204,11 @@ int converge_command(const RunOptions& options) {
   const bool no_rung =
       std::all_of(all.begin(), all.end(), [](const Ladder& l) { return l.rungs.empty(); });
   const bool cut = std::any_of(all.begin(), all.end(), [](const Ladder& l) { return l.cut; });
-  if (no_rung && cut) {  // a table of no rows is no result
-    std::fprintf(stderr,
-                 "beampack: converge interrupted before any rung ended: nothing written%s\n",
-                 earlier_tables_note(out, tables).c_str());
-    return std::max(code, 1);
+  if (no_rung) {  // a table of no rows is no result
+    say_nothing_written(cut ? "converge interrupted before any rung ended"
+                            : "converge: every ladder's reference rung failed",
+                        out, tables);
+    return cut ? std::max(code, 1) : code;
   }
   write_atomically(
       {{(out / "convergence.csv").string(), [&](std::ostream& o) { o << csv; }},

@@ -889,16 +889,19 @@ void refuse_non_files_at_outputs(const fs::path& dir, const std::vector<std::str
   });
 }
 
-std::string earlier_tables_note(const fs::path& dir, const std::vector<std::string>& names) {
+void say_nothing_written(const std::string& what, const fs::path& dir,
+                         const std::vector<std::string>& names) {
   std::string found;
   for (const std::string& name : names) {
     std::error_code ec;
     if (fs::is_regular_file(dir / name, ec)) found += (found.empty() ? "" : " and ") + name;
   }
-  if (found.empty()) return "";
   const bool two = found.find(" and ") != std::string::npos;
-  return " (" + found + " in " + dir.string() + (two ? " are" : " is") +
-         " an earlier run's, left as " + (two ? "they were)" : "it was)");
+  const std::string note =
+      found.empty() ? ""
+                    : " (" + found + " in " + dir.string() + (two ? " are" : " is") +
+                          " an earlier run's, left as " + (two ? "they were)" : "it was)");
+  std::fprintf(stderr, "beampack: %s: nothing written%s\n", what.c_str(), note.c_str());
 }
 
 // A new run into a directory that holds an earlier one: that run's results, checkpoint and
@@ -1319,17 +1322,16 @@ int sweep_command(const SweepOptions& options) {
       continue;
     }
     if (r.interrupted) {
-      // A table of no results (only failed values' empty rows) is no result: nothing is written
-      // (the --out folder it made goes).
-      const bool none_ended = vv.x.empty();
-      std::fprintf(
-          stderr, "beampack: sweep interrupted during %s = %s: %s\n", options.param.c_str(),
-          values[k].c_str(),
-          none_ended
-              ? ("no value ended, nothing written" + earlier_tables_note(out, tables)).c_str()
-              : "that value and the rest are not in sweep.csv");
-      if (none_ended) return std::max(code, 1);
       cut = true;
+      if (!vv.x.empty())
+        std::fprintf(stderr,
+                     "beampack: sweep interrupted during %s = %s: that value and the rest are not "
+                     "in sweep.csv\n",
+                     options.param.c_str(), values[k].c_str());
+      else  // the --out folder the sweep made goes
+        say_nothing_written("sweep interrupted during " + options.param + " = " + values[k] +
+                                ": no value ran to its end",
+                            out, tables);
       break;
     }
     const Figures& f = r.figures;
@@ -1341,6 +1343,10 @@ int sweep_command(const SweepOptions& options) {
                 options.param.c_str(), values[k].c_str(), f.vaporized_fraction, f.melted_fraction,
                 peak_text(f, "%.0f K").c_str(), r.wall_seconds);
     std::fflush(stdout);
+  }
+  if (vv.x.empty()) {  // a table of only failed values' empty rows is no result
+    if (!cut) say_nothing_written("sweep: every value failed", out, tables);
+    return cut ? std::max(code, 1) : code;
   }
   Chart chart{"vaporized fraction against " + options.param,
               options.param,

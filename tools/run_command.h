@@ -134,10 +134,11 @@ void refuse_non_files_at_outputs(
 // The same for a command whose files are `names` (sweep's and converge's tables).
 void refuse_non_files_at_outputs(const std::filesystem::path& dir,
                                  const std::vector<std::string>& names);
-// For a sweep or converge that writes nothing: " (sweep.csv and sweep.svg in DIR are an earlier
-// run's, left as they were)" for those of `names` that are there, "" when none is.
-std::string earlier_tables_note(const std::filesystem::path& dir,
-                                const std::vector<std::string>& names);
+// A sweep or converge with no result (no run ended: every one failed, or an interrupt came before
+// one ended) writes no table: "beampack: WHAT: nothing written" on stderr, with a note when the
+// tables `names` in `dir` are an earlier run's, left as they were.
+void say_nothing_written(const std::string& what, const std::filesystem::path& dir,
+                         const std::vector<std::string>& names);
 // InputError when a sweep or converge run file asks for output.frames or output.rays.
 void refuse_run_only_outputs(const RunConfig& config, const char* command);
 
