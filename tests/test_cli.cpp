@@ -15,6 +15,7 @@
 #include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <regex>
 #include <sstream>
 
@@ -1332,13 +1333,32 @@ TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
   EXPECT_NE(other.output.find("other byte order"), std::string::npos) << other.output;
 }
 
+namespace {
+
+// `beampack --version`, read: "beampack 0.2.0 (git REVISION, BUILD TYPE, COMPILER, flags "...")".
+struct VersionLine {
+  std::string version, revision, build_type, compiler, flags;
+};
+std::optional<VersionLine> version_line() {
+  const Result v = run("--version");
+  const std::regex line("beampack (\\S+) \\(git (\\S+), (\\S+), (.+), flags \"(.*)\"\\)\n");
+  std::smatch m;
+  if (v.code != 0 || !std::regex_match(v.output, m, line)) {
+    ADD_FAILURE() << "beampack --version printed " << v.output;
+    return std::nullopt;
+  }
+  return VersionLine{m[1], m[2], m[3], m[4], m[5]};
+}
+
+}  // namespace
+
 // A checkpoint keeps the build that wrote it (revision, build type, compiler, flags): a resume by
 // the same build goes on silently, one by another build says so, and summary.json lists the
 // earlier parts' builds.
 TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
-  const Result v = run("--version");
-  const std::string ours =
-      v.output.substr(v.output.find("(git ") + 5, v.output.find(',') - v.output.find("(git ") - 5);
+  const std::optional<VersionLine> v = version_line();
+  ASSERT_TRUE(v);
+  const std::string ours = v->revision;
   const bool known = ours != "unknown";  // a build outside git knows no revision of its own
   const fs::path dir = fresh_dir("ck_revision");
   ASSERT_EQ(run("run --preset quick --quiet --checkpoint-every 2 --out " + dir.string()).code, 0);
@@ -1910,9 +1930,17 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
     const Result threads =
         run(std::string(command) + " --preset quick --threads -3 --out " + out.string());
     EXPECT_EQ(threads.code, 2) << command << ": " << threads.output;
-    EXPECT_NE(threads.output.find("--threads: Value -3 not in range 0 to 4096"), std::string::npos)
+    EXPECT_NE(threads.output.find("beampack: error: --threads: Value -3 not in range 0 to 4096"),
+              std::string::npos)
         << threads.output;
   }
+  // The command line parser's refusals read as beampack's own (they had CLI11's words alone).
+  const Result missing = run("run " + (out / "no_such.toml").string());
+  EXPECT_EQ(missing.code, 2) << missing.output;
+  EXPECT_NE(missing.output.find("beampack: error: run_file: File does not exist: " +
+                                (out / "no_such.toml").string() + " (--help lists the options)"),
+            std::string::npos)
+      << missing.output;
 }
 
 // converge checks its output directory and every rung's input before the first run, and an
@@ -2105,20 +2133,16 @@ TEST(Cli, AConvergeOfNothingAbsorbedSaysItsErrorsMeasureNothing) {
   EXPECT_EQ(real.output.find("absorbed no energy"), std::string::npos) << real.output;
 }
 
-// `beampack --version` names the version, the sources' git revision, the build type and the
-// compiler, and summary.json keeps the same record: the revision is a commit of this checkout
-// (or "unknown" where the sources are not one).
+// `beampack --version` names the version, the sources' git revision, the build type, the
+// compiler and its flags, and summary.json keeps the same record: the revision is a commit of
+// this checkout (or "unknown" where the sources are not one).
 TEST(Cli, VersionNamesTheBuildAndEverySummaryRecordsIt) {
-  const Result v = run("--version");
-  ASSERT_EQ(v.code, 0) << v.output;
-  std::smatch m;
-  ASSERT_TRUE(
-      std::regex_match(v.output, m, std::regex("beampack (\\S+) \\(git (\\S+), (\\S+), (.+)\\)\n")))
-      << v.output;
-  EXPECT_EQ(m[1], BEAMPACK_PROJECT_VERSION);
-  const std::string revision = m[2];
-  std::string commit = revision.substr(0, revision.find("-dirty"));
-  if (const auto g = commit.rfind("-g"); g != std::string::npos) commit = commit.substr(g + 2);
+  const std::optional<VersionLine> v = version_line();
+  ASSERT_TRUE(v);
+  EXPECT_EQ(v->version, BEAMPACK_PROJECT_VERSION);
+  const std::string& revision = v->revision;
+  // git describe's text names a commit itself ("v0.2-3-gabc", "abc"); -dirty and its digest not.
+  const std::string commit = revision.substr(0, revision.find("-dirty"));
   // Unknown only where the sources are not the top of a git checkout git will read (a tarball, a
   // copy inside another project's repository).
   const std::string in_sources = "cd '" + std::string(BEAMPACK_SOURCE_DIR) + "' && ";
@@ -2137,13 +2161,13 @@ TEST(Cli, VersionNamesTheBuildAndEverySummaryRecordsIt) {
   const fs::path out = fresh_dir("version");
   ASSERT_EQ(run("run --preset quick --set pulses.count=1 --quiet --out " + out.string()).code, 0);
   const nlohmann::json built = read_json(out / "summary.json")["beampack"];
-  EXPECT_EQ(built["version"], m[1].str());
+  EXPECT_EQ(built["version"], v->version);
   EXPECT_EQ(built["revision"], revision);
-  EXPECT_EQ(built["build_type"], m[3].str());
-  EXPECT_EQ(built["compiler"], m[4].str());
+  EXPECT_EQ(built["build_type"], v->build_type);
+  EXPECT_EQ(built["compiler"], v->compiler);
+  EXPECT_EQ(built["flags"], v->flags);
   // The flags that can change the numbers: an optimised build names its optimisation.
-  ASSERT_TRUE(built["flags"].is_string()) << built.dump();
-  if (m[3] == "Release" || m[3] == "RelWithDebInfo") {
+  if (v->build_type == "Release" || v->build_type == "RelWithDebInfo") {
     EXPECT_NE(built["flags"].get<std::string>().find("-O"), std::string::npos) << built.dump();
   }
 }

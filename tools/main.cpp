@@ -147,7 +147,7 @@ int main(int argc, char** argv) {
   const beampack::BuildInfo built = beampack::build_info();
   app.set_version_flag("--version", std::string("beampack ") + built.version + " (git " +
                                         built.revision + ", " + built.build_type + ", " +
-                                        built.compiler + ")");
+                                        built.compiler + ", flags \"" + built.flags + "\")");
   RunOptions run;
   SweepOptions sweep;
   bool quiet_validate = false;
@@ -207,7 +207,11 @@ int main(int argc, char** argv) {
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
-    return app.exit(e) == 0 ? 0 : 2;
+    if (e.get_exit_code() == static_cast<int>(CLI::ExitCodes::Success))
+      return app.exit(e);  // --help, --version
+    // In the words of every other refusal (CLI11's own: "run_file: File does not exist: x").
+    std::fprintf(stderr, "beampack: error: %s (--help lists the options)\n", e.what());
+    return 2;
   }
   try {
     if (run_cmd->parsed()) {
