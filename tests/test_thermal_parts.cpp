@@ -15,21 +15,20 @@
 namespace beampack {
 namespace {
 
-std::string input_message(const std::function<void()>& f) {
-  return testing::error_message<InputError>(f);
-}
-
 TEST(ThermalInput, MaterialMessagesNameKeyValueAndLimit) {
   Material m;
   m.conductivity = -3;
-  EXPECT_EQ(input_message([&] { m.validate(); }), "material.conductivity = -3: must be >= 0");
+  EXPECT_EQ(testing::error_message<InputError>([&] { m.validate(); }),
+            "material.conductivity = -3: must be >= 0");
   Material v;
   v.vapor_temperature = 500;
-  EXPECT_EQ(input_message([&] { v.validate("material[1]"); }),
+  EXPECT_EQ(testing::error_message<InputError>([&] { v.validate("material[1]"); }),
             "material[1].vapor_temperature = 500: must be > material[1].melt_temperature = 600");
   Material d;
   d.density = std::nan("");
-  EXPECT_NE(input_message([&] { d.validate(); }).find("material.density = nan"), std::string::npos);
+  EXPECT_NE(
+      testing::error_message<InputError>([&] { d.validate(); }).find("material.density = nan"),
+      std::string::npos);
 }
 
 TEST(ThermalInput, SpecAndStartStateChecked) {
@@ -37,19 +36,24 @@ TEST(ThermalInput, SpecAndStartStateChecked) {
   p.add(Vec3::Zero(), 1e-4, 0, 300.0);
   ThermalSpec spec;
   spec.phi = 1.5;
-  EXPECT_EQ(input_message([&] { ThermalModel(p, {Material{}}, spec); }),
+  EXPECT_EQ(testing::error_message<InputError>([&] { ThermalModel(p, {Material{}}, spec); }),
             "thermal.phi = 1.5: must be in [0, 1]");
   spec = {};
   spec.solver = "gauss";
-  EXPECT_NE(input_message([&] { ThermalModel(p, {Material{}}, spec); }).find("thermal.solver"),
+  EXPECT_NE(testing::error_message<InputError>([&] {
+              ThermalModel(p, {Material{}}, spec);
+            }).find("thermal.solver"),
             std::string::npos);
   p.material[0] = 2;
-  EXPECT_NE(input_message([&] { ThermalModel(p, {Material{}}, {}); }).find("must be < 1"),
+  EXPECT_NE(testing::error_message<InputError>([&] {
+              ThermalModel(p, {Material{}}, {});
+            }).find("must be < 1"),
             std::string::npos);
   p.material[0] = 0;
   p.temperature[0] = 800;
-  EXPECT_NE(input_message([&] { ThermalModel(p, {Material{}}, {}); }).find("vapour"),
-            std::string::npos);
+  EXPECT_NE(
+      testing::error_message<InputError>([&] { ThermalModel(p, {Material{}}, {}); }).find("vapour"),
+      std::string::npos);
 }
 
 TEST(ThermalGraph, PairAverageConductivityByMaterial) {
