@@ -1753,6 +1753,20 @@ TEST(Cli, ATimeStepOfMillionsOfStepsPerCrossingIsAnnounced) {
       << slow.output;
 }
 
+// Progress into a log (stderr a pipe here, as in a batch job) comes as whole lines, the first
+// after two seconds, not as one line rewritten with carriage returns twice a second.
+TEST(Cli, ProgressIntoALogIsWholeLines) {
+  const fs::path out = fresh_dir("progress_log");
+  const Result r =
+      run("run --preset quick --set pulses.count=250 --set beam.rays=100000 --out " + out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  ASSERT_GT(read_json(out / "summary.json")["wall_seconds"].get<double>(), 2.1)
+      << "the run must outlast the two seconds before progress shows";
+  EXPECT_EQ(r.output.find('\r'), std::string::npos) << r.output;
+  EXPECT_TRUE(std::regex_search(r.output, std::regex("(^|\n)pulse [0-9]+/250  t = [^\n]* s\n")))
+      << r.output;
+}
+
 // A set-up of seconds is announced before it starts (the progress line comes only with the steps).
 TEST(Cli, ALongSetUpIsAnnounced) {
   const fs::path out = fresh_dir("long_set_up");

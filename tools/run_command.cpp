@@ -290,30 +290,35 @@ std::string time_left_text(double seconds) {
   return text;
 }
 
-// One progress line on stderr, refreshed at most twice a second once a run passes two seconds.
+// Progress on stderr once a run passes two seconds: on a terminal one line, refreshed at most
+// twice a second; into a file or a pipe (a batch job's log) a whole line every 30 s, which a log
+// of a day's run can hold (a refreshed line wrote 170,000 carriage returns there).
 class Progress {
  public:
-  Progress(bool quiet, std::string label) : quiet_(quiet), label_(std::move(label)) {}
+  Progress(bool quiet, std::string label)
+      : quiet_(quiet), terminal_(::isatty(STDERR_FILENO) == 1), label_(std::move(label)) {}
   void update(const Simulation& sim) {
     if (quiet_) return;
     const double elapsed = seconds_since(start_);
-    if (elapsed < 2.0 || elapsed - last_ < 0.5) return;
+    if (elapsed < 2.0 || (shown_ && elapsed - last_ < (terminal_ ? 0.5 : 30.0))) return;
     last_ = elapsed;
     const Figures f = sim.figures();
     const int count = sim.spec().pulses.count;
     pace_.observe(f.pulse, elapsed);
-    std::fprintf(stderr, "\r%spulse %d/%d  t = %.3e s  v_v = %.4f  T_max = %s  %.1f s  %s   ",
-                 label_.c_str(), f.pulse, count, f.time, f.vaporized_fraction,
-                 peak_text(f, "%.0f K").c_str(), elapsed,
-                 time_left_text(pace_.seconds_left(count, elapsed)).c_str());
+    const std::string left = time_left_text(pace_.seconds_left(count, elapsed));
+    std::fprintf(stderr, "%s%spulse %d/%d  t = %.3e s  v_v = %.4f  T_max = %s  %.1f s%s%s%s",
+                 terminal_ ? "\r" : "", label_.c_str(), f.pulse, count, f.time,
+                 f.vaporized_fraction, peak_text(f, "%.0f K").c_str(), elapsed,
+                 left.empty() ? "" : "  ", left.c_str(), terminal_ ? "   " : "\n");
     shown_ = true;
   }
   ~Progress() {
-    if (shown_) std::fprintf(stderr, "\n");
+    if (shown_ && terminal_) std::fprintf(stderr, "\n");
   }
 
  private:
   bool quiet_;
+  bool terminal_;  // stderr is a terminal: the line is rewritten in place
   std::string label_;
   Clock::time_point start_ = Clock::now();
   double last_ = 0;
