@@ -48,6 +48,7 @@ endif()
 if(NOT BEAMPACK_BUILD_TYPE)
   set(BEAMPACK_BUILD_TYPE "none")  # CMAKE_BUILD_TYPE not set: the compiler's default flags
 endif()
+string(STRIP "${BEAMPACK_FLAGS}" BEAMPACK_FLAGS)
 # The flags go into a C string: its quotes and backslashes escaped.
 string(REPLACE "\\" "\\\\" BEAMPACK_FLAGS "${BEAMPACK_FLAGS}")
 string(REPLACE "\"" "\\\"" BEAMPACK_FLAGS "${BEAMPACK_FLAGS}")

@@ -4,7 +4,12 @@
 #   -DSOURCE=<source tree> -DBUILD=<build tree> -DWORK=<scratch folder> -DCXX=<compiler>
 #   -DGENERATOR=<the build's generator> -DMAKE_PROGRAM=<its make program>
 #   -DPREFIXES=<the build's CMAKE_PREFIX_PATH, "|" between entries>
+#   -DCONFIG=<the configuration tested: the build type, or a multi-config generator's>
 file(REMOVE_RECURSE ${WORK})
+set(config)
+if(CONFIG)
+  set(config --config ${CONFIG})
+endif()
 
 function(step what)
   execute_process(COMMAND ${ARGN} RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE out)
@@ -14,16 +19,20 @@ function(step what)
   set(printed "${out}" PARENT_SCOPE)
 endfunction()
 
-step("install" ${CMAKE_COMMAND} --install ${BUILD} --prefix ${WORK}/prefix)
+step("install" ${CMAKE_COMMAND} --install ${BUILD} ${config} --prefix ${WORK}/prefix)
 if(EXISTS ${WORK}/prefix/include/engine OR EXISTS ${WORK}/prefix/include/geometry)
   message(FATAL_ERROR "headers installed outside include/beampack")
 endif()
 string(REPLACE "|" ";" prefixes "${WORK}/prefix|${PREFIXES}")
 step("configuring examples/" ${CMAKE_COMMAND} -S ${SOURCE}/examples -B ${WORK}/build
      -G ${GENERATOR} -DCMAKE_MAKE_PROGRAM=${MAKE_PROGRAM} "-DCMAKE_PREFIX_PATH=${prefixes}"
-     -DCMAKE_CXX_COMPILER=${CXX})
-step("building examples/" ${CMAKE_COMMAND} --build ${WORK}/build)
-step("running the example" ${WORK}/build/run_in_code)
+     -DCMAKE_CXX_COMPILER=${CXX} -DCMAKE_BUILD_TYPE=${CONFIG})
+step("building examples/" ${CMAKE_COMMAND} --build ${WORK}/build ${config})
+set(example ${WORK}/build/run_in_code)
+if(NOT EXISTS ${example})  # a multi-config generator's folder of the configuration
+  set(example ${WORK}/build/${CONFIG}/run_in_code)
+endif()
+step("running the example" ${example})
 
 # Five pulses of 3e-9 J each: every pulse line books its absorbed energy within what was injected,
 # and the hottest particle is above the 300 K start.
