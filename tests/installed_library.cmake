@@ -34,13 +34,16 @@ if(NOT EXISTS ${example})  # a multi-config generator's folder of the configurat
 endif()
 step("running the example" ${example})
 
-# Five pulses of 3e-9 J each: every pulse line books its absorbed energy within what was injected,
-# and the hottest particle is above the 300 K start.
+# The example's five pulses (pulses.count in examples/run_in_code.cpp) of 6e-10 J each, the
+# energies summed since the start: every pulse line books its absorbed energy within what was
+# injected, the injected energy grows with each pulse, and the hottest particle is above the
+# 300 K start.
 string(REGEX MATCHALL "pulse [0-9]+: [^\n]*" pulses "${printed}")
 list(LENGTH pulses count)
 if(NOT count EQUAL 5)
   message(FATAL_ERROR "expected 5 pulse lines, got ${count}:\n${printed}")
 endif()
+set(injected_before 0)
 foreach(line IN LISTS pulses)
   if(NOT line MATCHES "absorbed ([0-9.e+-]+) J of ([0-9.e+-]+) J")
     message(FATAL_ERROR "no energy in: ${line}")
@@ -48,6 +51,10 @@ foreach(line IN LISTS pulses)
   if(NOT CMAKE_MATCH_1 GREATER 0 OR CMAKE_MATCH_1 GREATER CMAKE_MATCH_2)
     message(FATAL_ERROR "absorbed outside (0, injected]: ${line}")
   endif()
+  if(NOT CMAKE_MATCH_2 GREATER injected_before)
+    message(FATAL_ERROR "injected energy not grown since the pulse before: ${line}")
+  endif()
+  set(injected_before ${CMAKE_MATCH_2})
 endforeach()
 if(NOT printed MATCHES "hottest particle: ([0-9.]+) K" OR NOT CMAKE_MATCH_1 GREATER 300)
   message(FATAL_ERROR "no heating seen:\n${printed}")
