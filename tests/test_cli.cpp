@@ -695,7 +695,19 @@ TEST(Cli, RunFileLayersPathsAndArgumentsAreReadAsWritten) {
   EXPECT_NE(spaced.output.find("count = 4"), std::string::npos) << spaced.output;
   const Result unknown = run("frob");
   EXPECT_EQ(unknown.code, 2);
-  EXPECT_NE(unknown.output.find("unknown command `frob`"), std::string::npos) << unknown.output;
+  EXPECT_NE(unknown.output.find("unknown command `frob` (commands: run,"), std::string::npos)
+      << unknown.output;
+  // A mistyped command or option is named with the nearest one, as a mistyped key is.
+  const Result typo = run("vaildate");
+  EXPECT_EQ(typo.code, 2);
+  EXPECT_NE(typo.output.find("unknown command `vaildate` (did you mean `validate`?)"),
+            std::string::npos)
+      << typo.output;
+  const Result option_typo = run("run --preset quick --thread 2");
+  EXPECT_EQ(option_typo.code, 2);
+  EXPECT_NE(option_typo.output.find("has no option --thread (did you mean `--threads`?)"),
+            std::string::npos)
+      << option_typo.output;
   // An option of another command, and a space-separated --values list, are named as such (CLI11
   // read their values as the run file: "run_file: File does not exist: 1"). Negative numbers and
   // `--out=DIR` are values and options, not unknown ones.

@@ -43,14 +43,20 @@ const CLI::App* command_named(const CLI::App& app, int argc, char** argv) {
   return nullptr;
 }
 
+// "a, b, c"
+std::string listed(const std::vector<std::string>& names) {
+  std::string text;
+  for (const std::string& name : names) text += (text.empty() ? "" : ", ") + name;
+  return text;
+}
+
 // CLI11 answers an unknown first word with "A subcommand is required": name it instead.
 bool unknown_command(const CLI::App& app, int argc, char** argv) {
   if (argc < 2 || argv[1][0] == '-' || command_named(app, argc, argv)) return false;
-  std::string names;
-  for (const CLI::App* sub : app.get_subcommands({}))
-    names += (names.empty() ? "" : ", ") + sub->get_name();
-  std::fprintf(stderr, "beampack: error: unknown command `%s` (commands: %s)\n", argv[1],
-               names.c_str());
+  std::vector<std::string> names;
+  for (const CLI::App* sub : app.get_subcommands({})) names.push_back(sub->get_name());
+  std::fprintf(stderr, "beampack: error: unknown command `%s`%s (commands: %s)\n", argv[1],
+               did_you_mean(argv[1], names).c_str(), listed(names).c_str());
   return true;
 }
 
@@ -69,12 +75,11 @@ bool misread_arguments(const CLI::App& app, int argc, char** argv) {
     if (token.size() > 1 && token[0] == '-' && !number) {
       const std::string name = token.substr(0, token.find('='));
       if (name == "-h" || name == "--help" || sub->get_option_no_throw(name)) continue;
-      std::string options;
+      std::vector<std::string> names;
       for (const CLI::Option* o : sub->get_options())
-        if (!o->get_lnames().empty())
-          options += (options.empty() ? "--" : ", --") + o->get_lnames().front();
-      std::fprintf(stderr, "beampack: error: `%s` has no option %s (its options: %s)\n", argv[1],
-                   name.c_str(), options.c_str());
+        if (!o->get_lnames().empty()) names.push_back("--" + o->get_lnames().front());
+      std::fprintf(stderr, "beampack: error: `%s` has no option %s%s (its options: %s)\n", argv[1],
+                   name.c_str(), did_you_mean(name, names).c_str(), listed(names).c_str());
       return true;
     }
     const bool after_values = k >= 4 && std::string(argv[k - 2]) == "--values";

@@ -47,21 +47,6 @@ std::string repr(const toml::node& node) {
   return s.str();
 }
 
-std::size_t edit_distance(const std::string& a, const std::string& b) {
-  std::vector<std::size_t> row(b.size() + 1);
-  for (std::size_t j = 0; j <= b.size(); ++j) row[j] = j;
-  for (std::size_t i = 1; i <= a.size(); ++i) {
-    std::size_t diag = row[0];
-    row[0] = i;
-    for (std::size_t j = 1; j <= b.size(); ++j) {
-      const std::size_t up = row[j];
-      row[j] = std::min({row[j] + 1, row[j - 1] + 1, diag + (a[i - 1] != b[j - 1])});
-      diag = up;
-    }
-  }
-  return row[b.size()];
-}
-
 }  // namespace
 
 std::vector<std::string> leaf_keys(const toml::table& table, const std::string& prefix) {
@@ -611,6 +596,21 @@ std::string Params::number_or_word(const std::string& key, double& value, double
   return "";
 }
 
+std::size_t edit_distance(const std::string& a, const std::string& b) {
+  std::vector<std::size_t> row(b.size() + 1);
+  for (std::size_t j = 0; j <= b.size(); ++j) row[j] = j;
+  for (std::size_t i = 1; i <= a.size(); ++i) {
+    std::size_t diag = row[0];
+    row[0] = i;
+    for (std::size_t j = 1; j <= b.size(); ++j) {
+      const std::size_t up = row[j];
+      row[j] = std::min({row[j] + 1, row[j - 1] + 1, diag + (a[i - 1] != b[j - 1])});
+      diag = up;
+    }
+  }
+  return row[b.size()];
+}
+
 void Params::check_all_used() const {
   for (const std::string& key : leaf_keys(merged_)) {
     if (used_.count(key)) continue;
@@ -623,14 +623,7 @@ void Params::check_all_used() const {
       throw InputError(where(key) + "`" + key + "` is a table of keys (`" + *member +
                        "`, ...): write it once as [" + key + "], not as [[" + key +
                        "]] or a value");
-    std::string best;
-    std::size_t best_d = 4;
-    for (const std::string& known : used_) {
-      const std::size_t d = edit_distance(key, known);
-      if (d < best_d) best_d = d, best = known;
-    }
-    throw InputError(where(key) + "unknown key `" + key + "`" +
-                     (best.empty() ? "" : " (did you mean `" + best + "`?)"));
+    throw InputError(where(key) + "unknown key `" + key + "`" + did_you_mean(key, used_));
   }
 }
 

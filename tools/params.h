@@ -2,6 +2,7 @@
 // Run-file parameters read through one typed accessor that records which keys were used
 // (pbrt's ReportUnused, Mitsuba's unqueried): an unknown or misspelled key is an error naming its
 // file and line. Every message names the key, the value and the limit.
+#include <algorithm>
 #include <cstdint>
 #include <initializer_list>
 #include <limits>
@@ -104,6 +105,20 @@ class Params {
 std::string trimmed(const std::string& s);
 // The key a `--set KEY=VALUE` sets, as the run file reads it: `--set "k = v"` sets k.
 std::string assignment_key(const std::string& key_equals_value);
+
+// Levenshtein distance: insertions, deletions and substitutions of one character.
+std::size_t edit_distance(const std::string& a, const std::string& b);
+// " (did you mean `run`?)" for the name among `names` nearest to `typed`, the first of equals,
+// where it is within three edits and a third of `typed`'s length (at least one): "" when none
+// is, as for `frob`, three edits from `run`. For a mistyped key, command or option.
+template <class Names>
+std::string did_you_mean(const std::string& typed, const Names& names) {
+  const std::string* best = nullptr;
+  std::size_t best_d = std::min<std::size_t>(3, std::max<std::size_t>(1, typed.size() / 3)) + 1;
+  for (const std::string& name : names)
+    if (const std::size_t d = edit_distance(typed, name); d < best_d) best_d = d, best = &name;
+  return best ? " (did you mean `" + *best + "`?)" : "";
+}
 
 // Dotted keys of every leaf in a table ("material.conductivity").
 std::vector<std::string> leaf_keys(const toml::table& table, const std::string& prefix = "");
