@@ -10,17 +10,15 @@ namespace beampack {
 // text), and of the builds behind a format-4 checkpoint.
 inline constexpr const char* kUnknownRevision = "unknown";
 
-// What a revision may hold: 1 to 80 letters, digits or ._+- (cmake/build_info.cmake reduces
-// git's text to this, and the generated build_info.cpp asserts it); a checkpoint whose record
-// holds anything else is damaged.
-inline constexpr std::size_t kMaxRevisionLength = 80;
+// What a checkpoint's record of a revision may hold: 1 to 200 printable ASCII characters without
+// spaces; anything else is damage. cmake/build_info.cmake reduces git's text to at most 80
+// letters, digits and ._+- (builds of format-5 checkpoints kept it as it came), and the
+// generated build_info.cpp asserts that this build's revision passes.
+inline constexpr std::size_t kMaxRevisionLength = 200;
 constexpr bool is_revision_text(std::string_view s) {
   if (s.empty() || s.size() > kMaxRevisionLength) return false;
-  for (const char c : s) {
-    const bool plain = (c >= 'A' && c <= 'Z') || (c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') ||
-                       c == '.' || c == '_' || c == '+' || c == '-';
-    if (!plain) return false;
-  }
+  for (const char c : s)
+    if (c <= ' ' || c >= 127) return false;
   return true;
 }
 

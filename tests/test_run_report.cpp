@@ -32,6 +32,21 @@ EnergyLedger closed_ledger() {
 
 // The progress line's time left: the pace of the launches seen (none before two), the pulse under
 // way as far along as the time since its launch, never below zero.
+// Progress shows after two seconds, then every half second on a terminal, rewritten in place,
+// and every 30 s into a log as whole lines (no carriage return there).
+TEST(RunReport, ProgressIsPacedForATerminalOrALog) {
+  for (const bool terminal : {true, false}) {
+    EXPECT_FALSE(progress_due(1.99, std::nullopt, terminal));
+    EXPECT_TRUE(progress_due(2.0, std::nullopt, terminal));
+  }
+  EXPECT_FALSE(progress_due(2.4, 2.0, true));
+  EXPECT_TRUE(progress_due(2.5, 2.0, true));
+  EXPECT_FALSE(progress_due(31.9, 2.0, false));
+  EXPECT_TRUE(progress_due(32.0, 2.0, false));
+  EXPECT_EQ(progress_text("pulse 3/5", true), "\rpulse 3/5   ");
+  EXPECT_EQ(progress_text("pulse 3/5", false), "pulse 3/5\n");
+}
+
 TEST(RunReport, PulsePaceGivesTheTimeLeftFromTheLaunchesSeen) {
   PulsePace pace;
   pace.observe(1, 2.0);  // pulse 1 under way, launched at a time not seen

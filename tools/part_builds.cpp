@@ -9,8 +9,6 @@ namespace beampack::tools {
 
 namespace {
 
-constexpr std::size_t kMaxDetail = 4096;  // a build type, compiler or set of flags
-
 bool same_build(const PartBuild& a, const PartBuild& b) {
   return a.revision != kUnknownRevision && a.revision == b.revision &&
          a.build_type == b.build_type && a.compiler == b.compiler && a.flags == b.flags;
@@ -19,16 +17,6 @@ bool same_build(const PartBuild& a, const PartBuild& b) {
 // "RelWithDebInfo, gcc 12.2.0, flags "-O2 -g -DNDEBUG""
 std::string built_as(const PartBuild& b) {
   return b.build_type + ", " + b.compiler + ", flags \"" + b.flags + "\"";
-}
-
-std::string read_detail(StateReader& r, const std::string& path, std::uint64_t part,
-                        const char* what) {
-  std::string detail = r.text();
-  if (detail.size() > kMaxDetail)
-    throw InputError(path + ": damaged checkpoint: the " + what + " of the build of part " +
-                     std::to_string(part) + " is " + std::to_string(detail.size()) +
-                     " bytes long, at most " + std::to_string(kMaxDetail));
-  return detail;
 }
 
 }  // namespace
@@ -65,11 +53,11 @@ std::vector<PartBuild> read_part_builds(StateReader& r, const std::string& path,
     if (!is_revision_text(p.revision))
       throw InputError(path + ": damaged checkpoint: the revision of part " + std::to_string(k) +
                        " is not 1 to " + std::to_string(kMaxRevisionLength) +
-                       " letters, digits or ._+-");
-    if (with_details) {
-      p.build_type = read_detail(r, path, k, "build type");
-      p.compiler = read_detail(r, path, k, "compiler");
-      p.flags = read_detail(r, path, k, "flags");
+                       " printable characters without spaces");
+    if (with_details) {  // any text: the checksum finds damage
+      p.build_type = r.text();
+      p.compiler = r.text();
+      p.flags = r.text();
     }
     parts.push_back(std::move(p));
   }
@@ -94,6 +82,11 @@ void warn_of_another_build(const PartBuild& last) {
                  "beampack: warning: --resume: the checkpoint was written by beampack %s and "
                  "this is beampack %s: %s\n",
                  last.revision.c_str(), ours.revision.c_str(), consequence);
+  else if (last.flags == kUnknownRevision)  // a format-5 record: the revision alone
+    std::fprintf(stderr,
+                 "beampack: warning: --resume: the checkpoint was written by beampack %s, which "
+                 "did not record its build type, compiler and flags (checkpoint format 5): %s\n",
+                 last.revision.c_str(), consequence);
   else
     std::fprintf(stderr,
                  "beampack: warning: --resume: the checkpoint was written by beampack %s built "

@@ -290,9 +290,7 @@ std::string time_left_text(double seconds) {
   return text;
 }
 
-// Progress on stderr once a run passes two seconds: on a terminal one line, refreshed at most
-// twice a second; into a file or a pipe (a batch job's log) a whole line every 30 s, which a log
-// of a day's run can hold (a refreshed line wrote 170,000 carriage returns there).
+// Progress on stderr (progress_due, progress_text).
 class Progress {
  public:
   Progress(bool quiet, std::string label)
@@ -300,20 +298,20 @@ class Progress {
   void update(const Simulation& sim) {
     if (quiet_) return;
     const double elapsed = seconds_since(start_);
-    if (elapsed < 2.0 || (shown_ && elapsed - last_ < (terminal_ ? 0.5 : 30.0))) return;
-    last_ = elapsed;
+    if (!progress_due(elapsed, last_shown_, terminal_)) return;
+    last_shown_ = elapsed;
     const Figures f = sim.figures();
     const int count = sim.spec().pulses.count;
     pace_.observe(f.pulse, elapsed);
     const std::string left = time_left_text(pace_.seconds_left(count, elapsed));
-    std::fprintf(stderr, "%s%spulse %d/%d  t = %.3e s  v_v = %.4f  T_max = %s  %.1f s%s%s%s",
-                 terminal_ ? "\r" : "", label_.c_str(), f.pulse, count, f.time,
-                 f.vaporized_fraction, peak_text(f, "%.0f K").c_str(), elapsed,
-                 left.empty() ? "" : "  ", left.c_str(), terminal_ ? "   " : "\n");
-    shown_ = true;
+    char line[256];
+    std::snprintf(line, sizeof line, "pulse %d/%d  t = %.3e s  v_v = %.4f  T_max = %s  %.1f s%s%s",
+                  f.pulse, count, f.time, f.vaporized_fraction, peak_text(f, "%.0f K").c_str(),
+                  elapsed, left.empty() ? "" : "  ", left.c_str());
+    std::fputs(progress_text(label_ + line, terminal_).c_str(), stderr);
   }
   ~Progress() {
-    if (shown_ && terminal_) std::fprintf(stderr, "\n");
+    if (last_shown_ && terminal_) std::fprintf(stderr, "\n");
   }
 
  private:
@@ -321,10 +319,22 @@ class Progress {
   bool terminal_;  // stderr is a terminal: the line is rewritten in place
   std::string label_;
   Clock::time_point start_ = Clock::now();
-  double last_ = 0;
-  bool shown_ = false;
+  std::optional<double> last_shown_;
   PulsePace pace_;
 };
+
+}  // namespace
+
+bool progress_due(double elapsed, std::optional<double> last_shown, bool terminal) {
+  if (elapsed < 2.0) return false;
+  return !last_shown || elapsed - *last_shown >= (terminal ? 0.5 : 30.0);
+}
+
+std::string progress_text(const std::string& line, bool terminal) {
+  return terminal ? "\r" + line + "   " : line + "\n";
+}
+
+namespace {
 
 // The figures of a run as CSV columns: history.csv and sweep.csv share them.
 const char* kFigureColumns =
@@ -996,7 +1006,9 @@ struct PulsesEnded {
 // them (a full disk): they are not written (nor a checkpoint), but the pulses the run ended are,
 // as history.csv and a summary.json of the last one's end that says what failed. Hours of pulses
 // are not lost to one that fails (a beam drawn too narrow in pulse 1361, a step needing more
-// sub-steps than allowed). `no_particles_because`: why particles.csv is not among them.
+// sub-steps than allowed). `no_particles_because`: why particles.csv is not among them; one
+// already in the folder (an interrupt's, which a resume into its folder runs on from) is of an
+// earlier time than the summary: it goes.
 void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, const RunRecord& record,
                                 const PulsesEnded& ended, const RunConfig& config,
                                 const char* failure, double wall_seconds,
@@ -1012,6 +1024,8 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
   write_atomically(
       {{(out / "history.csv").string(), [&](std::ostream& o) { o << record.history; }},
        {(out / "summary.json").string(), [&](std::ostream& o) { o << json_text(j) << '\n'; }}});
+  std::error_code ec;
+  fs::remove(out / "particles.csv", ec);
   std::fprintf(stderr,
                "beampack: the run failed at t = %.6g s, after %d pulse%s had ended; %s holds them "
                "(history.csv, and summary.json as at the last one's end, with the failure; no "
@@ -1117,7 +1131,7 @@ int finish_run(const Simulation& sim, const RunConfig& config, const RunRecord& 
     write_atomically(files);
   } catch (const std::exception& failure) {
     try_to_keep_pulses(out, sim, record, ended, config, failure.what(), r.wall_seconds,
-                       "its write failed");
+                       "the files of the run's end could not be written");
     throw;
   }
   // A run resumed into its folder from an interrupt's checkpoint, and now finished: that

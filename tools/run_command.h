@@ -54,6 +54,15 @@ void note_reading_input();
 // destructors (TBB's, Embree's) must not run under that thread.
 int exit_code(int code);
 
+// When a run's progress shows: not before two seconds, then at most every half second on a
+// terminal (the line rewritten in place) and every 30 s into a file or a pipe (a batch job's log:
+// whole lines, which a log of a day's run can hold; a line rewritten twice a second wrote 170,000
+// carriage returns there). `last_shown`: when it last showed, none before.
+bool progress_due(double elapsed, std::optional<double> last_shown, bool terminal);
+// A progress line's text as written: "\r" before it and blanks after on a terminal (over a longer
+// line before it), a newline after in a log.
+std::string progress_text(const std::string& line, bool terminal);
+
 // The wall time a run has left, by the pace of its pulse launches: the progress line's estimate.
 // The pace is measured from the first launch this process sees to the latest (samples as the
 // progress line takes them, every half second); the pulse under way is taken to be as far along
