@@ -24,9 +24,10 @@ constexpr bool is_revision_text(std::string_view s) {
 
 struct BuildInfo {
   const char* version;     // the project's (CMakeLists.txt), e.g. "0.2.0"
-  const char* revision;    // the sources' `git describe --always --dirty --abbrev=12` when built,
-                           // with a digest of the uncommitted changes after -dirty, reduced to
-                           // is_revision_text; kUnknownRevision outside beampack's own checkout
+  const char* revision;    // the sources' `git describe --always --abbrev=12` when built, then
+                           // "-dirty." and a digest of the changed files' contents where tracked
+                           // files differ from it (cmake/build_info.cmake); kUnknownRevision
+                           // outside beampack's own checkout
   const char* build_type;  // CMAKE_BUILD_TYPE: "Release", "RelWithDebInfo", ...
   const char* compiler;    // e.g. "gcc 12.2.0"
   const char* flags;       // CMAKE_CXX_FLAGS and the build type's, e.g. "-O2 -g -DNDEBUG"
