@@ -1431,7 +1431,9 @@ TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
   // build.
   const std::pair<const char*, std::size_t> details[] = {
       {"build_type", type_at}, {"compiler", compiler_at}, {"flags", flags_at}};
-  for (const auto& [key, start] : details) {
+  for (const auto& detail : details) {
+    const char* key = detail.first;  // not structured bindings: clang 14 cannot capture those
+    const std::size_t start = detail.second;
     const std::size_t size = built[key].get<std::string>().size();
     if (!known || size == 0) continue;  // an empty text cannot be edited in place
     const auto [edited_run, edited] = resume_edited(
