@@ -141,7 +141,8 @@ class Simulation {
 
   const Particles& particles() const { return particles_; }
   const std::vector<double>& absorbed() const { return absorbed_; }  // J per particle, cumulative
-  Figures figures() const;
+  Figures figures() const;                                           // one pass over the particles
+  int pulses_launched() const { return launched_; }  // Figures::pulse, without that pass
   Counts counts() const;
   // Time and calls per stage; a stage that never ran says why (the run reports what it skipped).
   std::array<StageTime, kStages> stages() const;

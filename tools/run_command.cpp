@@ -298,11 +298,11 @@ class Progress {
   void update(const Simulation& sim) {
     if (quiet_) return;
     const double elapsed = seconds_since(start_);
+    pace_.observe(sim.pulses_launched(), elapsed);  // at every step: the pace is known sooner
     if (!progress_due(elapsed, last_shown_, terminal_)) return;
     last_shown_ = elapsed;
     const Figures f = sim.figures();
     const int count = sim.spec().pulses.count;
-    pace_.observe(f.pulse, elapsed);
     const std::string left = time_left_text(pace_.seconds_left(count, elapsed));
     char line[256];
     std::snprintf(line, sizeof line, "pulse %d/%d  t = %.3e s  v_v = %.4f  T_max = %s  %.1f s%s%s",
