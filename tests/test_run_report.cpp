@@ -30,8 +30,6 @@ EnergyLedger closed_ledger() {
   return e;
 }
 
-// The progress line's time left: the pace of the launches seen (none before two), the pulse under
-// way as far along as the time since its launch, never below zero.
 // Progress shows after two seconds, then every half second on a terminal, rewritten in place,
 // and every 30 s into a log as whole lines (no carriage return there).
 TEST(RunReport, ProgressIsPacedForATerminalOrALog) {
@@ -47,6 +45,8 @@ TEST(RunReport, ProgressIsPacedForATerminalOrALog) {
   EXPECT_EQ(progress_text("pulse 3/5", false), "pulse 3/5\n");
 }
 
+// The progress line's time left: the pace of the launches seen (none before two), the pulse under
+// way as far along as the time since its launch, never below zero.
 TEST(RunReport, PulsePaceGivesTheTimeLeftFromTheLaunchesSeen) {
   PulsePace pace;
   pace.observe(1, 2.0);  // pulse 1 under way, launched at a time not seen

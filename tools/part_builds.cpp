@@ -95,13 +95,16 @@ void warn_of_another_build(const PartBuild& last) {
                  consequence);
 }
 
+nlohmann::json part_build_json(const PartBuild& part) {
+  return {{"revision", part.revision},
+          {"build_type", part.build_type},
+          {"compiler", part.compiler},
+          {"flags", part.flags}};
+}
+
 nlohmann::json part_builds_json(const std::vector<PartBuild>& parts) {
   nlohmann::json j = nlohmann::json::array();
-  for (const PartBuild& p : parts)
-    j.push_back({{"revision", p.revision},
-                 {"build_type", p.build_type},
-                 {"compiler", p.compiler},
-                 {"flags", p.flags}});
+  for (const PartBuild& p : parts) j.push_back(part_build_json(p));
   return j;
 }
 

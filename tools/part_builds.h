@@ -30,6 +30,9 @@ std::vector<PartBuild> read_part_builds(StateReader& r, const std::string& path,
 // An unknown revision equals none, not even another unknown one.
 void warn_of_another_build(const PartBuild& last);
 
+// A build as summary.json records it: {revision, build_type, compiler, flags}, for this run's
+// (under `beampack`, with the version) and each earlier part's.
+nlohmann::json part_build_json(const PartBuild& part);
 // summary.json's beampack.earlier_parts: one object per part.
 nlohmann::json part_builds_json(const std::vector<PartBuild>& parts);
 

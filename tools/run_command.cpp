@@ -416,12 +416,8 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
   j["wall_seconds"] = r.wall_seconds;
   j["interrupted"] = r.interrupted;
   j["config"] = toml_to_json(config.resolved);
-  const BuildInfo built = build_info();
-  j["beampack"] = {{"version", built.version},
-                   {"revision", built.revision},
-                   {"build_type", built.build_type},
-                   {"compiler", built.compiler},
-                   {"flags", built.flags}};
+  j["beampack"] = part_build_json(this_build());
+  j["beampack"]["version"] = build_info().version;
   if (!earlier_parts.empty()) j["beampack"]["earlier_parts"] = part_builds_json(earlier_parts);
   return j;
 }

@@ -65,8 +65,8 @@ std::string progress_text(const std::string& line, bool terminal);
 
 // The wall time a run has left, by the pace of its pulse launches: the progress line's estimate.
 // The pace is measured from the first launch this process sees to the latest (observed at every
-// step); the pulse under way is taken to be as far along
-// as the time since its launch says. No estimate (NaN) before two launches have been seen.
+// step); the pulse under way is taken to be as far along as the time since its launch says. No
+// estimate (NaN) before two launches have been seen.
 class PulsePace {
  public:
   // `launched`: pulses launched so far (the pulse under way), at `elapsed` wall seconds.
