@@ -1102,28 +1102,30 @@ const char* kCheckpointScene =
     "--preset quick --set thermal.dt='\"paper\"' --set pulses.count=10 --set packing.count=2000 "
     "--set material.conductivity=100";
 
+// kCheckpointScene (with `args`) run whole into `whole` with a checkpoint every 4 pulses, and its
+// last checkpoint (written after the step that ended pulse 8 of 10 and launched pulse 9) copied
+// alone into `part`, a folder to resume it in.
+void checkpoint_into(const fs::path& whole, const fs::path& part, const std::string& args = "") {
+  const Result r = run(std::string("run ") + kCheckpointScene + args +
+                       " --quiet --checkpoint-every 4 --out " + whole.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  fs::copy_file(whole / "checkpoint.bin", part / "checkpoint.bin");
+}
+
 }  // namespace
 
 TEST(Cli, ResumeFromACheckpointEndsBitIdentical) {
   const fs::path whole = fresh_dir("ck_whole"), part = fresh_dir("ck_part");
-  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --checkpoint-every 4 --out " +
-                whole.string())
-                .code,
-            0);
-  // The last checkpoint of the whole run resumed in another directory: written after the step
-  // that ended pulse 8 of 10 and launched pulse 9, so the resumed run launches pulse 10.
-  fs::copy_file(whole / "checkpoint.bin", part / "checkpoint.bin");
+  // The last checkpoint of the whole run resumed in another directory: the resumed run launches
+  // pulse 10.
+  ASSERT_NO_FATAL_FAILURE(checkpoint_into(whole, part));
   const Result r = run("run --resume " + part.string() + " --quiet");
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_EQ(file_text(whole / "particles.csv"), file_text(part / "particles.csv"));
   EXPECT_EQ(file_text(whole / "history.csv"), file_text(part / "history.csv"));
   // With new rays every pulse, a resume before the last launch draws the same rays for it.
   const fs::path whole_r = fresh_dir("ck_whole_resampled"), part_r = fresh_dir("ck_part_resampled");
-  ASSERT_EQ(run(std::string("run ") + kCheckpointScene +
-                " --set beam.resample=true --quiet --checkpoint-every 4 --out " + whole_r.string())
-                .code,
-            0);
-  fs::copy_file(whole_r / "checkpoint.bin", part_r / "checkpoint.bin");
+  ASSERT_NO_FATAL_FAILURE(checkpoint_into(whole_r, part_r, " --set beam.resample=true"));
   ASSERT_EQ(run("run --resume " + part_r.string() + " --quiet").code, 0);
   EXPECT_EQ(file_text(whole_r / "particles.csv"), file_text(part_r / "particles.csv"));
   EXPECT_NE(file_text(whole_r / "particles.csv"), file_text(whole / "particles.csv"));
@@ -2110,11 +2112,7 @@ TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
 // goes rather than stand beside it as if of that time.
 TEST(Cli, AResumedRunWhoseEndFailsLeavesNoParticlesOfAnEarlierTime) {
   const fs::path whole = fresh_dir("end_fails_whole"), part = fresh_dir("end_fails_part");
-  ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --checkpoint-every 4 --out " +
-                whole.string())
-                .code,
-            0);
-  fs::copy_file(whole / "checkpoint.bin", part / "checkpoint.bin");
+  ASSERT_NO_FATAL_FAILURE(checkpoint_into(whole, part));
   write(part / "particles.csv", "as an interrupt at pulse 8 left it\n");
   const Result r = run_with_file_size_limit(16, "run --resume " + part.string() + " --quiet");
   EXPECT_EQ(r.code, 1) << r.output;
