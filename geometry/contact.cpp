@@ -15,7 +15,7 @@ namespace beampack {
 ContactGeometry contact_geometry(double d, double ri, double rj) {
   const double r_small = std::min(ri, rj);
   const double r_large = std::max(ri, rj);
-  if (!(d < ri + rj)) return {};
+  if (!(d < ri + rj)) return {0.0, d};  // no contact: no area, and the distance is never 0
   if (d <= r_large - r_small) {
     return {std::numbers::pi * r_small * r_small,
             std::max(d, kMinContactDistanceFraction * r_small)};
@@ -47,7 +47,12 @@ void contacts_of_cell(const CellGrid& grid, std::size_t cell, std::vector<Contac
         const double rj = grid.radius(b);
         const double d2 = (grid.centre(b) - ci).squaredNorm();
         if (!(d2 < (ri + rj) * (ri + rj))) continue;
-        const ContactGeometry g = contact_geometry(std::sqrt(d2), ri, rj);
+        // The overlap test again on the distance itself, as contact_geometry makes it: for
+        // touching spheres d^2 may round below (ri + rj)^2 while d rounds to ri + rj, a pair with
+        // no area (a close-packed lattice read from a file has hundreds).
+        const double d = std::sqrt(d2);
+        if (!(d < ri + rj)) continue;
+        const ContactGeometry g = contact_geometry(d, ri, rj);
         out.push_back({i, j, g.area, g.distance});
       }
     });

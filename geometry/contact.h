@@ -13,7 +13,7 @@ constexpr double kMinContactDistanceFraction = 1e-2;
 
 struct ContactGeometry {
   double area = 0.0;      // A_ij of (3.8); 0 when the spheres do not overlap
-  double distance = 0.0;  // |r_i - r_j| for (3.2), floored for degenerate pairs
+  double distance = 0.0;  // |r_i - r_j| for (3.2), floored for degenerate pairs; never 0
 };
 
 // Contact area and conduction distance of spheres with radii ri, rj whose centres are d apart.

@@ -58,6 +58,9 @@ TEST(ContactArea, EqualSpheresHalfOverlapHasKnownArea) {
 TEST(ContactArea, SeparatedAndTouchingSpheresHaveNoContact) {
   EXPECT_EQ(contact_geometry(2.0, 1.0, 1.0).area, 0.0);
   EXPECT_EQ(contact_geometry(2.5, 1.0, 1.0).area, 0.0);
+  // Their distance is the real one, so a conductance K A / d is 0, not 0 / 0.
+  EXPECT_EQ(contact_geometry(2.0, 1.0, 1.0).distance, 2.0);
+  EXPECT_EQ(contact_geometry(2.5, 1.0, 1.0).distance, 2.5);
 }
 
 TEST(ContactArea, DegenerateCasesAreFiniteAndDocumented) {
@@ -147,6 +150,30 @@ TEST(ContactGraph, DegenerateNeighboursGiveNoNaN) {
   for (const Contact& c : contacts) {
     EXPECT_TRUE(std::isfinite(c.area) && c.area > 0);
     EXPECT_TRUE(std::isfinite(c.distance) && c.distance > 0);
+  }
+}
+
+// Touching spheres of a close-packed (face-centred cubic) lattice: for many pairs d^2 rounds
+// below (ri + rj)^2 while d rounds to ri + rj. The graph took those pairs with area 0 and distance
+// 0, whose conductance K * 0 / 0 is NaN: a run of such a packing read from a file failed with
+// a non-finite temperature. Every pair in the graph now overlaps by the distance itself.
+TEST(ContactGraph, TouchingCloseLatticeHasOnlyOverlappingPairs) {
+  for (double a : {1e-4, 1e-3 / 3.0, 5e-5, 1e-3 / 7.0}) {
+    const double r = a / std::sqrt(2.0) / 2.0;  // nearest neighbours a / sqrt(2) apart: touching
+    Particles p;
+    for (int i = 0; i < 6; ++i)
+      for (int j = 0; j < 6; ++j)
+        for (int k = 0; k < 6; ++k) {
+          const Vec3 corner(i * a, j * a, k * a);
+          for (const Vec3& offset :
+               {Vec3(0, 0, 0), Vec3(a / 2, a / 2, 0), Vec3(a / 2, 0, a / 2), Vec3(0, a / 2, a / 2)})
+            p.add(corner + offset, r);
+        }
+    expect_graph_equals_brute_force(p);
+    for (const Contact& c : find_contacts(p)) {
+      ASSERT_GT(c.distance, 0.0) << "lattice constant " << a << ", pair " << c.i << "-" << c.j;
+      ASSERT_GT(c.area, 0.0) << "lattice constant " << a << ", pair " << c.i << "-" << c.j;
+    }
   }
 }
 

@@ -4,6 +4,7 @@
 #include <numbers>
 #include <sstream>
 
+#include "geometry/check.h"
 #include "geometry/error.h"
 
 namespace beampack {
@@ -55,6 +56,10 @@ std::vector<double> contact_conductances(const Particles& p, const std::vector<M
     const Contact& c = contacts[e];
     g[e] = conductance(materials[p.material[c.i]].conductivity,
                        materials[p.material[c.j]].conductivity, c.area, c.distance);
+    // A NaN here would pass every "conducts" test (NaN > 0 is false) and poison the solve.
+    BEAMPACK_DCHECK(std::isfinite(g[e]) && g[e] >= 0.0,
+                    "contact %u-%u: conductance %.17g W/K (area %.17g m^2, distance %.17g m)", c.i,
+                    c.j, g[e], c.area, c.distance);
   }
   return g;
 }
