@@ -228,10 +228,30 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
   expect_input_error("missing_file",
                      "[packing]\nsource = \"file\"\nfile = \"/nonexistent/bed.xyz\"\n", "",
                      {"run.toml:3", "packing.file", "/nonexistent/bed.xyz", "cannot open"});
-  // Checks of one key against another, made by the library after reading: the line is found.
+  // Checks of one key against another name the key the user set last, with its line, and where
+  // the other came from.
+  expect_input_error("melt_above_vapour", "[material]\nmelt_temperature = 800\n", "",
+                     {"run.toml:2: `material.melt_temperature` = 800",
+                      "must be < material.vapor_temperature = 700 (the default)"});
+  expect_input_error("vapour_below_preset_melt", "[material]\nvapor_temperature = 500\n",
+                     "--preset zohdi2013",
+                     {"run.toml:2: `material.vapor_temperature` = 500",
+                      "must be > material.melt_temperature = 600 (preset zohdi2013)"});
+  expect_input_error("melt_set_over_preset", "",
+                     "--preset zohdi2013 --set material.melt_temperature=800",
+                     {"--set material.melt_temperature=800: `material.melt_temperature` = 800",
+                      "must be < material.vapor_temperature = 700 (preset zohdi2013)"});
   expect_input_error(
-      "melt_above_vapour", "[material]\nmelt_temperature = 800\n", "",
-      {"run.toml:2", "material.vapor_temperature", "must be > material.melt_temperature = 800"});
+      "both_set", "",
+      "--preset zohdi2013 --set material.melt_temperature=800 --set material.vapor_temperature=750",
+      {"`material.vapor_temperature` = 750",
+       "must be > material.melt_temperature = 800 (--set material.melt_temperature=800)"});
+  expect_input_error(
+      "start_as_vapour", "[material]\nvapor_temperature = 650\n",
+      "--preset zohdi2013 --set material.initial_temperature=660",
+      {"--set material.initial_temperature=660: `material.initial_temperature` = 660",
+       "must be < material.vapor_temperature = 650 (",
+       "run.toml:2) (every particle would start as vapour)"});
   expect_input_error("table_for_number", "[material]\nconductivity = {a = 1}\n", "",
                      {"run.toml:2", "`material.conductivity` = { a = 1 }", "must be a number"});
   expect_input_error("resample_stratified", "[beam]\nsampling = \"stratified\"\nresample = true\n",
@@ -636,6 +656,27 @@ TEST(Cli, NumbersBeyondTheArithmeticAreRefusedAndTheLimitsRun) {
                             (dir / "radius").string());
   EXPECT_EQ(radius.code, 0) << radius.output;
   EXPECT_NE(radius.output.find("the heat ledger is open"), std::string::npos) << radius.output;
+}
+
+// Below its lower bound a key with an upper limit of its own was told only "must be >= 0", as if
+// any larger value would do (a contract review): the message states the whole range.
+TEST(Cli, AValueBelowALimitedKeysRangeIsToldTheWholeRange) {
+  const std::pair<const char*, const char*> cases[] = {
+      {"material.conductivity=-1", "must be >= 0 and <= 1e+20"},
+      {"thermal.wall_conductance=-2", "must be >= -1 and <= 1e+20"},
+      {"material.latent_melt=-1", "must be >= 0 and <= 1e+12"},
+      {"material.c_solid=0", "must be > 0 and <= 1e+12"},
+      {"material.vapor_temperature=0", "must be > 0 and <= 1e+12"},
+      {"beam.power=0", "must be > 0 and <= 1e+20"},
+      {"material.density=-5", "must be > 0 and <= 1e+12"},
+      {"thermal.time_scaling=0", "must be > 0 and <= 1e+12"},
+      {"pulses.duration=0", "must be > 0 and <= 1e+12"},
+      {"thermal.dt=-1", "must be > 0 and <= 1e+12"},
+      {"pulses.period=0", "must be > 0 and <= 1e+12"},
+  };
+  for (const auto& [set, range] : cases)
+    expect_input_error(std::string("below_") + set, "", std::string("--preset quick --set ") + set,
+                       {set, range});
 }
 
 // A FIFO or a device given as the run file or the packing file is refused before it is opened:

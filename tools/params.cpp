@@ -429,6 +429,11 @@ bool Params::set_later(const std::string& later, const std::string& earlier) con
   return a && b && a->layer > b->layer && !b->command_line;
 }
 
+std::string Params::source_of(const std::string& key) const {
+  const KeyOrigin* o = origin(key);
+  return o ? o->at : "the default";
+}
+
 bool Params::set_on_command_line(const std::string& key) const {
   const KeyOrigin* o = origin(key);
   return o && o->command_line;
@@ -505,7 +510,7 @@ void Params::fail(const std::string& key, const std::string& value,
 }
 
 double Params::number(const std::string& key, double fallback, double lo, double hi, bool lo_open,
-                      bool hi_open) {
+                      bool hi_open, double stated_hi) {
   double v = fallback;
   if (const toml::node* node = find(key)) {
     if (node->is_integer()) v = double(node->as_integer()->get());
@@ -521,6 +526,8 @@ double Params::number(const std::string& key, double fallback, double lo, double
     std::string range = std::string(lo_open ? "must be > " : "must be >= ") + shown_number(lo);
     if (hi < std::numeric_limits<double>::max())
       range += (hi_open ? " and < " : " and <= ") + shown_number(hi);
+    else if (stated_hi < std::numeric_limits<double>::max())
+      range += " and <= " + shown_number(stated_hi);
     fail(key, shown_number(v), range);
   }
   record(key, toml::value<double>(v));
@@ -578,7 +585,7 @@ bool Params::flag(const std::string& key, bool fallback) {
 std::string Params::number_or_word(const std::string& key, double& value, double lo, double hi,
                                    std::initializer_list<const char*> words,
                                    const std::string& fallback_word, const std::string& unit,
-                                   bool lo_open) {
+                                   bool lo_open, double stated_hi) {
   const toml::node* node = find(key);
   if (!node || node->is_string()) {
     const std::string w = node ? std::string(node->as_string()->get()) : fallback_word;
@@ -591,7 +598,7 @@ std::string Params::number_or_word(const std::string& key, double& value, double
     for (const char* a : words) list += std::string(" or \"") + a + "\"";
     fail(key, "\"" + w + "\"", "must be a number in " + unit + list);
   }
-  value = number(key, 0.0, lo, hi, lo_open);
+  value = number(key, 0.0, lo, hi, lo_open, false, stated_hi);
   number_defaults_.erase(key);  // its default is the word: any number differs from it
   return "";
 }

@@ -38,8 +38,10 @@ class Params {
                         bool swept = false);
 
   // A number in [lo, hi], or with lo_open / hi_open the interval open at that end.
+  // stated_hi: an upper limit the caller enforces itself (with its own reason), stated in this
+  // message too so that a value below lo is told the whole range.
   double number(const std::string& key, double fallback, double lo, double hi, bool lo_open = false,
-                bool hi_open = false);
+                bool hi_open = false, double stated_hi = std::numeric_limits<double>::max());
   std::int64_t integer(const std::string& key, std::int64_t fallback, std::int64_t lo,
                        std::int64_t hi);
   std::string text(const std::string& key, const std::string& fallback);
@@ -55,6 +57,9 @@ class Params {
   bool set_later(const std::string& later, const std::string& earlier) const;
   // Whether --set (or a sweep) gave the key: what the user asked for in this run.
   bool set_on_command_line(const std::string& key) const;
+  // Where the key's value came from, for a message about another key: "run.toml:12",
+  // "--set KEY=VALUE", "preset quick", or "the default".
+  std::string source_of(const std::string& key) const;
   // Whether the key's value is a swept one (sweep's --param, a converge ladder).
   bool swept(const std::string& key) const;
   // Whether a run file (not a preset, a checkpoint or --set) gave the key its value.
@@ -75,7 +80,8 @@ class Params {
   std::string number_or_word(const std::string& key, double& value, double lo, double hi,
                              std::initializer_list<const char*> words,
                              const std::string& fallback_word, const std::string& unit = "seconds",
-                             bool lo_open = true);
+                             bool lo_open = true,
+                             double stated_hi = std::numeric_limits<double>::max());
 
   // InputError for the first key present in the layers but never read.
   void check_all_used() const;

@@ -97,7 +97,7 @@ double capped(const Params& p, const std::string& key, double value, const Cap& 
 
 double number_up_to(Params& p, const std::string& key, double fallback, double lo, const Cap& cap,
                     bool lo_open = false) {
-  return capped(p, key, p.number(key, fallback, lo, kBig, lo_open), cap);
+  return capped(p, key, p.number(key, fallback, lo, kBig, lo_open, false, cap.limit), cap);
 }
 
 // Every key is read whatever the source, so `beampack config` lists them all and a preset's
@@ -170,6 +170,25 @@ void read_optics(Params& p, OpticsSpec& o) {
   o.packets = p.flag("optics.packets", true);
 }
 
+// Two keys that must keep an order, low < high: the refusal names the key the user set last
+// (a later layer, --set over a file or preset, anything over a default) and where the other one
+// came from, so that `--set material.melt_temperature=800` over a preset blames that --set, not
+// the preset's vapour temperature.
+void check_order(const Params& p, const std::string& low_key, double low,
+                 const std::string& high_key, double high, const std::string& why = "") {
+  if (low < high) return;
+  const bool low_is_newer = p.set_later(low_key, high_key) ||
+                            (p.has(low_key) && !p.has(high_key)) ||
+                            (p.set_on_command_line(low_key) && !p.set_on_command_line(high_key));
+  if (low_is_newer)
+    p.fail(low_key, shown_number(low),
+           "must be < " + high_key + " = " + shown_number(high) + " (" + p.source_of(high_key) +
+               ")" + why);
+  p.fail(
+      high_key, shown_number(high),
+      "must be > " + low_key + " = " + shown_number(low) + " (" + p.source_of(low_key) + ")" + why);
+}
+
 void read_material(Params& p, Material& m) {
   m.density = number_up_to(p, "material.density", 1000, 0, kDensity, true);
   m.c_solid = number_up_to(p, "material.c_solid", 1000, 0, kHeatCapacity, true);
@@ -180,6 +199,8 @@ void read_material(Params& p, Material& m) {
   m.latent_melt = number_up_to(p, "material.latent_melt", 1000, 0, kLatentHeat);
   m.latent_solidify = number_up_to(p, "material.latent_solidify", 1000, 0, kLatentHeat);
   m.latent_vapor = number_up_to(p, "material.latent_vapor", 1000, 0, kLatentHeat);
+  check_order(p, "material.melt_temperature", m.melt_temperature, "material.vapor_temperature",
+              m.vapor_temperature);
   m.validate("material");
 }
 
@@ -233,7 +254,8 @@ void read_thermal(Params& p, SimulationSpec& s, PaperStepUse& use) {
   t.max_substeps = int(p.integer("thermal.max_substeps", 1000, 1, 100'000'000));
   s.max_staggers = int(p.integer("thermal.max_staggers", 4, 0, 1000));
   double dt = 0;
-  const std::string word = p.number_or_word("thermal.dt", dt, 0, kBig, {"pulse", "paper"}, "pulse");
+  const std::string word = p.number_or_word("thermal.dt", dt, 0, kBig, {"pulse", "paper"}, "pulse",
+                                            "seconds", true, kStep.limit);
   capped(p, "thermal.dt", dt, kStep);
   use.dt = word == "paper";
   s.dt = word == "pulse" || use.dt ? 0.0 : dt;
@@ -257,8 +279,8 @@ void check_steps_per_crossing(Params& p, const SimulationSpec& s, bool paper) {
 void read_pulses(Params& p, SimulationSpec& s, PaperStepUse& use) {
   s.pulses.count = int(p.integer("pulses.count", 20, 0, 10'000'000));
   double tau = 0;
-  const std::string word =
-      p.number_or_word("pulses.duration", tau, 0, kBig, {"auto", "energy"}, "auto");
+  const std::string word = p.number_or_word("pulses.duration", tau, 0, kBig, {"auto", "energy"},
+                                            "auto", "seconds", true, kDuration.limit);
   capped(p, "pulses.duration", tau, kDuration);
   use.xi = p.number("pulses.xi", 0.05, 0, 10, true);
   use.duration = word == "auto";
@@ -275,7 +297,8 @@ void read_pulses(Params& p, SimulationSpec& s, PaperStepUse& use) {
   }
   s.pulses.duration = tau;
   double period = 0;
-  const std::string pw = p.number_or_word("pulses.period", period, 0, kBig, {"auto"}, "auto");
+  const std::string pw = p.number_or_word("pulses.period", period, 0, kBig, {"auto"}, "auto",
+                                          "seconds", true, kStep.limit);
   capped(p, "pulses.period", period, kStep);
   s.pulses.period = pw == "auto" ? 0.0 : period;
 }
@@ -387,11 +410,9 @@ RunConfig read_config(Params& p, const RunSources& sources) {
   c.sim.materials = {m};
   if (saved_packing && c.sim.packing.source == "file")
     c.packing = std::make_shared<const Particles>(saved_packing(c.sim));
-  if (!(c.sim.packing.initial_temperature < m.vapor_temperature)) {
-    p.fail("material.initial_temperature", shown_number(c.sim.packing.initial_temperature),
-           "must be < material.vapor_temperature = " + shown_number(m.vapor_temperature) +
-               " (every particle would start as vapour)");
-  }
+  check_order(p, "material.initial_temperature", c.sim.packing.initial_temperature,
+              "material.vapor_temperature", m.vapor_temperature,
+              " (every particle would start as vapour)");
   PaperStepUse use;
   read_pulses(p, c.sim, use);
   read_thermal(p, c.sim, use);
