@@ -205,11 +205,20 @@ bool Simulation::done() const {
   return launched_ >= spec_.pulses.count && !tracer_->has_live_rays();
 }
 
-void Simulation::launch_pulse_if_due() {
-  if (launched_ >= spec_.pulses.count) return;
-  const bool due =
-      spec_.pulses.period > 0 ? time_ >= next_pulse_time_ * (1 - 1e-12) : !tracer_->has_live_rays();
-  if (!due) return;
+bool Simulation::pulse_due() const {
+  if (launched_ >= spec_.pulses.count) return false;
+  return spec_.pulses.period > 0 ? time_ >= next_pulse_time_ * (1 - 1e-12)
+                                 : !tracer_->has_live_rays();
+}
+
+// Every pulse due by this step boundary starts at it: with a step longer than the period several
+// do (one per step let the delays grow with k without bound). "auto" starts one, whose rays are
+// then live.
+void Simulation::launch_due_pulses() {
+  while (pulse_due()) launch_pulse();
+}
+
+void Simulation::launch_pulse() {
   if (launched_ > 0 && on_pulse_end_) on_pulse_end_(launched_ - 1);
   if (spec_.beam.resample && launched_ > 0) use_beam(resampled_beam(launched_));
   {
@@ -331,7 +340,7 @@ double Simulation::step_length(bool traced) const {
 bool Simulation::step() {
   if (done()) return false;
   if constexpr (BEAMPACK_CHECKS_ON) name_step_for_checks();
-  launch_pulse_if_due();
+  launch_due_pulses();
   const double budget =
       spec_.dt > 0 ? kSpeedOfLight * spec_.dt : std::numeric_limits<double>::infinity();
   tracer_->compact_if_sparse();  // ended rays would be scanned by every chunk that runs

@@ -170,7 +170,9 @@ class Simulation {
   static Particles saved_packing(StateReader in, const SimulationSpec& spec);
 
  private:
-  void launch_pulse_if_due();
+  bool pulse_due() const;
+  void launch_due_pulses();
+  void launch_pulse();
   void use_beam(Beam beam);
   double step_length(bool traced) const;
   void remove_vaporized(const std::vector<std::uint32_t>& ids);

@@ -471,6 +471,27 @@ TEST(SimulationStages, PulsesDueOnAStepBoundaryStartOnItAfterManySteps) {
   EXPECT_EQ(sim.figures().time, double(sim.counts().steps) * spec.dt);
 }
 
+// A step twice the period: at each step boundary the two pulses due by then start (found by an
+// audit: one pulse per step started pulse k at k dt, not at the first boundary after k T_p, and the
+// delay grew with k: 2.5e-11 s for pulse 5 here).
+TEST(SimulationStages, EveryPulseDueByAStepBoundaryStartsOnIt) {
+  SimulationSpec spec = quick_spec();
+  spec.materials[0].conductivity = 0.0;
+  spec.dt = 1e-11;
+  spec.pulses.period = 5e-12;
+  spec.pulses.count = 6;
+  Simulation sim(spec, random_overlap_packing(200, kD, 0.325, 7));
+  std::vector<std::uint64_t> launched_at;  // the step count when pulse k + 1 started
+  sim.on_pulse_end([&](int) { launched_at.push_back(sim.counts().steps); });
+  sim.run();
+  EXPECT_EQ(sim.counts().rays, 6u * spec.beam.rays);
+  ASSERT_EQ(launched_at.size(), 6u);  // pulses 0-4 end as pulses 1-5 start; pulse 5 at the end
+  const std::uint64_t first_boundary_after_due[] = {1, 1, 2, 2, 3};  // k T_p rounded up to dt
+  for (std::size_t k = 0; k < 5; ++k)
+    EXPECT_EQ(launched_at[k], first_boundary_after_due[k]) << "pulse " << k + 1;
+  EXPECT_LE(sim.counts().max_pulse_delay, (spec.dt - spec.pulses.period) * (1 + 1e-9));
+}
+
 // thermal.dt = "pulse": one step is the pulse's whole flight. A flat beam on one sphere in the
 // middle of the cube: the rays that miss it fly from the start plane (R upstream of the sphere)
 // across its box (2R), those that hit it end there or bounce out within the box: the step lasts
