@@ -111,6 +111,23 @@ TEST(ThermalGraph, WallsTouchOnlyParticlesWithinReach) {
   EXPECT_DOUBLE_EQ(w.source[0], 250.0 * w.conductance[0]);
 }
 
+// A lattice at L = 0.5 has a layer of spheres tangent to each face of the cube. With a reach of 0
+// round-off decided which faces touched theirs: at n = 10, D = 1e-3 the x-, y- and z- walls
+// touched 100 spheres each and the x+, y+ and z+ walls none (found by an audit).
+TEST(ThermalGraph, EveryFaceTouchesTheLatticeLayerTangentToIt) {
+  for (const auto& [n, size] : {std::pair{10, 1e-3}, std::pair{13, 3e-3}, std::pair{7, 1e-3}}) {
+    const Particles p = lattice_packing(std::size_t(n * n * n), size, 0.5);
+    for (int axis = 0; axis < 3; ++axis)
+      for (double position : {0.0, size}) {
+        const Wall wall{axis, position, 0.0, 300.0, -1.0};
+        std::size_t touching = 0;
+        for (std::size_t i = 0; i < p.size(); ++i) touching += touches(wall, p, i);
+        EXPECT_EQ(touching, std::size_t(n * n))
+            << "n = " << n << ", axis " << axis << " at " << position;
+      }
+  }
+}
+
 TEST(ThermalSkip, ZeroConductivityBuildsNoMatrixAndSolvesNothing) {
   Particles p = random_overlap_packing(300, 1e-3, 0.5, 2);
   ThermalModel model(p, {Material{}}, {});  // K = 0

@@ -1,6 +1,7 @@
 #include "thermal/conduction.h"
 
 #include <cmath>
+#include <limits>
 #include <numbers>
 #include <sstream>
 
@@ -23,8 +24,14 @@ void Wall::validate(const std::string& prefix) const {
   if (!std::isfinite(conductance)) fail("conductance", conductance, "must be finite (< 0: from K)");
 }
 
+// A sphere tangent to the face (a lattice at L = 0.5 has a layer on each face) has a gap of 0 only
+// up to the round-off of the coordinates: it touches within that, or a lattice's x- face would
+// touch its layer and the x+ face not.
 bool touches(const Wall& w, const Particles& p, std::size_t i) {
-  return std::abs(p.centre[i][w.axis] - w.position) - p.radius[i] <= w.reach;
+  const double x = p.centre[i][w.axis], r = p.radius[i];
+  const double round_off =
+      8 * std::numeric_limits<double>::epsilon() * (std::abs(x) + std::abs(w.position) + r);
+  return std::abs(x - w.position) - r <= w.reach + round_off;
 }
 
 bool WallCoupling::any() const {
