@@ -65,6 +65,7 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
   // A caller's particles; the spec's were made or read with these checks, and the thermal-mass
   // check below names the key behind a radius that fails them.
   if (!packing_from_spec_) check_particles(particles_);
+  mark_dead_as_vapour();
   check_run_numbers();
   // A run without pulses draws no rays, only checks the beam's keys: at 10^7 rays the draw alone
   // took 3 s and 0.45 GB.
@@ -120,6 +121,13 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
 }
 
 Simulation::~Simulation() = default;
+
+// A particle passed in dead is a vaporised one (README): its phase says so, in the figures and
+// in particles.csv, whatever phase the caller left it with.
+void Simulation::mark_dead_as_vapour() {
+  for (std::size_t i = 0; i < particles_.size(); ++i)
+    if (!particles_.alive[i]) particles_.phase[i] = Phase::vapor;
+}
 
 // The spec's own numbers, for library callers (the run file's ranges hold them for the CLI): a
 // negative or NaN thermal.dt read as "pulse", a negative period or stagger cap ran without a word.
@@ -338,7 +346,21 @@ double Simulation::step_length(bool traced) const {
 }
 
 bool Simulation::step() {
+  if (failed_)
+    throw RunError("step: an earlier step failed (" + failed_step_ +
+                   "), leaving its rays traced and its heat not: this simulation cannot go on; "
+                   "restore a state saved before it into a new one");
   if (done()) return false;
+  try {
+    return take_step();
+  } catch (const std::exception& e) {
+    failed_ = true;
+    failed_step_ = e.what();
+    throw;
+  }
+}
+
+bool Simulation::take_step() {
   if constexpr (BEAMPACK_CHECKS_ON) name_step_for_checks();
   launch_due_pulses();
   const double budget =
@@ -690,6 +712,11 @@ Particles Simulation::saved_packing(StateReader in, const SimulationSpec& spec) 
 }
 
 void Simulation::read_state(StateReader& in) {
+  // The particles a run removed are gone from its ray scene and contact graph for good: a state
+  // that has them alive would be traced through them.
+  if (counts_.steps > 0 || launched_ > 0)
+    throw InputError("checkpoint: this simulation has taken " + std::to_string(counts_.steps) +
+                     " steps: restore a state into a new Simulation built from the same spec");
   if (in.value<std::uint32_t>() != kStateVersion)
     throw InputError("checkpoint: written by another version of beampack's state format");
   SavedRun s;

@@ -128,6 +128,8 @@ class Simulation {
   ~Simulation();
 
   // One time step of MODEL.md section 5; false once every pulse has been launched and ended.
+  // A step that throws leaves the simulation half-stepped (its rays traced, its heat not): every
+  // later step() throws RunError; restore a state saved before it into a new Simulation.
   bool step();
   // Steps until done or until `stop` becomes true.
   void run(const std::atomic<bool>* stop = nullptr);
@@ -170,6 +172,8 @@ class Simulation {
   static Particles saved_packing(StateReader in, const SimulationSpec& spec);
 
  private:
+  bool take_step();
+  void mark_dead_as_vapour();
   bool pulse_due() const;
   void launch_due_pulses();
   void launch_pulse();
@@ -210,6 +214,8 @@ class Simulation {
   std::vector<RaySegment> ray_paths_;
   double time_ = 0, next_pulse_time_ = 0, max_temperature_ = 0, total_volume_ = 0;
   int launched_ = 0;
+  bool failed_ = false;      // a step threw: the simulation is half-stepped and refuses more
+  std::string failed_step_;  // what that step threw
   std::array<StageTime, kStages> stages_{};
   Counts counts_{};
   std::function<void(int)> on_pulse_end_;

@@ -267,7 +267,28 @@ void Tracer::check_launch(const Beam& beam, std::span<const double> energies) co
     if (!(energies[k] >= 0.0) || !std::isfinite(energies[k]))
       throw InputError("launch: ray " + std::to_string(k) + "'s energy " +
                        shown_number(energies[k]) + " J: must be >= 0 and finite");
+  check_beam_points(beam);
   check_particle_count("launch");
+}
+
+// Where rays start: a NaN or far-off origin reached Embree as an invalid float ray, and Embree
+// aborted the process. A ray is handed to Embree from where it enters the packing's box, computed
+// in double, so a distant start keeps its precision (1e-9 m spheres lit from 1000 m are hit
+// exactly): within 1e6 m (the largest sample.size) or 1e9 packing sizes, whichever is larger.
+void Tracer::check_beam_points(const Beam& beam) const {
+  const double size = box_.empty() ? 0.0 : (box_.upper - box_.lower).norm();
+  const double reach = std::max(1e6, 1e9 * size);
+  const Vec3 middle = box_.empty() ? Vec3::Zero() : Vec3(0.5 * (box_.lower + box_.upper));
+  auto check = [&](const Vec3& point, const std::string& what) {
+    if (!point.allFinite() || !((point - middle).norm() <= reach))
+      throw InputError("launch: " + what + " (" + shown_number(point.x()) + ", " +
+                       shown_number(point.y()) + ", " + shown_number(point.z()) +
+                       ") m: must be finite and within " + shown_number(reach) +
+                       " m of the packing (1e6 m, or 1e9 times its size)");
+  };
+  check(beam.centre, "the beam's centre");
+  for (std::size_t k = 0; k < beam.size(); ++k)
+    check(beam.origin[k], "ray " + std::to_string(k) + "'s origin");
 }
 
 void Tracer::launch(const Beam& beam, double pulse_duration) {
@@ -481,7 +502,16 @@ void Tracer::compact() {
   refresh_next_events(0);
 }
 
+// A state from elsewhere (a library caller's): checked as a checkpoint's rays are, against this
+// tracer's particles (one from a larger packing indexed past them).
 void Tracer::restore(const RayState& state) {
+  check_particle_count("restore");
+  if (state.polarised != state_.polarised)
+    throw InputError(std::string("restore: the state's rays are ") +
+                     (state.polarised ? "polarised" : "unpolarised") +
+                     " and this tracer's are not");
+  state.check_lengths("restore");
+  state.check_values(particles_.size(), "restore");
   state.check_live_count("restore");
   undo_.held = false;
   state_ = state;
@@ -740,6 +770,14 @@ void RayState::read(StateReader& in) {
   check_live_count("checkpoint");
 }
 
+void RayState::check_lengths(const std::string& source) const {
+  for_each_array([&](const auto& v) {
+    if (v.size() != live.size())
+      throw InputError(source + ": a per-ray array holds " + std::to_string(v.size()) +
+                       " entries for " + std::to_string(live.size()) + " rays");
+  });
+}
+
 // The tracer trusts live_count (a compaction with none live drops every ray without looking).
 void RayState::check_live_count(const std::string& source) const {
   const auto live_rays = static_cast<std::size_t>(
@@ -851,6 +889,7 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
                             std::vector<std::uint32_t>* deposited) {
   if (!(path_budget >= 0.0))
     throw InputError("advance: path budget " + shown_number(path_budget) + " must be >= 0");
+  check_particle_count("advance");  // fewer particles: the rays' hits would index past them
   if (deposits.size() < particles_.size()) deposits.resize(particles_.size(), 0.0);
   if (has_live_rays()) build_scene();
   RayState& s = state_;

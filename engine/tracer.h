@@ -171,6 +171,7 @@ struct RayState {
   void read(StateReader& in);
   // InputError naming `source` when live_count is not the number of live flags.
   void check_live_count(const std::string& source) const;
+  void check_lengths(const std::string& source) const;  // every per-ray array one entry per ray
   // InputError when a value is beyond what a trace can hold: a particle index past `particles`,
   // an energy or clock that is negative or not finite, a flag other than 0 or 1.
   void check_values(std::size_t particles, const std::string& source) const;
@@ -278,6 +279,7 @@ class Tracer {
     std::size_t first;
   };
   void check_launch(const Beam& beam, std::span<const double> energies) const;
+  void check_beam_points(const Beam& beam) const;
   void check_particle_count(const char* when) const;
   double start_plane(const Beam& beam) const;
   Vec3 beam_field(const Vec3& direction) const;

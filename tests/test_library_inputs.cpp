@@ -11,6 +11,7 @@
 
 #include "engine/beam.h"
 #include "engine/simulation.h"
+#include "engine/state_io.h"
 #include "engine/tracer.h"
 #include "geometry/error.h"
 #include "geometry/packing.h"
@@ -163,4 +164,127 @@ TEST(LibraryInputs, AMisplacedSceneIsSaidToTheCaller) {
       << lonely[0];
 }
 
+}  // namespace beampack
+
+namespace beampack {
+namespace {
+
+// A library review's findings: each misuse ran on and crashed or answered wrongly in silence.
+
+SimulationSpec conducting_pulses(int pulses) {
+  SimulationSpec s = one_pulse();
+  s.pulses.count = pulses;
+  s.materials[0].conductivity = 100.0;
+  return s;
+}
+
+// Particles a run removed stay out of its ray scene: a state restored into a simulation that has
+// stepped brought them back to life for the heat and not for the rays (absorbed 4.5e-9 J where
+// the run absorbs 1.6e-8 J, the ledger closed).
+TEST(LibraryMisuse, AStateIsRestoredOnlyIntoAFreshSimulation) {
+  const SimulationSpec spec = conducting_pulses(3);
+  const Particles p = random_overlap_packing(200, kD, 0.325, 7);
+  Simulation first(spec, p);
+  first.step();
+  StateWriter written;
+  first.write_state(written);
+  const std::string bytes = written.finish();
+  Simulation stepped(spec, p);
+  stepped.step();
+  StateReader in(bytes, "state");
+  testing::expect_error<InputError>([&] { stepped.read_state(in); }, "has taken 1 steps",
+                                    "into a new Simulation");
+  Simulation fresh(spec, p);
+  StateReader again(bytes, "state");
+  fresh.read_state(again);  // the documented use
+  EXPECT_TRUE(fresh.step());
+}
+
+// README: a particle passed in dead counts as vaporised. Its phase decided: left solid it counted
+// as nothing, left liquid as melted.
+TEST(LibraryMisuse, ParticlesPassedInDeadAreVaporised) {
+  Particles p = random_overlap_packing(200, kD, 0.325, 7);
+  for (std::size_t i = 0; i < 50; ++i) {
+    p.alive[i] = 0;
+    p.phase[i] = i % 2 ? Phase::solid : Phase::liquid;
+  }
+  SimulationSpec spec = one_pulse();
+  spec.pulses.count = 0;
+  const Simulation sim(spec, p);
+  EXPECT_NEAR(sim.figures().vaporized_fraction, 0.25, 1e-14);  // equal spheres: a quarter
+  EXPECT_EQ(sim.figures().melted_fraction, 0.0);
+}
+
+// Embree asserted on the invalid float rays and aborted the process.
+TEST(LibraryMisuse, ABeamStartingNowhereIsRefused) {
+  const Particles p = three_spheres();
+  const Beam beam = make_beam(BeamSpec{}, kD);
+  Tracer tracer(p, OpticsSpec{});
+  Beam nan_origin = beam;
+  nan_origin.origin[5].x() = kNaN;
+  testing::expect_error<InputError>([&] { tracer.launch(nan_origin, 1e-13); },
+                                    "launch: ray 5's origin (nan", "must be finite");
+  Beam far = beam;
+  for (Vec3& o : far.origin) o.x() -= 1e300;
+  testing::expect_error<InputError>([&] { tracer.launch(far, 1e-13); }, "ray 0's origin (-1e+300");
+  Beam nan_centre = beam;
+  nan_centre.centre.y() = kNaN;
+  testing::expect_error<InputError>([&] { tracer.launch(nan_centre, 1e-13); }, "the beam's centre");
+  EXPECT_EQ(tracer.ledger().injected, 0.0);
+  tracer.launch(beam, 1e-13);  // the tracer still works
+  EXPECT_GT(tracer.ledger().injected, 0.0);
+}
+
+// A state from a tracer on 5000 particles advanced in one on 50 indexed past its particles
+// (a segmentation fault); a NaN energy made the ledger NaN.
+TEST(LibraryMisuse, ARestoredRayStateIsChecked) {
+  const Beam beam = make_beam(BeamSpec{}, kD);
+  const Particles big = random_overlap_packing(5000, kD, 0.325, 7);
+  Tracer large(big, OpticsSpec{});
+  large.launch(beam, 1e-13);
+  const RayState state = large.save();
+  const Particles small = random_overlap_packing(50, kD, 0.325, 7);
+  Tracer tracer(small, OpticsSpec{});
+  testing::expect_error<InputError>([&] { tracer.restore(state); }, "restore: ray",
+                                    "beyond the 50 particles");
+  RayState nan_energy = state;
+  nan_energy.energy[3] = kNaN;
+  Tracer same(big, OpticsSpec{});
+  testing::expect_error<InputError>([&] { same.restore(nan_energy); }, "restore: ray 3 has energy");
+  RayState short_array = state;
+  short_array.t_next.pop_back();
+  testing::expect_error<InputError>(
+      [&] { same.restore(short_array); },
+      "a per-ray array holds " + std::to_string(state.live.size() - 1));
+  same.restore(state);  // the state itself is fine
+  EXPECT_EQ(same.save().live_count, state.live_count);
+}
+
+// launch refused a changed particle count; advance did not, and stepped rays into freed memory.
+TEST(LibraryMisuse, AdvanceRefusesParticlesThatChangedCount) {
+  Particles p = three_spheres();
+  Tracer tracer(p, OpticsSpec{});
+  std::vector<double> deposits;
+  tracer.launch(make_beam(BeamSpec{}, kD), 1e-13);
+  p = Particles{};
+  testing::expect_error<InputError>(
+      [&] { tracer.advance(std::numeric_limits<double>::infinity(), deposits); },
+      "advance: the particles were 3 when the tracer took them and are 0 now");
+}
+
+// A step that threw had traced its rays and not conducted their heat; the next step() launched
+// the next pulse on top, and three tries later the run was "done" at 300 K with an open ledger.
+TEST(LibraryMisuse, AfterAFailedStepTheSimulationRefusesToGoOn) {
+  SimulationSpec spec = conducting_pulses(3);
+  spec.thermal.solver = "fixed-point";
+  spec.thermal.max_iterations = 2;
+  Simulation sim(spec, random_overlap_packing(200, kD, 0.325, 7));
+  const std::string first = testing::error_message<RunError>([&] { sim.step(); });
+  ASSERT_NE(first, testing::kAccepted);
+  testing::expect_error<RunError>([&] { sim.step(); }, "an earlier step failed (", first,
+                                  "cannot go on");
+  EXPECT_EQ(sim.pulses_launched(), 1);  // no pulse launched on top of the failed step
+}
+
+}  // namespace
 }  // namespace beampack
