@@ -534,7 +534,18 @@ void warn_of_input(const std::vector<const RunConfig*>& configs) {
       if (said.insert(line).second) std::fprintf(stderr, "beampack: warning: %s\n", line.c_str());
 }
 
+// Whether the message already says where: "path:line: ..." (a packing file's row names its own
+// line; a key it mentions, such as sample.size in a radius limit, did not put it there).
+bool starts_with_location(const std::string& message) {
+  const std::size_t colon = message.find(": ");
+  if (colon == std::string::npos) return false;
+  std::size_t digits = colon;
+  while (digits > 0 && std::isdigit(static_cast<unsigned char>(message[digits - 1]))) --digits;
+  return digits < colon && digits > 0 && message[digits - 1] == ':';
+}
+
 std::string locate(const std::string& message, const std::map<std::string, std::string>& origins) {
+  if (starts_with_location(message)) return message;
   auto is_key_char = [](char c) {
     return std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '.';
   };
