@@ -259,13 +259,17 @@ std::vector<std::string_view> split_columns(std::string_view line) {
   return cols;
 }
 
-bool parse_number(std::string_view text, double& value) {
+// Whether the text is a number (C's notation, an optional leading '+'), into `value`; with
+// `beyond` set when it is one that a double cannot hold (1e400, 1e-400).
+bool parse_number(std::string_view text, double& value, bool* beyond = nullptr) {
   if (!text.empty() && text.front() == '+') {
     text.remove_prefix(1);
     if (!text.empty() && (text.front() == '+' || text.front() == '-')) return false;  // "+-1"
   }
   const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
-  return ec == std::errc() && end == text.data() + text.size();
+  const bool whole = end == text.data() + text.size();
+  if (beyond) *beyond = whole && ec == std::errc::result_out_of_range;
+  return ec == std::errc() && whole;
 }
 
 // A header names the columns: no column of it is a number. A data line with a typo in its first
@@ -357,7 +361,10 @@ double finite_column(const std::vector<std::string_view>& cols, std::size_t k,
     };
   };
   double v = 0;
-  require_lazily(parse_number(cols[k], v), named("a number"));
+  bool beyond = false;
+  require_lazily(parse_number(cols[k], v, &beyond) || beyond, named("a number"));
+  require_lazily(!beyond, named("within the range of a double (nonzero magnitudes from 2.2e-308 "
+                                "to 1.8e308)"));
   require_lazily(std::isfinite(v), named("finite"));
   return v;
 }
@@ -394,7 +401,9 @@ Particles read_plain_columns(PackingLines& lines, double default_radius) {
       return where + "expected " + std::to_string(need) + " columns (" + layout + "), found " +
              std::to_string(cols.size()) +
              (need == 4 && cols.size() == 3 ? "; for x y z rows give the radius with packing.radius"
-                                            : "");
+              : need == 3 && cols.size() == 4
+                  ? "; packing.radius is set, which takes x y z rows: drop it to read the radii"
+                  : "");
     });
     double v[4] = {0, 0, 0, default_radius};
     for (std::size_t k = 0; k < need; ++k) v[k] = finite_column(cols, k, where);

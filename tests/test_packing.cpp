@@ -174,6 +174,18 @@ TEST(PackingFile, EachErrorNamesItsLine) {
                 .find(":1: expected 4 columns (x y z r), found 3; for x y z rows give "
                       "the radius with packing.radius"),
             std::string::npos);
+  // And an x y z r file read with packing.radius: the message says the key is what asks for three.
+  EXPECT_NE(read_error("xyzr", "1 2 3 1\n", 0.5)
+                .find(":1: expected 3 columns (x y z), found 4; packing.radius is set, which "
+                      "takes x y z rows"),
+            std::string::npos);
+  // A number a double cannot hold is said to be one, not "not a number".
+  EXPECT_NE(read_error("huge", "1 2 1e400 1\n")
+                .find(":1: column 3 '1e400' is not within the range of a double"),
+            std::string::npos);
+  EXPECT_NE(read_error("tiny", "1 2 3 1e-400\n")
+                .find(":1: column 4 '1e-400' is not within the range of a double"),
+            std::string::npos);
   EXPECT_NE(read_error("nan_text", "# c\n1 2 abc 1\n").find(":2: column 3 'abc' is not a number"),
             std::string::npos);
   EXPECT_NE(read_error("neg", "1 2 3 1\n\n1 2 3 -1\n").find(":3: radius r = -1: must be > 0"),
