@@ -279,16 +279,24 @@ void Tracer::check_beam_points(const Beam& beam) const {
   const double size = box_.empty() ? 0.0 : (box_.upper - box_.lower).norm();
   const double reach = std::max(1e6, 1e9 * size);
   const Vec3 middle = box_.empty() ? Vec3::Zero() : Vec3(0.5 * (box_.lower + box_.upper));
-  auto check = [&](const Vec3& point, const std::string& what) {
-    if (!point.allFinite() || !((point - middle).norm() <= reach))
-      throw InputError("launch: " + what + " (" + shown_number(point.x()) + ", " +
-                       shown_number(point.y()) + ", " + shown_number(point.z()) +
-                       ") m: must be finite and within " + shown_number(reach) +
-                       " m of the packing (1e6 m, or 1e9 times its size)");
+  const auto within = [&, reach2 = reach * reach](const Vec3& point) {
+    return (point - middle).squaredNorm() <= reach2;  // false for NaN and infinity too
   };
-  check(beam.centre, "the beam's centre");
+  const auto refuse = [&](const Vec3& point, const std::string& what) {
+    throw InputError("launch: " + what + " (" + shown_number(point.x()) + ", " +
+                     shown_number(point.y()) + ", " + shown_number(point.z()) +
+                     ") m: must be finite and within " + shown_number(reach) +
+                     " m of the packing (1e6 m, or 1e9 times its size)");
+  };
+  if (!within(beam.centre)) refuse(beam.centre, "the beam's centre");
+  // Every launch passes over every ray here, serially: one pass without a branch or a square root
+  // (a sqrt per ray took 0.27 ms of a 7 ms pulse of 10^5 rays), a second only to name the first
+  // ray that fails.
+  bool all_within = true;
+  for (const Vec3& origin : beam.origin) all_within &= within(origin);
+  if (all_within) return;
   for (std::size_t k = 0; k < beam.size(); ++k)
-    check(beam.origin[k], "ray " + std::to_string(k) + "'s origin");
+    if (!within(beam.origin[k])) refuse(beam.origin[k], "ray " + std::to_string(k) + "'s origin");
 }
 
 void Tracer::launch(const Beam& beam, double pulse_duration) {

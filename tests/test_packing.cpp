@@ -180,10 +180,10 @@ TEST(PackingFile, EachErrorNamesItsLine) {
                       "takes x y z rows"),
             std::string::npos);
   // A number a double cannot hold is said to be one, not "not a number".
-  EXPECT_NE(read_error("huge", "1 2 1e400 1\n")
+  EXPECT_NE(read_error("beyond_double", "1 2 1e400 1\n")
                 .find(":1: column 3 '1e400' is not within the range of a double"),
             std::string::npos);
-  EXPECT_NE(read_error("tiny", "1 2 3 1e-400\n")
+  EXPECT_NE(read_error("below_double", "1 2 3 1e-400\n")
                 .find(":1: column 4 '1e-400' is not within the range of a double"),
             std::string::npos);
   EXPECT_NE(read_error("nan_text", "# c\n1 2 abc 1\n").find(":2: column 3 'abc' is not a number"),
