@@ -9,6 +9,27 @@
 
 namespace beampack::testing {
 
+// Whether `text` holds `part`; a failure shows both, whole.
+inline ::testing::AssertionResult contains(const char* text_expr, const char* part_expr,
+                                           std::string_view text, std::string_view part) {
+  if (text.find(part) != std::string_view::npos) return ::testing::AssertionSuccess();
+  return ::testing::AssertionFailure() << text_expr << " does not hold " << part_expr
+                                       << "\n  text: " << text << "\n  part: " << part;
+}
+
+inline ::testing::AssertionResult lacks(const char* text_expr, const char* part_expr,
+                                        std::string_view text, std::string_view part) {
+  const std::size_t at = text.find(part);
+  if (at == std::string_view::npos) return ::testing::AssertionSuccess();
+  return ::testing::AssertionFailure() << text_expr << " holds " << part_expr << " at " << at
+                                       << "\n  text: " << text << "\n  part: " << part;
+}
+
+#define EXPECT_CONTAINS(text, part) EXPECT_PRED_FORMAT2(::beampack::testing::contains, text, part)
+#define ASSERT_CONTAINS(text, part) ASSERT_PRED_FORMAT2(::beampack::testing::contains, text, part)
+#define EXPECT_NOT_CONTAINS(text, part) EXPECT_PRED_FORMAT2(::beampack::testing::lacks, text, part)
+#define ASSERT_NOT_CONTAINS(text, part) ASSERT_PRED_FORMAT2(::beampack::testing::lacks, text, part)
+
 // What error_message gives for a call that returns.
 inline constexpr const char kAccepted[] = "(accepted)";
 
@@ -22,8 +43,7 @@ void expect_error(const std::function<void()>& call, const Fragments&... fragmen
     call();
   } catch (const E& e) {
     const std::string what = e.what();
-    for (const std::string_view part : parts)
-      EXPECT_NE(what.find(part), std::string::npos) << "expected \"" << part << "\" in: " << what;
+    for (const std::string_view part : parts) EXPECT_CONTAINS(what, part);
     return;
   }
   std::string expected;

@@ -20,6 +20,7 @@
 #include <sstream>
 
 #include "engine/state_io.h"
+#include "tests/expect_error.h"
 #include "tests/test_dirs.h"
 #include "tools/run_config.h"
 
@@ -85,11 +86,11 @@ TEST(Cli, SmallSceneLedgerClosesAndFilesAgree) {
   const Result r = run("run --preset quick --set output.frames=true --quiet --out " + out.string());
   ASSERT_EQ(r.code, 0) << r.output;
   // The stage table counts in words that agree with the numbers: "(5 steps", "(1 step".
-  EXPECT_NE(r.output.find("(5 steps, 1000 rays, "), std::string::npos) << r.output;
+  EXPECT_CONTAINS(r.output, "(5 steps, 1000 rays, ");
   const Result one =
       run("run --preset quick --set pulses.count=1 --quiet --out " + (out / "one").string());
-  EXPECT_NE(one.output.find("  (1 call)"), std::string::npos) << one.output;
-  EXPECT_NE(one.output.find("(1 step, 200 rays, "), std::string::npos) << one.output;
+  EXPECT_CONTAINS(one.output, "  (1 call)");
+  EXPECT_CONTAINS(one.output, "(1 step, 200 rays, ");
   const auto summary = read_json(out / "summary.json");
   const auto& e = summary["energy_J"];
   const double injected = e["injected"], absorbed = e["absorbed"];
@@ -124,7 +125,7 @@ TEST(Cli, SmallSceneLedgerClosesAndFilesAgree) {
   EXPECT_TRUE(fs::exists(out / "particles.pvd"));
   // Nothing half-written is left behind.
   for (const auto& f : fs::directory_iterator(out))
-    EXPECT_EQ(f.path().string().find(".tmp."), std::string::npos) << f.path();
+    EXPECT_NOT_CONTAINS(f.path().string(), ".tmp.") << f.path();
 }
 
 TEST(Cli, SameInputsSameNumbersOnAnyThreadCount) {
@@ -209,8 +210,7 @@ void expect_input_error(const std::string& name, const std::string& toml, const 
   const std::string file = toml.empty() ? "" : write(dir / "run.toml", toml);
   const Result r = run("run " + file + " " + args + " --quiet --out " + (dir / "out").string());
   EXPECT_EQ(r.code, 2) << name << ": " << r.output;
-  for (const char* f : fragments)
-    EXPECT_NE(r.output.find(f), std::string::npos) << name << ": " << r.output;
+  for (const char* f : fragments) EXPECT_CONTAINS(r.output, f) << name << ": " << r.output;
 }
 
 }  // namespace
@@ -361,11 +361,11 @@ TEST(Cli, ATableSetsItsOwnKeysAndAnEmptyOneIsStillChecked) {
   const std::string file = write(dir / "m.toml", "[material]\ndensity = 2000\n");
   const Result r = run("config " + file + " --preset quick --set 'material={conductivity=5}'");
   ASSERT_EQ(r.code, 0) << r.output;
-  EXPECT_NE(r.output.find("density = 2000.0"), std::string::npos) << r.output;
-  EXPECT_NE(r.output.find("conductivity = 5.0"), std::string::npos) << r.output;
+  EXPECT_CONTAINS(r.output, "density = 2000.0");
+  EXPECT_CONTAINS(r.output, "conductivity = 5.0");
   const Result none = run("config --preset quick --set 'material={}'");
   ASSERT_EQ(none.code, 0) << none.output;
-  EXPECT_NE(none.output.find("conductivity = 20.0"), std::string::npos) << none.output;
+  EXPECT_CONTAINS(none.output, "conductivity = 20.0");
   // An empty table no layer had before sets none of its keys either (it was blamed for setting
   // `thermal.wall_temperature`, which applies to walls only).
   const Result thermal =
@@ -374,7 +374,7 @@ TEST(Cli, ATableSetsItsOwnKeysAndAnEmptyOneIsStillChecked) {
   // A section whose keys are all left out reads as the layers below it.
   const Result bare = run("config " + write(dir / "bare.toml", "[beam]\n") + " --preset quick");
   ASSERT_EQ(bare.code, 0) << bare.output;
-  EXPECT_NE(bare.output.find("rays = 200"), std::string::npos) << bare.output;
+  EXPECT_CONTAINS(bare.output, "rays = 200");
   expect_input_error("empty_unknown", "[foo]\n", "--preset quick",
                      {"run.toml:1", "unknown key `foo`"});
   expect_input_error("empty_nested_unknown", "[foo.bar.baz]\n", "--preset quick",
@@ -466,11 +466,9 @@ TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
       run("sweep --preset quick --param beam.gaussian_width --values 0.1,10 --quiet --out " +
           (dir / "out").string());
   EXPECT_EQ(sweep.code, 2) << sweep.output;
-  EXPECT_NE(sweep.output.find(
-                "--param beam.gaussian_width --values 0.1: `beam.gaussian_width` = 0.1: applies "
-                "to beam.profile = \"gaussian\" only"),
-            std::string::npos)
-      << sweep.output;
+  EXPECT_CONTAINS(sweep.output,
+                  "--param beam.gaussian_width --values 0.1: `beam.gaussian_width` = 0.1: applies "
+                  "to beam.profile = \"gaussian\" only");
   EXPECT_FALSE(fs::exists(dir / "out" / "sweep.csv"));
   // A lattice's count that is not a cube is known before the first run too (the 216 run went
   // first, then 200 failed in the packing).
@@ -479,18 +477,15 @@ TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
       "--quiet --out " +
       (dir / "lattice").string());
   EXPECT_EQ(lattice.code, 2) << lattice.output;
-  EXPECT_NE(lattice.output.find("--param packing.count --values 200: `packing.count` = 200: a "
-                                "lattice needs a cube number (n^3, e.g. 216)"),
-            std::string::npos)
-      << lattice.output;
+  EXPECT_CONTAINS(lattice.output,
+                  "--param packing.count --values 200: `packing.count` = 200: a "
+                  "lattice needs a cube number (n^3, e.g. 216)");
   EXPECT_FALSE(fs::exists(dir / "lattice" / "sweep.csv"));
-  EXPECT_EQ(lattice.output.find("packing.count = 216"), std::string::npos) << lattice.output;
+  EXPECT_NOT_CONTAINS(lattice.output, "packing.count = 216");
   const Result xi = run("sweep --preset quick --param pulses.xi --values 0.1,0.2 --quiet --out " +
                         (dir / "xi").string());
   EXPECT_EQ(xi.code, 2) << xi.output;
-  EXPECT_NE(xi.output.find("--param pulses.xi --values 0.1: `pulses.xi` = 0.1: applies to"),
-            std::string::npos)
-      << xi.output;
+  EXPECT_CONTAINS(xi.output, "--param pulses.xi --values 0.1: `pulses.xi` = 0.1: applies to");
   // pulses.xi applies where the paper's step xi R / c is used: the pulse duration, the time step,
   // and converge's time-step ladder (whatever the pulse duration), and in a sweep over thermal.dt;
   // `config` may print converge's run file.
@@ -539,17 +534,15 @@ TEST(Cli, ARunFileValueTheSceneIgnoresIsAnnounced) {
       write(dir / "run.toml", "[beam]\nprofile = \"gaussian\"\ndecay = 5.0\n");
   const Result ignored = run("run " + gaussian + " --preset quick" + out);
   EXPECT_EQ(ignored.code, 0) << ignored.output;
-  EXPECT_NE(
-      ignored.output.find("beampack: warning: " + gaussian +
-                          ":3: `beam.decay` = 5: applies to beam.profile "
-                          "= \"exponential\" only (it is \"gaussian\"), so this run ignores it"),
-      std::string::npos)
-      << ignored.output;
+  EXPECT_CONTAINS(ignored.output,
+                  "beampack: warning: " + gaussian +
+                      ":3: `beam.decay` = 5: applies to beam.profile "
+                      "= \"exponential\" only (it is \"gaussian\"), so this run ignores it");
   const Result sweep =
       run("sweep " + gaussian + " --preset quick --param material.conductivity --values 1,2" + out);
   EXPECT_EQ(sweep.code, 0) << sweep.output;
   EXPECT_EQ(sweep.output.find("warning"), sweep.output.rfind("warning")) << sweep.output;
-  EXPECT_NE(sweep.output.find("`beam.decay` = 5"), std::string::npos) << sweep.output;
+  EXPECT_CONTAINS(sweep.output, "`beam.decay` = 5");
   const Result printed = run("config");
   ASSERT_EQ(printed.code, 0) << printed.output;
   std::string carried = printed.output;
@@ -562,7 +555,7 @@ TEST(Cli, ARunFileValueTheSceneIgnoresIsAnnounced) {
         std::string("run --preset quick --set packing.source=lattice --set packing.count=27")}) {
     const Result r = run(args + " --set pulses.count=1" + out);
     EXPECT_EQ(r.code, 0) << args << ": " << r.output;
-    EXPECT_EQ(r.output.find("ignores it"), std::string::npos) << args << ": " << r.output;
+    EXPECT_NOT_CONTAINS(r.output, "ignores it") << args << ": " << r.output;
   }
 }
 
@@ -626,7 +619,7 @@ TEST(Cli, NumbersBeyondTheArithmeticAreRefusedAndTheLimitsRun) {
     const Result r =
         run("run --preset quick --set " + c.at_limit + " --quiet --out " + out.string());
     ASSERT_EQ(r.code, 0) << c.at_limit << ": " << r.output;
-    EXPECT_EQ(r.output.find("ledger is open"), std::string::npos) << c.at_limit << ": " << r.output;
+    EXPECT_NOT_CONTAINS(r.output, "ledger is open") << c.at_limit << ": " << r.output;
     const auto summary = read_json(out / "summary.json");
     EXPECT_TRUE(all_finite(summary)) << c.at_limit << ": " << summary.dump();
     const auto& e = summary["energy_J"];
@@ -655,7 +648,7 @@ TEST(Cli, NumbersBeyondTheArithmeticAreRefusedAndTheLimitsRun) {
   const Result radius = run("run " + file_packing + " --set packing.radius=1e6 --quiet --out " +
                             (dir / "radius").string());
   EXPECT_EQ(radius.code, 0) << radius.output;
-  EXPECT_NE(radius.output.find("the heat ledger is open"), std::string::npos) << radius.output;
+  EXPECT_CONTAINS(radius.output, "the heat ledger is open");
 }
 
 // Below its lower bound a key with an upper limit of its own was told only "must be >= 0", as if
@@ -692,7 +685,7 @@ TEST(Cli, SpecialFilesAsInputsAreRefusedBeforeTheyAreRead) {
         "run " + file_packing + fifo.string() + out, "run " + file_packing + "/dev/zero" + out}) {
     const auto [code, text] = run(args, "timeout -s KILL 20");
     EXPECT_EQ(code, 2) << args << ": " << text;
-    EXPECT_NE(text.find("not a regular file"), std::string::npos) << args << ": " << text;
+    EXPECT_CONTAINS(text, "not a regular file") << args << ": " << text;
   }
 }
 
@@ -708,13 +701,12 @@ TEST(Cli, RunFileLayersPathsAndArgumentsAreReadAsWritten) {
   const Result from_file =
       run("run " + file + " --set pulses.count=1 --quiet --out " + (dir / "a").string());
   ASSERT_EQ(from_file.code, 0) << from_file.output;
-  EXPECT_NE(file_text(dir / "a" / "summary.json").find("\"particles\": 1"), std::string::npos);
+  EXPECT_CONTAINS(file_text(dir / "a" / "summary.json"), "\"particles\": 1");
   // The resolved run file holds the path made absolute: it runs from any folder.
   const Result printed = run("config " + file);
   ASSERT_EQ(printed.code, 0) << printed.output;
-  EXPECT_NE(printed.output.find(fs::absolute(dir / "sub" / "one.xyz").lexically_normal().string()),
-            std::string::npos)
-      << printed.output;
+  EXPECT_CONTAINS(printed.output,
+                  fs::absolute(dir / "sub" / "one.xyz").lexically_normal().string());
   fs::create_directories(dir / "elsewhere");
   const std::string full = write(dir / "elsewhere" / "full.toml", printed.output);
   EXPECT_EQ(run("run " + full + " --set pulses.count=1 --quiet --out " + (dir / "b").string()).code,
@@ -723,49 +715,40 @@ TEST(Cli, RunFileLayersPathsAndArgumentsAreReadAsWritten) {
   const Result other =
       run("config " + file + " --set packing.source=lattice --set packing.count=8");
   ASSERT_EQ(other.code, 0) << other.output;
-  EXPECT_NE(other.output.find("file = ''"), std::string::npos) << other.output;
+  EXPECT_CONTAINS(other.output, "file = ''");
   // One value per --set and per --values: a run file after them is the run file.
   const Result after = run("config --set pulses.count=3 " + file);
   ASSERT_EQ(after.code, 0) << after.output;
-  EXPECT_NE(after.output.find("one.xyz"), std::string::npos) << after.output;
+  EXPECT_CONTAINS(after.output, "one.xyz");
   // Spaces around `=` in --set, and a UTF-8 byte-order mark at the start of a run file.
   const std::string bom = write(dir / "bom.toml", "\xEF\xBB\xBF[pulses]\ncount = 4\n");
   const Result spaced = run("config " + bom + " --set \"beam.rays = 7\"");
   ASSERT_EQ(spaced.code, 0) << spaced.output;
-  EXPECT_NE(spaced.output.find("rays = 7"), std::string::npos) << spaced.output;
-  EXPECT_NE(spaced.output.find("count = 4"), std::string::npos) << spaced.output;
+  EXPECT_CONTAINS(spaced.output, "rays = 7");
+  EXPECT_CONTAINS(spaced.output, "count = 4");
   const Result unknown = run("frob");
   EXPECT_EQ(unknown.code, 2);
-  EXPECT_NE(unknown.output.find("unknown command `frob` (commands: run,"), std::string::npos)
-      << unknown.output;
+  EXPECT_CONTAINS(unknown.output, "unknown command `frob` (commands: run,");
   // A mistyped command or option is named with the nearest one, as a mistyped key is.
   const Result typo = run("vaildate");
   EXPECT_EQ(typo.code, 2);
-  EXPECT_NE(typo.output.find("unknown command `vaildate` (did you mean `validate`?)"),
-            std::string::npos)
-      << typo.output;
+  EXPECT_CONTAINS(typo.output, "unknown command `vaildate` (did you mean `validate`?)");
   const Result option_typo = run("run --preset quick --thread 2");
   EXPECT_EQ(option_typo.code, 2);
-  EXPECT_NE(option_typo.output.find("has no option --thread (did you mean `--threads`?)"),
-            std::string::npos)
-      << option_typo.output;
+  EXPECT_CONTAINS(option_typo.output, "has no option --thread (did you mean `--threads`?)");
   // An option of another command, and a space-separated --values list, are named as such (CLI11
   // read their values as the run file: "run_file: File does not exist: 1"). Negative numbers and
   // `--out=DIR` are values and options, not unknown ones.
   const Result foreign =
       run("sweep --preset quick --param material.conductivity --values 1 --checkpoint-every 1");
   EXPECT_EQ(foreign.code, 2);
-  EXPECT_NE(foreign.output.find(
-                "`sweep` has no option --checkpoint-every (its options: --help, --preset"),
-            std::string::npos)
-      << foreign.output;
+  EXPECT_CONTAINS(foreign.output,
+                  "`sweep` has no option --checkpoint-every (its options: --help, --preset");
   const Result spaced_values =
       run("sweep --preset quick --param material.conductivity --values 0 10 100");
   EXPECT_EQ(spaced_values.code, 2);
-  EXPECT_NE(
-      spaced_values.output.find("--values takes one comma-separated argument (--values 0,10,...)"),
-      std::string::npos)
-      << spaced_values.output;
+  EXPECT_CONTAINS(spaced_values.output,
+                  "--values takes one comma-separated argument (--values 0,10,...)");
   const Result negative = run("sweep --preset quick --param beam.direction_x --values -1 --out=" +
                               (dir / "negative").string() + " --quiet");
   EXPECT_EQ(negative.code, 0) << negative.output;
@@ -777,16 +760,15 @@ TEST(Cli, UnwritableOutputDirectoryIsBadInput) {
   write(blocker, "x");
   const Result r = run("run --preset quick --quiet --out " + (blocker / "sub").string());
   EXPECT_EQ(r.code, 2) << r.output;
-  EXPECT_NE(r.output.find("--out"), std::string::npos) << r.output;
+  EXPECT_CONTAINS(r.output, "--out");
   // --out naming the file itself: every folder of the path exists, so the reason is the file's.
   for (const std::string& out : {blocker.string(), blocker.string() + "/"}) {
     const Result at_file = run("run --preset quick --quiet --out " + out);
     EXPECT_EQ(at_file.code, 2) << at_file.output;
-    EXPECT_NE(at_file.output.find("--out " + out +
-                                  ": cannot create the output directory (it exists and is not "
-                                  "a directory)"),
-              std::string::npos)
-        << at_file.output;
+    EXPECT_CONTAINS(at_file.output,
+                    "--out " + out +
+                        ": cannot create the output directory (it exists and is not "
+                        "a directory)");
   }
   // A link that leads nowhere, or to itself, was reported as "File exists".
   fs::create_symlink(dir / "missing" / "x", dir / "dangling");
@@ -794,9 +776,7 @@ TEST(Cli, UnwritableOutputDirectoryIsBadInput) {
   for (const fs::path& link : {dir / "dangling", dir / "loop" / "sub"}) {
     const Result linked = run("run --preset quick --quiet --out " + link.string());
     EXPECT_EQ(linked.code, 2) << linked.output;
-    EXPECT_NE(linked.output.find("a symbolic link on its path leads nowhere, or in a loop"),
-              std::string::npos)
-        << linked.output;
+    EXPECT_CONTAINS(linked.output, "a symbolic link on its path leads nowhere, or in a loop");
   }
 }
 
@@ -812,9 +792,8 @@ TEST(Cli, APackingFileRowsErrorIsNotBlamedOnTheKeysItMentions) {
           "packing.file=" +
           bed + " --out " + (dir / "out").string());
   EXPECT_EQ(r.code, 2) << r.output;
-  EXPECT_NE(r.output.find("beampack: error: " + bed + ":3: radius r = 1e+300"), std::string::npos)
-      << r.output;
-  EXPECT_EQ(r.output.find("preset zohdi2013"), std::string::npos) << r.output;
+  EXPECT_CONTAINS(r.output, "beampack: error: " + bed + ":3: radius r = 1e+300");
+  EXPECT_NOT_CONTAINS(r.output, "preset zohdi2013");
 }
 
 // Bad input found only while the packing is made: the folders the command made for --out are
@@ -826,7 +805,7 @@ TEST(Cli, AnInputErrorFoundDuringSetUpLeavesNoEmptyFolder) {
       " --preset quick --quiet --set packing.source=rsa --set packing.solid_fraction=0.45 --out ";
   const Result r = run("run" + jammed + (dir / "made" / "here").string());
   EXPECT_EQ(r.code, 2) << r.output;
-  EXPECT_NE(r.output.find("stop near 0.345 at any count"), std::string::npos) << r.output;
+  EXPECT_CONTAINS(r.output, "stop near 0.345 at any count");
   EXPECT_FALSE(fs::exists(dir / "made"));
   const Result slash = run("run" + jammed + (dir / "rsa/").string());
   EXPECT_EQ(slash.code, 2) << slash.output;
@@ -852,9 +831,8 @@ TEST(Cli, AnInputErrorFoundDuringSetUpLeavesNoEmptyFolder) {
   for (std::size_t at = 0; (at = converge.output.find("RSA jams", at)) != std::string::npos; ++at)
     ++errors;
   EXPECT_EQ(errors, 3u) << converge.output;
-  EXPECT_NE(converge.output.find("time step 1.35575e-14: error:"), std::string::npos)
-      << converge.output;
-  EXPECT_NE(converge.output.find("its other rungs not run"), std::string::npos) << converge.output;
+  EXPECT_CONTAINS(converge.output, "time step 1.35575e-14: error:");
+  EXPECT_CONTAINS(converge.output, "its other rungs not run");
   EXPECT_TRUE(read_csv(dir / "conv" / "convergence.csv").empty());
 }
 
@@ -872,8 +850,7 @@ TEST(Cli, StaggerCyclesStopTheSameWayWhateverTheCap) {
     const Result r =
         run(scene + "--set thermal.max_staggers=" + std::to_string(cap) + " --out " + out.string());
     ASSERT_EQ(r.code, 0) << r.output;
-    EXPECT_NE(r.output.find("alternated between two sets of phases"), std::string::npos)
-        << r.output;
+    EXPECT_CONTAINS(r.output, "alternated between two sets of phases");
     const auto counts = read_json(out / "summary.json")["counts"];
     EXPECT_GT(counts["stagger_cycles"].get<int>(), 0) << cap;
     EXPECT_EQ(counts["capped_stagger_steps"].get<int>(), 0) << cap;
@@ -882,8 +859,7 @@ TEST(Cli, StaggerCyclesStopTheSameWayWhateverTheCap) {
   }
   const Result capped = run(scene + "--set thermal.max_staggers=1 --out " + (dir / "1").string());
   ASSERT_EQ(capped.code, 0) << capped.output;
-  EXPECT_NE(capped.output.find("reached `thermal.max_staggers` = 1 redos"), std::string::npos)
-      << capped.output;
+  EXPECT_CONTAINS(capped.output, "reached `thermal.max_staggers` = 1 redos");
   EXPECT_GT(read_json(dir / "1" / "summary.json")["counts"]["capped_stagger_steps"].get<int>(), 0);
 }
 
@@ -906,7 +882,7 @@ TEST(Cli, ACommandWhoseOutputCannotBeWrittenFails) {
   for (const char* command : {"config --preset quick", "presets", "validate --quiet"}) {
     const Result r = run(std::string(command) + " >/dev/full)", "(");  // stderr still read
     EXPECT_EQ(r.code, 1) << command << ": " << r.output;
-    EXPECT_NE(r.output.find("standard output could not be written"), std::string::npos)
+    EXPECT_CONTAINS(r.output, "standard output could not be written")
         << command << ": " << r.output;
   }
 }
@@ -920,19 +896,16 @@ TEST(Cli, LostStandardOutputIsSaid) {
   const Result full =
       run("run --preset quick --quiet --out " + (dir / "full").string() + " >/dev/full)", "(");
   EXPECT_EQ(full.code, 0) << full.output;
-  EXPECT_NE(full.output.find("warning: standard output could not be written"), std::string::npos)
-      << full.output;
+  EXPECT_CONTAINS(full.output, "warning: standard output could not be written");
   EXPECT_TRUE(fs::exists(dir / "full" / "summary.json"));
   const Result closed =
       run("run --preset quick --quiet --out " + (dir / "closed").string() + " >&-)", "(");
   EXPECT_EQ(closed.code, 0) << closed.output;
-  EXPECT_NE(closed.output.find("warning: standard output is closed"), std::string::npos)
-      << closed.output;
+  EXPECT_CONTAINS(closed.output, "warning: standard output is closed");
   EXPECT_EQ(read_csv(dir / "closed" / "particles.csv").size(), 200u);
   const Result config = run("config --preset quick >&-)", "(");
   EXPECT_EQ(config.code, 1) << config.output;
-  EXPECT_NE(config.output.find("error: standard output is closed"), std::string::npos)
-      << config.output;
+  EXPECT_CONTAINS(config.output, "error: standard output is closed");
 }
 
 // A folder where a command writes one of its files failed the final rename after the whole run,
@@ -946,17 +919,15 @@ TEST(Cli, AFolderWhereAnOutputGoesIsRefusedBeforeTheRun) {
   fs::create_directories(dir / "summary.json" / "x");
   const Result r = run("run --preset quick --quiet --set pulses.count=1 --out " + dir.string());
   EXPECT_EQ(r.code, 2) << r.output;
-  EXPECT_NE(r.output.find((dir / "summary.json").string() +
-                          " is a folder where the command writes a file"),
-            std::string::npos)
-      << r.output;
+  EXPECT_CONTAINS(r.output,
+                  (dir / "summary.json").string() + " is a folder where the command writes a file");
   EXPECT_EQ(file_text(dir / "history.csv"), history);
   fs::create_directories(dir / "sweep.csv");
   const Result s =
       run("sweep --preset quick --quiet --param material.conductivity --values 0,1 --out " +
           dir.string());
   EXPECT_EQ(s.code, 2) << s.output;
-  EXPECT_NE(s.output.find("sweep.csv is a folder"), std::string::npos) << s.output;
+  EXPECT_CONTAINS(s.output, "sweep.csv is a folder");
 }
 
 // A run file that sets no key (empty, or comments only) runs on everything else's values: said,
@@ -967,8 +938,7 @@ TEST(Cli, ARunFileThatSetsNoKeyIsAnnounced) {
   const Result r = run("run " + file + " --preset quick --set pulses.count=0 --quiet --out " +
                        (dir / "out").string());
   EXPECT_EQ(r.code, 0) << r.output;
-  EXPECT_NE(r.output.find("warning: the run file " + file + " sets no key"), std::string::npos)
-      << r.output;
+  EXPECT_CONTAINS(r.output, "warning: the run file " + file + " sets no key");
 }
 
 // A wall within whose reach no particle lies takes no heat: announced, as it usually means a
@@ -980,65 +950,60 @@ TEST(Cli, AWallThatTouchesNoParticleIsAnnounced) {
       "--set packing.radius_ratio=0.3 --set material.conductivity=100 --set thermal.walls=x-,x+ ";
   const Result far = run(lattice + "--set thermal.wall_reach=1e-6 --out " + (dir / "far").string());
   ASSERT_EQ(far.code, 0) << far.output;
-  EXPECT_NE(far.output.find("the wall x- (`thermal.walls`) touches no particle"), std::string::npos)
-      << far.output;
-  EXPECT_NE(far.output.find("the wall x+ (`thermal.walls`) touches no particle"), std::string::npos)
-      << far.output;
+  EXPECT_CONTAINS(far.output, "the wall x- (`thermal.walls`) touches no particle");
+  EXPECT_CONTAINS(far.output, "the wall x+ (`thermal.walls`) touches no particle");
   const Result near =
       run(lattice + "--set thermal.wall_reach=1e-3 --out " + (dir / "near").string());
   ASSERT_EQ(near.code, 0) << near.output;
-  EXPECT_EQ(near.output.find("touches no particle"), std::string::npos) << near.output;
+  EXPECT_NOT_CONTAINS(near.output, "touches no particle");
 }
 
 TEST(Cli, ValidatePassesAndConfigRoundTrips) {
   const Result v = run("validate --quiet");
   EXPECT_EQ(v.code, 0) << v.output;
-  EXPECT_NE(v.output.find("0 failed"), std::string::npos);
+  EXPECT_CONTAINS(v.output, "0 failed");
   const fs::path dir = fresh_dir("config");
   const Result c = run("config --preset zohdi2013");
   ASSERT_EQ(c.code, 0) << c.output;
-  EXPECT_NE(c.output.find("conductivity"), std::string::npos);
+  EXPECT_CONTAINS(c.output, "conductivity");
   // The printed file is a complete run file: it runs, and resolves to itself.
   write(dir / "full.toml", c.output);
   const Result again = run("config " + (dir / "full.toml").string());
   ASSERT_EQ(again.code, 0) << again.output;
   EXPECT_EQ(again.output, c.output);
   // Numbers as written: the shortest form that reads back to the same double, not 17 digits.
-  EXPECT_NE(c.output.find("\ndiameter_fraction = 0.3\n"), std::string::npos) << c.output;
-  EXPECT_NE(c.output.find("\ntime_scaling = 1e6\n"), std::string::npos) << c.output;
-  EXPECT_NE(c.output.find("\npower = 6000.0\n"), std::string::npos) << c.output;
+  EXPECT_CONTAINS(c.output, "\ndiameter_fraction = 0.3\n");
+  EXPECT_CONTAINS(c.output, "\ntime_scaling = 1e6\n");
+  EXPECT_CONTAINS(c.output, "\npower = 6000.0\n");
   const Result exact =
       run("config --preset zohdi2013 --set material.conductivity=0.1234567890123456789 --set "
           "material.density=1.5e-7");
   ASSERT_EQ(exact.code, 0) << exact.output;
-  EXPECT_NE(exact.output.find("\nconductivity = 0.12345678901234568\n"), std::string::npos)
-      << exact.output;
-  EXPECT_NE(exact.output.find("\ndensity = 1.5e-7\n"), std::string::npos) << exact.output;
+  EXPECT_CONTAINS(exact.output, "\nconductivity = 0.12345678901234568\n");
+  EXPECT_CONTAINS(exact.output, "\ndensity = 1.5e-7\n");
   // Keys the scene does not read (the quick preset's packing.seed = 7 with a lattice) are printed
   // apart, as comments with their values: the printed file runs without a warning about them.
   const Result lattice =
       run("config --preset quick --set packing.source=lattice --set packing.count=216");
   ASSERT_EQ(lattice.code, 0) << lattice.output;
   const std::string& text = lattice.output;
-  EXPECT_NE(text.find("\n# packing.seed = 7  # applies to packing.source = \"random-overlap\" or "
-                      "\"rsa\" only (it is \"lattice\")\n"),
-            std::string::npos)
-      << text;
+  EXPECT_CONTAINS(text,
+                  "\n# packing.seed = 7  # applies to packing.source = \"random-overlap\" or "
+                  "\"rsa\" only (it is \"lattice\")\n");
   const std::size_t packing = text.find("[packing]\n"), end = text.find("\n\n", packing);
   ASSERT_NE(packing, std::string::npos) << text;
-  EXPECT_EQ(text.substr(packing, end - packing).find("seed"), std::string::npos) << text;
-  EXPECT_NE(text.substr(packing, end - packing).find("radius_ratio"), std::string::npos) << text;
+  EXPECT_NOT_CONTAINS(text.substr(packing, end - packing), "seed") << text;
+  EXPECT_CONTAINS(text.substr(packing, end - packing), "radius_ratio") << text;
   // The file keys too, read by a file's packing only (the section held `file = ''`).
-  EXPECT_EQ(text.substr(packing, end - packing).find("\nfile"), std::string::npos) << text;
-  EXPECT_EQ(text.substr(packing, end - packing).find("\nradius ="), std::string::npos) << text;
-  EXPECT_NE(text.find("\n# packing.file = ''  # applies to packing.source = \"file\" only (it is "
-                      "\"lattice\")\n"),
-            std::string::npos)
-      << text;
+  EXPECT_NOT_CONTAINS(text.substr(packing, end - packing), "\nfile") << text;
+  EXPECT_NOT_CONTAINS(text.substr(packing, end - packing), "\nradius =") << text;
+  EXPECT_CONTAINS(text,
+                  "\n# packing.file = ''  # applies to packing.source = \"file\" only (it is "
+                  "\"lattice\")\n");
   const Result quiet = run("run " + write(dir / "lattice.toml", text) +
                            " --set pulses.count=1 --quiet --out " + (dir / "lattice").string());
   ASSERT_EQ(quiet.code, 0) << quiet.output;
-  EXPECT_EQ(quiet.output.find("warning"), std::string::npos) << quiet.output;
+  EXPECT_NOT_CONTAINS(quiet.output, "warning");
 }
 
 TEST(Cli, ParaViewFilesHoldTheValuesOfParticlesCsv) {
@@ -1090,8 +1055,8 @@ print('rays ok', len(files))
     return Result{WIFEXITED(status) ? WEXITSTATUS(status) : -1, text};
   }();
   EXPECT_EQ(py.code, 0) << py.output;
-  EXPECT_NE(py.output.find("ok 5 "), std::string::npos) << py.output;
-  EXPECT_NE(py.output.find("rays ok 5"), std::string::npos) << py.output;
+  EXPECT_CONTAINS(py.output, "ok 5 ");
+  EXPECT_CONTAINS(py.output, "rays ok 5");
 }
 
 TEST(Cli, ConvergeWritesLaddersWithTheFinestAsReference) {
@@ -1151,7 +1116,7 @@ TEST(CliLong, StabilityGridHasNoFailure) {
   if (!std::getenv("BEAMPACK_LONG")) GTEST_SKIP() << "about a minute; set BEAMPACK_LONG=1";
   const Result r = run("validate --stiff --quiet");
   EXPECT_EQ(r.code, 0) << r.output;
-  EXPECT_NE(r.output.find(" 0 failed"), std::string::npos) << r.output;
+  EXPECT_CONTAINS(r.output, " 0 failed");
 }
 
 namespace {
@@ -1215,21 +1180,18 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
   const std::string summary = file_text(whole / "summary.json");
   const Result finished = run("run --resume " + whole.string() + " --quiet");
   EXPECT_EQ(finished.code, 2) << finished.output;
-  EXPECT_NE(
-      finished.output.find("the run there finished (summary.json, 5 pulses): nothing to resume; "
-                           "to run it again from its last periodic checkpoint, give --out"),
-      std::string::npos)
-      << finished.output;
+  EXPECT_CONTAINS(finished.output,
+                  "the run there finished (summary.json, 5 pulses): nothing to resume; "
+                  "to run it again from its last periodic checkpoint, give --out");
   EXPECT_EQ(file_text(whole / "summary.json"), summary);
   // A finished run that kept no checkpoint has none to offer.
   const fs::path plain = fresh_dir("series_plain");
   ASSERT_EQ(run("run --preset quick --quiet --out " + plain.string()).code, 0);
   const Result none = run("run --resume " + plain.string() + " --quiet");
   EXPECT_EQ(none.code, 2) << none.output;
-  EXPECT_NE(none.output.find("nothing to resume (it kept no periodic checkpoint to start again "
-                             "from)"),
-            std::string::npos)
-      << none.output;
+  EXPECT_CONTAINS(none.output,
+                  "nothing to resume (it kept no periodic checkpoint to start again "
+                  "from)");
   write(other / "summary.json", R"({"vaporized_fraction": 0, "config": {}})");
   const std::string stale = write(other / "particles_0011.vtp", "a frame of an earlier run");
   // Past pulse 9999 a frame's number has five digits: still the earlier run's.
@@ -1255,14 +1217,13 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
   fs::remove(thinned / "particles_0000.vtp");
   const Result t = run("run --resume " + thinned.string() + " --out " + resumed.string());
   ASSERT_EQ(t.code, 0) << t.output;
-  EXPECT_NE(t.output.find("1 frame of the pulses before the checkpoint is not there "
-                          "(particles_0000.vtp); particles.pvd leaves it out"),
-            std::string::npos)
-      << t.output;
+  EXPECT_CONTAINS(t.output,
+                  "1 frame of the pulses before the checkpoint is not there "
+                  "(particles_0000.vtp); particles.pvd leaves it out");
   const std::string pvd = file_text(resumed / "particles.pvd");
-  EXPECT_EQ(pvd.find("particles_0000.vtp"), std::string::npos) << pvd;
+  EXPECT_NOT_CONTAINS(pvd, "particles_0000.vtp");
   for (const char* frame : {"particles_0001.vtp", "particles_0004.vtp"}) {
-    EXPECT_NE(pvd.find(frame), std::string::npos) << pvd;
+    EXPECT_CONTAINS(pvd, frame);
     EXPECT_TRUE(fs::exists(resumed / frame)) << frame;
   }
 }
@@ -1350,16 +1311,14 @@ TEST(Cli, ARunThatFailsLateKeepsThePulsesItEnded) {
       "--set beam.resample=true --set pulses.count=3000 ";
   const Result r = run(failing + "--checkpoint-every 1000 --out " + dir.string());
   EXPECT_EQ(r.code, 1) << r.output;
-  EXPECT_NE(r.output.find("after 1361 pulses had ended"), std::string::npos) << r.output;
-  EXPECT_NE(r.output.find("run failed: pulse 1361 (`beam.resample`)"), std::string::npos)
-      << r.output;
+  EXPECT_CONTAINS(r.output, "after 1361 pulses had ended");
+  EXPECT_CONTAINS(r.output, "run failed: pulse 1361 (`beam.resample`)");
   EXPECT_FALSE(fs::exists(dir / "particles.csv"));
   const auto history = read_csv(dir / "history.csv");
   ASSERT_EQ(history.size(), 1361u);
   EXPECT_EQ(history.back().at("pulse"), "1361");
   const nlohmann::json summary = read_json(dir / "summary.json");
-  EXPECT_NE(summary["failed"]["message"].get<std::string>().find("too narrow a profile"),
-            std::string::npos);
+  EXPECT_CONTAINS(summary["failed"]["message"].get<std::string>(), "too narrow a profile");
   EXPECT_EQ(summary["pulses"], 1361);
   EXPECT_EQ(summary["vaporized_fraction"].get<double>(),
             std::stod(history.back().at("vaporized_fraction")));
@@ -1367,8 +1326,7 @@ TEST(Cli, ARunThatFailsLateKeepsThePulsesItEnded) {
   ASSERT_TRUE(fs::exists(dir / "checkpoint.bin"));  // pulse 1000's
   const Result resumed = run("run --quiet --resume " + dir.string());
   EXPECT_EQ(resumed.code, 1) << resumed.output;  // the same draw fails again, not "finished"
-  EXPECT_NE(resumed.output.find("after 1361 pulses had ended"), std::string::npos)
-      << resumed.output;
+  EXPECT_CONTAINS(resumed.output, "after 1361 pulses had ended");
   EXPECT_EQ(read_csv(dir / "history.csv").size(), 1361u);
 }
 
@@ -1382,7 +1340,7 @@ TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
       .write(bytes.data(), std::streamsize(bytes.size() / 2));
   const Result r = run("run --resume " + copy.string() + " --quiet");
   EXPECT_EQ(r.code, 2) << r.output;
-  EXPECT_NE(r.output.find("damaged or truncated"), std::string::npos) << r.output;
+  EXPECT_CONTAINS(r.output, "damaged or truncated");
   // A file larger than the machine's memory (sparse: no disk is used) is refused before it is
   // read; it was read whole, for minutes, until memory ran out (exit 1, std::bad_alloc).
   const fs::path huge = fresh_dir("ck_huge");
@@ -1393,8 +1351,7 @@ TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
   const Result too_big = run("run --resume " + huge.string() + " --quiet");
   fs::remove(huge / "checkpoint.bin");
   EXPECT_EQ(too_big.code, 2) << too_big.output;
-  EXPECT_NE(too_big.output.find("more than this machine's memory"), std::string::npos)
-      << too_big.output;
+  EXPECT_CONTAINS(too_big.output, "more than this machine's memory");
   // As if written on a machine of the other byte order: the layout tag's first word reversed.
   std::string swapped = bytes;
   std::reverse(swapped.begin(), swapped.begin() + 4);
@@ -1402,7 +1359,7 @@ TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
       .write(swapped.data(), std::streamsize(swapped.size()));
   const Result other = run("run --resume " + copy.string() + " --quiet");
   EXPECT_EQ(other.code, 2) << other.output;
-  EXPECT_NE(other.output.find("other byte order"), std::string::npos) << other.output;
+  EXPECT_CONTAINS(other.output, "other byte order");
 }
 
 namespace {
@@ -1453,8 +1410,8 @@ TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
   };
   const auto expect_warning = [](const Result& r, const std::string& text) {
     EXPECT_EQ(r.code, 0) << r.output;
-    if (text.empty()) EXPECT_EQ(r.output.find("warning: --resume"), std::string::npos) << r.output;
-    else EXPECT_NE(r.output.find("warning: --resume: " + text), std::string::npos) << r.output;
+    if (text.empty()) EXPECT_NOT_CONTAINS(r.output, "warning: --resume");
+    else EXPECT_CONTAINS(r.output, "warning: --resume: " + text);
   };
   // The part's record, after the magic: the count (8 bytes), then four texts (an 8-byte length
   // and the bytes each): revision, build type, compiler, flags.
@@ -1500,8 +1457,7 @@ TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
         std::string("ck_revision_") + key,
         [&](std::string& b) { std::fill_n(b.begin() + std::ptrdiff_t(start), size, 'X'); });
     expect_warning(edited_run, "the checkpoint was written by beampack " + ours + " built as ");
-    EXPECT_NE(edited_run.output.find(std::string(size, 'X')), std::string::npos)
-        << key << ": " << edited_run.output;
+    EXPECT_CONTAINS(edited_run.output, std::string(size, 'X')) << key << ": " << edited_run.output;
   }
 
   // Format 5 kept the revision alone: the rest is unknown, so even this revision warns.
@@ -1532,12 +1488,11 @@ TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
   const auto [none, none_folder] = resume_edited(
       "ck_revision_none", [&](std::string& b) { std::fill_n(b.begin() + (at - 16), 8, '\0'); });
   EXPECT_EQ(none.code, 2) << none.output;
-  EXPECT_NE(none.output.find("damaged checkpoint: 0 builds"), std::string::npos) << none.output;
+  EXPECT_CONTAINS(none.output, "damaged checkpoint: 0 builds");
   const auto [binary, binary_folder] =
       resume_edited("ck_revision_binary", [&](std::string& b) { b[at] = '\x01'; });
   EXPECT_EQ(binary.code, 2) << binary.output;
-  EXPECT_NE(binary.output.find("the revision of part 0 is not"), std::string::npos)
-      << binary.output;
+  EXPECT_CONTAINS(binary.output, "the revision of part 0 is not");
 }
 
 TEST(Cli, WallsTakeHeatAndTheLedgerStillCloses) {
@@ -1701,7 +1656,7 @@ TEST(Cli, ASecondInterruptEndsALongStepAtOnce) {
   if (r.status == 1 && fs::exists(dir / "out" / "summary.json"))
     GTEST_SKIP() << "the step ended before the second interrupt (a clean stop)";
   EXPECT_EQ(r.status, 130) << r.printed;
-  EXPECT_NE(r.printed.find("interrupt again to quit at once"), std::string::npos) << r.printed;
+  EXPECT_CONTAINS(r.printed, "interrupt again to quit at once");
   EXPECT_LT(r.ms, 1500) << "a step of 3e6 rays alone takes about 2 s";
   // No destructor ran, yet the --out folder the run made, still empty, is gone.
   EXPECT_FALSE(fs::exists(dir / "out")) << r.printed;
@@ -1718,10 +1673,8 @@ TEST(Cli, AnInterruptDuringSetUpEndsTheRunAtOnceWritingNothing) {
   const Interrupted r = interrupt(dir, args, "setting up", "sleep 0.3; kill -INT $p");
   EXPECT_EQ(r.status, 1) << r.printed;
   EXPECT_LT(r.ms, 2000) << r.printed;
-  EXPECT_NE(r.printed.find("beampack: interrupted during set-up; nothing written"),
-            std::string::npos)
-      << r.printed;
-  EXPECT_EQ(r.printed.find("stopping after the current step"), std::string::npos) << r.printed;
+  EXPECT_CONTAINS(r.printed, "beampack: interrupted during set-up; nothing written");
+  EXPECT_NOT_CONTAINS(r.printed, "stopping after the current step");
   EXPECT_FALSE(fs::exists(dir / "made"));
 }
 
@@ -1736,8 +1689,7 @@ TEST(Cli, AnInterruptDuringASweepValuesSetUpKeepsTheEarlierRows) {
   const Interrupted r = interrupt(dir, args, "packing.count = 1000 ", "sleep 0.3; kill -INT $p");
   EXPECT_EQ(r.status, 1) << r.printed;
   EXPECT_LT(r.ms, 2000) << r.printed;
-  EXPECT_NE(r.printed.find("sweep interrupted during packing.count = 1000000"), std::string::npos)
-      << r.printed;
+  EXPECT_CONTAINS(r.printed, "sweep interrupted during packing.count = 1000000");
   const auto rows = read_csv(dir / "out" / "sweep.csv");
   ASSERT_EQ(rows.size(), 1u) << r.printed;
   EXPECT_EQ(rows[0].at("packing.count"), "1000");
@@ -1752,10 +1704,9 @@ TEST(Cli, ASweepInterruptedBeforeItsFirstValueEndsWritesNothing) {
       (dir / "made" / "here").string();
   const Interrupted r = interrupt(dir, args, "setting up", "sleep 0.3; kill -INT $p");
   EXPECT_EQ(r.status, 1) << r.printed;
-  EXPECT_NE(r.printed.find("sweep interrupted during packing.count = 1000000: no value ran to "
-                           "its end: nothing written"),
-            std::string::npos)
-      << r.printed;
+  EXPECT_CONTAINS(r.printed,
+                  "sweep interrupted during packing.count = 1000000: no value ran to "
+                  "its end: nothing written");
   EXPECT_FALSE(fs::exists(dir / "made")) << r.printed;
 }
 
@@ -1773,10 +1724,8 @@ TEST(Cli, ASweepInterruptedAfterOnlyAFailedValueWritesNothing) {
   const Interrupted r =
       interrupt(dir, args, "row in sweep.csv is empty", "sleep 0.5; kill -INT $p");
   EXPECT_EQ(r.status, 2) << r.printed;
-  EXPECT_NE(r.printed.find("sweep interrupted during packing.file = " + bed +
-                           ": no value ran to its end: nothing written"),
-            std::string::npos)
-      << r.printed;
+  EXPECT_CONTAINS(r.printed, "sweep interrupted during packing.file = " + bed +
+                                 ": no value ran to its end: nothing written");
   EXPECT_FALSE(fs::exists(dir / "made")) << r.printed;
 }
 
@@ -1792,17 +1741,15 @@ TEST(Cli, ASweepOrConvergeWhoseEveryRunFailedWritesNothing) {
       run("sweep --preset quick --set packing.source=file --param packing.file --values " + flawed +
           "," + also_flawed + " --quiet --out " + (dir / "sweep").string());
   EXPECT_EQ(sweep.code, 2) << sweep.output;
-  EXPECT_NE(sweep.output.find("sweep: every value failed: nothing written"), std::string::npos)
-      << sweep.output;
+  EXPECT_CONTAINS(sweep.output, "sweep: every value failed: nothing written");
   EXPECT_FALSE(fs::exists(dir / "sweep")) << sweep.output;
   const Result converge =
       run("converge --preset quick --set thermal.solver=cg --set thermal.max_iterations=1 "
           "--quiet --out " +
           (dir / "converge").string());
   EXPECT_EQ(converge.code, 1) << converge.output;
-  EXPECT_NE(converge.output.find("converge: every ladder's reference rung failed: nothing written"),
-            std::string::npos)
-      << converge.output;
+  EXPECT_CONTAINS(converge.output,
+                  "converge: every ladder's reference rung failed: nothing written");
   EXPECT_FALSE(fs::exists(dir / "converge")) << converge.output;
 }
 
@@ -1814,13 +1761,13 @@ TEST(Cli, ATimeStepOfMillionsOfStepsPerCrossingIsAnnounced) {
       run("run --preset quick --quiet --set pulses.count=0 --set thermal.dt=1e-20 --out " +
           out.string());
   ASSERT_EQ(tiny.code, 0) << tiny.output;
-  EXPECT_NE(tiny.output.find("warning: `thermal.dt` = 1e-20 s"), std::string::npos) << tiny.output;
-  EXPECT_NE(tiny.output.find("3.34e+08 steps"), std::string::npos) << tiny.output;
+  EXPECT_CONTAINS(tiny.output, "warning: `thermal.dt` = 1e-20 s");
+  EXPECT_CONTAINS(tiny.output, "3.34e+08 steps");
   const Result fine =
       run("run --preset quick --quiet --set pulses.count=0 --set thermal.dt=1e-15 --out " +
           out.string());
   ASSERT_EQ(fine.code, 0) << fine.output;
-  EXPECT_EQ(fine.output.find("warning"), std::string::npos) << fine.output;
+  EXPECT_NOT_CONTAINS(fine.output, "warning");
   // A period stepped through at a short dt: the second pulse starts after 1e-3 s / 1e-13 s steps,
   // announced before the run (which the test cuts short).
   const Result slow =
@@ -1828,9 +1775,7 @@ TEST(Cli, ATimeStepOfMillionsOfStepsPerCrossingIsAnnounced) {
           "--set thermal.dt=1e-13 --out " +
               out.string(),
           "timeout --preserve-status -s INT 1");
-  EXPECT_NE(slow.output.find("in steps of `thermal.dt` = 1e-13 s: 1e+10 steps at least"),
-            std::string::npos)
-      << slow.output;
+  EXPECT_CONTAINS(slow.output, "in steps of `thermal.dt` = 1e-13 s: 1e+10 steps at least");
 }
 
 // A set-up of seconds is announced before it starts (the progress line comes only with the steps).
@@ -1841,27 +1786,22 @@ TEST(Cli, ALongSetUpIsAnnounced) {
           out.string());
   ASSERT_EQ(big.code, 0) << big.output;
   // Without pulses or conduction only the packing is set up: no contacts, no ray scene.
-  EXPECT_NE(big.output.find("setting up 200000 particles and 1000 rays a pulse (packing)\n"),
-            std::string::npos)
-      << big.output;
-  EXPECT_NE(big.output.find("skipped: `pulses.count` = 0: no pulse, no ray scene or bounce grid "
-                            "built\n"),
-            std::string::npos)
-      << big.output;
+  EXPECT_CONTAINS(big.output, "setting up 200000 particles and 1000 rays a pulse (packing)\n");
+  EXPECT_CONTAINS(big.output,
+                  "skipped: `pulses.count` = 0: no pulse, no ray scene or bounce grid "
+                  "built\n");
   const Result conducting =
       run("run --preset zohdi2013 --set packing.count=200000 --set pulses.count=1 "
           "--set material.conductivity=10 --set thermal.dt=1e-3 --out " +
           out.string());
   ASSERT_EQ(conducting.code, 0) << conducting.output;
-  EXPECT_NE(conducting.output.find("rays a pulse (packing, contacts, ray scene)\n"),
-            std::string::npos)
-      << conducting.output;
+  EXPECT_CONTAINS(conducting.output, "rays a pulse (packing, contacts, ray scene)\n");
   const Result quiet =
       run("run --preset zohdi2013 --set packing.count=200000 --set pulses.count=0 --quiet --out " +
           out.string());
-  EXPECT_EQ(quiet.output.find("setting up"), std::string::npos) << quiet.output;
+  EXPECT_NOT_CONTAINS(quiet.output, "setting up");
   const Result small = run("run --preset quick --set pulses.count=0 --out " + out.string());
-  EXPECT_EQ(small.output.find("setting up"), std::string::npos) << small.output;
+  EXPECT_NOT_CONTAINS(small.output, "setting up");
 }
 
 // sweep and converge announce a long set-up too, after the name of their run; a file's particles
@@ -1874,28 +1814,22 @@ TEST(Cli, EveryLongSetUpIsAnnouncedWithItsRunAndItsParticles) {
                 "--set pulses.count=0 --out " +
                     (dir / "sweep").string(),
                 "setting up", "kill -INT $p");
-  EXPECT_NE(
-      sweep.printed.find("beampack: sweep packing.count = 200000: setting up 200000 particles and "
-                         "1000 rays a pulse"),
-      std::string::npos)
-      << sweep.printed;
+  EXPECT_CONTAINS(sweep.printed,
+                  "beampack: sweep packing.count = 200000: setting up 200000 particles and "
+                  "1000 rays a pulse");
   const Interrupted converge = interrupt(
       dir,
       "converge --preset zohdi2013 --set packing.count=200000 --out " + (dir / "converge").string(),
       "setting up", "kill -INT $p");
-  EXPECT_NE(converge.printed.find("beampack: time step "), std::string::npos) << converge.printed;
-  EXPECT_NE(converge.printed.find(": setting up 200000 particles and 1000 rays a pulse"),
-            std::string::npos)
-      << converge.printed;
+  EXPECT_CONTAINS(converge.printed, "beampack: time step ");
+  EXPECT_CONTAINS(converge.printed, ": setting up 200000 particles and 1000 rays a pulse");
   const std::string file =
       write(dir / "three.xyz", "1e-4 5e-4 5e-4 1e-5\n2e-4 5e-4 5e-4 1e-5\n3e-4 5e-4 5e-4 1e-5\n");
   const Result read =
       run("run --preset quick --set packing.source=file --set packing.file=" + file +
           " --set beam.rays=1000000 --set pulses.count=0 --out " + (dir / "file").string());
   ASSERT_EQ(read.code, 0) << read.output;
-  EXPECT_NE(read.output.find("beampack: setting up 3 particles and 1000000 rays a pulse"),
-            std::string::npos)
-      << read.output;
+  EXPECT_CONTAINS(read.output, "beampack: setting up 3 particles and 1000000 rays a pulse");
 }
 
 TEST(Cli, ABeamThatMeetsNoParticleIsAnnounced) {
@@ -1907,13 +1841,13 @@ TEST(Cli, ABeamThatMeetsNoParticleIsAnnounced) {
   const Result missed =
       run(base + "--set packing.file=" + outside + " --out " + (out / "a").string());
   ASSERT_EQ(missed.code, 0) << missed.output;
-  EXPECT_NE(missed.output.find("warning: the beam"), std::string::npos) << missed.output;
-  EXPECT_NE(missed.output.find("meets no particle"), std::string::npos) << missed.output;
-  EXPECT_NE(missed.output.find("y [0.5, 0.5]"), std::string::npos) << missed.output;
+  EXPECT_CONTAINS(missed.output, "warning: the beam");
+  EXPECT_CONTAINS(missed.output, "meets no particle");
+  EXPECT_CONTAINS(missed.output, "y [0.5, 0.5]");
   const std::string on_axis = write(out / "on_axis.xyz", "5e-4 5e-4 5e-4 1e-5\n");
   const Result hit = run(base + "--set packing.file=" + on_axis + " --out " + (out / "b").string());
   ASSERT_EQ(hit.code, 0) << hit.output;
-  EXPECT_EQ(hit.output.find("warning"), std::string::npos) << hit.output;
+  EXPECT_NOT_CONTAINS(hit.output, "warning");
 }
 
 TEST(Cli, AnEmptyBedHasNoPeakTemperatureRatherThanZeroKelvin) {
@@ -1921,9 +1855,8 @@ TEST(Cli, AnEmptyBedHasNoPeakTemperatureRatherThanZeroKelvin) {
   const Result r =
       run("run --preset quick --set packing.count=0 --set pulses.count=2 --out " + out.string());
   ASSERT_EQ(r.code, 0) << r.output;
-  EXPECT_NE(r.output.find("peak temperature             - (no particles)"), std::string::npos)
-      << r.output;
-  EXPECT_EQ(r.output.find(" 0 K"), std::string::npos) << r.output;
+  EXPECT_CONTAINS(r.output, "peak temperature             - (no particles)");
+  EXPECT_NOT_CONTAINS(r.output, " 0 K");
   const nlohmann::json summary = read_json(out / "summary.json");
   EXPECT_TRUE(summary["max_temperature_K"].is_null()) << summary.dump();
   EXPECT_EQ(double(summary["energy_J"]["escaped"]), double(summary["energy_J"]["injected"]));
@@ -1934,13 +1867,13 @@ TEST(Cli, AnEmptyBedHasNoPeakTemperatureRatherThanZeroKelvin) {
   // No particle: a pulse's flight is 0, so the automatic period and one step per flight leave
   // time at 0; the run says so. With a period, time advances by it and nothing is said.
   EXPECT_EQ(history.back().at("time_s"), "0");
-  EXPECT_NE(r.output.find("no step has a length and time stays 0"), std::string::npos) << r.output;
+  EXPECT_CONTAINS(r.output, "no step has a length and time stays 0");
   const Result timed =
       run("run --preset quick --set packing.count=0 --set pulses.count=3 "
           "--set pulses.period=1e-12 --out " +
           (out / "timed").string());
   ASSERT_EQ(timed.code, 0) << timed.output;
-  EXPECT_EQ(timed.output.find("time stays 0"), std::string::npos) << timed.output;
+  EXPECT_NOT_CONTAINS(timed.output, "time stays 0");
   const auto timed_history = read_csv(out / "timed" / "history.csv");
   ASSERT_EQ(timed_history.size(), 3u);
   EXPECT_NEAR(std::stod(timed_history.back().at("time_s")), 2e-12, 1e-24);
@@ -1957,8 +1890,7 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
       run("sweep --preset quick --quiet --set packing.source=file --param packing.file --values " +
           bed + "," + flawed + "," + bed + " --out " + out.string());
   EXPECT_EQ(r.code, 2) << r.output;
-  EXPECT_NE(r.output.find("flawed.xyz:1: radius r = -1: must be > 0"), std::string::npos)
-      << r.output;
+  EXPECT_CONTAINS(r.output, "flawed.xyz:1: radius r = -1: must be > 0");
   const auto rows = read_csv(out / "sweep.csv");
   ASSERT_EQ(rows.size(), 3u);
   EXPECT_EQ(rows[1].at("vaporized_fraction"), "");
@@ -1969,7 +1901,7 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
     const Result empty = run("sweep --preset quick --param material.conductivity --values '" +
                              std::string(values) + "' --out " + out.string());
     EXPECT_EQ(empty.code, 2) << values << ": " << empty.output;
-    EXPECT_NE(empty.output.find("is empty"), std::string::npos) << empty.output;
+    EXPECT_CONTAINS(empty.output, "is empty");
   }
   // A comma inside a TOML string is the value's own: a multi-face thermal.walls is one value.
   const Result walls =
@@ -1979,48 +1911,40 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
   ASSERT_EQ(walls.code, 0) << walls.output;
   const auto wall_rows = read_csv(out / "walls" / "sweep.csv");
   ASSERT_EQ(wall_rows.size(), 2u) << walls.output;
-  EXPECT_NE(walls.output.find("thermal.walls = \"z-,x+\""), std::string::npos) << walls.output;
+  EXPECT_CONTAINS(walls.output, "thermal.walls = \"z-,x+\"");
   for (const char* set : {"material.conductivity=3", " material.conductivity =3"}) {
     const Result swept = run("sweep --preset quick --set '" + std::string(set) +
                              "' --param material.conductivity --values 1 --out " + out.string());
     EXPECT_EQ(swept.code, 2) << set << ": " << swept.output;
-    EXPECT_NE(swept.output.find("is the swept --param"), std::string::npos) << swept.output;
+    EXPECT_CONTAINS(swept.output, "is the swept --param");
   }
   const Result assigned =
       run("sweep --preset quick --param material.conductivity=5 --values 1 --out " + out.string());
   EXPECT_EQ(assigned.code, 2) << assigned.output;
-  EXPECT_NE(assigned.output.find("--param material.conductivity=5: give the key alone"),
-            std::string::npos)
-      << assigned.output;
+  EXPECT_CONTAINS(assigned.output, "--param material.conductivity=5: give the key alone");
   const Result frames =
       run("sweep --preset quick --set output.frames=true --param material.conductivity "
           "--values 1 --out " +
           out.string());
   EXPECT_EQ(frames.code, 2) << frames.output;
-  EXPECT_NE(frames.output.find("written by `beampack run` only"), std::string::npos)
-      << frames.output;
+  EXPECT_CONTAINS(frames.output, "written by `beampack run` only");
   // A bad swept value is named as the --param/--values the user typed, not as a --set.
   const Result typo =
       run("sweep --preset quick --param material.conductivty --values 1 --out " + out.string());
   EXPECT_EQ(typo.code, 2) << typo.output;
-  EXPECT_NE(typo.output.find("--param material.conductivty --values 1: unknown key"),
-            std::string::npos)
-      << typo.output;
+  EXPECT_CONTAINS(typo.output, "--param material.conductivty --values 1: unknown key");
   for (const char* command : {"sweep --param material.conductivity --values 0", "converge"}) {
     const Result threads =
         run(std::string(command) + " --preset quick --threads -3 --out " + out.string());
     EXPECT_EQ(threads.code, 2) << command << ": " << threads.output;
-    EXPECT_NE(threads.output.find("beampack: error: --threads: Value -3 not in range 0 to 4096"),
-              std::string::npos)
-        << threads.output;
+    EXPECT_CONTAINS(threads.output, "beampack: error: --threads: Value -3 not in range 0 to 4096");
   }
   // The command line parser's refusals read as beampack's own (they had CLI11's words alone).
   const Result missing = run("run " + (out / "no_such.toml").string());
   EXPECT_EQ(missing.code, 2) << missing.output;
-  EXPECT_NE(missing.output.find("beampack: error: run_file: File does not exist: " +
-                                (out / "no_such.toml").string() + " (--help lists the options)"),
-            std::string::npos)
-      << missing.output;
+  EXPECT_CONTAINS(missing.output, "beampack: error: run_file: File does not exist: " +
+                                      (out / "no_such.toml").string() +
+                                      " (--help lists the options)");
 }
 
 // converge checks its output directory and every rung's input before the first run, and an
@@ -2041,11 +1965,9 @@ TEST(Cli, ConvergeRefusesBadOutputFirstAndKeepsNoInterruptedRung) {
       run("converge --preset zohdi2013 --set pulses.count=20000 --quiet --out " + out.string(),
           "timeout --preserve-status -s INT 0.5");
   EXPECT_EQ(code, 1) << text;
-  EXPECT_NE(text.find("converge interrupted during time step"), std::string::npos) << text;
+  EXPECT_CONTAINS(text, "converge interrupted during time step");
   // It was cut, so there is no row: no table is written (a header alone would read as a result).
-  EXPECT_NE(text.find("converge interrupted before any rung ended: nothing written"),
-            std::string::npos)
-      << text;
+  EXPECT_CONTAINS(text, "converge interrupted before any rung ended: nothing written");
   EXPECT_FALSE(fs::exists(out / "convergence.csv")) << text;
   EXPECT_FALSE(fs::exists(out / "convergence.svg")) << text;
 }
@@ -2065,11 +1987,9 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
       run("run --preset quick --quiet --set pulses.count=2 --out " + out.string());
   ASSERT_EQ(second.code, 0) << second.output;
   // It says what it removed: the files there, by name, not the kinds a run might leave.
-  EXPECT_NE(second.output.find("removed 10 files of an earlier run from " + out.string() +
-                               ": checkpoint.bin, history.csv, particles.csv, particles.pvd "
-                               "and 6 more"),
-            std::string::npos)
-      << second.output;
+  EXPECT_CONTAINS(second.output, "removed 10 files of an earlier run from " + out.string() +
+                                     ": checkpoint.bin, history.csv, particles.csv, particles.pvd "
+                                     "and 6 more");
   EXPECT_FALSE(fs::exists(out / "checkpoint.bin"));
   EXPECT_FALSE(fs::exists(out / "particles_0000.vtp"));
   EXPECT_FALSE(fs::exists(out / "particles.pvd"));
@@ -2083,8 +2003,7 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
       run("run --preset quick --quiet --set packing.source=file --set packing.file=" + flawed +
           " --out " + out.string());
   ASSERT_EQ(refused.code, 2) << refused.output;
-  EXPECT_NE(refused.output.find("flawed.xyz:2: radius r = -1: must be > 0"), std::string::npos)
-      << refused.output;
+  EXPECT_CONTAINS(refused.output, "flawed.xyz:2: radius r = -1: must be > 0");
   EXPECT_EQ(int(read_json(out / "summary.json")["pulses"]), 2) << refused.output;
   EXPECT_TRUE(fs::exists(out / "particles.csv"));
   // A run that fails leaves no results, rather than the earlier run's as if they were its own.
@@ -2133,35 +2052,32 @@ TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
       200, "run --preset quick --quiet " + frames + " --out " + (dir / "mid").string());
   EXPECT_EQ(mid.code, 1) << mid.output;
   const std::string checkpoint = (dir / "mid" / "checkpoint.bin").string();
-  EXPECT_NE(mid.output.find("run failed: output file \"" + checkpoint + "\": write failed"),
-            std::string::npos)
-      << mid.output;
+  EXPECT_CONTAINS(mid.output, "run failed: output file \"" + checkpoint + "\": write failed");
   const std::vector<std::string> before = {"history.csv", "particles.pvd", "particles_0000.vtp",
                                            "particles_0001.vtp", "summary.json"};
   EXPECT_EQ(names_in(dir / "mid"), before);
   const nlohmann::json kept = read_json(dir / "mid" / "summary.json");
   EXPECT_EQ(kept["pulses"], 2);
-  EXPECT_NE(kept["failed"]["message"].get<std::string>().find(checkpoint), std::string::npos);
-  EXPECT_NE(file_text(dir / "mid" / "particles_0001.vtp").find("</VTKFile>"), std::string::npos);
+  EXPECT_CONTAINS(kept["failed"]["message"].get<std::string>(), checkpoint);
+  EXPECT_CONTAINS(file_text(dir / "mid" / "particles_0001.vtp"), "</VTKFile>");
   const Result end =
       run_with_file_size_limit(16, "run --preset quick --quiet --out " + (dir / "end").string());
   EXPECT_EQ(end.code, 1) << end.output;
   const std::string particles = (dir / "end" / "particles.csv").string();
-  EXPECT_NE(end.output.find("output file \"" + particles + "\": write failed"), std::string::npos)
-      << end.output;
-  EXPECT_NE(end.output.find("after 5 pulses had ended"), std::string::npos) << end.output;
+  EXPECT_CONTAINS(end.output, "output file \"" + particles + "\": write failed");
+  EXPECT_CONTAINS(end.output, "after 5 pulses had ended");
   ASSERT_TRUE(fs::exists(dir / "end")) << end.output;
   EXPECT_EQ(names_in(dir / "end"), (std::vector<std::string>{"history.csv", "summary.json"}));
   const nlohmann::json kept_at_end = read_json(dir / "end" / "summary.json");
   EXPECT_EQ(kept_at_end["pulses"], 5);
-  EXPECT_NE(kept_at_end["failed"]["message"].get<std::string>().find(particles), std::string::npos);
+  EXPECT_CONTAINS(kept_at_end["failed"]["message"].get<std::string>(), particles);
   EXPECT_EQ(read_csv(dir / "end" / "history.csv").size(), 5u);
   // Without the shell ignoring SIGXFSZ first, the limit's signal killed the process (status 153)
   // amid its temporaries; beampack ignores it, so the write fails as on a full disk.
   const Result plain = run("run --preset quick --quiet --out " + (dir / "plain").string(),
                            "sh -c \"ulimit -f 16; exec \\\"\\$0\\\" \\\"\\$@\\\"\"");
   EXPECT_EQ(plain.code, 1) << plain.output;
-  EXPECT_NE(plain.output.find("write failed"), std::string::npos) << plain.output;
+  EXPECT_CONTAINS(plain.output, "write failed");
   EXPECT_EQ(names_in(dir / "plain"), (std::vector<std::string>{"history.csv", "summary.json"}));
 }
 
@@ -2174,7 +2090,7 @@ TEST(Cli, AResumedRunWhoseEndFailsLeavesNoParticlesOfAnEarlierTime) {
   write(part / "particles.csv", "as an interrupt at pulse 8 left it\n");
   const Result r = run_with_file_size_limit(16, "run --resume " + part.string() + " --quiet");
   EXPECT_EQ(r.code, 1) << r.output;
-  EXPECT_NE(r.output.find("particles.csv\": write failed"), std::string::npos) << r.output;
+  EXPECT_CONTAINS(r.output, "particles.csv\": write failed");
   EXPECT_EQ(read_json(part / "summary.json")["pulses"], 10) << r.output;
   EXPECT_FALSE(fs::exists(part / "particles.csv")) << r.output;
   EXPECT_TRUE(fs::exists(part / "checkpoint.bin")) << r.output;
@@ -2193,10 +2109,8 @@ TEST(Cli, PathsThatAreNotUtf8AreRefusedOrKeptReadable) {
       write(odd / "run.toml", "[packing]\nsource = \"file\"\nfile = \"bed.xyz\"\n");
   const Result refused = run("run '" + file + "' --quiet --out " + (dir / "out").string());
   EXPECT_EQ(refused.code, 2) << refused.output;
-  EXPECT_NE(refused.output.find("`packing.file` = \"" + dir.string() +
-                                "/d\\xFF/bed.xyz\": the path is not valid UTF-8"),
-            std::string::npos)
-      << refused.output;
+  EXPECT_CONTAINS(refused.output, "`packing.file` = \"" + dir.string() +
+                                      "/d\\xFF/bed.xyz\": the path is not valid UTF-8");
   EXPECT_FALSE(fs::exists(dir / "out"));
   const fs::path out = dir / "mid\xFF";
   const Result failed = run_with_file_size_limit(
@@ -2206,7 +2120,7 @@ TEST(Cli, PathsThatAreNotUtf8AreRefusedOrKeptReadable) {
           out.string() + "'");
   EXPECT_EQ(failed.code, 1) << failed.output;
   const std::string summary = file_text(out / "summary.json");
-  EXPECT_NE(summary.find("mid\xEF\xBF\xBD"), std::string::npos) << summary;
+  EXPECT_CONTAINS(summary, "mid\xEF\xBF\xBD");
   EXPECT_EQ(read_json(out / "summary.json")["pulses"], 2);
 }
 
@@ -2217,15 +2131,14 @@ TEST(Cli, AConvergeOfNothingAbsorbedSaysItsErrorsMeasureNothing) {
   const Result r =
       run("converge --preset quick --set pulses.count=0 --quiet --out " + (dir / "out").string());
   EXPECT_EQ(r.code, 0) << r.output;
-  EXPECT_NE(r.output.find("warning: converge: the time step ladder's reference run absorbed no "
-                          "energy, so every error of it is 0 and measures nothing"),
-            std::string::npos)
-      << r.output;
+  EXPECT_CONTAINS(r.output,
+                  "warning: converge: the time step ladder's reference run absorbed no "
+                  "energy, so every error of it is 0 and measures nothing");
   const Result real =
       run("converge --preset quick --set pulses.count=1 --set beam.rays=100 "
           "--quiet --out " +
           (dir / "real").string());
-  EXPECT_EQ(real.output.find("absorbed no energy"), std::string::npos) << real.output;
+  EXPECT_NOT_CONTAINS(real.output, "absorbed no energy");
 }
 
 // `beampack --version` names the version, the sources' git revision, the build type, the
@@ -2271,7 +2184,7 @@ TEST(Cli, VersionNamesTheBuildAndEverySummaryRecordsIt) {
   EXPECT_EQ(built["flags"], v->flags);
   // The flags that can change the numbers: an optimised build names its optimisation.
   if (v->build_type == "Release" || v->build_type == "RelWithDebInfo") {
-    EXPECT_NE(built["flags"].get<std::string>().find("-O"), std::string::npos) << built.dump();
+    EXPECT_CONTAINS(built["flags"].get<std::string>(), "-O") << built.dump();
   }
 }
 
@@ -2282,8 +2195,8 @@ TEST(Cli, AConvergeOverAnEmptyBedHasNoPeakTemperature) {
   const fs::path out = fresh_dir("converge_empty_bed");
   const Result r = run("converge --preset quick --set packing.count=0 --out " + out.string());
   ASSERT_EQ(r.code, 0) << r.output;
-  EXPECT_NE(r.output.find("T L2 error -  peak error -\n"), std::string::npos) << r.output;
-  EXPECT_EQ(r.output.find(" error 0 K"), std::string::npos) << r.output;
+  EXPECT_CONTAINS(r.output, "T L2 error -  peak error -\n");
+  EXPECT_NOT_CONTAINS(r.output, " error 0 K");
   const auto rows = read_csv(out / "convergence.csv");
   ASSERT_FALSE(rows.empty());
   for (const auto& row : rows) {
@@ -2308,13 +2221,13 @@ TEST(Cli, SweptNamesAreQuotedInTheTableAndEscapedInTheChart) {
           amp + "," + quote + "' --quiet --out " + (dir / "out").string());
   ASSERT_EQ(r.code, 0) << r.output;
   const std::string csv = file_text(dir / "out" / "sweep.csv");
-  EXPECT_NE(csv.find("\n\"" + (dir / "e\"\"f<.xyz").string() + "\","), std::string::npos) << csv;
-  EXPECT_NE(csv.find("\n" + amp + ","), std::string::npos) << csv;
+  EXPECT_CONTAINS(csv, "\n\"" + (dir / "e\"\"f<.xyz").string() + "\",");
+  EXPECT_CONTAINS(csv, "\n" + amp + ",");
   const std::string svg = file_text(dir / "out" / "sweep.svg");
-  EXPECT_NE(svg.find("a&amp;b.xyz"), std::string::npos) << svg;
-  EXPECT_NE(svg.find("f&lt;.xyz"), std::string::npos) << svg;
-  EXPECT_EQ(svg.find("a&b"), std::string::npos) << svg;
-  EXPECT_EQ(svg.find("f<"), std::string::npos) << svg;
+  EXPECT_CONTAINS(svg, "a&amp;b.xyz");
+  EXPECT_CONTAINS(svg, "f&lt;.xyz");
+  EXPECT_NOT_CONTAINS(svg, "a&b");
+  EXPECT_NOT_CONTAINS(svg, "f<");
 }
 
 // Files of beampack's names in a folder that holds no beampack run (no summary.json of one, no
@@ -2326,7 +2239,7 @@ TEST(Cli, ARunLeavesTheUsersFilesAndRefusesToWriteOverItsInputs) {
   const Result r = run("run --preset quick --quiet --out " + out.string());
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_TRUE(fs::exists(frame)) << r.output;
-  EXPECT_EQ(r.output.find("removed"), std::string::npos) << r.output;
+  EXPECT_NOT_CONTAINS(r.output, "removed");
   // A killed run leaves only frames and their particles.pvd: those mark a run of beampack's too.
   const fs::path killed = fresh_dir("killed_run");
   write(killed / "particles.pvd",
@@ -2359,7 +2272,7 @@ TEST(Cli, ARunLeavesTheUsersFilesAndRefusesToWriteOverItsInputs) {
       run("run --preset quick --quiet --set packing.source=file --set packing.file=" + packing +
           " --out " + bed.string());
   EXPECT_EQ(over.code, 2) << over.output;
-  EXPECT_NE(over.output.find("a file the run writes"), std::string::npos) << over.output;
+  EXPECT_CONTAINS(over.output, "a file the run writes");
   // The same through a symbolic link from elsewhere.
   const fs::path link = fresh_dir("input_link") / "bed.csv";
   fs::create_symlink(packing, link);
@@ -2367,7 +2280,7 @@ TEST(Cli, ARunLeavesTheUsersFilesAndRefusesToWriteOverItsInputs) {
       "run --preset quick --quiet --set packing.source=file --set packing.file=" + link.string() +
       " --out " + bed.string());
   EXPECT_EQ(linked.code, 2) << linked.output;
-  EXPECT_NE(linked.output.find("a file the run writes"), std::string::npos) << linked.output;
+  EXPECT_CONTAINS(linked.output, "a file the run writes");
   std::ifstream kept(packing);
   EXPECT_EQ(std::string(std::istreambuf_iterator<char>(kept), {}),
             "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n");
@@ -2388,7 +2301,7 @@ TEST(Cli, LegalButOddScenesRunAndAreAnnounced) {
       run("run --preset quick --quiet --set thermal.walls=z- --set material.conductivity=0 --out " +
           out.string());
   ASSERT_EQ(walls.code, 0) << walls.output;
-  EXPECT_NE(walls.output.find("the walls take no heat"), std::string::npos) << walls.output;
+  EXPECT_CONTAINS(walls.output, "the walls take no heat");
   const Result single =
       run("run --preset quick --quiet --set pulses.count=1 --set thermal.phi=0.5 "
           "--set pulses.period=1e-6 --out " +
@@ -2404,16 +2317,14 @@ TEST(Cli, ABeamBeyondTheMachinesMemoryIsRefusedAtOnce) {
   const Result r = run("run --preset quick --quiet --set beam.rays=100000000 --out " +
                        fresh_dir("huge_beam").string());
   EXPECT_EQ(r.code, 2) << r.output;
-  EXPECT_NE(
-      r.output.find("--set beam.rays=100000000: `beam.rays` = 100000000: the run needs at least"),
-      std::string::npos)
-      << r.output;
-  EXPECT_NE(r.output.find("GB of this machine; lower `beam.rays`"), std::string::npos) << r.output;
+  EXPECT_CONTAINS(r.output,
+                  "--set beam.rays=100000000: `beam.rays` = 100000000: the run needs at least");
+  EXPECT_CONTAINS(r.output, "GB of this machine; lower `beam.rays`");
   EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(), 5.0);
   // A run file for a larger machine can still be written.
   const Result config = run("config --preset quick --set beam.rays=100000000");
   EXPECT_EQ(config.code, 0) << config.output;
-  EXPECT_NE(config.output.find("rays = 100000000"), std::string::npos) << config.output;
+  EXPECT_CONTAINS(config.output, "rays = 100000000");
 }
 
 // The stability grid (minutes) stops at Ctrl-C after the cell it is in, and says how far it got.
@@ -2421,7 +2332,7 @@ TEST(Cli, StabilityGridStopsAtCtrlC) {
   const auto start = std::chrono::steady_clock::now();
   const auto [code, text] = run("validate --stiff --quiet", "timeout --preserve-status -s INT 1");
   EXPECT_EQ(code, 1) << text;
-  EXPECT_NE(text.find("stability: interrupted after"), std::string::npos) << text;
+  EXPECT_CONTAINS(text, "stability: interrupted after");
   EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(), 30.0);
 }
 
@@ -2435,7 +2346,7 @@ TEST(Cli, PulsesStartAtTheirPeriodAndLateStartsAreAnnounced) {
       run("run --preset quick --quiet --set pulses.period=1e-11 --set thermal.dt=3e-12 --out " +
           out.string());
   ASSERT_EQ(late.code, 0) << late.output;
-  EXPECT_NE(late.output.find("warning: 3 of 5 pulses started"), std::string::npos) << late.output;
+  EXPECT_CONTAINS(late.output, "warning: 3 of 5 pulses started");
   const auto history = read_csv(out / "history.csv");
   ASSERT_EQ(history.size(), 5u);
   const double starts[] = {12e-12, 21e-12, 30e-12, 42e-12};
@@ -2448,6 +2359,6 @@ TEST(Cli, PulsesStartAtTheirPeriodAndLateStartsAreAnnounced) {
       run("run --preset quick --quiet --set pulses.period=1e-11 --set thermal.dt=1e-12 --out " +
           out.string());
   ASSERT_EQ(exact.code, 0) << exact.output;
-  EXPECT_EQ(exact.output.find("warning"), std::string::npos) << exact.output;
+  EXPECT_NOT_CONTAINS(exact.output, "warning");
   EXPECT_EQ(int(read_json(out / "summary.json")["counts"]["late_pulses"]), 0);
 }

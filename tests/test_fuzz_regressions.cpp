@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "fuzz/fuzz_checks.h"
+#include "tests/expect_error.h"
 
 namespace beampack::fuzz {
 namespace {
@@ -53,12 +54,11 @@ TEST(FuzzRegressions, SeedOutcomes) {
   const fs::path corpus = fs::path(BEAMPACK_FUZZ_DIR) / "corpus";
   EXPECT_TRUE(check_run_file(bytes_of(corpus / "run_config" / "zohdi2013.toml")).accepted);
   const Outcome typo = check_run_file(bytes_of(corpus / "run_config" / "misspelled_key.toml"));
-  EXPECT_NE(typo.input_error.find("did you mean `material.conductivity`"), std::string::npos)
-      << typo.input_error;
+  EXPECT_CONTAINS(typo.input_error, "did you mean `material.conductivity`");
   EXPECT_TRUE(check_packing_file(bytes_of(corpus / "packing_file" / "csv_crlf.txt")).accepted);
-  EXPECT_NE(check_packing_file(bytes_of(corpus / "packing_file" / "nan_radius.txt"))
-                .input_error.find("not finite"),
-            std::string::npos);
+  EXPECT_CONTAINS(
+      check_packing_file(bytes_of(corpus / "packing_file" / "nan_radius.txt")).input_error,
+      "not finite");
 }
 
 // What fuzz/ found, as the user sees it now: a clean error naming the line, never a crash.
@@ -67,24 +67,20 @@ TEST(FuzzRegressions, FindingsAreInputErrorsNamingTheLine) {
   // A quoted key with a dot was looked up as a path (null dereference); "" as a key indexed an
   // empty vector.
   const Outcome dotted = check_run_file(bytes_of(found / "quoted_key_with_dot.toml"));
-  EXPECT_NE(dotted.input_error.find(":1: key \"a.b\""), std::string::npos) << dotted.input_error;
+  EXPECT_CONTAINS(dotted.input_error, ":1: key \"a.b\"");
   const Outcome empty = check_run_file(bytes_of(found / "empty_quoted_key.toml"));
-  EXPECT_NE(empty.input_error.find(":1: key \"\""), std::string::npos) << empty.input_error;
+  EXPECT_CONTAINS(empty.input_error, ":1: key \"\"");
   // A non-ASCII character between tokens sent toml++ 3.3.0 into __builtin_unreachable.
   const Outcome between = check_run_file(bytes_of(found / "toml_non_ascii_between_tokens.toml"));
-  EXPECT_NE(between.input_error.find(":2: unexpected character \\xC3\\xBD outside a string"),
-            std::string::npos)
-      << between.input_error;
+  EXPECT_CONTAINS(between.input_error, ":2: unexpected character \\xC3\\xBD outside a string");
   // A non-ASCII character right after a bare value (`0"""è"`: no string to toml++) reached the
   // same __builtin_unreachable, from a file and from --set (the fuzzer's input).
   const Outcome after_value = check_run_file(bytes_of(found / "non_ascii_after_bare_value.toml"));
-  EXPECT_NE(after_value.input_error.find("run.toml:1:"), std::string::npos)
-      << after_value.input_error;
+  EXPECT_CONTAINS(after_value.input_error, "run.toml:1:");
   EXPECT_FALSE(check_run_file(bytes_of(found / "non_ascii_after_bare_value_in_set.toml")).accepted);
   // Invalid UTF-8 is refused before parsing, naming the line.
   const Outcome bad_utf8 = check_run_file(bytes_of(found / "invalid_utf8_in_string.toml"));
-  EXPECT_NE(bad_utf8.input_error.find(":3: byte \\x87 is not valid UTF-8"), std::string::npos)
-      << bad_utf8.input_error;
+  EXPECT_CONTAINS(bad_utf8.input_error, ":3: byte \\x87 is not valid UTF-8");
   // Inside strings and comments they are valid TOML and stay accepted.
   const fs::path corpus = fs::path(BEAMPACK_FUZZ_DIR) / "corpus" / "run_config";
   EXPECT_TRUE(check_run_file(bytes_of(corpus / "non_ascii_in_strings.toml")).accepted);

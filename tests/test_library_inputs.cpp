@@ -137,8 +137,8 @@ TEST(LibraryInputs, OnlyTheSpecsOwnPackingIsNamedAsTheCauseOfARadius) {
     Simulation sim(s, mine);
     ADD_FAILURE() << "a thermal mass of 1e-300 kg/m^3 was accepted";
   } catch (const InputError& e) {
-    EXPECT_EQ(std::string(e.what()).find("packing.radius_ratio"), std::string::npos) << e.what();
-    EXPECT_NE(std::string(e.what()).find("has a thermal mass"), std::string::npos) << e.what();
+    EXPECT_NOT_CONTAINS(std::string(e.what()), "packing.radius_ratio") << e.what();
+    EXPECT_CONTAINS(std::string(e.what()), "has a thermal mass") << e.what();
   }
 }
 
@@ -152,7 +152,7 @@ TEST(LibraryInputs, AMisplacedSceneIsSaidToTheCaller) {
   for (Vec3& c : far.centre) c += Vec3(0, 5e-3, 0);  // beside the cube [0, 1 mm]^3
   const std::vector<std::string> beside = Simulation(spec, far).scene_warnings();
   ASSERT_EQ(beside.size(), 1u);
-  EXPECT_NE(beside[0].find("meets no particle"), std::string::npos) << beside[0];
+  EXPECT_CONTAINS(beside[0], "meets no particle");
   Wall wall;
   wall.axis = 2;
   wall.position = kD;  // z+: the spheres reach 0.6 mm of the 1 mm cube
@@ -160,8 +160,7 @@ TEST(LibraryInputs, AMisplacedSceneIsSaidToTheCaller) {
   spec.thermal.walls = {wall};
   const std::vector<std::string> lonely = Simulation(spec, three_spheres()).scene_warnings();
   ASSERT_EQ(lonely.size(), 1u);
-  EXPECT_NE(lonely[0].find("the wall z+ (`thermal.walls`) touches no particle"), std::string::npos)
-      << lonely[0];
+  EXPECT_CONTAINS(lonely[0], "the wall z+ (`thermal.walls`) touches no particle");
 }
 
 }  // namespace beampack

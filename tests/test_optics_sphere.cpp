@@ -656,8 +656,8 @@ TEST(OpticsSphere, APackingTooWideForItsSmallestSphereIsRefused) {
     } catch (const InputError& e) {
       EXPECT_GT(far, 1e12 * r) << e.what();
       const std::string m = e.what();
-      EXPECT_NE(m.find("times its smallest radius (0.01 m)"), std::string::npos) << m;
-      EXPECT_NE(m.find("Particles 0 at (0.5, 0.5, 0.5) and 2 at"), std::string::npos) << m;
+      EXPECT_CONTAINS(m, "times its smallest radius (0.01 m)");
+      EXPECT_CONTAINS(m, "Particles 0 at (0.5, 0.5, 0.5) and 2 at");
     }
   }
   // The cause may be a radius, not a place: the smallest sphere is named too (the message named

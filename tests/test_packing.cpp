@@ -116,13 +116,11 @@ TEST(Packing, LatticeIsSimpleCubic) {
 
 TEST(Packing, BadParametersNameTheKey) {
   const auto message = beampack::testing::error_message<InputError>;
-  EXPECT_NE(message([] { random_overlap_packing(10, -1, 0.3, 1); }).find("sample.size"),
-            std::string::npos);
-  EXPECT_NE(message([] { random_overlap_packing(10, 1, NAN, 1); }).find("packing.radius_ratio"),
-            std::string::npos);
+  EXPECT_CONTAINS(message([] { random_overlap_packing(10, -1, 0.3, 1); }), "sample.size");
+  EXPECT_CONTAINS(message([] { random_overlap_packing(10, 1, NAN, 1); }), "packing.radius_ratio");
   PackingSpec spec;
   spec.source = "hexagonal";
-  EXPECT_NE(message([&] { make_packing(spec); }).find("packing.source"), std::string::npos);
+  EXPECT_CONTAINS(message([&] { make_packing(spec); }), "packing.source");
 }
 
 TEST(PackingFile, RoundTripIsExact) {
@@ -167,88 +165,63 @@ TEST(PackingFile, ColumnsSeparatedByCommasOrSpacesAreRead) {
 }
 
 TEST(PackingFile, EachErrorNamesItsLine) {
-  EXPECT_NE(read_error("cols", "1 2 3 1\n1 2 3\n").find(":2: expected 4 columns"),
-            std::string::npos);
+  EXPECT_CONTAINS(read_error("cols", "1 2 3 1\n1 2 3\n"), ":2: expected 4 columns");
   // An x y z file read without packing.radius: the message says where the radius goes.
-  EXPECT_NE(read_error("xyz", "1 2 3\n")
-                .find(":1: expected 4 columns (x y z r), found 3; for x y z rows give "
-                      "the radius with packing.radius"),
-            std::string::npos);
+  EXPECT_CONTAINS(read_error("xyz", "1 2 3\n"),
+                  ":1: expected 4 columns (x y z r), found 3; for x y z rows give "
+                  "the radius with packing.radius");
   // And an x y z r file read with packing.radius: the message says the key is what asks for three.
-  EXPECT_NE(read_error("xyzr", "1 2 3 1\n", 0.5)
-                .find(":1: expected 3 columns (x y z), found 4; packing.radius is set, which "
-                      "takes x y z rows"),
-            std::string::npos);
+  EXPECT_CONTAINS(read_error("xyzr", "1 2 3 1\n", 0.5),
+                  ":1: expected 3 columns (x y z), found 4; packing.radius is set, which "
+                  "takes x y z rows");
   // A number a double cannot hold is said to be one, not "not a number".
-  EXPECT_NE(read_error("beyond_double", "1 2 1e400 1\n")
-                .find(":1: column 3 '1e400' is not within the range of a double"),
-            std::string::npos);
-  EXPECT_NE(read_error("below_double", "1 2 3 1e-400\n")
-                .find(":1: column 4 '1e-400' is not within the range of a double"),
-            std::string::npos);
-  EXPECT_NE(read_error("nan_text", "# c\n1 2 abc 1\n").find(":2: column 3 'abc' is not a number"),
-            std::string::npos);
-  EXPECT_NE(read_error("neg", "1 2 3 1\n\n1 2 3 -1\n").find(":3: radius r = -1: must be > 0"),
-            std::string::npos);
-  EXPECT_NE(read_error("zero", "1 2 3 0\n").find(":1: radius r = 0"), std::string::npos);
+  EXPECT_CONTAINS(read_error("beyond_double", "1 2 1e400 1\n"),
+                  ":1: column 3 '1e400' is not within the range of a double");
+  EXPECT_CONTAINS(read_error("below_double", "1 2 3 1e-400\n"),
+                  ":1: column 4 '1e-400' is not within the range of a double");
+  EXPECT_CONTAINS(read_error("nan_text", "# c\n1 2 abc 1\n"), ":2: column 3 'abc' is not a number");
+  EXPECT_CONTAINS(read_error("neg", "1 2 3 1\n\n1 2 3 -1\n"), ":3: radius r = -1: must be > 0");
+  EXPECT_CONTAINS(read_error("zero", "1 2 3 0\n"), ":1: radius r = 0");
   // Far beyond any sample the ray scene's float bounds lose the sphere (at 1e20 m nothing was
   // hit, without a word): the limit packing.radius has, for a file's own radii too.
-  EXPECT_NE(read_error("huge", "1 2 3 1e6\n1 2 3 1e20\n")
-                .find(":2: radius r = 1e+20: must be <= 1e+06 m"),
-            std::string::npos);
-  EXPECT_NE(read_error("nan", "1 nan 3 1\n").find(":1: column 2 'nan' is not finite"),
-            std::string::npos);
-  EXPECT_NE(read_error("inf", "1 2 3 1\ninf 2 3 1\n").find(":2: column 1 'inf' is not finite"),
-            std::string::npos);
-  EXPECT_NE(read_error("extra", "1 2 3 1 5\n").find(":1: expected 4 columns"), std::string::npos);
+  EXPECT_CONTAINS(read_error("huge", "1 2 3 1e6\n1 2 3 1e20\n"),
+                  ":2: radius r = 1e+20: must be <= 1e+06 m");
+  EXPECT_CONTAINS(read_error("nan", "1 nan 3 1\n"), ":1: column 2 'nan' is not finite");
+  EXPECT_CONTAINS(read_error("inf", "1 2 3 1\ninf 2 3 1\n"), ":2: column 1 'inf' is not finite");
+  EXPECT_CONTAINS(read_error("extra", "1 2 3 1 5\n"), ":1: expected 4 columns");
   // An empty field between commas is a column, not nothing: merged with its neighbours it shifted
   // x y z r by one ("1,,2,3,0.1" read as x = 1, y = 2, z = 3, r = 0.1).
-  EXPECT_NE(
-      read_error("empty_field", "1,,2,3,0.1\n").find(":1: expected 4 columns (x y z r), found 5"),
-      std::string::npos)
-      << read_error("empty_field", "1,,2,3,0.1\n");
-  EXPECT_NE(read_error("empty_field_4", "1;;2;0.1\n").find(":1: column 2 '' is not a number"),
-            std::string::npos);
-  EXPECT_NE(read_error("leading_empty", "x,y,z\n,0.4,0.5,0.5\n", 0.05)
-                .find(":2: expected 3 columns (x y z), found 4"),
-            std::string::npos);
-  EXPECT_NE(read_error("plus_minus", "+-1 2 3 1\n").find(":1: column 1 '+-1' is not a number"),
-            std::string::npos);
+  EXPECT_CONTAINS(read_error("empty_field", "1,,2,3,0.1\n"),
+                  ":1: expected 4 columns (x y z r), found 5");
+  EXPECT_CONTAINS(read_error("empty_field_4", "1;;2;0.1\n"), ":1: column 2 '' is not a number");
+  EXPECT_CONTAINS(read_error("leading_empty", "x,y,z\n,0.4,0.5,0.5\n", 0.05),
+                  ":2: expected 3 columns (x y z), found 4");
+  EXPECT_CONTAINS(read_error("plus_minus", "+-1 2 3 1\n"), ":1: column 1 '+-1' is not a number");
   // A NUL or other control byte is binary data, refused and shown (not left to end the message);
   // a header line of them was taken as a header and read past.
-  EXPECT_NE(read_error("nul", std::string("1 2 0.3\0x 1\n", 12))
-                .find(":1: byte \\x00: not a text file of particle rows"),
-            std::string::npos)
-      << read_error("nul", std::string("1 2 0.3\0x 1\n", 12));
-  EXPECT_NE(read_error("nul_header", std::string(100, '\0') + "\n1 2 3 1\n")
-                .find(":1: byte \\x00: not a text file"),
-            std::string::npos);
+  EXPECT_CONTAINS(read_error("nul", std::string("1 2 0.3\0x 1\n", 12)),
+                  ":1: byte \\x00: not a text file of particle rows");
+  EXPECT_CONTAINS(read_error("nul_header", std::string(100, '\0') + "\n1 2 3 1\n"),
+                  ":1: byte \\x00: not a text file");
   // No line of a text file of rows is a megabyte long: reading stops there (a 20 GB sparse file
   // was read as one line until memory ran out).
-  EXPECT_NE(read_error("long_line", "x y z r\n" + std::string(2 << 20, '1') + "\n")
-                .find(":2: a line longer than 1048576 bytes"),
-            std::string::npos);
-  EXPECT_NE(
-      read_error("header_late", "1 2 3 1\nx y z r\n").find(":2: column 1 'x' is not a number"),
-      std::string::npos);
+  EXPECT_CONTAINS(read_error("long_line", "x y z r\n" + std::string(2 << 20, '1') + "\n"),
+                  ":2: a line longer than 1048576 bytes");
+  EXPECT_CONTAINS(read_error("header_late", "1 2 3 1\nx y z r\n"),
+                  ":2: column 1 'x' is not a number");
   // Before the data: one header, and a typo in the first data line is an error, not a header.
-  EXPECT_NE(read_error("two_headers", "x y z r\nid x y z\n1 2 3 1\n")
-                .find(":2: no column is a number (first: 'id'), and one header line is allowed"),
-            std::string::npos);
+  EXPECT_CONTAINS(read_error("two_headers", "x y z r\nid x y z\n1 2 3 1\n"),
+                  ":2: no column is a number (first: 'id'), and one header line is allowed");
   // Numbers in another notation than C's read as words: the message says which notation reads.
-  EXPECT_NE(read_error("fortran", "5.0D-4 5.0D-4 5.0D-4 1.0D-4\n")
-                .find("a header line only, no column of it a number; numbers as 1.5e-4: not "
-                      "Fortran's 1.5D-4"),
-            std::string::npos);
-  EXPECT_NE(read_error("typo_first", "1.0e-3x 2 3 1\n4 5 6 1\n")
-                .find(":1: column 1 '1.0e-3x' is not a number"),
-            std::string::npos);
+  EXPECT_CONTAINS(read_error("fortran", "5.0D-4 5.0D-4 5.0D-4 1.0D-4\n"),
+                  "a header line only, no column of it a number; numbers as 1.5e-4: not "
+                  "Fortran's 1.5D-4");
+  EXPECT_CONTAINS(read_error("typo_first", "1.0e-3x 2 3 1\n4 5 6 1\n"),
+                  ":1: column 1 '1.0e-3x' is not a number");
   // A file without data is refused (an empty bed is asked for with packing.count = 0).
-  EXPECT_NE(read_error("empty", "").find("holds no particle (no data line)"), std::string::npos);
-  EXPECT_NE(read_error("comments", "# x y z r\n\n# nothing\n").find("holds no particle"),
-            std::string::npos);
-  EXPECT_NE(read_error("header_only", "x y z r\n").find("holds no particle (a header line only"),
-            std::string::npos);
+  EXPECT_CONTAINS(read_error("empty", ""), "holds no particle (no data line)");
+  EXPECT_CONTAINS(read_error("comments", "# x y z r\n\n# nothing\n"), "holds no particle");
+  EXPECT_CONTAINS(read_error("header_only", "x y z r\n"), "holds no particle (a header line only");
   beampack::testing::expect_error<InputError>(
       [] { read_packing_file("/nonexistent/beampack.xyz"); }, "packing.file");
 }
@@ -271,8 +244,7 @@ TEST(PackingFile, ReadsTheDemBedWithItsRadius) {
   const auto contacts = find_contacts(p);
   EXPECT_GT(contacts.size(), p.size());
   // Without a default radius the three-column file is an error on line 1.
-  EXPECT_NE(read_error("dem3", "0.1 0.2 0.3\n").find(":1: expected 4 columns (x y z r), found 3"),
-            std::string::npos);
+  EXPECT_CONTAINS(read_error("dem3", "0.1 0.2 0.3\n"), ":1: expected 4 columns (x y z r), found 3");
 }
 
 namespace {
@@ -348,9 +320,8 @@ TEST(PackingDump, TriclinicBoxAndOptionalItemsAreAccepted) {
   EXPECT_EQ(read_packing_file(temp_file("dump_triclinic", text)).centre[0], Vec3(0.1, 0.2, 0.05));
   std::string orthogonal_bounds = text;
   orthogonal_bounds.replace(orthogonal_bounds.find("-0.5 0.5 0.1"), 12, "-0.5 0.5");
-  EXPECT_NE(read_error("dump_tilt_missing", orthogonal_bounds)
-                .find(line_of(orthogonal_bounds, "-0.5 0.5\n") + "expected 3 columns (lo hi tilt"),
-            std::string::npos);
+  EXPECT_CONTAINS(read_error("dump_tilt_missing", orthogonal_bounds),
+                  line_of(orthogonal_bounds, "-0.5 0.5\n") + "expected 3 columns (lo hi tilt");
 }
 
 TEST(PackingDump, SeveralSnapshotsAreRefusedWithTheirCount) {
@@ -359,15 +330,15 @@ TEST(PackingDump, SeveralSnapshotsAreRefusedWithTheirCount) {
       one + lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.04 0.01"}, -1, "2000") +
       lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.03 0.01"}, -1, "3000");
   const std::string m = read_error("dump_three", three);
-  EXPECT_NE(m.find(":11: a second snapshot"), std::string::npos) << m;
-  EXPECT_NE(m.find("holds 3 snapshots"), std::string::npos) << m;
-  EXPECT_NE(m.find("keep one"), std::string::npos) << m;
+  EXPECT_CONTAINS(m, ":11: a second snapshot");
+  EXPECT_CONTAINS(m, "holds 3 snapshots");
+  EXPECT_CONTAINS(m, "keep one");
   // With dump_modify time yes each snapshot opens with ITEM: TIME.
   const std::string timed =
       "ITEM: TIME\n0.5\n" + one + "ITEM: TIME\n1.5\n" +
       lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.04 0.01"}, -1, "2000");
   const std::string t = read_error("dump_timed", timed);
-  EXPECT_NE(t.find("holds 2 snapshots"), std::string::npos) << t;
+  EXPECT_CONTAINS(t, "holds 2 snapshots");
 }
 
 // A general triclinic box (ITEM: BOX BOUNDS abc origin: a vector and an origin per row), and a
@@ -384,47 +355,37 @@ TEST(PackingDump, RowCountMustMatchNumberOfAtoms) {
   const std::vector<std::string> rows = {"1 1 0.1 0.2 0.05 0.01", "2 1 0.3 0.2 0.05 0.01"};
   const std::string fewer = lammps_dump("id type x y z radius", rows, 3);
   std::string m = read_error("dump_fewer", fewer);
-  EXPECT_NE(m.find(line_of(fewer, "ITEM: ATOMS") + "ITEM: ATOMS is followed by 2 rows; ITEM: "
-                                                   "NUMBER OF ATOMS (line 3) says 3"),
-            std::string::npos)
-      << m;
+  EXPECT_CONTAINS(m, line_of(fewer, "ITEM: ATOMS") +
+                         "ITEM: ATOMS is followed by 2 rows; ITEM: "
+                         "NUMBER OF ATOMS (line 3) says 3");
   m = read_error("dump_more", lammps_dump("id type x y z radius", rows, 1));
-  EXPECT_NE(m.find("followed by 2 rows; ITEM: NUMBER OF ATOMS (line 3) says 1"), std::string::npos)
-      << m;
+  EXPECT_CONTAINS(m, "followed by 2 rows; ITEM: NUMBER OF ATOMS (line 3) says 1");
   const std::string short_row = lammps_dump("id type x y z radius", {"1 1 0.1 0.2 0.05"});
   m = read_error("dump_short_row", short_row);
-  EXPECT_NE(m.find(line_of(short_row, "1 1 0.1") +
-                   "expected 6 columns (as ITEM: ATOMS on line 9 names), found 5"),
-            std::string::npos)
-      << m;
-  EXPECT_NE(read_error("dump_none", lammps_dump("id type x y z radius", {}))
-                .find("NUMBER OF ATOMS is 0: the dump holds no particle"),
-            std::string::npos);
+  EXPECT_CONTAINS(m, line_of(short_row, "1 1 0.1") +
+                         "expected 6 columns (as ITEM: ATOMS on line 9 names), found 5");
+  EXPECT_CONTAINS(read_error("dump_none", lammps_dump("id type x y z radius", {})),
+                  "NUMBER OF ATOMS is 0: the dump holds no particle");
 }
 
 TEST(PackingDump, ScaledCoordinatesAreRefused) {
   for (const char* columns : {"id type xs ys zs radius", "id type xsu ysu zsu radius"}) {
     const std::string text = lammps_dump(columns, {"1 1 0.6 0.7 0.25 0.01"});
     const std::string m = read_error("dump_scaled", text);
-    EXPECT_NE(m.find(line_of(text, "ITEM: ATOMS") + "ITEM: ATOMS names " + columns +
-                     ": scaled coordinates"),
-              std::string::npos)
-        << m;
-    EXPECT_NE(m.find("dump x y z"), std::string::npos) << m;
+    EXPECT_CONTAINS(
+        m, line_of(text, "ITEM: ATOMS") + "ITEM: ATOMS names " + columns + ": scaled coordinates");
+    EXPECT_CONTAINS(m, "dump x y z");
   }
-  EXPECT_NE(read_error("dump_no_z", lammps_dump("id type x y radius", {"1 1 0.6 0.7 0.01"}))
-                .find("no centre columns; a dump needs x y z (or xu yu zu)"),
-            std::string::npos);
+  EXPECT_CONTAINS(read_error("dump_no_z", lammps_dump("id type x y radius", {"1 1 0.6 0.7 0.01"})),
+                  "no centre columns; a dump needs x y z (or xu yu zu)");
 }
 
 TEST(PackingDump, MissingRadiusNeedsPackingRadius) {
   const std::string text = lammps_dump("id type x y z", {"1 1 0.1 0.2 0.05", "2 1 0.3 0.2 0.05"});
   const std::string m = read_error("dump_no_radius", text);
-  EXPECT_NE(m.find(line_of(text, "ITEM: ATOMS") +
-                   "ITEM: ATOMS names id type x y z: no radius or diameter column"),
-            std::string::npos)
-      << m;
-  EXPECT_NE(m.find("packing.radius"), std::string::npos) << m;
+  EXPECT_CONTAINS(m, line_of(text, "ITEM: ATOMS") +
+                         "ITEM: ATOMS names id type x y z: no radius or diameter column");
+  EXPECT_CONTAINS(m, "packing.radius");
   const Particles p = read_packing_file(temp_file("dump_default_radius", text), 0.01);
   ASSERT_EQ(p.size(), 2u);
   EXPECT_EQ(p.radius[0], 0.01);
@@ -448,15 +409,15 @@ TEST(PackingDump, EveryValueCheckOfPlainFilesApplies) {
     return std::make_pair(read_error("dump_values", text), line_of(text, row));
   };
   auto [m, at] = error("2 1 0 0.1 -1 0.2 0.3");
-  EXPECT_NE(m.find(at + "radius r = -1: must be > 0"), std::string::npos) << m;
+  EXPECT_CONTAINS(m, at + "radius r = -1: must be > 0");
   std::tie(m, at) = error("2 1 0 nan 0.01 0.2 0.3");
-  EXPECT_NE(m.find(at + "column 4 'nan' is not finite"), std::string::npos) << m;
+  EXPECT_CONTAINS(m, at + "column 4 'nan' is not finite");
   std::tie(m, at) = error("2 1 0 0.1 0.01 abc 0.3");
-  EXPECT_NE(m.find(at + "column 6 'abc' is not a number"), std::string::npos) << m;
+  EXPECT_CONTAINS(m, at + "column 6 'abc' is not a number");
   std::tie(m, at) = error("2 1 0 0.1 1e-120 0.2 0.3");
-  EXPECT_NE(m.find(at + "radius r = 1e-120: its volume"), std::string::npos) << m;
+  EXPECT_CONTAINS(m, at + "radius r = 1e-120: its volume");
   std::tie(m, at) = error("2 1 0 0.1 inf 0.2 0.3");
-  EXPECT_NE(m.find(at + "column 5 'inf' is not finite"), std::string::npos) << m;
+  EXPECT_CONTAINS(m, at + "column 5 'inf' is not finite");
   // An unused column is not read: a velocity that is not a number does not stop the dump.
   EXPECT_EQ(
       read_packing_file(temp_file("dump_unused", lammps_dump(columns, {"1 1 - 0.1 0.01 0.2 0.3"})))
@@ -465,18 +426,15 @@ TEST(PackingDump, EveryValueCheckOfPlainFilesApplies) {
 }
 
 TEST(PackingDump, MalformedHeadersAreRefused) {
-  EXPECT_NE(read_error("dump_unknown_item", "ITEM: TIMESTEP\n0\nITEM: ENTRIES c_1\n1\n")
-                .find(":3: ITEM: ENTRIES c_1: not an item of a LAMMPS text dump"),
-            std::string::npos);
-  EXPECT_NE(read_error("dump_atoms_first", "ITEM: ATOMS id x y z radius\n1 0.1 0.2 0.3 0.01\n")
-                .find(":1: ITEM: ATOMS before ITEM: NUMBER OF ATOMS"),
-            std::string::npos);
-  EXPECT_NE(read_error("dump_bad_count", "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n2.5\n")
-                .find(":4: ITEM: NUMBER OF ATOMS '2.5': must be one whole number >= 0"),
-            std::string::npos);
-  EXPECT_NE(read_error("dump_no_atoms", "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n2\n")
-                .find("a dump without ITEM: ATOMS holds no particle"),
-            std::string::npos);
+  EXPECT_CONTAINS(read_error("dump_unknown_item", "ITEM: TIMESTEP\n0\nITEM: ENTRIES c_1\n1\n"),
+                  ":3: ITEM: ENTRIES c_1: not an item of a LAMMPS text dump");
+  EXPECT_CONTAINS(
+      read_error("dump_atoms_first", "ITEM: ATOMS id x y z radius\n1 0.1 0.2 0.3 0.01\n"),
+      ":1: ITEM: ATOMS before ITEM: NUMBER OF ATOMS");
+  EXPECT_CONTAINS(read_error("dump_bad_count", "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n2.5\n"),
+                  ":4: ITEM: NUMBER OF ATOMS '2.5': must be one whole number >= 0");
+  EXPECT_CONTAINS(read_error("dump_no_atoms", "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\n2\n"),
+                  "a dump without ITEM: ATOMS holds no particle");
   // A plain file stays plain when only a comment mentions ITEM:.
   EXPECT_EQ(read_packing_file(temp_file("plain_item_comment", "# ITEM: ATOMS\nx y z r\n1 2 3 1\n"))
                 .size(),

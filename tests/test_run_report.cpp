@@ -78,13 +78,12 @@ TEST(RunReport, ACheckpointsRunRecordIsCheckedAsItIsRead) {
             testing::kAccepted);
   EXPECT_EQ(message(0.0, 0, {}), testing::kAccepted);
   for (double wall : {nan, -5.0, std::numeric_limits<double>::infinity()})
-    EXPECT_NE(message(wall, 0, {}).find("ck.bin: its wall time so far"), std::string::npos);
-  EXPECT_NE(message(1.0, -1, {}).find("--checkpoint-every"), std::string::npos);
+    EXPECT_CONTAINS(message(wall, 0, {}), "ck.bin: its wall time so far");
+  EXPECT_CONTAINS(message(1.0, -1, {}), "--checkpoint-every");
   for (const char* name : {"../../src.vtp", "/etc/x.vtp", "particles_00a1.vtp", "particles_.vtp",
                            "particles_0001.vtp/..", "rays_0001.vtp"})
-    EXPECT_NE(message(1.0, 0, {{name, 0.0}}).find("not particles_NNNN.vtp"), std::string::npos)
-        << name;
-  EXPECT_NE(message(1.0, 0, {{"particles_0003.vtp", nan}}).find("not finite"), std::string::npos);
+    EXPECT_CONTAINS(message(1.0, 0, {{name, 0.0}}), "not particles_NNNN.vtp") << name;
+  EXPECT_CONTAINS(message(1.0, 0, {{"particles_0003.vtp", nan}}), "not finite");
 }
 
 // The history rows a checkpoint carries into history.csv are printable text: a byte edited into
@@ -221,12 +220,12 @@ TEST(RunReport, AnOpenLedgerIsNamedWithItsSize) {
   optics.escaped -= 1e-6;
   const auto o = open_ledger_warnings(SimulationSpec{}, optics);
   ASSERT_EQ(o.size(), 1u);
-  EXPECT_NE(o[0].find("optics ledger is open by 1e-06"), std::string::npos) << o[0];
+  EXPECT_CONTAINS(o[0], "optics ledger is open by 1e-06");
   EnergyLedger heat = closed_ledger();
   heat.stored = 0.0;  // the stiff-wall case before the fix: the absorbed heat in no bin
   const auto h = open_ledger_warnings(SimulationSpec{}, heat);
   ASSERT_EQ(h.size(), 1u);
-  EXPECT_NE(h[0].find("heat ledger is open by 0.833"), std::string::npos) << h[0];
+  EXPECT_CONTAINS(h[0], "heat ledger is open by 0.833");
   // A loose solver tolerance widens what counts as closed: 1e-3 of the absorbed at 1e-4.
   SimulationSpec loose;
   loose.thermal.tolerance = 1e-4;
@@ -245,8 +244,7 @@ TEST(RunReport, AnOpenLedgerIsNamedWithItsSize) {
   walled.walls = -3.410605e-7;
   const auto w = open_ledger_warnings(SimulationSpec{}, walled);
   ASSERT_EQ(w.size(), 1u);
-  EXPECT_NE(w[0].find("heat ledger is open by 0.0695 of the energy it moves"), std::string::npos)
-      << w[0];
+  EXPECT_CONTAINS(w[0], "heat ledger is open by 0.0695 of the energy it moves");
 }
 
 // The text of every <text> element whose attributes contain `attribute`, in order: `y="380"`
@@ -276,9 +274,7 @@ TEST(RunReport, TemperaturesBeyondTheSolvesResolutionOfThePhasesAreSaid) {
   f.max_temperature = 4e17 + 300;
   const auto said = phase_resolution_warning(spec, f);
   ASSERT_TRUE(said);
-  EXPECT_NE(said->find("misplace a particle beside the hottest by ~4e+07 K, against 100 K"),
-            std::string::npos)
-      << *said;
+  EXPECT_CONTAINS(*said, "misplace a particle beside the hottest by ~4e+07 K, against 100 K");
   f.max_temperature = 4e10 + 300;  // 4 K against 100 K: the phases are resolved
   EXPECT_FALSE(phase_resolution_warning(spec, f));
   spec.thermal.tolerance = 1e-8;  // 400 K
@@ -433,7 +429,7 @@ TEST(RunReport, LogChartsLabelEachDecadeOnceAndShowZerosAsZeros) {
       << svg;
   const std::vector<std::string> labels = svg_texts(svg);
   EXPECT_EQ(std::count(labels.begin(), labels.end(), "hollow: 0"), 1) << svg;
-  EXPECT_NE(svg.find("fill=\"white\" stroke="), std::string::npos) << svg;
+  EXPECT_CONTAINS(svg, "fill=\"white\" stroke=");
 }
 
 // Values a few ulps apart on a negative axis: the ticks still end (a step below the values' last

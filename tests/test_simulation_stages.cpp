@@ -59,7 +59,7 @@ void expect_skipped(const Simulation& sim, const std::string& name, const std::s
   const StageTime s = stage(sim, name);
   EXPECT_EQ(s.calls, 0u) << name;
   EXPECT_EQ(s.seconds, 0.0) << name;
-  EXPECT_NE(s.skipped_because.find(reason), std::string::npos)
+  EXPECT_CONTAINS(s.skipped_because, reason)
       << name << " skipped because \"" << s.skipped_because << "\", expected \"" << reason << "\"";
 }
 
@@ -286,9 +286,8 @@ TEST(SimulationStages, AStateWithAnArrayOfTheWrongLengthIsRefused) {
   StateParts longer = parts;
   longer.p.temperature.push_back(300.0);
   const std::size_t n = parts.p.size();
-  EXPECT_NE(
-      read_error(quick_spec(), longer).find("per-particle array holds " + std::to_string(n + 1)),
-      std::string::npos);
+  EXPECT_CONTAINS(read_error(quick_spec(), longer),
+                  "per-particle array holds " + std::to_string(n + 1));
 }
 
 // Nor are values a run cannot hold (a review doctored checkpoints and recomputed the checksum):
@@ -348,8 +347,8 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
     StateParts bad = parts;
     edit(bad);
     const std::string error = read_error(spec, bad);
-    EXPECT_NE(error.find("checkpoint: "), std::string::npos) << message << ": " << error;
-    EXPECT_NE(error.find(message), std::string::npos) << message << ": " << error;
+    EXPECT_CONTAINS(error, "checkpoint: ") << message << ": " << error;
+    EXPECT_CONTAINS(error, message) << message << ": " << error;
   }
   // A resumed run builds its scene from the state's particles (no packing file): they pass the
   // checks a packing file's rows do.

@@ -26,9 +26,8 @@ TEST(ThermalInput, MaterialMessagesNameKeyValueAndLimit) {
             "material[1].vapor_temperature = 500: must be > material[1].melt_temperature = 600");
   Material d;
   d.density = std::nan("");
-  EXPECT_NE(
-      testing::error_message<InputError>([&] { d.validate(); }).find("material.density = nan"),
-      std::string::npos);
+  EXPECT_CONTAINS(testing::error_message<InputError>([&] { d.validate(); }),
+                  "material.density = nan");
 }
 
 TEST(ThermalInput, SpecAndStartStateChecked) {
@@ -40,20 +39,15 @@ TEST(ThermalInput, SpecAndStartStateChecked) {
             "thermal.phi = 1.5: must be in [0, 1]");
   spec = {};
   spec.solver = "gauss";
-  EXPECT_NE(testing::error_message<InputError>([&] {
-              ThermalModel(p, {Material{}}, spec);
-            }).find("thermal.solver"),
-            std::string::npos);
+  EXPECT_CONTAINS(testing::error_message<InputError>([&] { ThermalModel(p, {Material{}}, spec); }),
+                  "thermal.solver");
   p.material[0] = 2;
-  EXPECT_NE(testing::error_message<InputError>([&] {
-              ThermalModel(p, {Material{}}, {});
-            }).find("must be < 1"),
-            std::string::npos);
+  EXPECT_CONTAINS(testing::error_message<InputError>([&] { ThermalModel(p, {Material{}}, {}); }),
+                  "must be < 1");
   p.material[0] = 0;
   p.temperature[0] = 800;
-  EXPECT_NE(
-      testing::error_message<InputError>([&] { ThermalModel(p, {Material{}}, {}); }).find("vapour"),
-      std::string::npos);
+  EXPECT_CONTAINS(testing::error_message<InputError>([&] { ThermalModel(p, {Material{}}, {}); }),
+                  "vapour");
 }
 
 TEST(ThermalGraph, PairAverageConductivityByMaterial) {
