@@ -199,9 +199,7 @@ double radius_of(const BeamSpec& spec, double sample_size) {
 // entry face): the face it meets most squarely, across the axis of d's largest component (the
 // first such axis on a tie). For a beam along an axis this is sample centre - (D/2) d.
 Vec3 entry_face_centre(const Vec3& d, double size) {
-  int a = 0;
-  for (int k = 1; k < 3; ++k)
-    if (std::abs(d[k]) > std::abs(d[a])) a = k;
+  const int a = entry_axis(d);
   Vec3 centre = Vec3::Constant(0.5 * size);
   centre[a] = d[a] > 0.0 ? 0.0 : size;
   return centre;
@@ -212,6 +210,19 @@ double ray_area(const BeamSpec& spec, double radius) {
 }
 
 }  // namespace
+
+int entry_axis(const Vec3& d) {
+  int a = 0;
+  for (int k = 1; k < 3; ++k)
+    if (std::abs(d[k]) > std::abs(d[a])) a = k;
+  return a;
+}
+
+void polarisation_axes(const Vec3& d, Vec3& u, Vec3& v) {
+  const Vec3 axis = entry_axis(d) == 2 ? Vec3::UnitX() : Vec3::UnitZ();
+  u = (axis - axis.dot(d) * d).normalized();
+  v = d.cross(u);
+}
 
 void disk_axes(const Vec3& d, Vec3& u, Vec3& v) {
   const Vec3 helper = std::abs(d.x()) < 0.9 ? Vec3(1, 0, 0) : Vec3(0, 1, 0);

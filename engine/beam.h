@@ -45,6 +45,17 @@ struct Beam {
 // u = d x (x, or y for d near +-x), normalised; v = d x u.
 void disk_axes(const Vec3& d, Vec3& u, Vec3& v);
 
+// The axis of the unit direction d's largest component (the first on a tie): the beam enters the
+// sample cube across it, by the face it meets most squarely (MODEL.md section 2).
+int entry_axis(const Vec3& d);
+
+// The frame of a polarised beam's field (optics.polarisation): u is +z projected onto the disk,
+// or +x for a beam that enters by a z face, normalised; v = d x u. For the +x beam u = +z and
+// v = -y. The frame turns continuously with d while the beam keeps its entry face (there the
+// projected axis is at least 1/sqrt(2) long) and jumps only where the beam's spot moves to another
+// face anyway. disk_axes' frame, which places the rays, jumps at |d_x| = 0.9, inside a face.
+void polarisation_axes(const Vec3& d, Vec3& u, Vec3& v);
+
 // InputError naming the first key out of its range or against another key.
 void validate_beam(const BeamSpec& spec, double sample_size);
 

@@ -378,11 +378,12 @@ double Tracer::start_plane(const Beam& beam) const {
   return upstream - 1e-6 * (box_.upper - box_.lower).norm();
 }
 
-// A polarised beam's field, at psi from the disk axis u towards v (zero when unpolarised).
+// A polarised beam's field, at psi from the axis u towards v of polarisation_axes (zero when
+// unpolarised).
 Vec3 Tracer::beam_field(const Vec3& direction) const {
   if (!state_.polarised) return Vec3::Zero();
   Vec3 u, v;
-  disk_axes(direction, u, v);
+  polarisation_axes(direction, u, v);
   return std::cos(spec_.polarisation.psi) * u + std::sin(spec_.polarisation.psi) * v;
 }
 

@@ -38,9 +38,10 @@ struct MaterialOptics {
 };
 
 // The beam's polarisation: unpolarised (2.22), the default, or linear, its electric field at
-// angle psi in the beam's disk from the disk axis u towards v (disk_axes; for the +x beam u = +z,
-// v = -y). Each ray then carries its field through its reflections (fresnel.h reflect_polarised),
-// and gamma of (2.18) at a hit is the angle between that field and the plane of incidence.
+// angle psi in the beam's disk from the axis u towards v of polarisation_axes (u is +z, or +x for a
+// beam entering by a z face, projected onto the disk; for the +x beam u = +z, v = -y). Each ray
+// then carries its field through its reflections (fresnel.h reflect_polarised), and gamma of (2.18)
+// at a hit is the angle between that field and the plane of incidence.
 struct Polarisation {
   bool linear = false;
   double psi = 0.0;  // rad, in [0, pi]; optics.polarisation in degrees

@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <numbers>
+#include <random>
 
 #include "engine/beam.h"
 #include "geometry/compensated_sum.h"
@@ -34,6 +35,49 @@ TEST(OpticsBeam, PowerIsNormalisedForEveryProfileAndSampling) {
         ASSERT_EQ(beam.size(), rays);
         EXPECT_EQ(power_of(beam), spec.power) << profile << " " << sampling << " " << rays;
       }
+}
+
+// The polarisation frame (optics.polarisation): +z projected onto the disk, +x for a beam entering
+// by a z face, the second axis d x u. Named directions, then 20000 seeded random ones: a right-
+// handed orthonormal frame across d that turns at most 2 sqrt(2) as fast as d while the entry
+// face stays (the projected axis is >= 1/sqrt(2) long), also across |d_x| = 0.9, where the disk
+// axes turn by 90 degrees.
+TEST(OpticsBeam, ThePolarisationFrameTurnsContinuouslyWithinAnEntryFace) {
+  const auto frame_of = [](const Vec3& d) {
+    Vec3 u, v;
+    polarisation_axes(d, u, v);
+    return std::make_pair(u, v);
+  };
+  const auto expect_frame = [&](const Vec3& d, const Vec3& u, const Vec3& v) {
+    const auto [fu, fv] = frame_of(d);
+    EXPECT_LT((fu - u).norm(), 1e-15) << d.transpose();
+    EXPECT_LT((fv - v).norm(), 1e-15) << d.transpose();
+  };
+  expect_frame(Vec3::UnitX(), Vec3::UnitZ(), -Vec3::UnitY());  // README: 0 along +z, 90 along -y
+  expect_frame(-Vec3::UnitX(), Vec3::UnitZ(), Vec3::UnitY());
+  expect_frame(Vec3::UnitY(), Vec3::UnitZ(), Vec3::UnitX());
+  expect_frame(-Vec3::UnitZ(), Vec3::UnitX(), -Vec3::UnitY());  // README: the -z beam
+  std::mt19937_64 rng(41);
+  std::normal_distribution<double> g;
+  const auto random_unit = [&] { return Vec3(g(rng), g(rng), g(rng)).normalized(); };
+  const auto at_x = [](double dx, double share_y) {  // unit, with d_x = dx, the rest in y and z
+    const double rest = std::sqrt(1.0 - dx * dx);
+    return Vec3(dx, std::sqrt(share_y) * rest, std::sqrt(1.0 - share_y) * rest);
+  };
+  for (int k = 0; k < 20000; ++k) {
+    const bool across = k < 2;  // from d_x = 0.9 - 1e-7 to 0.9 + 1e-7, with d_y = 0 and d_y = d_z
+    const Vec3 d = across ? at_x(0.9 - 1e-7, 0.5 * k) : random_unit();
+    const Vec3 d2 = across ? at_x(0.9 + 1e-7, 0.5 * k) : (d + 1e-7 * random_unit()).normalized();
+    if (entry_axis(d2) != entry_axis(d)) continue;
+    const auto [u, v] = frame_of(d);
+    const auto [u2, v2] = frame_of(d2);
+    ASSERT_NEAR(u.norm(), 1.0, 1e-15);
+    ASSERT_NEAR(u.dot(d), 0.0, 1e-15);
+    ASSERT_LT((v - d.cross(u)).norm(), 1e-15);
+    ASSERT_LE((u2 - u).norm(), 2.0 * std::sqrt(2.0) * (d2 - d).norm() * (1.0 + 1e-6) + 1e-15)
+        << "d = " << d.transpose() << ", d2 = " << d2.transpose();
+    ASSERT_LE((v2 - v).norm(), 4.0 * (d2 - d).norm());
+  }
 }
 
 // Small random beams, pulse by pulse, where the residual step can miss: the roundings of the
