@@ -1330,6 +1330,25 @@ TEST(Cli, ARunThatFailsLateKeepsThePulsesItEnded) {
   EXPECT_EQ(read_csv(dir / "history.csv").size(), 1361u);
 }
 
+// Four pulses end in each step (a period a quarter of the step): the third pulse's end makes a
+// checkpoint due, and the fourth's, in the same step, must not cancel it (no checkpoint was
+// written at all, as if --checkpoint-every were not given).
+TEST(Cli, ACheckpointIsWrittenWhenSeveralPulsesEndInOneStep) {
+  const fs::path dir = fresh_dir("ck_batch");
+  const Result r =
+      run("run --preset quick --quiet --set thermal.dt=1e-11 --set pulses.period=2.5e-12 "
+          "--set pulses.count=8 --checkpoint-every 3 --out " +
+          dir.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  ASSERT_TRUE(fs::exists(dir / "checkpoint.bin"));
+  const fs::path other = fresh_dir("ck_batch_other");
+  const Result resumed =
+      run("run --resume " + dir.string() + " --out " + other.string() + " --quiet");
+  ASSERT_EQ(resumed.code, 0) << resumed.output;
+  EXPECT_EQ(file_text(other / "history.csv"), file_text(dir / "history.csv"));
+  EXPECT_EQ(file_text(other / "particles.csv"), file_text(dir / "particles.csv"));
+}
+
 TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
   const fs::path dir = fresh_dir("ck_damaged");
   ASSERT_EQ(run("run --preset quick --quiet --checkpoint-every 2 --out " + dir.string()).code, 0);
@@ -2079,6 +2098,51 @@ TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
   EXPECT_EQ(plain.code, 1) << plain.output;
   EXPECT_CONTAINS(plain.output, "write failed");
   EXPECT_EQ(names_in(dir / "plain"), (std::vector<std::string>{"history.csv", "summary.json"}));
+}
+
+// A run killed while it wrote (SIGKILL: nothing removes its temporary) and resumed in its own
+// folder removes the temporaries (they stayed: a frame's is hundreds of MB at 10^6 particles),
+// and keeps what is not beampack's.
+TEST(Cli, AResumeInItsOwnFolderRemovesAKilledWritesTemporaries) {
+  const fs::path whole = fresh_dir("own_tmp_whole"), part = fresh_dir("own_tmp_part");
+  checkpoint_into(whole, part);
+  write(part / "checkpoint.bin.tmp.99999", "half a checkpoint");
+  write(part / "particles_0003.vtp.tmp.99998", "half a frame");
+  write(part / "notes.txt.tmp.1", "the user's");
+  const Result r = run("run --quiet --resume " + part.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_CONTAINS(r.output, "removed 2 files that a killed run's writes left from " +
+                                part.string() +
+                                ": checkpoint.bin.tmp.99999, particles_0003.vtp.tmp.99998");
+  const std::vector<std::string> names = names_in(part);
+  EXPECT_EQ(
+      std::count_if(names.begin(), names.end(),
+                    [](const std::string& n) { return n.find(".tmp.") != std::string::npos; }),
+      1);
+  EXPECT_TRUE(fs::exists(part / "notes.txt.tmp.1"));
+  EXPECT_EQ(file_text(part / "particles.csv"), file_text(whole / "particles.csv"));
+}
+
+// A resume into another folder copies the earlier frames through temporaries, as it writes every
+// file: a copy cut short (here by a file size limit below a frame's 45 kB; a second interrupt
+// while a large frame is copied) leaves no half frame under its name and no temporary.
+TEST(Cli, AFrameCopiedForAResumeIsWholeOrAbsent) {
+  const fs::path whole = fresh_dir("carry_whole"), other = fresh_dir("carry_other");
+  ASSERT_EQ(run("run --preset quick --quiet --set beam.rays=2000 --set output.frames=true "
+                "--checkpoint-every 2 --out " +
+                whole.string())
+                .code,
+            0);
+  const Result r = run_with_file_size_limit(
+      20, "run --quiet --resume " + whole.string() + " --out " + other.string());
+  EXPECT_EQ(r.code, 1) << r.output;
+  EXPECT_CONTAINS(r.output, (other / "particles_0000.vtp").string() + "\": write failed");
+  for (const std::string& name : names_in(other)) {
+    EXPECT_NOT_CONTAINS(name, ".tmp.");
+    if (name.ends_with(".vtp")) {
+      EXPECT_EQ(file_text(other / name), file_text(whole / name)) << name;
+    }
+  }
 }
 
 // A run resumed into its folder, whose particles.csv is of the interrupt's time, and then unable

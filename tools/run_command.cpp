@@ -918,9 +918,10 @@ void say_nothing_written(const std::string& what, const fs::path& dir,
 // A new run into a directory that holds an earlier one: that run's results, checkpoint and
 // frames would outlive it (a new run that fails would leave them looking like its own, and
 // `--resume` would continue the earlier run over the new outputs), so they go: beampack's own
-// names only, in a folder that holds a beampack run.
-void remove_earlier_run(const fs::path& dir) {
-  const bool earlier_run = holds_earlier_run(dir);
+// names only, in a folder that holds a beampack run. A run resumed in its own folder keeps that
+// run's files and removes only the temporaries of a write the interrupted part was killed in.
+void remove_earlier_run(const fs::path& dir, bool temporaries_only) {
+  const bool earlier_run = !temporaries_only && holds_earlier_run(dir);
   std::vector<fs::path> earlier;
   for (const fs::directory_entry& e : fs::directory_iterator(dir)) {
     // A temporary file of a write (NAME.tmp.PID) is a killed run's, with or without a marker.
@@ -935,8 +936,9 @@ void remove_earlier_run(const fs::path& dir) {
   for (std::size_t k = 0; k < std::min<std::size_t>(earlier.size(), 4); ++k)
     names += (k ? ", " : "") + earlier[k].filename().string();
   if (earlier.size() > 4) names += " and " + std::to_string(earlier.size() - 4) + " more";
-  std::fprintf(stderr, "beampack: note: removed %zu file%s of an earlier run from %s: %s\n",
-               earlier.size(), plural(static_cast<long long>(earlier.size())), dir.c_str(),
+  std::fprintf(stderr, "beampack: note: removed %zu file%s %s from %s: %s\n", earlier.size(),
+               plural(static_cast<long long>(earlier.size())),
+               earlier_run ? "of an earlier run" : "that a killed run's writes left", dir.c_str(),
                names.c_str());
 }
 
@@ -981,10 +983,21 @@ void drop_missing_frames(const fs::path& from, RunRecord& record) {
 // new folder holds the whole series (particles.pvd names every frame).
 void carry_earlier_files(const fs::path& from, const fs::path& to, const RunRecord& record,
                          const OutputSpec& output, int pulses_ended) {
+  // Through a temporary, as every output file: a copy cut short (a full disk, a second interrupt
+  // while a frame of hundreds of MB is copied) leaves no half frame under its name.
   auto carry = [&](const std::string& name) {
     std::error_code ec;
-    if (fs::is_regular_file(from / name, ec))
-      fs::copy_file(from / name, to / name, fs::copy_options::overwrite_existing);
+    if (!fs::is_regular_file(from / name, ec)) return;
+    std::ifstream in(from / name, std::ios::binary);
+    // Block by block: `o << in.rdbuf()` stops without an error at a write that fails part way.
+    write_atomically((to / name).string(), [&](std::ostream& o) {
+      std::vector<char> block(1 << 16);
+      while (in && o) {
+        in.read(block.data(), static_cast<std::streamsize>(block.size()));
+        o.write(block.data(), in.gcount());
+      }
+      if (o && !in.eof()) throw RunError("--resume: cannot read " + (from / name).string());
+    });
   };
   for (const auto& [name, time] : record.frames) carry(name);
   for (int k = 0; output.rays && k < pulses_ended; ++k) carry(pulse_file("rays", k));
@@ -1076,7 +1089,9 @@ void record_pulse_ends(Simulation& sim, const OutputSpec& output, const fs::path
       record.frames.emplace_back(name, figures.time);
       write_pvd((out / "particles.pvd").string(), record.frames);
     }
-    checkpoint_due = record.checkpoint_every > 0 && (pulse + 1) % record.checkpoint_every == 0;
+    // |=: several pulses may end in one step (a period shorter than the step), and a later one
+    // must not cancel the checkpoint an earlier one made due.
+    checkpoint_due |= record.checkpoint_every > 0 && (pulse + 1) % record.checkpoint_every == 0;
   });
 }
 
@@ -1193,7 +1208,7 @@ int run_command(const RunOptions& options) {
     std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
   if (saved) sim.read_state(*saved);
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
-  if (!into_checkpoint_folder) remove_earlier_run(out_dir);
+  remove_earlier_run(out_dir, into_checkpoint_folder);
   if (saved) drop_missing_frames(options.resume, record);
   if (saved && !into_checkpoint_folder)
     carry_earlier_files(options.resume, out_dir, record, config.output,
