@@ -653,6 +653,9 @@ void require_material(std::size_t particle, std::uint16_t material, const Simula
 // A checksum guards the bytes, not a writer's mistake or an edit: every value must be one a run
 // can hold (a particle index past the arrays crashed the tracer, a NaN reached the outputs).
 void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
+  require_in_state(std::isfinite(s.time) && s.time >= 0 && std::isfinite(s.next_pulse_time) &&
+                       s.next_pulse_time >= 0 && !std::isnan(s.max_temperature),
+                   "its time, next pulse time or peak temperature is not a number a run reaches");
   const Particles& p = s.particles;
   for (std::size_t i = 0; i < p.size(); ++i) {
     const std::string particle = "particle " + std::to_string(i) + " has ";
@@ -661,17 +664,28 @@ void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
                      particle + "temperature " + std::to_string(p.temperature[i]) + " K");
     require_in_state(p.phase[i] <= Phase::vapor && p.alive[i] <= 1,
                      particle + "a phase or live flag out of range");
+    // A run removes a particle exactly when it vaporises (mark_dead_as_vapour, remove_vaporized).
+    require_in_state(
+        (p.alive[i] == 1) == (p.phase[i] != Phase::vapor),
+        particle + (p.alive[i] ? "phase vapor and is live" : "been removed unvaporised"));
+    require_in_state(p.temperature[i] <= s.max_temperature,
+                     particle + "temperature " + std::to_string(p.temperature[i]) +
+                         " K, above the run's peak " + std::to_string(s.max_temperature) + " K");
     require_in_state(std::isfinite(s.absorbed[i]) && s.absorbed[i] >= 0,
                      particle + "absorbed " + std::to_string(s.absorbed[i]) + " J");
     require_in_state(std::isfinite(s.heat.stored[i]),
                      particle + "stored heat " + std::to_string(s.heat.stored[i]) + " J");
   }
-  require_in_state(std::isfinite(s.time) && s.time >= 0 && std::isfinite(s.next_pulse_time) &&
-                       s.next_pulse_time >= 0 && !std::isnan(s.max_temperature),
-                   "its time, next pulse time or peak temperature is not a number a run reaches");
   require_in_state(s.launched >= 0 && s.launched <= spec.pulses.count,
                    std::to_string(s.launched) +
                        " pulses launched, of pulses.count = " + std::to_string(spec.pulses.count));
+  // Pulse k is due at k T_p (launch_pulse): one edited to 1e300 s was waited for without end.
+  require_in_state(s.next_pulse_time == s.launched * spec.pulses.period,
+                   "next pulse time " + shown_number(s.next_pulse_time) + " s after " +
+                       std::to_string(s.launched) + " pulses of period " +
+                       shown_number(spec.pulses.period) + " s");
+  require_in_state(std::isfinite(s.counts.max_pulse_delay) && s.counts.max_pulse_delay >= 0,
+                   "its longest pulse delay is " + shown_number(s.counts.max_pulse_delay) + " s");
   // Rays come only from a launch: live rays before any would be traced, and heated without the
   // contact graph a spec without pulses does not build.
   require_in_state(s.launched > 0 || s.rays.live_count == 0,

@@ -319,6 +319,14 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
           {[&](StateParts& s) { s.time = nan; }, "its time, next pulse time or peak"},
           {[&](StateParts& s) { s.peak = nan; }, "its time, next pulse time or peak"},
           {[](StateParts& s) { s.launched = 99; }, "99 pulses launched, of pulses.count = 5"},
+          // Waited for without end (a run of 1e-11 s took no pulse in 15 s).
+          {[](StateParts& s) { s.next_pulse_time = 1e300; },
+           "next pulse time 1e+300 s after 1 pulses of period 0 s"},
+          {[](StateParts& s) { s.peak = -1e308; }, "K, above the run's peak"},
+          {[](StateParts& s) { s.p.phase[8] = Phase::vapor; },
+           "particle 8 has phase vapor and is live"},
+          {[](StateParts& s) { s.p.alive[8] = 0; }, "particle 8 has been removed unvaporised"},
+          {[&](StateParts& s) { s.counts.max_pulse_delay = nan; }, "longest pulse delay is nan"},
           {[](StateParts& s) { s.launched = -5; }, "-5 pulses launched"},
           // Rays before any launch: a spec without pulses would trace and heat them unconducted.
           {[](StateParts& s) { s.launched = 0; }, "live rays and no pulse launched"},
