@@ -152,3 +152,146 @@ TEST(Charts, PanelsStackOneBelowTheOther) {
 
 }  // namespace
 }  // namespace beampack::tools
+
+// ---- The commands.
+
+namespace {
+
+using beampack::testing::fresh_dir;
+
+struct Result {
+  int code;
+  std::string output;  // stdout and stderr, through one pipe
+};
+
+Result run(const std::string& args) {
+  const std::string command = std::string(BEAMPACK_CLI) + " " + args + " 2>&1";
+  std::FILE* pipe = popen(command.c_str(), "r");
+  std::string out;
+  std::array<char, 4096> buf;
+  while (std::fgets(buf.data(), buf.size(), pipe)) out += buf.data();
+  const int status = pclose(pipe);
+  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+}
+
+std::string file_text(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::stringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
+std::string sweep_svg(const std::string& name, const std::string& args, Result* result = nullptr) {
+  const fs::path out = fresh_dir(name);
+  const Result r = run("sweep --preset quick --quiet " + args + " --out " + out.string());
+  if (result) *result = r;
+  EXPECT_EQ(r.code, 0) << r.output;
+  return file_text(out / "sweep.svg");
+}
+
+// Values spanning two decades or more, all > 0: a log axis (optics.cutoff 1e-14..1e-10 crowded
+// onto 0 on a linear one); fewer: linear.
+TEST(ChartsCli, SweepsOverDecadesGetALogAxis) {
+  const std::string svg =
+      sweep_svg("sweep_log", "--param optics.cutoff --values 1e-14,1e-12,1e-10");
+  EXPECT_EQ(beampack::tools::x_labels(svg),
+            (std::vector<std::string>{"1e-14", "1e-13", "1e-12", "1e-11", "1e-10"}))
+      << svg;
+  EXPECT_CONTAINS(svg, "optics.cutoff (log scale)");
+  const std::string linear =
+      sweep_svg("sweep_linear", "--param material.conductivity --values 1,5,20");
+  EXPECT_NOT_CONTAINS(linear, "log scale");
+}
+
+// The line follows the values' order on the axis: `--values 100,0,50` drew a zig-zag.
+TEST(ChartsCli, SweepLineRunsInTheOrderOfTheAxis) {
+  const std::string svg =
+      sweep_svg("sweep_order", "--param material.conductivity --values 100,0,50");
+  std::smatch m;
+  ASSERT_TRUE(std::regex_search(svg, m, std::regex("<path d=\"M([^\"]*)\""))) << svg;
+  std::vector<double> xs;
+  const std::string d = m[1];
+  const std::regex point("([0-9.e+-]+),[0-9.e+-]+");
+  for (auto it = std::sregex_iterator(d.begin(), d.end(), point); it != std::sregex_iterator();
+       ++it)
+    xs.push_back(std::stod((*it)[1]));
+  ASSERT_EQ(xs.size(), 3u) << d;
+  EXPECT_TRUE(std::is_sorted(xs.begin(), xs.end())) << d;
+}
+
+// A value given twice, by any spelling the run reads as the same (1e2 is 100), is refused.
+TEST(ChartsCli, SweepRefusesARepeatedValue) {
+  const fs::path out = fresh_dir("sweep_repeat");
+  const Result same =
+      run("sweep --preset quick --quiet --param material.conductivity --values 1,1 --out " +
+          out.string());
+  EXPECT_EQ(same.code, 2) << same.output;
+  EXPECT_CONTAINS(same.output, "--values: value 2 (1) repeats value 1 (1)");
+  const Result spelt =
+      run("sweep --preset quick --quiet --param material.conductivity --values 100,5,1e2 --out " +
+          out.string());
+  EXPECT_EQ(spelt.code, 2) << spelt.output;
+  EXPECT_CONTAINS(spelt.output, "value 3 (1e2) repeats value 1 (100)");
+  EXPECT_FALSE(fs::exists(out / "sweep.csv"));
+}
+
+// TOML's 1_00 is the number 100 to the run, and now on the axis too (it was the word "1_00").
+TEST(ChartsCli, SweepReadsValuesAsNumbersAsTheRunDoes) {
+  const std::string svg =
+      sweep_svg("sweep_toml", "--param material.conductivity --values 1_00,200,3_00");
+  const std::vector<std::string> labels = beampack::tools::x_labels(svg);
+  EXPECT_EQ(std::find(labels.begin(), labels.end(), "1_00"), labels.end())
+      << ::testing::PrintToString(labels);
+  EXPECT_NE(std::find(labels.begin(), labels.end(), "200"), labels.end())
+      << ::testing::PrintToString(labels);
+}
+
+// `--param ' k'` ran k but wrote a csv header " k,...".
+TEST(ChartsCli, SweepTrimsTheParamName) {
+  const fs::path out = fresh_dir("sweep_trim");
+  const Result r =
+      run("sweep --preset quick --quiet --param ' material.conductivity ' --values 1,2 --out " +
+          out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  const std::string csv = file_text(out / "sweep.csv");
+  EXPECT_EQ(csv.rfind("material.conductivity,", 0), 0u) << csv.substr(0, 40);
+}
+
+// `--set material.conductivity=3` was refused beside --param material.conductivity, but the same
+// key set inside a table was taken, and --values overrode it without a word.
+TEST(ChartsCli, SweepRefusesATableThatSetsTheSweptKey) {
+  const fs::path out = fresh_dir("sweep_table");
+  const Result r =
+      run("sweep --preset quick --quiet --set 'material={conductivity=5}' --param "
+          "material.conductivity --values 1,2 --out " +
+          out.string());
+  EXPECT_EQ(r.code, 2) << r.output;
+  EXPECT_CONTAINS(r.output,
+                  "--set material={conductivity=5}: sets `material.conductivity`, the "
+                  "swept --param; its values come from --values");
+  // A table of other keys is no conflict.
+  const Result other =
+      run("sweep --preset quick --quiet --set 'material={density=5000}' --param "
+          "material.conductivity --values 1,2 --out " +
+          out.string());
+  EXPECT_EQ(other.code, 0) << other.output;
+}
+
+// A swept file name with a control character: sweep.svg stays well-formed XML, the name written
+// with its hex.
+TEST(ChartsCli, SweepChartOfAControlCharacterInAValueIsXml) {
+  const fs::path out = fresh_dir("sweep_control");
+  const std::string bed = "x y z r\n0.5e-3 0.5e-3 0.5e-3 1e-4\n0.5e-3 0.5e-3 0.82e-3 1.5e-4\n";
+  const fs::path odd = out / "c\x01.xyz", plain = out / "b.xyz";
+  std::ofstream(odd) << bed;
+  std::ofstream(plain) << bed;
+  const Result r =
+      run("sweep --preset quick --quiet --set packing.source=file --param packing.file --values '" +
+          odd.string() + "," + plain.string() + "' --out " + (out / "out").string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  const std::string svg = file_text(out / "out" / "sweep.svg");
+  EXPECT_CONTAINS(svg, "c\\x01.xyz");
+  EXPECT_EQ(svg.find('\x01'), std::string::npos);
+}
+
+}  // namespace
