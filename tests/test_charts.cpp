@@ -294,4 +294,54 @@ TEST(ChartsCli, SweepChartOfAControlCharacterInAValueIsXml) {
   EXPECT_EQ(svg.find('\x01'), std::string::npos);
 }
 
+// converge's solver tolerance ladder, in a scene where no step solves iteratively (K = 0, the
+// zohdi2013 preset's; or the direct solver): every rung would repeat its reference bit for bit,
+// a ladder of errors of 0 that measured nothing. It is not run, and converge says so.
+TEST(ChartsCli, ConvergeSkipsTheToleranceLadderWithoutAnIterativeSolve) {
+  for (const std::string set :
+       {"material.conductivity=0", "thermal.solver='\"direct\"'", "thermal.phi=0"}) {
+    const fs::path out = fresh_dir("converge_no_solve");
+    const Result r = run("converge --preset quick --quiet --set beam.rays=50 --set " + set +
+                         " --out " + out.string());
+    ASSERT_EQ(r.code, 0) << r.output;
+    EXPECT_CONTAINS(r.output, "beampack: note: converge: the solver tolerance ladder is not run: ");
+    EXPECT_CONTAINS(r.output, "so `thermal.tolerance` changes no result of this scene");
+    const std::string csv = file_text(out / "convergence.csv");
+    EXPECT_NOT_CONTAINS(csv, "solver tolerance");
+    EXPECT_CONTAINS(csv, "rays per pulse");
+    EXPECT_CONTAINS(file_text(out / "convergence.svg"), "solver tolerance ladder not run");
+  }
+}
+
+// convergence.svg shows the temperature field's error too (up to 20 K here, where every error of
+// v_v is 0 and was all the chart showed, on its "1e0" line).
+TEST(ChartsCli, ConvergenceChartShowsTheTemperatureError) {
+  const fs::path out = fresh_dir("converge_one_pulse");
+  const Result r =
+      run("converge --preset quick --quiet --set beam.rays=50 --set pulses.count=1 --out " +
+          out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  const std::string svg = file_text(out / "convergence.svg");
+  EXPECT_CONTAINS(svg, "L2 error of T, K");
+  EXPECT_CONTAINS(svg, "<g transform=\"translate(0,420)\">");
+  const std::string lower = svg.substr(svg.find("translate(0,420)"));
+  EXPECT_NOT_CONTAINS(lower, "every value is 0");
+  EXPECT_GE(std::count(lower.begin(), lower.end(), 'L'), 3);  // lines on the log axes
+}
+
+// stdout is flushed before converge writes to stderr: through one pipe, a ladder's last line
+// comes before the next ladder's warning (it came after it).
+TEST(ChartsCli, ConvergeLinesAndWarningsKeepTheirOrderInOnePipe) {
+  const fs::path out = fresh_dir("converge_order");
+  const Result r =
+      run("converge --preset quick --quiet --set beam.rays=50 --set pulses.count=0 --out " +
+          out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  const std::size_t line = r.output.find("time step          the reference");
+  const std::size_t warning = r.output.find("the rays per pulse ladder's reference run absorbed");
+  ASSERT_NE(line, std::string::npos) << r.output;
+  ASSERT_NE(warning, std::string::npos) << r.output;
+  EXPECT_LT(line, warning) << r.output;
+}
+
 }  // namespace
