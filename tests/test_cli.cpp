@@ -1903,11 +1903,13 @@ TEST(Cli, AnEmptyBedHasNoPeakTemperatureRatherThanZeroKelvin) {
 TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
   const fs::path out = fresh_dir("sweep_fail");
   const std::string bed = write(out / "bed.xyz", "5e-4 5e-4 5e-4 1e-4\n");
+  // The same bed again, under another name: a value given twice is refused.
+  const std::string same_bed = write(out / "same_bed.xyz", "5e-4 5e-4 5e-4 1e-4\n");
   // Its radius is refused when the run reads the file, not before.
   const std::string flawed = write(out / "flawed.xyz", "5e-4 5e-4 5e-4 -1\n");
   const Result r =
       run("sweep --preset quick --quiet --set packing.source=file --param packing.file --values " +
-          bed + "," + flawed + "," + bed + " --out " + out.string());
+          bed + "," + flawed + "," + same_bed + " --out " + out.string());
   EXPECT_EQ(r.code, 2) << r.output;
   EXPECT_CONTAINS(r.output, "flawed.xyz:1: radius r = -1: must be > 0");
   const auto rows = read_csv(out / "sweep.csv");

@@ -8,6 +8,7 @@
 #include <sstream>
 #include <string>
 
+#include "engine/simulation.h"
 #include "geometry/error.h"
 #include "tools/converge.h"
 #include "tools/svg_plot.h"
@@ -68,6 +69,7 @@ std::vector<Ladder> ladders(const RunConfig& base) {
 // ladder stops there. Returns the exit code so far.
 int run_ladder(Ladder& ladder, bool quiet) {
   int code = 0;
+  std::fflush(stdout);  // the last ladder's lines before this one's failures, when both are piped
   for (std::size_t k = 0; k < ladder.values.size(); ++k) {
     if (stop_requested().load()) {
       ladder.cut = true;
@@ -112,6 +114,76 @@ void say_what_the_reference_leaves_unmeasured(const Ladder& ladder) {
       kelvin_text(peak_difference(next.figures, finest.figures)).c_str(),
       ladder.rungs[1].value.c_str(),
       ladder.key == "thermal.dt" ? " (a lower pulses.xi refines the ladder)" : "");
+  std::fflush(stdout);  // before any later warning on stderr, when both go to one pipe
+}
+
+// Why no step of the scene solves iteratively, so that thermal.tolerance changes no result; ""
+// when some step may (thermal_model.cpp: only a conducting contact with phi > 0 builds a system,
+// and "direct" factorises it).
+std::string why_no_iterative_solve(const SimulationSpec& spec) {
+  if (spec.thermal.solver == "direct")
+    return "`thermal.solver` = \"direct\" factorises every step, with no tolerance";
+  if (spec.thermal.phi == 0) return "`thermal.phi` = 0: explicit steps solve no system";
+  if (!conducts_between_particles(spec))
+    return "no contact conducts (`material.conductivity` = 0): each particle's step is solved "
+           "on its own, without iterations";
+  return "";
+}
+
+// The solver tolerance ladder when some step may solve iteratively; otherwise every rung would
+// repeat the reference bit for bit (an all-zero ladder that looked measured): it is not run, and
+// converge says so. Returns the note for the chart ("" when the ladder runs).
+std::string drop_unmeasurable_ladders(std::vector<Ladder>& all, const SimulationSpec& spec) {
+  const std::string why = why_no_iterative_solve(spec);
+  if (why.empty()) return "";
+  std::erase_if(all, [](const Ladder& l) { return l.key == "thermal.tolerance"; });
+  std::fprintf(stderr,
+               "beampack: note: converge: the solver tolerance ladder is not run: %s, so "
+               "`thermal.tolerance` changes no result of this scene\n",
+               why.c_str());
+  return "solver tolerance ladder not run: no iterative solve in this scene";
+}
+
+// A ladder whose every rung ended exactly as its reference measured nothing: its key changed no
+// result (say, "auto" factorised every step, so no tolerance applied). Said, as the errors of 0
+// in the table and chart would otherwise read as a converged result.
+void warn_if_no_rung_differs(const Ladder& ladder) {
+  if (ladder.rungs.size() < 2) return;
+  const RunResult& ref = ladder.rungs.front().result;
+  for (const Rung& rung : ladder.rungs) {
+    const RunResult& r = rung.result;
+    if (r.figures.vaporized_fraction != ref.figures.vaporized_fraction ||
+        r.temperature != ref.temperature || r.alive != ref.alive)
+      return;
+  }
+  std::fflush(stdout);
+  std::fprintf(stderr,
+               "beampack: warning: converge: every rung of the %s ladder ended exactly as its "
+               "reference: `%s` changed no result of this scene, so its errors of 0 measure "
+               "nothing\n",
+               ladder.name.c_str(), ladder.key.c_str());
+}
+
+// convergence.svg: the vaporised fraction's error (INTERFACE.md's chart) above the final
+// temperature field's L2 error, each against wall seconds, log-log; a ladder is a series of its
+// rungs but the reference.
+std::vector<Chart> convergence_panels(const std::string& note) {
+  return {Chart{"error of the vaporised fraction against run time",
+                "wall seconds",
+                "|v_v - v_v(finest)|",
+                true,
+                true,
+                {},
+                {},
+                note},
+          Chart{"L2 error of the final temperatures against run time",
+                "wall seconds",
+                "L2 error of T, K",
+                true,
+                true,
+                {},
+                {},
+                note}};
 }
 
 }  // namespace
@@ -144,6 +216,7 @@ int converge_command(const RunOptions& options) {
   const std::vector<std::string> tables = {"convergence.csv", "convergence.svg"};
   refuse_non_files_at_outputs(out, tables);
   std::vector<Ladder> all = ladders(base);
+  std::vector<Chart> panels = convergence_panels(drop_unmeasurable_ladders(all, base.sim));
   base.packing.reset();  // each rung reads its packing when it runs: one copy at a time
   for (Ladder& ladder : all)
     for (const std::string& value : ladder.values) {  // a bad rung fails before any run starts
@@ -158,23 +231,19 @@ int converge_command(const RunOptions& options) {
       "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
       "temperature_l2_error_K,temperature_max_error_K,temperature_particles,end_time_s,"
       "peak_temperature_K,peak_temperature_error_K\n";
-  Chart chart{"error of the vaporised fraction against run time",
-              "wall seconds",
-              "|v_v - v_v(finest)|",
-              true,
-              true,
-              {}};
   int code = 0;
   for (Ladder& ladder : all) {
     code = std::max(code, run_ladder(ladder, options.quiet));
     if (ladder.rungs.empty()) continue;
     const RunResult& ref = ladder.rungs.front().result;
-    if (!(ref.figures.energy.absorbed > 0))  // no pulse, no particle, or a beam that meets none
+    const bool absorbed = ref.figures.energy.absorbed > 0;
+    std::fflush(stdout);
+    if (!absorbed)  // no pulse, no particle, or a beam that meets none
       std::fprintf(stderr,
                    "beampack: warning: converge: the %s ladder's reference run absorbed no "
                    "energy, so every error of it is 0 and measures nothing\n",
                    ladder.name.c_str());
-    Series series{ladder.name, {}, {}};
+    Series vv_series{ladder.name, {}, {}}, t_series{ladder.name, {}, {}};
     for (const Rung& rung : ladder.rungs) {
       const RunResult& r = rung.result;
       const double vv_error =
@@ -193,13 +262,17 @@ int converge_command(const RunOptions& options) {
                   r.figures.vaporized_fraction, vv_error, kelvin_text(t.l2).c_str(),
                   kelvin_text(peak_error).c_str());
       std::fflush(stdout);
-      if (&rung != &ladder.rungs.front()) {
-        series.x.push_back(r.wall_seconds);
-        series.y.push_back(vv_error);  // 0 (equal to the reference): hollow, on the lower edge
+      if (&rung != &ladder.rungs.front()) {  // 0 (equal to the reference): in the 0 band
+        vv_series.x.push_back(r.wall_seconds);
+        vv_series.y.push_back(vv_error);
+        t_series.x.push_back(r.wall_seconds);
+        t_series.y.push_back(t.l2.value_or(std::nan("")));  // none compared: no point
       }
     }
-    chart.series.push_back(series);
+    panels[0].series.push_back(vv_series);
+    panels[1].series.push_back(t_series);
     say_what_the_reference_leaves_unmeasured(ladder);
+    if (absorbed) warn_if_no_rung_differs(ladder);
   }
   const bool no_rung =
       std::all_of(all.begin(), all.end(), [](const Ladder& l) { return l.rungs.empty(); });
@@ -212,7 +285,7 @@ int converge_command(const RunOptions& options) {
   }
   write_atomically(
       {{(out / "convergence.csv").string(), [&](std::ostream& o) { o << csv; }},
-       {(out / "convergence.svg").string(), [&](std::ostream& o) { o << render_svg(chart); }}});
+       {(out / "convergence.svg").string(), [&](std::ostream& o) { o << render_svg(panels); }}});
   std::printf("converge: %s/convergence.csv, %s/convergence.svg\n", options.out_dir.c_str(),
               options.out_dir.c_str());
   return cut ? std::max(code, 1) : code;

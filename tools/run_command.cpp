@@ -1278,9 +1278,64 @@ std::vector<std::string> split_values(const std::string& arg) {
 
 }  // namespace
 
-// The swept values, trimmed; an empty one ("1,,2", a stray comma) is refused, not dropped, and so
-// is a --set of the swept key (--values would override it without a word).
-std::vector<std::string> sweep_values(const SweepOptions& options) {
+namespace {
+
+// A swept value's number as the run reads it, TOML's (1_00 is 100, 0x10 is 16: strtod stopped at
+// the `_` and made `1_00` a word); none for a word, a string, a boolean, an array or a table.
+std::optional<double> numeric_meaning(const std::string& value) {
+  try {
+    const toml::table t = toml::parse("v = " + value);
+    if (const auto* i = t.get_as<std::int64_t>("v")) return double(i->get());
+    if (const auto* d = t.get_as<double>("v")) return d->get();
+  } catch (const toml::parse_error&) {  // a bare word: the run reads it as a string
+  }
+  return std::nullopt;
+}
+
+// What a swept value means to the run, to find one given twice: 100 and 1e2 are one number,
+// `"flat"` and `flat` one word.
+std::string meaning_of(const std::string& value) {
+  if (const std::optional<double> x = numeric_meaning(value)) return "number " + exact(*x);
+  try {
+    const toml::table t = toml::parse("v = " + value);
+    if (const auto* text = t.get_as<std::string>("v")) return "text " + text->get();
+  } catch (const toml::parse_error&) {
+    return "text " + value;
+  }
+  return "value " + value;
+}
+
+// A value given twice would be run twice and drawn as one point (`--values 1,1`).
+void refuse_repeated_values(const std::vector<std::string>& values) {
+  for (std::size_t k = 1; k < values.size(); ++k)
+    for (std::size_t j = 0; j < k; ++j)
+      if (meaning_of(values[k]) == meaning_of(values[j]))
+        throw InputError("--values: value " + std::to_string(k + 1) + " (" + values[k] +
+                         ") repeats value " + std::to_string(j + 1) + " (" + values[j] +
+                         "): give each value once");
+}
+
+// Whether a --set gives the swept key: `material.conductivity=3`, or a table holding it,
+// `material={conductivity=5}` (--values would override it without a word). A --set that does
+// not read is left to the run's own message.
+bool sets_swept_key(const std::string& set, const std::string& param) {
+  const std::string key = assignment_key(set);
+  if (key == param) return true;
+  if (!param.starts_with(key + ".")) return false;  // in a table `key`, if anywhere
+  Params p;
+  try {
+    p.merge_assignment(set);
+  } catch (const InputError&) {
+    return false;
+  }
+  return p.has(param);
+}
+
+}  // namespace
+
+// The swept values, trimmed; an empty one ("1,,2", a stray comma) or a repeated one is refused,
+// not dropped, and so is a --set of the swept key (--values would override it without a word).
+std::vector<std::string> sweep_values(const SweepOptions& options, const std::string& param) {
   std::vector<std::string> items;
   for (const std::string& arg : options.values) {
     const std::vector<std::string> split = split_values(arg);
@@ -1294,28 +1349,83 @@ std::vector<std::string> sweep_values(const SweepOptions& options) {
     values.push_back(v);
   }
   if (values.empty()) throw InputError("--values: give at least one value");
-  if (options.param.find('=') != std::string::npos)
-    throw InputError("--param " + options.param +
+  refuse_repeated_values(values);
+  if (param.find('=') != std::string::npos)
+    throw InputError("--param " + param +
                      ": give the key alone (--param material.conductivity); its values come "
                      "from --values");
-  for (const std::string& s : options.run.sources.sets)
-    if (assignment_key(s) == options.param)
-      throw InputError("--set " + s + ": `" + options.param +
+  for (const std::string& s : options.run.sources.sets) {
+    if (assignment_key(s) == param)
+      throw InputError("--set " + s + ": `" + param +
                        "` is the swept --param; its values come from --values");
+    if (sets_swept_key(s, param))  // within a table
+      throw InputError("--set " + s + ": sets `" + param +
+                       "`, the swept --param; its values come from --values");
+  }
   return values;
 }
 
+namespace {
+
+// Where each value sits on sweep.svg's x axis: its number, or for a sweep of words (any value
+// not a number, `beam.profile`) its place 0, 1, 2, ... with the words as labels.
+struct SweepAxis {
+  std::vector<double> x;
+  bool named = false;
+};
+
+SweepAxis sweep_axis(const std::vector<std::string>& values) {
+  SweepAxis a;
+  for (std::size_t k = 0; k < values.size(); ++k) {
+    const std::optional<double> x = numeric_meaning(values[k]);
+    a.named |= !x || !std::isfinite(*x);  // nan, inf: no place on an axis
+    a.x.push_back(x.value_or(0.0));
+  }
+  if (a.named)
+    for (std::size_t k = 0; k < values.size(); ++k) a.x[k] = double(k);
+  return a;
+}
+
+// sweep.svg. The line joins numbers in their order on the axis (`--values 100,0,50` drew a
+// zig-zag), words in the order given. Values > 0 spanning two decades or more (optics.cutoff
+// 1e-14..1e-10, beam.rays 100..1e5) get a log axis: on a linear one all but the largest crowd
+// onto 0.
+Chart sweep_chart(const std::string& param, const std::vector<std::string>& values,
+                  const SweepAxis& axis, Series vv) {
+  bool log_x = false;
+  if (!axis.named) {
+    std::vector<std::size_t> order(vv.x.size());
+    for (std::size_t k = 0; k < order.size(); ++k) order[k] = k;
+    std::stable_sort(order.begin(), order.end(),
+                     [&](std::size_t a, std::size_t b) { return vv.x[a] < vv.x[b]; });
+    Series sorted{vv.label, {}, {}};
+    for (std::size_t k : order) sorted.x.push_back(vv.x[k]), sorted.y.push_back(vv.y[k]);
+    vv = sorted;
+    log_x = !vv.x.empty() && vv.x.front() > 0 && vv.x.back() >= 100 * vv.x.front();
+  }
+  return Chart{"vaporized fraction against " + param,
+               param + (log_x ? " (log scale)" : ""),
+               "vaporized fraction",
+               log_x,
+               false,
+               {vv},
+               axis.named ? values : std::vector<std::string>{}};
+}
+
+}  // namespace
+
 int sweep_command(const SweepOptions& options) {
   note_reading_input();
-  const std::vector<std::string> values = sweep_values(options);
+  const std::string param = trimmed(options.param);  // `--param ' k'` wrote a header " k,..."
+  const std::vector<std::string> values = sweep_values(options, param);
   const OutDir out_folder(options.run.out_dir);
   const auto threads = limit_threads(options.run.threads);
   // Resolve every configuration first: a bad value fails before any run starts.
   std::vector<RunConfig> configs;
   for (const std::string& value : values) {
     RunSources sources = options.run.sources;
-    sources.swept = options.param + "=" + value;
-    sources.swept_origin = "--param " + options.param + " --values " + value;
+    sources.swept = param + "=" + value;
+    sources.swept_origin = "--param " + param + " --values " + value;
     configs.push_back(load_run_config(sources));
     configs.back()
         .packing.reset();  // each value reads its packing when it runs: one copy at a time
@@ -1327,22 +1437,15 @@ int sweep_command(const SweepOptions& options) {
   const fs::path out(options.run.out_dir);
   const std::vector<std::string> tables = {"sweep.csv", "sweep.svg"};
   refuse_non_files_at_outputs(out, tables);
-  const std::string header = options.param + ',' + kFigureColumns + ",steps,wall_seconds";
+  const std::string header = param + ',' + kFigureColumns + ",steps,wall_seconds";
   std::string csv = header + '\n';
   Series vv{"vaporized fraction", {}, {}};
-  // Numbers on a numeric axis; words (`beam.profile`) as named places 0, 1, 2, ...
-  std::vector<double> xs(values.size());
-  bool named = false;
-  for (std::size_t k = 0; k < values.size(); ++k) {
-    char* end = nullptr;
-    xs[k] = std::strtod(values[k].c_str(), &end);
-    named |= *end != 0;
-  }
+  const SweepAxis axis = sweep_axis(values);
   const auto start = Clock::now();
   int code = 0;  // a value that fails leaves its row empty; the others still run and are written
   bool cut = false;  // an interrupt left values out (one after the last value ends leaves none)
   for (std::size_t k = 0; k < configs.size(); ++k) {
-    const std::string label = "sweep " + options.param + " = " + values[k] + ": ";
+    const std::string label = "sweep " + param + " = " + values[k] + ": ";
     RunResult r;
     try {
       r = run_scene(configs[k], options.run.quiet, label);
@@ -1357,20 +1460,20 @@ int sweep_command(const SweepOptions& options) {
         std::fprintf(stderr,
                      "beampack: sweep interrupted during %s = %s: that value and the rest are not "
                      "in sweep.csv\n",
-                     options.param.c_str(), values[k].c_str());
+                     param.c_str(), values[k].c_str());
       else  // the --out folder the sweep made goes
-        say_nothing_written("sweep interrupted during " + options.param + " = " + values[k] +
-                                ": no value ran to its end",
-                            out, tables);
+        say_nothing_written(
+            "sweep interrupted during " + param + " = " + values[k] + ": no value ran to its end",
+            out, tables);
       break;
     }
     const Figures& f = r.figures;
     csv += csv_cell(values[k]) + ',' + figure_columns(f) + ',' + std::to_string(r.counts.steps) +
            ',' + exact(r.wall_seconds) + '\n';
-    vv.x.push_back(named ? double(k) : xs[k]);
+    vv.x.push_back(axis.x[k]);
     vv.y.push_back(f.vaporized_fraction);
     std::printf("%-24s %s = %-10s v_v = %.4f  melted = %.4f  T_max = %s  (%.2f s)\n", "sweep",
-                options.param.c_str(), values[k].c_str(), f.vaporized_fraction, f.melted_fraction,
+                param.c_str(), values[k].c_str(), f.vaporized_fraction, f.melted_fraction,
                 peak_text(f, "%.0f K").c_str(), r.wall_seconds);
     std::fflush(stdout);
   }
@@ -1378,13 +1481,7 @@ int sweep_command(const SweepOptions& options) {
     if (!cut) say_nothing_written("sweep: every value failed", out, tables);
     return cut ? std::max(code, 1) : code;
   }
-  Chart chart{"vaporized fraction against " + options.param,
-              options.param,
-              "vaporized fraction",
-              false,
-              false,
-              {vv},
-              named ? values : std::vector<std::string>{}};
+  const Chart chart = sweep_chart(param, values, axis, vv);
   write_atomically(
       {{(out / "sweep.csv").string(), [&](std::ostream& o) { o << csv; }},
        {(out / "sweep.svg").string(), [&](std::ostream& o) { o << render_svg(chart); }}});

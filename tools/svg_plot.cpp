@@ -10,18 +10,25 @@ namespace beampack::tools {
 namespace {
 
 constexpr double kWidth = 640, kHeight = 420, kLeft = 80, kRight = 160, kTop = 40, kBottom = 60;
+// Below a log y axis, the band where values of exactly 0 are drawn: a log axis has no place for
+// them, and on its lower edge they read as its lowest tick (a 100% error on convergence.svg).
+constexpr double kZeroBand = 26, kZeroGap = 6;
 const char* kColours[] = {"#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"};
 
 struct Axis {
   double lo = 0, hi = 1;
   bool log = false;
+  bool empty = false;  // no value to place (a log axis of zeros only): no ticks
   double map(double v) const {
     const double a = log ? std::log10(v) : v;
     return (a - lo) / (hi - lo);
   }
 };
 
-Axis fit_axis(const std::vector<double>& values, bool log) {
+enum class Zero { always, unless_crowded };
+
+// The axis over the values (in log10 on a log axis; there values <= 0 have no place).
+Axis fit_axis(const std::vector<double>& values, bool log, Zero zero) {
   double lo = std::numeric_limits<double>::infinity(), hi = -lo;
   for (double v : values) {
     if (!std::isfinite(v) || (log && v <= 0)) continue;
@@ -29,37 +36,41 @@ Axis fit_axis(const std::vector<double>& values, bool log) {
     lo = std::min(lo, a);
     hi = std::max(hi, a);
   }
-  if (!std::isfinite(lo)) lo = 0, hi = 1;
+  const bool empty = !std::isfinite(lo);
+  if (empty) lo = 0, hi = 1;
   if (log) lo = std::floor(lo), hi = std::ceil(hi);
-  if (hi - lo < 1e-12) {  // one value: a span around it, not [v, v + 1]
+  // One value: a span around it, not [v, v + 1]. Relative: 1e-13 and 2e-13 are two values.
+  if (!(hi - lo > 1e-9 * std::max(std::abs(lo), std::abs(hi)))) {
     const double half = log || lo == 0 ? 1.0 : 0.5 * std::abs(lo);
     lo -= log ? 0.0 : half, hi += half;
   }
-  if (!log) {
+  if (!log) {  // a margin of 5% of the axis (of the values' span, it left 0.035 on the top edge
+               // of an axis from 0 to 0.035)
+    const bool from_zero = lo >= 0 && (zero == Zero::always || lo <= hi - lo);
+    if (from_zero) lo = 0;
     const double pad = 0.05 * (hi - lo);
-    lo = std::min(lo, 0.0) == 0.0 && lo >= 0 ? 0.0 : lo - pad;
+    lo = from_zero ? 0.0 : lo - pad;
     hi += pad;
   }
-  return {lo, hi, log};
+  return {lo, hi, log, empty};
 }
 
-std::string tick_label(double a, bool log) {
-  char buf[32];
-  if (log) std::snprintf(buf, sizeof buf, "1e%d", int(std::lround(a)));
-  else std::snprintf(buf, sizeof buf, "%.3g", std::abs(a) < 1e-12 ? 0.0 : a);
-  return buf;
-}
-
-// Tick positions (in axis units: log10 on a log axis) at whole decades, or at a 1-2-5 step,
-// about five to a side; each label appears once.
-std::vector<double> ticks(const Axis& a) {
+// Tick step (in axis units: decades on a log axis): whole decades, or a 1-2-5 step, about five
+// to a side.
+double tick_step(const Axis& a) {
   const double span = a.hi - a.lo;
-  double step =
-      a.log ? std::max(1.0, std::ceil(span / 6)) : std::pow(10.0, std::floor(std::log10(span / 5)));
-  if (!a.log) {
-    for (double m : {2.0, 5.0, 10.0})
-      if (span / step > 7) step = std::pow(10.0, std::floor(std::log10(span / 5))) * m;
-  }
+  if (a.log) return std::max(1.0, std::ceil(span / 6));
+  const double decade = std::pow(10.0, std::floor(std::log10(span / 5)));
+  double step = decade;
+  for (double m : {2.0, 5.0, 10.0})
+    if (span / step > 7) step = decade * m;
+  return step;
+}
+
+// Tick positions; each label appears once.
+std::vector<double> ticks(const Axis& a) {
+  if (a.empty) return {};
+  const double span = a.hi - a.lo, step = tick_step(a);
   std::vector<double> t;
   const double first = std::ceil(a.lo / step - 1e-9) * step;
   for (int k = 0; k < 20; ++k) {  // by index: a step below the values' last digit cannot stall
@@ -70,49 +81,86 @@ std::vector<double> ticks(const Axis& a) {
   return t;
 }
 
-// Text as XML character data: a swept file name `a&b.xyz` or `c<d.xyz` made the chart malformed.
-std::string xml_text(const std::string& text) {
-  std::string out;
-  for (const char c : text) {
-    switch (c) {
-      case '&':
-        out += "&amp;";
-        break;
-      case '<':
-        out += "&lt;";
-        break;
-      case '>':
-        out += "&gt;";
-        break;
-      default:
-        out += c;
-    }
+// A tick's label. A tick within round-off of 0 is 0, judged against the step (1e-13 is no
+// round-off on an axis of pulse durations; an absolute 1e-12 made every tick of one "0"); enough
+// digits that neighbouring ticks differ (1000.5 beside 1000 on an axis from 1000 to 1002).
+std::string tick_label(double a, const Axis& axis) {
+  char buf[32];
+  if (axis.log) {
+    std::snprintf(buf, sizeof buf, "1e%d", int(std::lround(a)));
+    return buf;
   }
-  return out;
+  const double step = tick_step(axis);
+  const double largest = std::max(std::abs(axis.lo), std::abs(axis.hi));
+  const int digits = std::max(3, int(std::floor(std::log10(largest / step))) + 2);
+  std::snprintf(buf, sizeof buf, "%.*g", digits, std::abs(a) < 1e-6 * step ? 0.0 : a);
+  return buf;
+}
+
+// The length of the UTF-8 sequence at text[i] when it encodes a character XML 1.0 allows, else 0.
+std::size_t xml_char_length(const std::string& text, std::size_t i) {
+  const auto lead = static_cast<unsigned char>(text[i]);
+  const std::size_t n = lead >= 0xC2 && lead <= 0xDF   ? 2
+                        : lead >= 0xE0 && lead <= 0xEF ? 3
+                        : lead >= 0xF0 && lead <= 0xF4 ? 4
+                                                       : 0;
+  if (n == 0 || i + n > text.size()) return 0;
+  char32_t code = lead & (0x7F >> n);
+  for (std::size_t k = 1; k < n; ++k) {
+    const auto c = static_cast<unsigned char>(text[i + k]);
+    if ((c & 0xC0) != 0x80) return 0;
+    code = (code << 6) | (c & 0x3F);
+  }
+  const char32_t least = n == 2 ? 0x80 : n == 3 ? 0x800 : 0x10000;  // shorter forms are invalid
+  const bool surrogate = code >= 0xD800 && code <= 0xDFFF;
+  if (code < least || surrogate || code > 0x10FFFF || code == 0xFFFE || code == 0xFFFF) return 0;
+  return n;
 }
 
 }  // namespace
 
-std::string render_svg(const Chart& chart) {
-  std::vector<double> xs, ys;
-  for (const Series& s : chart.series) {
-    xs.insert(xs.end(), s.x.begin(), s.x.end());
-    ys.insert(ys.end(), s.y.begin(), s.y.end());
+// A swept file name `a&b.xyz` or `c<d.xyz` made the chart malformed, and so did `c\x01.xyz`
+// (XML 1.0 has no escape for it, not even &#1;) and a file name that is not UTF-8.
+std::string xml_text(const std::string& text) {
+  std::string out;
+  for (std::size_t i = 0; i < text.size();) {
+    const auto c = static_cast<unsigned char>(text[i]);
+    const std::size_t n = c < 0x80 ? 1 : xml_char_length(text, i);
+    if (c == '&') out += "&amp;";
+    else if (c == '<') out += "&lt;";
+    else if (c == '>') out += "&gt;";
+    else if (n == 0 || (c < 0x20 && c != '\t' && c != '\n' && c != '\r')) {
+      char hex[8];
+      std::snprintf(hex, sizeof hex, "\\x%02X", unsigned(c));
+      out += hex;
+    } else {
+      out.append(text, i, n);
+    }
+    i += std::max<std::size_t>(n, 1);
   }
-  if (!chart.x_categories.empty())
-    xs = {0.0, double(chart.x_categories.size() - 1)};  // failed ones too
-  const Axis ax = fit_axis(xs, chart.log_x), ay = fit_axis(ys, chart.log_y);
-  const double w = kWidth - kLeft - kRight, h = kHeight - kTop - kBottom;
-  auto px = [&](double x) { return kLeft + w * ax.map(x); };
-  auto py = [&](double y) { return kTop + h * (1 - ay.map(y)); };
-  std::ostringstream o;
-  o << "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"" << kWidth << "\" height=\"" << kHeight
-    << "\" font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"100%\" height=\"100%\" "
-       "fill=\"white\"/>\n";
-  o << "<text x=\"" << kWidth / 2 - 60 << "\" y=\"22\" font-size=\"14\">" << xml_text(chart.title)
-    << "</text>\n";
-  o << "<rect x=\"" << kLeft << "\" y=\"" << kTop << "\" width=\"" << w << "\" height=\"" << h
-    << "\" fill=\"none\" stroke=\"black\"/>\n";
+  return out;
+}
+
+namespace {
+
+// Where a panel's plot sits: the frame of its axes, and below it, on a log y axis with values
+// of 0, the band that holds them.
+struct Frame {
+  double w = kWidth - kLeft - kRight, h = kHeight - kTop - kBottom;  // h: frame and band
+  double band = 0;                                                   // height of the 0 band
+  double axis_h() const { return h - band; }
+  double zero_y() const { return kTop + axis_h() + kZeroGap + 0.5 * (band - kZeroGap); }
+};
+
+bool has_zero_on_log_y(const Chart& chart) {
+  if (!chart.log_y) return false;
+  for (const Series& s : chart.series)
+    for (double y : s.y)
+      if (y == 0) return true;
+  return false;
+}
+
+void write_x_ticks(std::ostream& o, const Chart& chart, const Axis& ax, const Frame& f) {
   const bool categories = !chart.x_categories.empty();
   std::vector<double> x_ticks = ticks(ax);
   if (categories) {
@@ -120,49 +168,112 @@ std::string render_svg(const Chart& chart) {
     for (std::size_t k = 0; k < chart.x_categories.size(); ++k) x_ticks.push_back(double(k));
   }
   for (double fx : x_ticks) {
-    const double x = kLeft + w * (fx - ax.lo) / (ax.hi - ax.lo);
+    const double x = kLeft + f.w * (fx - ax.lo) / (ax.hi - ax.lo);
     const std::string label =
-        categories ? chart.x_categories[std::size_t(std::lround(fx))] : tick_label(fx, ax.log);
-    o << "<line x1=\"" << x << "\" y1=\"" << kTop + h << "\" x2=\"" << x << "\" y2=\""
-      << kTop + h + 5 << "\" stroke=\"black\"/>"
-      << "<text x=\"" << x - 15 << "\" y=\"" << kTop + h + 20 << "\">" << xml_text(label)
+        categories ? chart.x_categories[std::size_t(std::lround(fx))] : tick_label(fx, ax);
+    o << "<line x1=\"" << x << "\" y1=\"" << kTop + f.h << "\" x2=\"" << x << "\" y2=\""
+      << kTop + f.h + 5 << "\" stroke=\"black\"/>"
+      << "<text x=\"" << x - 15 << "\" y=\"" << kTop + f.h + 20 << "\">" << xml_text(label)
       << "</text>\n";
   }
+}
+
+// The y ticks, the 0 band (labelled 0 beside it, no tick: it is no place on the axis), and a
+// note in the frame when a log axis has no value above 0 to place.
+void write_y_ticks(std::ostream& o, const Axis& ay, const Frame& f) {
   for (double fy : ticks(ay)) {
-    const double y = kTop + h * (1 - (fy - ay.lo) / (ay.hi - ay.lo));
+    const double y = kTop + f.axis_h() * (1 - (fy - ay.lo) / (ay.hi - ay.lo));
     o << "<line x1=\"" << kLeft - 5 << "\" y1=\"" << y << "\" x2=\"" << kLeft << "\" y2=\"" << y
       << "\" stroke=\"black\"/>"
-      << "<text x=\"" << 8 << "\" y=\"" << y + 4 << "\">" << tick_label(fy, ay.log) << "</text>\n";
+      << "<text x=\"" << 8 << "\" y=\"" << y + 4 << "\">" << xml_text(tick_label(fy, ay))
+      << "</text>\n";
   }
-  o << "<text x=\"" << kLeft + w / 2 - 40 << "\" y=\"" << kHeight - 15 << "\">"
-    << xml_text(chart.x_label) << "</text>\n";
-  o << "<text transform=\"translate(18," << kTop + h / 2 + 40 << ") rotate(-90)\">"
-    << xml_text(chart.y_label) << "</text>\n";
-  bool zeros = false;  // on a log y axis a 0 sits on the lower edge as a hollow circle
+  if (f.band > 0)
+    o << "<rect x=\"" << kLeft << "\" y=\"" << kTop + f.axis_h() + kZeroGap << "\" width=\"" << f.w
+      << "\" height=\"" << f.band - kZeroGap
+      << "\" fill=\"#eeeeee\" stroke=\"black\" stroke-dasharray=\"4,3\"/>"
+      << "<text x=\"" << 8 << "\" y=\"" << f.zero_y() + 4 << "\">0</text>\n";
+  if (ay.empty)
+    o << "<text x=\"" << kLeft + 10 << "\" y=\"" << kTop + f.axis_h() / 2 << "\">"
+      << (f.band > 0 ? "every value is 0 (the band below)" : "no value above 0") << "</text>\n";
+}
+
+// The series: markers, and lines between neighbouring points on the axes (none into or out of
+// the 0 band: the axis does not run on to it).
+void write_series(std::ostream& o, const Chart& chart, const Axis& ax, const Axis& ay,
+                  const Frame& f) {
   for (std::size_t k = 0; k < chart.series.size(); ++k) {
     const Series& s = chart.series[k];
     const char* colour = kColours[k % 6];
     std::ostringstream path;
+    bool joined = false;  // the last point is on the axes: the next one joins it
     for (std::size_t i = 0; i < s.x.size(); ++i) {
-      if (!std::isfinite(s.y[i]) || (chart.log_y && s.y[i] < 0) || (chart.log_x && s.x[i] <= 0))
-        continue;
-      const bool zero = chart.log_y && s.y[i] == 0;
-      zeros = zeros || zero;
-      const double y = zero ? kTop + h : py(s.y[i]);
-      path << (path.tellp() == 0 ? "M" : " L") << px(s.x[i]) << ',' << y;
-      o << "<circle cx=\"" << px(s.x[i]) << "\" cy=\"" << y << "\" r=\"3\" fill=\""
-        << (zero ? "white" : colour) << "\" stroke=\"" << colour << "\"/>\n";
+      const bool placed = std::isfinite(s.y[i]) && !(chart.log_y && s.y[i] < 0) &&
+                          !(chart.log_x && s.x[i] <= 0) && std::isfinite(s.x[i]);
+      const bool zero = placed && chart.log_y && s.y[i] == 0;
+      if (!placed || zero) joined = false;
+      if (!placed) continue;
+      const double x = kLeft + f.w * ax.map(s.x[i]);
+      const double y = zero ? f.zero_y() : kTop + f.axis_h() * (1 - ay.map(s.y[i]));
+      if (!zero) path << (joined ? " L" : " M") << x << ',' << y;
+      joined = !zero;
+      o << "<circle cx=\"" << x << "\" cy=\"" << y << "\" r=\"3\" fill=\"" << colour << "\"/>\n";
     }
-    o << "<path d=\"" << path.str() << "\" fill=\"none\" stroke=\"" << colour
-      << "\" stroke-width=\"1.5\"/>\n";
+    if (path.tellp() > 0)
+      o << "<path d=\"" << path.str().substr(1) << "\" fill=\"none\" stroke=\"" << colour
+        << "\" stroke-width=\"1.5\"/>\n";
     o << "<text x=\"" << kWidth - kRight + 10 << "\" y=\"" << kTop + 15 + 18 * k << "\" fill=\""
       << colour << "\">" << xml_text(s.label) << "</text>\n";
   }
-  if (zeros)
-    o << "<text x=\"" << kWidth - kRight + 10 << "\" y=\"" << kTop + h
-      << "\" font-size=\"10\">hollow: 0</text>\n";
+}
+
+void write_panel(std::ostream& o, const Chart& chart) {
+  std::vector<double> xs, ys;
+  for (const Series& s : chart.series) {
+    xs.insert(xs.end(), s.x.begin(), s.x.end());
+    ys.insert(ys.end(), s.y.begin(), s.y.end());
+  }
+  if (!chart.x_categories.empty())
+    xs = {0.0, double(chart.x_categories.size() - 1)};  // failed ones too
+  const Axis ax = fit_axis(xs, chart.log_x, Zero::unless_crowded);
+  const Axis ay = fit_axis(ys, chart.log_y, Zero::always);
+  Frame f;
+  if (has_zero_on_log_y(chart)) f.band = kZeroBand;
+  o << "<text x=\"" << kLeft + f.w / 2 << "\" y=\"22\" font-size=\"14\" text-anchor=\"middle\">"
+    << xml_text(chart.title) << "</text>\n";
+  if (!chart.note.empty())
+    o << "<text x=\"" << kLeft << "\" y=\"" << kTop - 6 << "\" font-size=\"10\">"
+      << xml_text(chart.note) << "</text>\n";
+  o << "<rect x=\"" << kLeft << "\" y=\"" << kTop << "\" width=\"" << f.w << "\" height=\""
+    << f.axis_h() << "\" fill=\"none\" stroke=\"black\"/>\n";
+  write_x_ticks(o, chart, ax, f);
+  write_y_ticks(o, ay, f);
+  o << "<text x=\"" << kLeft + f.w / 2 << "\" y=\"" << kHeight - 15 << "\" text-anchor=\"middle\">"
+    << xml_text(chart.x_label) << "</text>\n";
+  // Between the tick labels and the ticks (at x = 18 it ran through the labels).
+  o << "<text transform=\"translate(" << kLeft - 16 << ',' << kTop + f.axis_h() / 2
+    << ") rotate(-90)\" text-anchor=\"middle\">" << xml_text(chart.y_label) << "</text>\n";
+  write_series(o, chart, ax, ay, f);
+}
+
+}  // namespace
+
+std::string render_svg(const std::vector<Chart>& panels) {
+  std::ostringstream o;
+  o << "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"" << kWidth << "\" height=\""
+    << kHeight * double(panels.size()) << "\" font-family=\"sans-serif\" font-size=\"12\">\n"
+    << "<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n";
+  for (std::size_t k = 0; k < panels.size(); ++k) {
+    o << "<g transform=\"translate(0," << kHeight * double(k) << ")\">\n";
+    write_panel(o, panels[k]);
+    o << "</g>\n";
+  }
   o << "</svg>\n";
   return o.str();
+}
+
+std::string render_svg(const Chart& chart) {
+  return render_svg(std::vector<Chart>{chart});
 }
 
 }  // namespace beampack::tools
