@@ -7,6 +7,7 @@
 #include <sstream>
 
 #include "geometry/check.h"
+#include "geometry/compensated_sum.h"
 #include "geometry/contact.h"
 #include "geometry/error.h"
 
@@ -113,10 +114,12 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
   check_step_limit();
   absorbed_.assign(particles_.size(), 0.0);
   deposits_.assign(particles_.size(), 0.0);
+  CompensatedSum volume;  // as volume_fraction sums: 6 of 200 equal spheres read 0.03, not ...9988
   for (std::size_t i = 0; i < particles_.size(); ++i) {
-    total_volume_ += particles_.volume(i);
+    volume.add(particles_.volume(i));
     max_temperature_ = std::max(max_temperature_, particles_.temperature[i]);
   }
+  total_volume_ = volume.value();
   counts_.particles = particles_.size();
 }
 
@@ -580,10 +583,12 @@ std::string Simulation::skip_reason(int stage) const {
 
 double Simulation::volume_fraction(Phase phase) const {
   if (total_volume_ <= 0) return 0;
-  double v = 0;
+  // Compensated: a plain sum of 10^6 volumes drifts by ~1e-13, and equal spheres' fractions
+  // showed it (0.029999999999999884 for 6 of 200).
+  CompensatedSum v;
   for (std::size_t i = 0; i < particles_.size(); ++i)
-    if (particles_.phase[i] == phase) v += particles_.volume(i);
-  return v / total_volume_;
+    if (particles_.phase[i] == phase) v.add(particles_.volume(i));
+  return v.value() / total_volume_;
 }
 
 Figures Simulation::figures() const {
