@@ -455,6 +455,7 @@ bool Params::differs_from_default(const std::string& key) const {
   if (fallback == number_defaults_.end() || !node) return true;
   if (const auto* v = node->as_floating_point()) return v->get() != fallback->second;
   if (const auto* i = node->as_integer()) return double(i->get()) != fallback->second;
+  if (const auto* b = node->as_boolean()) return (b->get() ? 1.0 : 0.0) != fallback->second;
   return true;
 }
 
@@ -579,6 +580,7 @@ bool Params::flag(const std::string& key, bool fallback) {
     v = node->as_boolean()->get();
   }
   record(key, toml::value<bool>(v));
+  number_defaults_[key] = fallback ? 1.0 : 0.0;
   return v;
 }
 

@@ -104,7 +104,8 @@ class Params {
   std::string empty_file_;  // a run file that set no key ("" when none did)
   std::set<std::string> used_;
   toml::table resolved_;
-  std::map<std::string, double> number_defaults_;  // key -> fallback of number() and integer()
+  // key -> fallback of number() and integer(), and of flag() as 0 or 1
+  std::map<std::string, double> number_defaults_;
 };
 
 // `s` without the spaces and tabs at either end.

@@ -140,7 +140,9 @@ void read_beam(Params& p, BeamSpec& b) {
   b.decay = p.number("beam.decay", 2.0, 0, 1e3);
   b.gaussian_width = p.number("beam.gaussian_width", 1.0, 0, 1e3, true);
   b.seed = std::uint64_t(p.integer("beam.seed", 1, 0, std::numeric_limits<std::int64_t>::max()));
-  b.resample = p.flag("beam.resample", false);
+  // Stratified rays are fixed: a resample there is a key the scene does not read
+  // (check_unread_keys: refused on the command line, a warning in a run file).
+  b.resample = p.flag("beam.resample", false) && b.sampling == "random";
   const double dx = p.number("beam.direction_x", 1.0, -1, 1);
   const double dy = p.number("beam.direction_y", 0.0, -1, 1);
   const double dz = p.number("beam.direction_z", 0.0, -1, 1);
@@ -151,6 +153,51 @@ void read_beam(Params& p, BeamSpec& b) {
     p.fail("beam.direction_x", v.str(), "the direction must not be zero (length >= 1e-12)");
   }
   b.direction = d.normalized();
+}
+
+// Whether `key` was given after `other`: in a later layer, or given where `other` is a default.
+bool given_after(const Params& p, const std::string& key, const std::string& other) {
+  return p.set_later(key, other) || (p.has(key) && !p.has(other)) ||
+         (p.set_on_command_line(key) && !p.set_on_command_line(other));
+}
+
+// Two keys that must keep an order, low < high: the refusal names the key the user set last
+// (a later layer, --set over a file or preset, anything over a default) and where the other one
+// came from, so that `--set material.melt_temperature=800` over a preset blames that --set, not
+// the preset's vapour temperature.
+void check_order(const Params& p, const std::string& low_key, double low,
+                 const std::string& high_key, double high, const std::string& why = "") {
+  if (low < high) return;
+  if (given_after(p, low_key, high_key))
+    p.fail(low_key, shown_number(low),
+           "must be < " + high_key + " = " + shown_number(high) + " (" + p.source_of(high_key) +
+               ")" + why);
+  p.fail(
+      high_key, shown_number(high),
+      "must be > " + low_key + " = " + shown_number(low) + " (" + p.source_of(low_key) + ")" + why);
+}
+
+// A linearly polarised beam stays linear only on real indices >= 1 (tracer.cpp); the message
+// blames whichever of the polarisation and the offending index was given last, with the other's
+// source, as check_order does.
+void check_linear_light(const Params& p, const MaterialOptics& m) {
+  const std::pair<const char*, bool> offending[] = {{"optics.n_solid", m.n_solid.real() < 1.0},
+                                                    {"optics.k_solid", m.n_solid.imag() > 0.0},
+                                                    {"optics.n_liquid", m.n_liquid.real() < 1.0},
+                                                    {"optics.k_liquid", m.n_liquid.imag() > 0.0}};
+  const std::string why =
+      ": the reflected light is elliptical there (a metal, k > 0, or an index below 1), which is "
+      "not followed; use optics.polarisation = \"unpolarised\"";
+  const std::string polarisation = "optics.polarisation";
+  for (const auto& [key, bad] : offending) {
+    if (!bad) continue;
+    if (given_after(p, key, polarisation))
+      p.fail(key, p.shown(key),
+             "with " + polarisation + " = " + p.shown(polarisation) + " (" +
+                 p.source_of(polarisation) + ")" + why);
+    p.fail(polarisation, p.shown(polarisation),
+           "with " + std::string(key) + " = " + p.shown(key) + " (" + p.source_of(key) + ")" + why);
+  }
 }
 
 void read_optics(Params& p, OpticsSpec& o) {
@@ -168,25 +215,7 @@ void read_optics(Params& p, OpticsSpec& o) {
                                             "unpolarised", "degrees", false);
   o.polarisation = {word.empty(), degrees * std::numbers::pi / 180.0};
   o.packets = p.flag("optics.packets", true);
-}
-
-// Two keys that must keep an order, low < high: the refusal names the key the user set last
-// (a later layer, --set over a file or preset, anything over a default) and where the other one
-// came from, so that `--set material.melt_temperature=800` over a preset blames that --set, not
-// the preset's vapour temperature.
-void check_order(const Params& p, const std::string& low_key, double low,
-                 const std::string& high_key, double high, const std::string& why = "") {
-  if (low < high) return;
-  const bool low_is_newer = p.set_later(low_key, high_key) ||
-                            (p.has(low_key) && !p.has(high_key)) ||
-                            (p.set_on_command_line(low_key) && !p.set_on_command_line(high_key));
-  if (low_is_newer)
-    p.fail(low_key, shown_number(low),
-           "must be < " + high_key + " = " + shown_number(high) + " (" + p.source_of(high_key) +
-               ")" + why);
-  p.fail(
-      high_key, shown_number(high),
-      "must be > " + low_key + " = " + shown_number(low) + " (" + p.source_of(low_key) + ")" + why);
+  if (o.polarisation.linear) check_linear_light(p, m);
 }
 
 void read_material(Params& p, Material& m) {
@@ -372,6 +401,8 @@ std::vector<std::string> check_unread_keys(const Params& p, const SimulationSpec
       {"beam.gaussian_width", s.beam.profile == "gaussian", "beam.profile",
        "applies to beam.profile = \"gaussian\" only" + is_profile},
       {"beam.seed", s.beam.sampling == "random", "beam.sampling",
+       "applies to beam.sampling = \"random\" only (stratified rays are fixed)"},
+      {"beam.resample", s.beam.sampling == "random", "beam.sampling",
        "applies to beam.sampling = \"random\" only (stratified rays are fixed)"},
       {"pulses.energy", duration == "\"energy\"", "pulses.duration",
        "applies to pulses.duration = \"energy\" only (it is " + duration + ")"},
