@@ -1,6 +1,7 @@
-// `beampack validate --stiff`: a grid over conductivity, time step, index, particle count and
-// solver. Each cell either runs, stays bounded and closes its ledgers, or is refused with a
-// clear message; anything else (NaN, crash, unbounded temperature) is a failure.
+// `beampack validate --stiff`: a grid over conductivity, time step, index, particle count, phi and
+// solver. Each cell either runs, stays bounded, closes its ledgers, conducts as its conductivity
+// says and agrees with the other solvers of its group, or is refused for one of the reasons the
+// grid expects; anything else (NaN, crash, unbounded temperature, another refusal) is a failure.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -20,15 +21,28 @@ namespace {
 // A step as long as the pulses' period: each pulse, then its cooling, in one step.
 constexpr const char* kCoolingStep = "1e-9";
 
+// The solvers of a group agree to this (K): thermal.tolerance (1e-10, relative) of temperatures
+// up to 1e3 K is 1e-7 K per solve; ten times that. The worst disagreement measured over the grid
+// is 4.6e-8 K; a fixed-point iteration stopped at 1e-6 instead of 1e-10 is off by 5.8e-6 K.
+constexpr double kSolverAgreement = 1e-6;
+
+// Heat that solid particles hold beyond what they absorbed (conducted_fraction): round-off where
+// nothing conducts (K = 0 or one particle; at most 1.1e-12 measured, a metal's few joules summed
+// over many hits), at least 7.2e-3 (measured) where particles with K > 0 touch.
+constexpr double kNoConduction = 1e-10, kConducted = 1e-4;
+// The vaporised fractions of two solvers that end in the same phases: the same sum, to round-off.
+constexpr double kRoundOff = 1e-12;
+
 struct Cell {
-  std::string conductivity, dt, index, count, solver;
+  std::string conductivity, dt, index, count, phi, solver;
 };
 
 struct Outcome {
-  std::string status;  // ok | refused | FAIL
+  std::string status;  // ok | refused | FAIL | interrupted
   bool bounded = true;
   double optics_error = 0, heat_error = 0, seconds = 0;
   std::string note;
+  FinalState end;  // for the comparison of a group's solvers
 };
 
 std::vector<std::string> index_sets(const std::string& index) {
@@ -38,7 +52,7 @@ std::vector<std::string> index_sets(const std::string& index) {
   return {"optics.n_solid=" + index, "optics.n_liquid=" + index};
 }
 
-Outcome run_cell(const Cell& c) {
+RunSources cell_sources(const Cell& c) {
   RunSources sources;
   sources.preset = "zohdi2013";
   sources.sets = {"pulses.count=2",
@@ -47,50 +61,93 @@ Outcome run_cell(const Cell& c) {
                   "material.conductivity=" + c.conductivity,
                   "thermal.solver=\"" + c.solver + "\"",
                   "packing.count=" + c.count,
-                  "thermal.dt=" + c.dt};
+                  "thermal.dt=" + c.dt,
+                  "thermal.phi=" + c.phi};
   for (const auto& s : index_sets(c.index)) sources.sets.push_back(s);
   // The stiffest real step: a whole pulses.period of cooling in one step (dt G / c up to ~1e9).
   if (c.dt == kCoolingStep) sources.sets.push_back("pulses.period=" + c.dt);
+  return sources;
+}
+
+// The heat that solid particles hold beyond what they absorbed, over all the heat absorbed: sum
+// over them of max(0, m_i C_S (theta_i - theta_0) / M - absorbed_i). Only conduction gives a
+// particle more: one that crossed a latent band (and stayed, or fell back, below theta_m) holds
+// less as sensible heat than it absorbed, and without walls nothing else adds heat.
+double conducted_fraction(const Simulation& sim) {
+  const Particles& p = sim.particles();
+  const Material& m = sim.spec().materials[0];
+  const double theta0 = sim.spec().packing.initial_temperature;
+  const double total = sim.figures().energy.absorbed;
+  double gained = 0;
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    if (!p.alive[i] || p.phase[i] != Phase::solid) continue;
+    const double mass = p.volume(i) * m.density * m.c_solid / sim.spec().thermal.time_scaling;
+    gained += std::max(0.0, mass * (p.temperature[i] - theta0) - sim.absorbed()[i]);
+  }
+  return total > 0 ? gained / total : 0;
+}
+
+// Bounded: no particle below the initial 300 K (nothing cools it without walls), none above what
+// all the absorbed energy could do to the lightest particle, and all finite.
+bool bounded(const Simulation& sim) {
+  const auto& t = sim.particles().temperature;
+  const double lo = *std::min_element(t.begin(), t.end());
+  const double hi = *std::max_element(t.begin(), t.end());
+  const Material& m = sim.spec().materials[0];  // all share one material here
+  double lightest = std::numeric_limits<double>::infinity();
+  for (std::size_t i = 0; i < sim.particles().size(); ++i)
+    lightest = std::min(lightest, sim.particles().volume(i));
+  const double mass = std::isfinite(lightest)
+                          ? lightest * m.density * m.c_solid / sim.spec().thermal.time_scaling
+                          : 1.0;
+  return std::isfinite(lo) && std::isfinite(hi) && lo >= 300 - 1e-6 &&
+         hi <= 300 + sim.figures().energy.absorbed / mass + 1e-6;
+}
+
+// The checks of a cell that ran: bounded, ledgers closed, conduction where K says.
+void check_run(const Cell& c, const Simulation& sim, Outcome& o) {
+  const EnergyLedger e = sim.figures().energy;
+  o.optics_error = e.injected > 0 ? std::abs(e.optics_imbalance()) / e.injected : 0;
+  o.heat_error = e.heat_error();
+  o.bounded = bounded(sim);
+  // The heat ledger closes to round-off whatever the solver: the iterative ones restore each
+  // component's energy after they stop (they lost up to 1.8e-9 of it in the cooling cells
+  // before, within the tolerance-sized bound this grid used to apply; the worst now is 4e-12).
+  const bool ledgers = o.optics_error < 1e-12 && o.heat_error <= 1e-10;
+  // Closed ledgers cannot see heat put in the wrong particle or conduction left out: at K = 0 (or
+  // alone) each particle keeps what it absorbed; at K > 0 the touching ones exchange heat.
+  const double gained = conducted_fraction(sim);
+  const bool conducts = c.conductivity != "0" && c.count != "1";
+  const bool conduction = conducts ? gained >= kConducted : gained <= kNoConduction;
+  o.status = o.bounded && ledgers && conduction ? "ok" : "FAIL";
+  char note[200];
+  std::snprintf(note, sizeof note,
+                "heat solid particles hold beyond what they absorbed / heat absorbed = %.2g: "
+                "must be %s %g %s",
+                gained, conducts ? ">=" : "<=", conducts ? kConducted : kNoConduction,
+                conducts ? "(K > 0, particles touch)" : "(nothing conducts)");
+  if (!ledgers) o.note = "ledger does not close";
+  if (!conduction) o.note = note;
+  o.end = {sim.particles().temperature, sim.particles().phase, sim.figures().vaporized_fraction};
+}
+
+Outcome run_cell(const Cell& c) {
   Outcome o;
   const auto start = std::chrono::steady_clock::now();
   try {
-    const RunConfig config = load_run_config(sources);
+    const RunConfig config = load_run_config(cell_sources(c));
     Simulation sim(config.sim);
     sim.run(&stop_requested());
     if (!sim.done()) {
       o.status = "interrupted";
       return o;
     }
-    const Figures f = sim.figures();
-    const EnergyLedger& e = f.energy;
-    o.optics_error = e.injected > 0 ? std::abs(e.optics_imbalance()) / e.injected : 0;
-    o.heat_error = e.heat_error();
-    // Bounded: no particle below the initial 300 K (nothing cools it without walls), none above
-    // what all the absorbed energy could do to the lightest particle, and all finite.
-    const auto& t = sim.particles().temperature;
-    const double lo = *std::min_element(t.begin(), t.end());
-    const double hi = *std::max_element(t.begin(), t.end());
-    // The lightest particle's thermal mass m C_S / M (all share one material here).
-    const Material& m = sim.spec().materials[0];
-    double lightest = std::numeric_limits<double>::infinity();
-    for (std::size_t i = 0; i < sim.particles().size(); ++i)
-      lightest = std::min(lightest, sim.particles().volume(i));
-    const double mass = std::isfinite(lightest)
-                            ? lightest * m.density * m.c_solid / sim.spec().thermal.time_scaling
-                            : 1.0;
-    o.bounded = std::isfinite(lo) && std::isfinite(hi) && lo >= 300 - 1e-6 &&
-                hi <= 300 + e.absorbed / mass + 1e-6;
-    // The heat ledger closes to round-off whatever the solver: the iterative ones restore each
-    // component's energy after they stop (they lost up to 1.8e-9 of it in the cooling cells
-    // before, within the tolerance-sized bound this grid used to apply; the worst now is 4e-12).
-    const bool ledgers = o.optics_error < 1e-12 && o.heat_error <= 1e-10;
-    o.status = o.bounded && ledgers ? "ok" : "FAIL";
-    if (!ledgers) o.note = "ledger does not close";
+    check_run(c, sim, o);
   } catch (const InputError& e) {
-    o.status = "refused";
+    o.status = expected_refusal(c.solver, c.phi, e.what(), false) ? "refused" : "FAIL";
     o.note = e.what();
   } catch (const SolverRefusal& e) {  // any other RunError (a NaN found mid-run) is a failure
-    o.status = "refused";
+    o.status = expected_refusal(c.solver, c.phi, e.what(), true) ? "refused" : "FAIL";
     o.note = e.what();
   } catch (const std::exception& e) {
     o.status = "FAIL";
@@ -100,38 +157,118 @@ Outcome run_cell(const Cell& c) {
   return o;
 }
 
+// The solvers of a group solved the same problem: each one that ran must end where the direct
+// solver did (or, where it did not run, the first that did). A disagreeing cell fails.
+void compare_solvers(const std::vector<Cell>& group, std::vector<Outcome>& outcomes) {
+  std::size_t ref = group.size();
+  for (std::size_t k = 0; k < group.size(); ++k)
+    if (outcomes[k].status == "ok" && (ref == group.size() || group[k].solver == "direct")) ref = k;
+  for (std::size_t k = 0; k < group.size() && ref < group.size(); ++k) {
+    if (k == ref || outcomes[k].status != "ok") continue;
+    const std::string why = solver_disagreement(outcomes[ref].end, outcomes[k].end);
+    if (why.empty()) continue;
+    outcomes[k].status = "FAIL";
+    outcomes[k].note = "differs from " + group[ref].solver + ": " + why;
+  }
+}
+
+// Every cell of the grid, a group's solvers next to each other: phi = 1 over the whole grid, and
+// slices at phi = 1/2 (Crank-Nicolson) and phi = 0 (explicit) where conduction makes phi matter:
+// steps beyond their limit sub-stepped, or refused beyond thermal.max_substeps. (phi = 1/2 at
+// K = 1e6 with 3000 particles, 1500 sub-steps a step, would take 76 s alone.)
+std::vector<std::vector<Cell>> grid() {
+  const std::vector<std::string> solvers{"fixed-point", "cg", "direct", "auto"};
+  const std::vector<std::string> steps{"\"paper\"", "1e-13", "\"pulse\"", kCoolingStep};
+  std::vector<std::vector<Cell>> groups;
+  const auto add = [&](const Cell& c) {
+    groups.emplace_back();
+    for (const auto& s : solvers) {
+      groups.back().push_back(c);
+      groups.back().back().solver = s;
+    }
+  };
+  for (const char* k : {"0", "100", "10000", "1000000"})
+    for (const auto& dt : steps)
+      for (const char* n : {"1.0", "1.4", "20", "metal"})
+        for (const char* count : {"1", "100", "3000"}) add({k, dt, n, count, "1.0", ""});
+  for (const std::string phi : {"0.5", "0.0"})
+    for (const std::string k : {"100", "10000", "1000000"})
+      for (const auto& dt : steps)
+        for (const std::string count : {"100", "3000"})
+          if (count == "100" || (phi == "0.5" && k != "1000000"))
+            add({k, dt, "1.4", count, phi, ""});
+  return groups;
+}
+
 }  // namespace
 
+// The refusals the grid expects, each a documented limit of what the cell asks: the fixed-point
+// iteration (3.11) past its contraction limit, CG at thermal.max_iterations, and phi < 1 beyond
+// thermal.max_substeps. Any other refusal (a renamed key in the cell's settings, a validation that
+// rejects valid input, CG breaking down) is a failure.
+bool expected_refusal(const std::string& solver, const std::string& phi, const std::string& message,
+                      bool solver_refusal) {
+  const auto starts = [&](const char* prefix) { return message.rfind(prefix, 0) == 0; };
+  if (solver_refusal && solver == "fixed-point")
+    return starts("thermal fixed-point iteration (3.11) diverges at iteration");
+  if (solver_refusal && solver == "cg")
+    return starts("thermal conjugate gradients did not reach thermal.tolerance");
+  return !solver_refusal && phi != "1.0" &&
+         message.find(" sub-steps > thermal.max_substeps = ") != std::string::npos;
+}
+
+// Temperatures to kSolverAgreement, phases and the vaporised fraction exactly (to round-off).
+std::string solver_disagreement(const FinalState& reference, const FinalState& other) {
+  if (other.temperature.size() != reference.temperature.size())
+    return std::to_string(other.temperature.size()) + " particles, not " +
+           std::to_string(reference.temperature.size());
+  double worst = 0;
+  std::size_t phases = 0;
+  for (std::size_t i = 0; i < reference.temperature.size(); ++i) {
+    const double d = std::abs(other.temperature[i] - reference.temperature[i]);
+    if (!std::isnan(worst) && !(d <= worst)) worst = d;  // a NaN too, and it stays
+    phases += other.phase[i] != reference.phase[i];
+  }
+  const double dv = std::abs(other.vaporized_fraction - reference.vaporized_fraction);
+  if (worst <= kSolverAgreement && phases == 0 && dv <= kRoundOff) return "";
+  char why[200];
+  std::snprintf(why, sizeof why,
+                "max |dtheta| = %.3g K (limit %g K), %zu particles in another phase, vaporised "
+                "fraction off by %.3g",
+                worst, kSolverAgreement, phases, dv);
+  return why;
+}
+
 int run_stability_report(bool quiet) {
-  const std::vector<std::string> conductivities{"0", "100", "10000", "1000000"};
-  const std::vector<std::string> steps{"\"paper\"", "1e-13", "\"pulse\"", kCoolingStep};
-  const std::vector<std::string> indices{"1.0", "1.4", "20", "metal"};
-  const std::vector<std::string> counts{"1", "100", "3000"};
-  const std::vector<std::string> solvers{"fixed-point", "cg", "direct", "auto"};
-  std::vector<Cell> cells;
-  for (const auto& k : conductivities)
-    for (const auto& dt : steps)
-      for (const auto& n : indices)
-        for (const auto& count : counts)
-          for (const auto& solver : solvers) cells.push_back({k, dt, n, count, solver});
+  const std::vector<std::vector<Cell>> groups = grid();
+  const std::size_t cells = groups.size() * groups.front().size();
   int ok = 0, refused = 0, failed = 0;
-  std::printf("%-8s %-9s %-6s %-6s %-12s %-8s %-8s %-10s %-10s %s\n", "K", "dt", "index", "N",
-              "solver", "status", "bounded", "optics", "heat", "note");
-  for (const Cell& cell : cells) {
-    const Outcome o = run_cell(cell);
-    if (o.status == "interrupted") {  // Ctrl-C: the cells so far stand, the rest never ran
+  std::printf("%-8s %-9s %-6s %-6s %-4s %-12s %-8s %-8s %-10s %-10s %s\n", "K", "dt", "index", "N",
+              "phi", "solver", "status", "bounded", "optics", "heat", "note");
+  for (const auto& group : groups) {
+    std::vector<Outcome> outcomes;
+    for (const Cell& cell : group) {
+      outcomes.push_back(run_cell(cell));
+      if (outcomes.back().status != "interrupted") continue;
+      // Ctrl-C: the groups so far stand, the rest never ran (nor compared)
       std::printf(
           "stability: interrupted after %d of %zu cells: %d passed, %d failed, %d refused\n",
-          ok + failed + refused, cells.size(), ok, failed, refused);
+          ok + failed + refused, cells, ok, failed, refused);
       return 1;
     }
-    (o.status == "ok" ? ok : o.status == "refused" ? refused : failed) += 1;
-    if (quiet && o.status == "ok") continue;
-    std::string note = o.note.substr(0, 90);
-    std::printf("%-8s %-9s %-6s %-6s %-12s %-8s %-8s %-10.1e %-10.1e %s\n",
-                cell.conductivity.c_str(), cell.dt.c_str(), cell.index.c_str(), cell.count.c_str(),
-                cell.solver.c_str(), o.status.c_str(), o.bounded ? "yes" : "NO", o.optics_error,
-                o.heat_error, note.c_str());
+    compare_solvers(group, outcomes);
+    for (std::size_t k = 0; k < group.size(); ++k) {
+      const Cell& cell = group[k];
+      const Outcome& o = outcomes[k];
+      (o.status == "ok" ? ok : o.status == "refused" ? refused : failed) += 1;
+      if (quiet && o.status == "ok") continue;
+      // A failure prints its whole message; a refusal the start of its reason.
+      const std::string note = o.status == "FAIL" ? o.note : o.note.substr(0, 90);
+      std::printf("%-8s %-9s %-6s %-6s %-4s %-12s %-8s %-8s %-10.1e %-10.1e %s\n",
+                  cell.conductivity.c_str(), cell.dt.c_str(), cell.index.c_str(),
+                  cell.count.c_str(), cell.phi.c_str(), cell.solver.c_str(), o.status.c_str(),
+                  o.bounded ? "yes" : "NO", o.optics_error, o.heat_error, note.c_str());
+    }
     std::fflush(stdout);
   }
   std::printf("stability: %d passed, %d failed, %d refused with a message\n", ok, failed, refused);
