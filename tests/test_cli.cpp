@@ -1239,6 +1239,12 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
   EXPECT_CONTAINS(none.output,
                   "nothing to resume (it kept no periodic checkpoint to start again "
                   "from)");
+  const Result none_elsewhere =
+      run("run --resume " + plain.string() + " --out " + (plain / "again").string() + " --quiet");
+  EXPECT_EQ(none_elsewhere.code, 2) << none_elsewhere.output;
+  EXPECT_CONTAINS(none_elsewhere.output,
+                  "the run there finished (summary.json, 5 pulses): nothing to resume (it kept "
+                  "no periodic checkpoint to start again from)");
   write(other / "summary.json", R"({"vaporized_fraction": 0, "config": {}})");
   const std::string stale = write(other / "particles_0011.vtp", "a frame of an earlier run");
   // Past pulse 9999 a frame's number has five digits: still the earlier run's.

@@ -944,13 +944,16 @@ void remove_earlier_run(const fs::path& dir, bool temporaries_only) {
 
 // `--resume DIR` into DIR whose run finished: nothing is left to run. A checkpoint there is a
 // periodic one (--checkpoint-every), and resuming it would run the tail again over the results.
-void refuse_to_resume_a_finished_run(const fs::path& dir) {
+// Into another folder such a checkpoint runs again; without one, the refusal says why there is
+// none (it said only that DIR/checkpoint.bin could not be read).
+void refuse_to_resume_a_finished_run(const fs::path& dir, bool in_place) {
   const nlohmann::json j = summary_in(dir);
   if (!j.is_object() || !j.contains("interrupted") || j["interrupted"] != false ||
       j.contains("failed"))
     return;  // a failed run's periodic checkpoint may be resumed (a disk that was full)
   std::error_code ec;
   const bool periodic = fs::is_regular_file(dir / "checkpoint.bin", ec);
+  if (periodic && !in_place) return;
   const int pulses = j.value("pulses", 0);
   throw InputError("--resume " + dir.string() + ": the run there finished (summary.json, " +
                    std::to_string(pulses) + " pulse" + plural(pulses) + "): nothing to resume" +
@@ -1064,7 +1067,7 @@ void resume_from_checkpoint(const RunOptions& options, bool into_checkpoint_fold
       !options.sources.sets.empty())
     throw InputError("--resume " + options.resume +
                      ": the checkpoint holds its run file; give no run file, --preset or --set");
-  if (into_checkpoint_folder) refuse_to_resume_a_finished_run(options.resume);
+  refuse_to_resume_a_finished_run(options.resume, into_checkpoint_folder);
   saved.emplace(open_checkpoint(fs::path(options.resume) / "checkpoint.bin", record));
   warn_of_another_build(record.earlier_parts.back());
   sources.text = record.config_text;
