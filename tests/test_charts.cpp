@@ -15,7 +15,9 @@
 #include <string>
 #include <vector>
 
+#include "tests/cli_runner.h"
 #include "tests/expect_error.h"
+#include "tests/svg_texts.h"
 #include "tests/test_dirs.h"
 #include "tools/svg_plot.h"
 
@@ -24,16 +26,7 @@ namespace fs = std::filesystem;
 namespace beampack::tools {
 namespace {
 
-// The text of every <text> element whose attributes contain `attribute`, in order: `y="380"`
-// picks the (first panel's) x axis tick labels, `x="8"` the y axis's.
-std::vector<std::string> svg_texts(const std::string& svg, const std::string& attribute = "") {
-  std::vector<std::string> out;
-  const std::regex text("<text[^>]*" + attribute + "[^>]*>([^<]*)</text>");
-  for (auto it = std::sregex_iterator(svg.begin(), svg.end(), text); it != std::sregex_iterator();
-       ++it)
-    out.push_back((*it)[1]);
-  return out;
-}
+using beampack::testing::svg_texts;
 
 std::vector<std::string> x_labels(const std::string& svg) {
   return svg_texts(svg, "y=\"380\"");
@@ -159,27 +152,9 @@ namespace {
 
 using beampack::testing::fresh_dir;
 
-struct Result {
-  int code;
-  std::string output;  // stdout and stderr, through one pipe
-};
-
-Result run(const std::string& args) {
-  const std::string command = std::string(BEAMPACK_CLI) + " " + args + " 2>&1";
-  std::FILE* pipe = popen(command.c_str(), "r");
-  std::string out;
-  std::array<char, 4096> buf;
-  while (std::fgets(buf.data(), buf.size(), pipe)) out += buf.data();
-  const int status = pclose(pipe);
-  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
-}
-
-std::string file_text(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
+using beampack::testing::file_text;
+using beampack::testing::Result;
+using beampack::testing::run;
 
 std::string sweep_svg(const std::string& name, const std::string& args, Result* result = nullptr) {
   const fs::path out = fresh_dir(name);

@@ -20,6 +20,7 @@
 #include <sstream>
 
 #include "engine/state_io.h"
+#include "tests/cli_runner.h"
 #include "tests/expect_error.h"
 #include "tests/test_dirs.h"
 #include "tools/run_config.h"
@@ -28,35 +29,11 @@ namespace fs = std::filesystem;
 
 namespace {
 
-struct Result {
-  int code;
-  std::string output;  // stdout and stderr
-};
-
-// `beampack args`, optionally under `prefix` (e.g. "timeout -s INT 1").
-Result run(const std::string& args, const std::string& prefix = "") {
-  const std::string command = prefix + " " + std::string(BEAMPACK_CLI) + " " + args + " 2>&1";
-  std::FILE* pipe = popen(command.c_str(), "r");
-  std::string out;
-  std::array<char, 4096> buf;
-  while (std::fgets(buf.data(), buf.size(), pipe)) out += buf.data();
-  const int status = pclose(pipe);
-  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
-}
-
+using beampack::testing::file_text;
 using beampack::testing::fresh_dir;
-
-std::string write(const fs::path& path, const std::string& text) {
-  std::ofstream(path) << text;
-  return path.string();
-}
-
-std::string file_text(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
+using beampack::testing::Result;
+using beampack::testing::run;
+using beampack::testing::write;
 
 std::vector<std::map<std::string, std::string>> read_csv(const fs::path& path) {
   std::ifstream in(path);
@@ -532,6 +509,22 @@ TEST(Cli, AKeySetForASceneThatDoesNotReadItIsRefused) {
   EXPECT_NE(rows[1].at("vaporized_fraction"), "");
 }
 
+namespace {
+
+// The complete run file `beampack config` prints (every key, the defaults' values), with its line
+// `from` made `to`: a user's file that carries keys its scene does not read, at their defaults.
+std::string printed_config_with(const std::string& from, const std::string& to) {
+  const Result printed = run("config");
+  EXPECT_EQ(printed.code, 0) << printed.output;
+  std::string text = printed.output;
+  const std::size_t at = text.find(from);
+  EXPECT_NE(at, std::string::npos) << from << " in: " << text;
+  if (at != std::string::npos) text.replace(at, from.size(), to);
+  return text;
+}
+
+}  // namespace
+
 // beam.resample under stratified sampling is a key the scene does not read, as beam.seed is: a
 // run file's is announced and the run goes on (it was refused, so a sweep over beam.sampling
 // with a resampled run file could not run), a --set of it is refused, and a printed config
@@ -558,12 +551,7 @@ TEST(Cli, ResampleUnderStratifiedSamplingIsAKeyTheSceneDoesNotRead) {
       run("sweep " + resampled +
           " --preset quick --param beam.sampling --values random,stratified" + out);
   EXPECT_EQ(sweep.code, 0) << sweep.output;
-  const Result printed = run("config");
-  ASSERT_EQ(printed.code, 0) << printed.output;
-  std::string carried = printed.output;
-  const std::size_t at = carried.find("sampling = 'random'");
-  ASSERT_NE(at, std::string::npos) << carried;
-  carried.replace(at, 19, "sampling = 'stratified'");
+  const std::string carried = printed_config_with("sampling = 'random'", "sampling = 'stratified'");
   const Result edited = run("run " + write(dir / "edited.toml", carried) + out);
   EXPECT_EQ(edited.code, 0) << edited.output;
   EXPECT_NOT_CONTAINS(edited.output, "ignores it");
@@ -590,11 +578,8 @@ TEST(Cli, ARunFileValueTheSceneIgnoresIsAnnounced) {
   EXPECT_EQ(sweep.code, 0) << sweep.output;
   EXPECT_EQ(sweep.output.find("warning"), sweep.output.rfind("warning")) << sweep.output;
   EXPECT_CONTAINS(sweep.output, "`beam.decay` = 5");
-  const Result printed = run("config");
-  ASSERT_EQ(printed.code, 0) << printed.output;
-  std::string carried = printed.output;
-  carried.replace(carried.find("profile = 'exponential'"), 23, "profile = 'gaussian'");
-  const std::string edited = write(dir / "edited.toml", carried);
+  const std::string edited = write(
+      dir / "edited.toml", printed_config_with("profile = 'exponential'", "profile = 'gaussian'"));
   const std::string applies =
       write(dir / "applies.toml", "[beam]\nprofile = \"exponential\"\ndecay = 5.0\n");
   for (const std::string& args :

@@ -12,6 +12,7 @@
 
 #include "geometry/error.h"
 #include "tests/expect_error.h"
+#include "tests/svg_texts.h"
 #include "tests/test_dirs.h"
 #include "tools/converge.h"
 #include "tools/quit_cleanup.h"
@@ -247,16 +248,7 @@ TEST(RunReport, AnOpenLedgerIsNamedWithItsSize) {
   EXPECT_CONTAINS(w[0], "heat ledger is open by 0.0695 of the energy it moves");
 }
 
-// The text of every <text> element whose attributes contain `attribute`, in order: `y="380"`
-// picks the x axis's tick labels, `x="8"` the y axis's.
-std::vector<std::string> svg_texts(const std::string& svg, const std::string& attribute = "") {
-  std::vector<std::string> out;
-  const std::regex text("<text[^>]*" + attribute + "[^>]*>([^<]*)</text>");
-  for (auto it = std::sregex_iterator(svg.begin(), svg.end(), text); it != std::sregex_iterator();
-       ++it)
-    out.push_back((*it)[1]);
-  return out;
-}
+using beampack::testing::svg_texts;
 
 // convergence.svg: log axes label whole decades once each; an error of 0 is drawn in a band of
 // its own below the axis, labelled 0 (it used to be drawn at 1e-6 as if measured, then as a
