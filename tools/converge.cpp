@@ -204,6 +204,64 @@ TemperatureError temperature_error(const RunResult& rung, const RunResult& refer
   return e;
 }
 
+namespace {
+
+// Each rung's run file: the base's sources with the ladder's key at the rung's value.
+void configure_rungs(Ladder& ladder, const RunSources& base) {
+  for (const std::string& value : ladder.values) {
+    RunSources sources = base;
+    sources.swept = ladder.key + "=" + value;
+    sources.swept_origin = "converge's " + ladder.name + " ladder, " + ladder.key + " = " + value;
+    ladder.configs.push_back(load_run_config(sources));
+    ladder.configs.back().packing.reset();  // each rung reads its packing when it runs
+    refuse_run_only_outputs(ladder.configs.back(), "converge");
+  }
+}
+
+// A ladder that ran: each rung's errors against the reference (its finest rung) as a row of
+// convergence.csv and a printed line, and the rungs but the reference as a series of each panel.
+void tabulate_ladder(const Ladder& ladder, std::string& csv, std::vector<Chart>& panels) {
+  const RunResult& ref = ladder.rungs.front().result;
+  const bool absorbed = ref.figures.energy.absorbed > 0;
+  std::fflush(stdout);
+  if (!absorbed)  // no pulse, no particle, or a beam that meets none
+    std::fprintf(stderr,
+                 "beampack: warning: converge: the %s ladder's reference run absorbed no "
+                 "energy, so every error of it is 0 and measures nothing\n",
+                 ladder.name.c_str());
+  Series vv_series{ladder.name, {}, {}}, t_series{ladder.name, {}, {}};
+  for (const Rung& rung : ladder.rungs) {
+    const RunResult& r = rung.result;
+    const double vv_error = std::abs(r.figures.vaporized_fraction - ref.figures.vaporized_fraction);
+    const TemperatureError t = temperature_error(r, ref);
+    const std::optional<double> peak_error = peak_difference(r.figures, ref.figures);
+    std::ostringstream row;
+    row << ladder.name << ',' << ladder.key << ',' << rung.value << ',' << exact(r.wall_seconds)
+        << ',' << r.counts.steps << ',' << r.counts.rays << ','
+        << exact(r.figures.vaporized_fraction) << ',' << exact(vv_error) << ',' << exact(t.l2)
+        << ',' << exact(t.max) << ',' << t.compared << ',' << exact(r.figures.time) << ','
+        << exact(r.figures.max_temperature) << ',' << exact(peak_error) << '\n';
+    csv += row.str();
+    std::printf("%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %s  peak error %s\n",
+                ladder.name.c_str(), rung.value.c_str(), r.wall_seconds,
+                r.figures.vaporized_fraction, vv_error, kelvin_text(t.l2).c_str(),
+                kelvin_text(peak_error).c_str());
+    std::fflush(stdout);
+    if (&rung != &ladder.rungs.front()) {  // 0 (equal to the reference): in the 0 band
+      vv_series.x.push_back(r.wall_seconds);
+      vv_series.y.push_back(vv_error);
+      t_series.x.push_back(r.wall_seconds);
+      t_series.y.push_back(t.l2.value_or(std::nan("")));  // none compared: no point
+    }
+  }
+  panels[0].series.push_back(vv_series);
+  panels[1].series.push_back(t_series);
+  say_what_the_reference_leaves_unmeasured(ladder);
+  if (absorbed) warn_if_no_rung_differs(ladder);
+}
+
+}  // namespace
+
 int converge_command(const RunOptions& options) {
   note_reading_input();
   RunSources read_xi = options.sources;
@@ -218,15 +276,7 @@ int converge_command(const RunOptions& options) {
   std::vector<Ladder> all = ladders(base);
   std::vector<Chart> panels = convergence_panels(drop_unmeasurable_ladders(all, base.sim));
   base.packing.reset();  // each rung reads its packing when it runs: one copy at a time
-  for (Ladder& ladder : all)
-    for (const std::string& value : ladder.values) {  // a bad rung fails before any run starts
-      RunSources sources = read_xi;
-      sources.swept = ladder.key + "=" + value;
-      sources.swept_origin = "converge's " + ladder.name + " ladder, " + ladder.key + " = " + value;
-      ladder.configs.push_back(load_run_config(sources));
-      ladder.configs.back().packing.reset();
-      refuse_run_only_outputs(ladder.configs.back(), "converge");
-    }
+  for (Ladder& ladder : all) configure_rungs(ladder, read_xi);  // a bad rung fails before any run
   std::string csv =
       "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
       "temperature_l2_error_K,temperature_max_error_K,temperature_particles,end_time_s,"
@@ -235,44 +285,7 @@ int converge_command(const RunOptions& options) {
   for (Ladder& ladder : all) {
     code = std::max(code, run_ladder(ladder, options.quiet));
     if (ladder.rungs.empty()) continue;
-    const RunResult& ref = ladder.rungs.front().result;
-    const bool absorbed = ref.figures.energy.absorbed > 0;
-    std::fflush(stdout);
-    if (!absorbed)  // no pulse, no particle, or a beam that meets none
-      std::fprintf(stderr,
-                   "beampack: warning: converge: the %s ladder's reference run absorbed no "
-                   "energy, so every error of it is 0 and measures nothing\n",
-                   ladder.name.c_str());
-    Series vv_series{ladder.name, {}, {}}, t_series{ladder.name, {}, {}};
-    for (const Rung& rung : ladder.rungs) {
-      const RunResult& r = rung.result;
-      const double vv_error =
-          std::abs(r.figures.vaporized_fraction - ref.figures.vaporized_fraction);
-      const TemperatureError t = temperature_error(r, ref);
-      const std::optional<double> peak_error = peak_difference(r.figures, ref.figures);
-      std::ostringstream row;
-      row << ladder.name << ',' << ladder.key << ',' << rung.value << ',' << exact(r.wall_seconds)
-          << ',' << r.counts.steps << ',' << r.counts.rays << ','
-          << exact(r.figures.vaporized_fraction) << ',' << exact(vv_error) << ',' << exact(t.l2)
-          << ',' << exact(t.max) << ',' << t.compared << ',' << exact(r.figures.time) << ','
-          << exact(r.figures.max_temperature) << ',' << exact(peak_error) << '\n';
-      csv += row.str();
-      std::printf("%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %s  peak error %s\n",
-                  ladder.name.c_str(), rung.value.c_str(), r.wall_seconds,
-                  r.figures.vaporized_fraction, vv_error, kelvin_text(t.l2).c_str(),
-                  kelvin_text(peak_error).c_str());
-      std::fflush(stdout);
-      if (&rung != &ladder.rungs.front()) {  // 0 (equal to the reference): in the 0 band
-        vv_series.x.push_back(r.wall_seconds);
-        vv_series.y.push_back(vv_error);
-        t_series.x.push_back(r.wall_seconds);
-        t_series.y.push_back(t.l2.value_or(std::nan("")));  // none compared: no point
-      }
-    }
-    panels[0].series.push_back(vv_series);
-    panels[1].series.push_back(t_series);
-    say_what_the_reference_leaves_unmeasured(ladder);
-    if (absorbed) warn_if_no_rung_differs(ladder);
+    tabulate_ladder(ladder, csv, panels);
   }
   const bool no_rung =
       std::all_of(all.begin(), all.end(), [](const Ladder& l) { return l.rungs.empty(); });
