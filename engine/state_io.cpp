@@ -1,6 +1,7 @@
 #include "engine/state_io.h"
 
 #include <algorithm>
+#include <cstring>
 
 namespace beampack {
 namespace {
@@ -20,6 +21,14 @@ std::string layout_tag() {
   for (std::size_t size : {sizeof(double), sizeof(std::size_t), sizeof(long double)})
     tag.push_back(static_cast<char>(size));
   return tag;
+}
+
+// Whether the last 8 bytes are the checksum of the rest, as with_checksum wrote them.
+bool checksum_holds(const std::string& data) {
+  std::uint64_t stored = 0;
+  if (data.size() < sizeof stored) return false;
+  std::memcpy(&stored, data.data() + data.size() - sizeof stored, sizeof stored);
+  return fnv1a(data.data(), data.size() - sizeof stored) == stored;
 }
 
 }  // namespace
@@ -46,17 +55,16 @@ StateReader::StateReader(std::string data, std::string source)
       throw InputError(source_ +
                        ": checkpoint written on a machine of the other byte order; "
                        "checkpoints are read only where their byte order is native");
-    if (data_.compare(0, 4, tag, 0, 4) == 0)
+    // Sizes that differ in a state whose checksum holds: another build's; else a damaged header
+    // (a flipped bit there, or a file of 6 bytes, was reported as another build's).
+    if (data_.compare(0, 4, tag, 0, 4) == 0 && checksum_holds(data_))
       throw InputError(source_ +
                        ": checkpoint written with other sizes of double, size_t or long "
                        "double than this build's");
     damaged();
   }
-  std::uint64_t stored = 0;
-  if (data_.size() < sizeof stored) damaged();
-  std::memcpy(&stored, data_.data() + data_.size() - sizeof stored, sizeof stored);
-  data_.resize(data_.size() - sizeof stored);
-  if (fnv1a(data_.data(), data_.size()) != stored) damaged();
+  if (!checksum_holds(data_)) damaged();
+  data_.resize(data_.size() - sizeof(std::uint64_t));
   pos_ = tag.size();
 }
 

@@ -1253,11 +1253,18 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
   for (const fs::directory_entry& e : fs::directory_iterator(whole))
     fs::copy_file(e.path(), thinned / e.path().filename());
   fs::remove(thinned / "particles_0000.vtp");
+  fs::remove(thinned / "rays_0001.vtp");  // and a ray path file, which went without a word
   const Result t = run("run --resume " + thinned.string() + " --out " + resumed.string());
   ASSERT_EQ(t.code, 0) << t.output;
   EXPECT_CONTAINS(t.output,
                   "1 frame of the pulses before the checkpoint is not there "
                   "(particles_0000.vtp); particles.pvd leaves it out");
+  EXPECT_CONTAINS(t.output,
+                  "1 ray path file of the pulses before the checkpoint is not there "
+                  "(rays_0001.vtp); " +
+                      resumed.string() + " will not hold it");
+  EXPECT_FALSE(fs::exists(resumed / "rays_0001.vtp"));
+  EXPECT_TRUE(fs::exists(resumed / "rays_0000.vtp"));
   const std::string pvd = file_text(resumed / "particles.pvd");
   EXPECT_NOT_CONTAINS(pvd, "particles_0000.vtp");
   for (const char* frame : {"particles_0001.vtp", "particles_0004.vtp"}) {
@@ -1417,6 +1424,26 @@ TEST(Cli, DamagedCheckpointIsRefusedWithExitCodeTwo) {
   const Result other = run("run --resume " + copy.string() + " --quiet");
   EXPECT_EQ(other.code, 2) << other.output;
   EXPECT_CONTAINS(other.output, "other byte order");
+  // Another build's sizes of double (byte 4), its checksum holding, are named; the same byte
+  // flipped in a file whose checksum then fails, or a file of the tag's first 6 bytes, is
+  // damage (both were reported as another build's).
+  const auto resume_from = [&](std::string state) {
+    std::ofstream(copy / "checkpoint.bin", std::ios::binary)
+        .write(state.data(), std::streamsize(state.size()));
+    return run("run --resume " + copy.string() + " --quiet");
+  };
+  std::string body = bytes.substr(0, bytes.size() - 8);
+  body[4] = 16;
+  const Result sizes = resume_from(beampack::with_checksum(body));
+  EXPECT_EQ(sizes.code, 2) << sizes.output;
+  EXPECT_CONTAINS(sizes.output, "other sizes of double, size_t or long double");
+  std::string flipped = bytes;
+  flipped[4] ^= 0x10;
+  for (const std::string& damaged : {flipped, bytes.substr(0, 6)}) {
+    const Result d = resume_from(damaged);
+    EXPECT_EQ(d.code, 2) << d.output;
+    EXPECT_CONTAINS(d.output, "damaged or truncated");
+  }
 }
 
 namespace {

@@ -990,7 +990,7 @@ void carry_earlier_files(const fs::path& from, const fs::path& to, const RunReco
   // while a frame of hundreds of MB is copied) leaves no half frame under its name.
   auto carry = [&](const std::string& name) {
     std::error_code ec;
-    if (!fs::is_regular_file(from / name, ec)) return;
+    if (!fs::is_regular_file(from / name, ec)) return false;
     std::ifstream in(from / name, std::ios::binary);
     // Block by block: `o << in.rdbuf()` stops without an error at a write that fails part way.
     write_atomically((to / name).string(), [&](std::ostream& o) {
@@ -1001,9 +1001,19 @@ void carry_earlier_files(const fs::path& from, const fs::path& to, const RunReco
       }
       if (o && !in.eof()) throw RunError("--resume: cannot read " + (from / name).string());
     });
+    return true;
   };
-  for (const auto& [name, time] : record.frames) carry(name);
-  for (int k = 0; output.rays && k < pulses_ended; ++k) carry(pulse_file("rays", k));
+  for (const auto& [name, time] : record.frames) carry(name);  // drop_missing_frames said which
+  std::string missing;
+  int count = 0;
+  for (int k = 0; output.rays && k < pulses_ended; ++k)
+    if (!carry(pulse_file("rays", k))) missing += (count++ > 0 ? ", " : "") + pulse_file("rays", k);
+  if (count > 0)  // deleted to save space, as frames may be: said, as they are
+    std::fprintf(stderr,
+                 "beampack: warning: --resume %s: %d ray path file%s of the pulses before the "
+                 "checkpoint %s not there (%s); %s will not hold %s\n",
+                 from.c_str(), count, plural(count), count == 1 ? "is" : "are", missing.c_str(),
+                 to.c_str(), count == 1 ? "it" : "them");
 }
 
 // The figures at the end of the run's last pulse: what a run that fails later still has, whole.
