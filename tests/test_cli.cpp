@@ -1678,12 +1678,24 @@ void expect_stopped_cleanly(const Interrupted& r, const fs::path& out) {
 // An interrupt sent to the process and to its process group (what `timeout -s INT` and batch
 // systems do) arrives twice: the run still stops cleanly with its results, it is not the user's
 // second interrupt (in a sanitizer build the two were delivered apart and ended the run at once).
+// The two are sent 0.02 s apart (at once, the kernel would merge them into one); a machine so
+// loaded that they left more than 0.15 s apart sent what is a user's second interrupt, so that
+// attempt is not counted (a busy ctest saw one), and the test is tried again, three times at most.
 TEST(Cli, AnInterruptDeliveredTwiceAtOnceStopsCleanly) {
-  const fs::path dir = fresh_dir("interrupt_doubled");
-  // Both arrive during the first step, after which the run stops and writes what it has.
-  const Interrupted r = interrupt(dir, long_steps("300000") + (dir / "out").string(), kSetUpDone,
-                                  "sleep 0.1; kill -INT $p; sleep 0.02; kill -INT $p");
-  expect_stopped_cleanly(r, dir / "out");
+  for (int attempt = 0; attempt < 3; ++attempt) {
+    const fs::path dir = fresh_dir("interrupt_doubled_" + std::to_string(attempt));
+    const std::string gap = (dir / "gap_ms").string();
+    // Both arrive during the first step, after which the run stops and writes what it has.
+    const Interrupted r =
+        interrupt(dir, long_steps("300000") + (dir / "out").string(), kSetUpDone,
+                  "sleep 0.1; kill -INT $p; a=$(date +%s%N); sleep 0.02; kill -INT $p; "
+                  "b=$(date +%s%N); echo $(( (b - a) / 1000000 )) >" +
+                      gap);
+    if (std::stol("0" + file_text(gap)) > 150) continue;
+    expect_stopped_cleanly(r, dir / "out");
+    return;
+  }
+  GTEST_SKIP() << "the machine was too loaded to send two signals within 0.15 s, three times";
 }
 
 // A hang-up (the terminal closed, the ssh session lost) stops the run as Ctrl-C does, with its
