@@ -325,6 +325,10 @@ toml::table parse_checked(const std::string& text, const std::string& source) {
 
 }  // namespace
 
+toml::table parsed_value(const std::string& value, const std::string& source) {
+  return parse_checked("v = " + value, source);
+}
+
 void Params::merge_toml_text(const std::string& text, const std::string& source) {
   try {
     merge_layer(merged_, origin_, parse_checked(text, source), {source, "", ++layers_}, false);
@@ -385,7 +389,7 @@ void Params::merge_assignment(const std::string& key_equals_value, const std::st
   if (underflows(value)) throw InputError(named + ": `" + key + "` = " + value + ": " + kUnderflow);
   toml::table parsed;
   try {
-    parsed = parse_checked("v = " + value, "--set");
+    parsed = parsed_value(value, "--set");
   } catch (const std::runtime_error&) {  // toml::parse_error, or non-ASCII outside quotes
     parsed = toml::table{{"v", value}};  // a bare word: a string
   }

@@ -110,6 +110,11 @@ class Params {
 
 // `s` without the spaces and tabs at either end.
 std::string trimmed(const std::string& s);
+// `v = VALUE` parsed as a `--set` is, through the run files' own checks (invalid UTF-8, non-ASCII
+// bytes where toml++ 3.3 reaches undefined behaviour, numbers that underflow to 0): throws a
+// std::runtime_error (toml::parse_error or InputError) where TOML reads no value there, as for a
+// bare word, which a run takes as a string.
+toml::table parsed_value(const std::string& value, const std::string& source);
 // The key a `--set KEY=VALUE` sets, as the run file reads it: `--set "k = v"` sets k.
 std::string assignment_key(const std::string& key_equals_value);
 

@@ -1297,10 +1297,10 @@ namespace {
 // the `_` and made `1_00` a word); none for a word, a string, a boolean, an array or a table.
 std::optional<double> numeric_meaning(const std::string& value) {
   try {
-    const toml::table t = toml::parse("v = " + value);
+    const toml::table t = parsed_value(value, "--values");
     if (const auto* i = t.get_as<std::int64_t>("v")) return double(i->get());
     if (const auto* d = t.get_as<double>("v")) return d->get();
-  } catch (const toml::parse_error&) {  // a bare word: the run reads it as a string
+  } catch (const std::runtime_error&) {  // a bare word: the run reads it as a string
   }
   return std::nullopt;
 }
@@ -1310,9 +1310,9 @@ std::optional<double> numeric_meaning(const std::string& value) {
 std::string meaning_of(const std::string& value) {
   if (const std::optional<double> x = numeric_meaning(value)) return "number " + exact(*x);
   try {
-    const toml::table t = toml::parse("v = " + value);
+    const toml::table t = parsed_value(value, "--values");
     if (const auto* text = t.get_as<std::string>("v")) return "text " + text->get();
-  } catch (const toml::parse_error&) {
+  } catch (const std::runtime_error&) {
     return "text " + value;
   }
   return "value " + value;
