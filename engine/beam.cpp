@@ -190,7 +190,7 @@ std::vector<Eigen::Vector2d> disk_points(const BeamSpec& spec, std::uint64_t pul
                                    : stratified_disk(spec.rays);
 }
 
-// r_b = d_b / 2 with d_b = beam.diameter_fraction D, and A_r = pi r_b^2 / N_r.
+// r_b = d_b / 2 with d_b = beam.diameter_fraction D.
 double radius_of(const BeamSpec& spec, double sample_size) {
   return 0.5 * spec.diameter_fraction * sample_size;
 }
@@ -205,6 +205,7 @@ Vec3 entry_face_centre(const Vec3& d, double size) {
   return centre;
 }
 
+// A_r = pi r_b^2 / N_r: the disk's area each ray stands for.
 double ray_area(const BeamSpec& spec, double radius) {
   return std::numbers::pi * radius * radius / static_cast<double>(spec.rays);
 }

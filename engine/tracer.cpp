@@ -95,10 +95,10 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
   if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
     throw InputError("`optics.cutoff` = " + shown_number(spec.cutoff) + ": must be in [0, 1)");
   if (!(spec.grid_cell_factor > 0.0) || !std::isfinite(spec.grid_cell_factor))
-    throw InputError("optics grid_cell_factor = " + shown_number(spec.grid_cell_factor) +
+    throw InputError("OpticsSpec::grid_cell_factor = " + shown_number(spec.grid_cell_factor) +
                      ": must be > 0 and finite");
   if (spec.chunk_rays < 1 || spec.chunk_rays > kMaxChunkRays)
-    throw InputError("optics chunk_rays = " + std::to_string(spec.chunk_rays) +
+    throw InputError("OpticsSpec::chunk_rays = " + std::to_string(spec.chunk_rays) +
                      ": must be in [1, " + std::to_string(kMaxChunkRays) + "]");
   if (spec.max_bounces < 1)
     throw InputError("`optics.max_bounces` = " + std::to_string(spec.max_bounces) +

@@ -1,6 +1,7 @@
 #pragma once
 // Particle state as a structure of flat arrays (LAMMPS' atom->x, atom->temperature).
-// The Embree user geometry and the thermal module index straight into these arrays.
+// The thermal module indexes straight into these arrays; the ray scene keeps a packed copy of
+// the spheres in Morton order (engine/embree_scene.h), with each one's index here.
 #include <cstdint>
 #include <span>
 #include <vector>

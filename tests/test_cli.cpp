@@ -617,7 +617,8 @@ TEST(Cli, NumbersBeyondTheArithmeticAreRefusedAndTheLimitsRun) {
   struct Case {
     std::string key, too_large, limit, at_limit;  // at_limit: the --set of a run at the limit
   };
-  const std::string big_heat = "must be <= 1e+12 J/(kg K)", big_latent = "must be <= 1e+12 J/kg (",
+  const std::string big_heat = "must be <= 1e+12 J/(kg K)",
+                    big_latent = "must be <= 1e+12 J/(kg K) (a band's dP/dtheta",
                     hot = "must be <= 1e+12 K", hot_run = " --set material.vapor_temperature=1e12";
   const Case cases[] = {
       {"material.conductivity", "1e308", "must be <= 1e+20 W/(m K)", "material.conductivity=1e20"},

@@ -1164,7 +1164,8 @@ TEST(OpticsTracer, ATracerThatNeverTracesBuildsNoScene) {
   // A grid setting the build would refuse is refused with the spec (it came at the first launch).
   OpticsSpec no_cells = optics_for(1.4);
   no_cells.grid_cell_factor = 0.0;
-  EXPECT_THROW(Tracer(packing_1e4(), no_cells), InputError);
+  testing::expect_error<InputError>([&] { Tracer(packing_1e4(), no_cells); },
+                                    "OpticsSpec::grid_cell_factor = 0: must be > 0");
 }
 
 // Built on first need or at once, the scene gives the same deposits to the bit: with particles

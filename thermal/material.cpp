@@ -19,7 +19,7 @@ void require(bool ok, const std::string& prefix, const char* key, double value, 
 }  // namespace
 
 void Material::validate(const std::string& prefix) const {
-  // `!(x > 0)` rather than `x <= 0` so that NaN is refused too.
+  // isfinite first: NaN and infinities fail every check below.
   require(std::isfinite(density) && density > 0, prefix, "density", density, "must be > 0");
   require(std::isfinite(c_solid) && c_solid > 0, prefix, "c_solid", c_solid, "must be > 0");
   require(std::isfinite(c_liquid) && c_liquid > 0, prefix, "c_liquid", c_liquid, "must be > 0");

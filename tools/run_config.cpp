@@ -51,9 +51,9 @@ constexpr Cap kHeatCapacity{
     "the beam never gave)"};
 constexpr Cap kLatentHeat{
     1e12,
-    "J/kg (4e5 times water's heat of vaporisation; beyond it a step's warming is "
-    "lost to the temperatures' round-off: the heat ledger opens, and far beyond it books "
-    "energies the beam never gave)"};
+    "J/(kg K) (a band's dP/dtheta, added to the specific heat inside it: 2e8 times water's "
+    "specific heat; beyond it a step's warming is lost to the temperatures' round-off: the heat "
+    "ledger opens, and far beyond it books energies the beam never gave)"};
 constexpr Cap kTemperature{
     1e12,
     "K (hotter than any solid or liquid; far higher ones overflow the heat flows, "
