@@ -233,7 +233,7 @@ void check_particles(const Particles& p) {
 namespace {
 
 bool is_separator(char c) {
-  return c == ' ' || c == '\t' || c == ',' || c == ';' || c == '\r';
+  return c == ' ' || c == '\t' || c == ',' || c == ';';
 }
 
 // Runs of separators count as one, but two commas (or semicolons) between two values, or one
@@ -336,11 +336,17 @@ class PackingLines {
   // file was read into memory as one line, until memory ran out).
   static constexpr std::size_t kMaxLine = 1 << 20;
 
+  // A line ends at LF, CR LF (Windows) or a CR alone (classic Mac OS, whose files were read as
+  // one line of many columns, or as nothing after a '#' header).
   bool read_line() {
     line_.clear();
     std::streambuf* buffer = in_.rdbuf();
     for (int c = buffer->sbumpc(); c != '\n'; c = buffer->sbumpc()) {
       if (c == std::char_traits<char>::eof()) return !line_.empty();
+      if (c == '\r') {
+        if (buffer->sgetc() == '\n') buffer->sbumpc();
+        return true;
+      }
       if (line_.size() == kMaxLine)
         throw InputError(path_ + ":" + std::to_string(number_ + 1) + ": a line longer than " +
                          std::to_string(kMaxLine) + " bytes: not a text file of particle rows");
@@ -348,12 +354,12 @@ class PackingLines {
     }
     return true;
   }
-  // Tabs and carriage returns separate columns; other control bytes (a NUL) mean binary data,
-  // which was taken as a header line and read past without a word.
+  // Tabs separate columns (a carriage return ends a line); other control bytes (a NUL) mean
+  // binary data, which was taken as a header line and read past without a word.
   void refuse_control_bytes(std::string_view text) const {
     for (const char c : text) {
       const auto b = static_cast<unsigned char>(c);
-      if ((b < 0x20 && c != '\t' && c != '\r') || b == 0x7F)
+      if ((b < 0x20 && c != '\t') || b == 0x7F)
         throw InputError(where() + "byte " + shown(std::string_view(&c, 1)) +
                          ": not a text file of particle rows (binary data?)");
     }

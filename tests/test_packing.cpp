@@ -154,6 +154,29 @@ TEST(PackingFile, APipeFromProcessSubstitutionIsRead) {
   EXPECT_EQ(p.radius[1], 0.5);
 }
 
+// Lines end at LF, CR LF or a CR alone (classic Mac OS). A CR-only file was read as one line:
+// "expected 4 columns, found 12", or no particle at all after a '#' header.
+TEST(PackingFile, LinesEndingInACarriageReturnAloneAreRead) {
+  for (const std::string header : {"# x y z r\r", "x y z r\r", ""}) {
+    const Particles p = read_packing_file(temp_file("mac", header + "1 2 3 0.5\r4 5 6 0.25\r"));
+    ASSERT_EQ(p.size(), 2u) << header;
+    EXPECT_EQ(p.centre[1], Vec3(4, 5, 6));
+    EXPECT_EQ(p.radius[1], 0.25);
+  }
+  // Every kind in one file, and errors on the line an editor shows.
+  EXPECT_EQ(
+      read_packing_file(temp_file("mixed", "1 2 3 1\r\n4 5 6 1\r7 8 9 1\n\r\r\n1 1 1 1")).size(),
+      4u);
+  EXPECT_CONTAINS(read_error("mac_cols", "# x y z r\r1 2 3 1\r\r1 2 3\r"),
+                  ":4: expected 4 columns (x y z r), found 3");
+  EXPECT_CONTAINS(read_error("crlf_cols", "1 2 3 1\r\n\r\n1 2 3\r\n"),
+                  ":3: expected 4 columns (x y z r), found 3");
+  const std::string dump =
+      "ITEM: TIMESTEP\r0\rITEM: NUMBER OF ATOMS\r1\rITEM: BOX BOUNDS pp pp pp\r0 1\r0 1\r0 1\r"
+      "ITEM: ATOMS id x y z radius\r1 0.1 0.2 0.3 0.01\r";
+  EXPECT_EQ(read_packing_file(temp_file("mac.dump", dump)).radius, std::vector<double>{0.01});
+}
+
 // Commas, semicolons, tabs and spaces separate columns, alone or together ("1, 2").
 TEST(PackingFile, ColumnsSeparatedByCommasOrSpacesAreRead) {
   const Particles p = read_packing_file(
