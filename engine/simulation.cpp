@@ -229,8 +229,20 @@ void Simulation::launch_due_pulses() {
   while (pulse_due()) launch_pulse();
 }
 
+// The caller's on_pulse_end, marked as running: it is called from inside a step, which a step()
+// from it would re-enter (launching the same pulse and calling it again, until the stack ran out).
+void Simulation::end_pulse(int pulse) {
+  if (!on_pulse_end_) return;
+  in_callback_ = true;
+  struct Reset {
+    bool& running;
+    ~Reset() { running = false; }  // when the callback throws too
+  } reset{in_callback_};
+  on_pulse_end_(pulse);
+}
+
 void Simulation::launch_pulse() {
-  if (launched_ > 0 && on_pulse_end_) on_pulse_end_(launched_ - 1);
+  if (launched_ > 0) end_pulse(launched_ - 1);
   if (spec_.beam.resample && launched_ > 0) use_beam(resampled_beam(launched_));
   {
     StageClock clock(stages_[kTrace], false);  // a launch traces the rays' first hits
@@ -349,6 +361,11 @@ double Simulation::step_length(bool traced) const {
 }
 
 bool Simulation::step() {
+  if (in_callback_)
+    throw InputError(
+        "step: called from inside this simulation's on_pulse_end callback, which runs in the "
+        "middle of a step (run() steps too): a simulation cannot be stepped from its own "
+        "callback; step it after the callback returns");
   if (failed_)
     throw RunError("step: an earlier step failed (" + failed_step_ +
                    "), leaving its rays traced and its heat not: this simulation cannot go on; "
@@ -449,7 +466,7 @@ bool Simulation::take_step() {
   // Rebuild: vaporised particles leave the scene and the contact graph (paper, Remark 10).
   if (!report.vaporized.empty()) remove_vaporized(report.vaporized);
   if constexpr (BEAMPACK_CHECKS_ON) check_ledgers_close();
-  if (done() && on_pulse_end_) on_pulse_end_(launched_ - 1);
+  if (done()) end_pulse(launched_ - 1);
   return !done();
 }
 
