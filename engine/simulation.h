@@ -193,7 +193,7 @@ class Simulation {
   bool optics_changed(const PhaseOverride& seen) const;
   PhaseOverride optics_after_step() const;
   void swap_phases(PhaseOverride& seen);
-  double volume_fraction(Phase phase) const;
+  void volume_fractions(Figures& f) const;
   std::string skip_reason(int stage) const;
   Simulation(SimulationSpec spec, Particles particles, bool packing_from_spec);
   void check_run_numbers() const;
