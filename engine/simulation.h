@@ -135,7 +135,8 @@ class Simulation {
   void run(const std::atomic<bool>* stop = nullptr);
   // Called with k when pulse k's time is over: just before pulse k+1 launches, or after the last
   // step. With pulses.period shorter than a pulse's flight, pulse k's rays are still in flight
-  // then (the figures count them in the ledger's in_flight bin).
+  // then (the figures count them in the ledger's in_flight bin). It runs inside a step: step()
+  // or run() called from it throws InputError (it recursed until the stack ran out).
   void on_pulse_end(std::function<void(int pulse)> callback) {
     on_pulse_end_ = std::move(callback);
   }
@@ -183,6 +184,7 @@ class Simulation {
   [[noreturn]] void non_finite(std::size_t particle, double temperature, double deposit) const;
   static Phase optical(Phase phase);
   void note_pulse_delay(double delay);
+  void end_pulse(int pulse);
   Beam resampled_beam(int pulse) const;
   void name_step_for_checks() const;
   void check_ledgers_close() const;
@@ -191,7 +193,7 @@ class Simulation {
   bool optics_changed(const PhaseOverride& seen) const;
   PhaseOverride optics_after_step() const;
   void swap_phases(PhaseOverride& seen);
-  double volume_fraction(Phase phase) const;
+  void volume_fractions(Figures& f) const;
   std::string skip_reason(int stage) const;
   Simulation(SimulationSpec spec, Particles particles, bool packing_from_spec);
   void check_run_numbers() const;
@@ -219,6 +221,7 @@ class Simulation {
   std::array<StageTime, kStages> stages_{};
   Counts counts_{};
   std::function<void(int)> on_pulse_end_;
+  bool in_callback_ = false;  // on_pulse_end_ is running: a step() now would re-enter this one
 };
 
 }  // namespace beampack

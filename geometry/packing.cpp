@@ -233,7 +233,7 @@ void check_particles(const Particles& p) {
 namespace {
 
 bool is_separator(char c) {
-  return c == ' ' || c == '\t' || c == ',' || c == ';' || c == '\r';
+  return c == ' ' || c == '\t' || c == ',' || c == ';';
 }
 
 // Runs of separators count as one, but two commas (or semicolons) between two values, or one
@@ -317,17 +317,36 @@ class PackingLines {
   std::size_t number() const { return number_; }
   std::string where() const { return path_ + ":" + std::to_string(number_) + ": "; }
   const std::string& path() const { return path_; }
+  // The line a particle came from, for messages about two rows: the reader marks each row that
+  // gave one, in order. Kept as runs of consecutive lines (a comment or an item starts a new
+  // one), a few entries for a file of 10^7 rows.
+  void mark_row() {
+    if (row_runs_.empty() || number_ != last_row_line_ + 1) row_runs_.push_back({rows_, number_});
+    last_row_line_ = number_;
+    ++rows_;
+  }
+  std::size_t row_line(std::size_t row) const {
+    const auto run = std::upper_bound(row_runs_.begin(), row_runs_.end(), row,
+                                      [](std::size_t r, const RowRun& run) { return r < run.row; });
+    return std::prev(run)->line + (row - std::prev(run)->row);
+  }
 
  private:
   // A line of a packing file is a few dozen bytes; one of a megabyte is not text (a 20 GB sparse
   // file was read into memory as one line, until memory ran out).
   static constexpr std::size_t kMaxLine = 1 << 20;
 
+  // A line ends at LF, CR LF (Windows) or a CR alone (classic Mac OS, whose files were read as
+  // one line of many columns, or as nothing after a '#' header).
   bool read_line() {
     line_.clear();
     std::streambuf* buffer = in_.rdbuf();
     for (int c = buffer->sbumpc(); c != '\n'; c = buffer->sbumpc()) {
       if (c == std::char_traits<char>::eof()) return !line_.empty();
+      if (c == '\r') {
+        if (buffer->sgetc() == '\n') buffer->sbumpc();
+        return true;
+      }
       if (line_.size() == kMaxLine)
         throw InputError(path_ + ":" + std::to_string(number_ + 1) + ": a line longer than " +
                          std::to_string(kMaxLine) + " bytes: not a text file of particle rows");
@@ -335,12 +354,12 @@ class PackingLines {
     }
     return true;
   }
-  // Tabs and carriage returns separate columns; other control bytes (a NUL) mean binary data,
-  // which was taken as a header line and read past without a word.
+  // Tabs separate columns (a carriage return ends a line); other control bytes (a NUL) mean
+  // binary data, which was taken as a header line and read past without a word.
   void refuse_control_bytes(std::string_view text) const {
     for (const char c : text) {
       const auto b = static_cast<unsigned char>(c);
-      if ((b < 0x20 && c != '\t' && c != '\r') || b == 0x7F)
+      if ((b < 0x20 && c != '\t') || b == 0x7F)
         throw InputError(where() + "byte " + shown(std::string_view(&c, 1)) +
                          ": not a text file of particle rows (binary data?)");
     }
@@ -350,6 +369,11 @@ class PackingLines {
   std::string path_, line_;
   std::vector<std::string_view> cols_;
   std::size_t number_ = 0;
+  struct RowRun {
+    std::size_t row, line;  // the first row of the run, and its line
+  };
+  std::vector<RowRun> row_runs_;
+  std::size_t rows_ = 0, last_row_line_ = 0;
 };
 
 // Column k of a row (numbered from 1 in messages, as editors number them) as a finite number.
@@ -369,11 +393,44 @@ double finite_column(const std::vector<std::string_view>& cols, std::size_t k,
   return v;
 }
 
-void add_checked_sphere(Particles& p, const Vec3& centre, double r,
+void add_checked_sphere(Particles& p, PackingLines& lines, const Vec3& centre, double r,
                         const std::array<std::size_t, 3>& centre_columns,
                         const std::string& where) {
   check_sphere(centre, r, centre_columns, where);
   p.add(centre, r);
+  lines.mark_row();
+}
+
+// Two rows with one centre are a file joined to itself or to a copy of its rows, almost always
+// (the whole bed twice): spheres that hide one another from the light and conduct through a full
+// cross-section, which ran without a word. Refused, naming the first row that repeats an earlier
+// centre and that row's line. The centres are sorted once: O(N log N) at 10^7 rows.
+void refuse_repeated_centres(const Particles& p, const PackingLines& lines) {
+  const std::size_t n = p.size();
+  const std::vector<Vec3>& c = p.centre;
+  std::vector<std::uint32_t> order(n);  // particle ids are 32-bit throughout (tracer, heat)
+  for (std::size_t i = 0; i < n; ++i) order[i] = static_cast<std::uint32_t>(i);
+  std::sort(order.begin(), order.end(), [&](std::uint32_t a, std::uint32_t b) {
+    for (int k = 0; k < 3; ++k)
+      if (c[a][k] != c[b][k]) return c[a][k] < c[b][k];
+    return a < b;  // a run of one centre is in file order
+  });
+  std::size_t repeats = 0, first = 0, again = n;  // again: the first row that repeats `first`
+  for (std::size_t s = 0, e = 0; s < n; s = e) {
+    for (e = s + 1; e < n && c[order[e]] == c[order[s]];) ++e;
+    repeats += e - s - 1;
+    if (e - s > 1 && order[s + 1] < again) first = order[s], again = order[s + 1];
+  }
+  if (repeats == 0) return;
+  const Vec3& centre = c[again];
+  throw InputError(
+      lines.path() + ":" + std::to_string(lines.row_line(again)) + ": the centre (" +
+      shown_number(centre.x()) + ", " + shown_number(centre.y()) + ", " + shown_number(centre.z()) +
+      ") of line " + std::to_string(lines.row_line(first)) + " again" +
+      (p.radius[again] == p.radius[first] ? ", with its radius" : "") + "; " +
+      std::to_string(repeats) + " of " + std::to_string(n) +
+      " rows repeat an earlier row's centre (a file joined to itself or to a copy?): two spheres "
+      "at one point would hide one another from the light; remove the repeats");
 }
 
 // What a row of words may have meant to be: numbers in another notation than C's read as words.
@@ -407,7 +464,7 @@ Particles read_plain_columns(PackingLines& lines, double default_radius) {
     });
     double v[4] = {0, 0, 0, default_radius};
     for (std::size_t k = 0; k < need; ++k) v[k] = finite_column(cols, k, where);
-    add_checked_sphere(p, {v[0], v[1], v[2]}, v[3], {0, 1, 2}, where);
+    add_checked_sphere(p, lines, {v[0], v[1], v[2]}, v[3], {0, 1, 2}, where);
   } while (lines.next());
   require(p.size() > 0, file_key(lines.path()) +
                             "holds no particle (a header line only, no column of it a number; " +
@@ -477,7 +534,7 @@ AtomColumns atom_columns(const std::vector<std::string_view>& names, double defa
 }
 
 // A dump's ATOMS row as a sphere, through the same checks as a plain file's rows.
-void add_atom_row(Particles& p, const AtomColumns& a, double default_radius,
+void add_atom_row(Particles& p, PackingLines& lines, const AtomColumns& a, double default_radius,
                   const std::vector<std::string_view>& cols, const std::string& where,
                   std::size_t header_line) {
   require(cols.size() == a.count,
@@ -487,7 +544,7 @@ void add_atom_row(Particles& p, const AtomColumns& a, double default_radius,
   for (int k = 0; k < 3; ++k) centre[k] = finite_column(cols, a.centre[k], where);
   const double r =
       a.radius ? a.radius_per_value * finite_column(cols, *a.radius, where) : default_radius;
-  add_checked_sphere(p, centre, r, a.centre, where);
+  add_checked_sphere(p, lines, centre, r, a.centre, where);
 }
 
 bool is_item_line(const std::vector<std::string_view>& cols) {
@@ -578,7 +635,7 @@ class DumpReader {
     const std::string where = lines_.where();
     ++rows_;
     if (item_ == "ATOMS") {
-      add_atom_row(particles_, atoms_, default_radius_, cols, where, first_line_["ATOMS"]);
+      add_atom_row(particles_, lines_, atoms_, default_radius_, cols, where, first_line_["ATOMS"]);
     } else if (item_ == "NUMBER OF ATOMS" || item_ == "TIMESTEP") {
       const std::uint64_t n = whole_number(cols, item_, where);
       if (item_ == "NUMBER OF ATOMS") atom_count_ = n;
@@ -644,6 +701,7 @@ Particles read_packing_file(const std::string& path, double default_radius) {
   Particles p = is_item_line(lines.cols()) ? DumpReader(lines, default_radius).read()
                                            : read_plain_columns(lines, default_radius);
   require(!in.bad(), file_key(path) + "read error");
+  refuse_repeated_centres(p, lines);
   return p;
 }
 

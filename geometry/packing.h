@@ -65,9 +65,10 @@ Particles lattice_packing(std::size_t count, double size, double radius_ratio);
 std::string lattice_count_problem(std::size_t count);
 
 // Columns x y z r (or x y z with default_radius > 0); '#' comments, blank lines and one header
-// line (no column a number) before the data allowed. InputError with "path:line:" for missing
-// columns, non-numbers (a typo in the first data line too), a second header, NaN/inf, r <= 0,
-// a volume that is not a positive finite double, or a centre +- r that overflows.
+// line (no column a number) before the data allowed; lines end at LF, CR LF or a CR alone.
+// InputError with "path:line:" for missing columns, non-numbers (a typo in the first data line
+// too), a second header, NaN/inf, r <= 0, a volume that is not a positive finite double, or a
+// centre +- r that overflows; and, once read, two rows with one centre, naming both lines.
 // A file whose first line starts with "ITEM:" is read as one snapshot of a LAMMPS / LIGGGHTS text
 // dump (`dump ... custom ... x y z radius`): centre from x y z (else xu yu zu), radius from
 // radius (else diameter / 2, else default_radius); scaled coordinates, several snapshots or a

@@ -1272,6 +1272,22 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
     EXPECT_CONTAINS(pvd, frame);
     EXPECT_TRUE(fs::exists(resumed / frame)) << frame;
   }
+  // Several of each are listed in one warning per kind.
+  const fs::path sparse = fresh_dir("series_sparse"), refilled = fresh_dir("series_refilled");
+  for (const fs::directory_entry& e : fs::directory_iterator(whole))
+    fs::copy_file(e.path(), sparse / e.path().filename());
+  for (const char* name :
+       {"particles_0000.vtp", "particles_0002.vtp", "rays_0001.vtp", "rays_0003.vtp"})
+    fs::remove(sparse / name);
+  const Result s = run("run --resume " + sparse.string() + " --out " + refilled.string());
+  ASSERT_EQ(s.code, 0) << s.output;
+  EXPECT_CONTAINS(s.output,
+                  "2 frames of the pulses before the checkpoint are not there "
+                  "(particles_0000.vtp, particles_0002.vtp); particles.pvd leaves them out");
+  EXPECT_CONTAINS(s.output,
+                  "2 ray path files of the pulses before the checkpoint are not there "
+                  "(rays_0001.vtp, rays_0003.vtp); " +
+                      refilled.string() + " will not hold them");
 }
 
 // A checkpoint holds its particles: a file packing's run resumes after the file has moved (a

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <functional>
 #include <limits>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
@@ -13,6 +14,7 @@
 #include "engine/simulation.h"
 #include "engine/state_io.h"
 #include "engine/tracer.h"
+#include "geometry/compensated_sum.h"
 #include "geometry/error.h"
 #include "geometry/packing.h"
 #include "tests/expect_error.h"
@@ -230,6 +232,29 @@ TEST(LibraryInputs, FractionsOfEqualSpheresAreTheirCountsShare) {
   }
 }
 
+// The fractions to the bit, for spheres of many sizes: each phase's volumes as a compensated sum in
+// particle order, over the whole volume summed the same way (summary.json and history.csv print
+// all 17 digits, so an order or a rounding changed is a changed output).
+TEST(LibraryInputs, FractionsAreCompensatedSumsInParticleOrder) {
+  Particles p = random_overlap_packing(30000, kD, 0.325, 11);
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    p.radius[i] *= 0.5 + double((i * 7919) % 1000) / 999.0;
+    if (i % 3 == 0) p.alive[i] = 0;          // vaporised
+    if (i % 3 == 1) p.temperature[i] = 650;  // liquid: between theta_m and theta_v
+  }
+  CompensatedSum all, vapor, liquid;
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    all.add(p.volume(i));
+    if (i % 3 == 0) vapor.add(p.volume(i));
+    if (i % 3 == 1) liquid.add(p.volume(i));
+  }
+  SimulationSpec spec = one_pulse();
+  spec.pulses.count = 0;
+  const Figures f = Simulation(spec, p).figures();
+  EXPECT_EQ(f.vaporized_fraction, vapor.value() / all.value());
+  EXPECT_EQ(f.melted_fraction, liquid.value() / all.value());
+}
+
 // Embree asserted on the invalid float rays and aborted the process.
 TEST(LibraryMisuse, ABeamStartingNowhereIsRefused) {
   const Particles p = three_spheres();
@@ -299,6 +324,44 @@ TEST(LibraryMisuse, AfterAFailedStepTheSimulationRefusesToGoOn) {
   testing::expect_error<RunError>([&] { sim.step(); }, "an earlier step failed (", first,
                                   "cannot go on");
   EXPECT_EQ(sim.pulses_launched(), 1);  // no pulse launched on top of the failed step
+}
+
+// on_pulse_end runs inside a step: a step() from it launched the same pulse again and called it
+// again, until the stack ran out. Refused by name; a callback that catches the refusal leaves the
+// run as it would be without the attempt.
+TEST(LibraryMisuse, ACallbackCannotStepItsOwnSimulation) {
+  const SimulationSpec spec = conducting_pulses(3);
+  const Particles p = random_overlap_packing(200, kD, 0.325, 7);
+  for (const bool by_run : {false, true}) {
+    SCOPED_TRACE(by_run ? "run() in the callback" : "step() in the callback");
+    Simulation sim(spec, p);
+    int depth = 0;  // without the refusal: a clean failure instead of a stack overflow
+    sim.on_pulse_end([&](int) {
+      if (++depth > 3) throw std::logic_error("on_pulse_end re-entered its own step");
+      if (by_run) sim.run();
+      else sim.step();
+    });
+    testing::expect_error<InputError>(
+        [&] { sim.run(); }, "step: called from inside this simulation's on_pulse_end callback",
+        "a simulation cannot be stepped from its own callback");
+    EXPECT_EQ(depth, 1);
+  }
+  Simulation plain(spec, p);
+  plain.run();
+  Simulation caught(spec, p);
+  int refused = 0;
+  caught.on_pulse_end([&](int) {
+    try {
+      caught.step();
+    } catch (const InputError&) {
+      ++refused;
+    }
+  });
+  caught.run();
+  EXPECT_EQ(refused, 3);
+  EXPECT_EQ(caught.particles().temperature, plain.particles().temperature);
+  EXPECT_EQ(caught.figures().energy.absorbed, plain.figures().energy.absorbed);
+  EXPECT_FALSE(caught.step());  // done, and stepping again after the callbacks is allowed
 }
 
 }  // namespace

@@ -154,6 +154,29 @@ TEST(PackingFile, APipeFromProcessSubstitutionIsRead) {
   EXPECT_EQ(p.radius[1], 0.5);
 }
 
+// Lines end at LF, CR LF or a CR alone (classic Mac OS). A CR-only file was read as one line:
+// "expected 4 columns, found 12", or no particle at all after a '#' header.
+TEST(PackingFile, LinesEndingInACarriageReturnAloneAreRead) {
+  for (const std::string header : {"# x y z r\r", "x y z r\r", ""}) {
+    const Particles p = read_packing_file(temp_file("mac", header + "1 2 3 0.5\r4 5 6 0.25\r"));
+    ASSERT_EQ(p.size(), 2u) << header;
+    EXPECT_EQ(p.centre[1], Vec3(4, 5, 6));
+    EXPECT_EQ(p.radius[1], 0.25);
+  }
+  // Every kind in one file, and errors on the line an editor shows.
+  EXPECT_EQ(
+      read_packing_file(temp_file("mixed", "1 2 3 1\r\n4 5 6 1\r7 8 9 1\n\r\r\n1 1 1 1")).size(),
+      4u);
+  EXPECT_CONTAINS(read_error("mac_cols", "# x y z r\r1 2 3 1\r\r1 2 3\r"),
+                  ":4: expected 4 columns (x y z r), found 3");
+  EXPECT_CONTAINS(read_error("crlf_cols", "1 2 3 1\r\n\r\n1 2 3\r\n"),
+                  ":3: expected 4 columns (x y z r), found 3");
+  const std::string dump =
+      "ITEM: TIMESTEP\r0\rITEM: NUMBER OF ATOMS\r1\rITEM: BOX BOUNDS pp pp pp\r0 1\r0 1\r0 1\r"
+      "ITEM: ATOMS id x y z radius\r1 0.1 0.2 0.3 0.01\r";
+  EXPECT_EQ(read_packing_file(temp_file("mac.dump", dump)).radius, std::vector<double>{0.01});
+}
+
 // Commas, semicolons, tabs and spaces separate columns, alone or together ("1, 2").
 TEST(PackingFile, ColumnsSeparatedByCommasOrSpacesAreRead) {
   const Particles p = read_packing_file(
@@ -270,6 +293,35 @@ std::string line_of(const std::string& text, const std::string& start) {
 }
 
 }  // namespace
+
+// Two rows with one centre are almost always a file joined to itself or to a copy: they ran as
+// coincident spheres without a word. Refused, naming the first row that repeats and the row it
+// repeats, by the lines an editor shows (comments and blank lines counted).
+TEST(PackingFile, RepeatedCentresAreRefusedNamingBothLines) {
+  EXPECT_CONTAINS(read_error("joined",
+                             "# bed\n1 2 3 0.5\n4 5 6 0.5\n\n# bed again\n1 2 3 0.5\n"
+                             "4 5 6 0.5\n"),
+                  ":6: the centre (1, 2, 3) of line 2 again, with its radius; 2 of 4 rows repeat "
+                  "an earlier row's centre (a file joined to itself or to a copy?)");
+  const std::string other_radius = read_error("other_radius", "1 2 3 0.5\n7 8 9 1\n1 2 3 0.25\n");
+  EXPECT_CONTAINS(other_radius, ":3: the centre (1, 2, 3) of line 1 again; 1 of 3 rows");
+  EXPECT_NOT_CONTAINS(other_radius, "with its radius");
+  // The first repeat in the file's order, whichever centre sorts first.
+  EXPECT_CONTAINS(read_error("order", "1 1 1 1\n9 9 9 1\n9 9 9 1\n1 1 1 1\n"),
+                  ":3: the centre (9, 9, 9) of line 2 again");
+  EXPECT_CONTAINS(read_error("three_copies", "1 1 1 1\n2 2 2 1\n1 1 1 1\n1 1 1 1\n"),
+                  ":3: the centre (1, 1, 1) of line 1 again, with its radius; 2 of 4 rows");
+  EXPECT_CONTAINS(read_error("signed_zero", "0 0 0 1\n-0 0 0 1\n"), ":2: the centre (-0, 0, 0)");
+  // A dump's rows too, by their lines in the dump (its rows start on line 10).
+  const std::string dump =
+      lammps_dump("id type x y z radius",
+                  {"1 1 0.1 0.2 0.3 0.01", "2 1 0.4 0.2 0.3 0.01", "3 1 0.1 0.2 0.3 0.01"});
+  EXPECT_CONTAINS(read_error("dump_repeat", dump),
+                  ":12: the centre (0.1, 0.2, 0.3) of line 10 again");
+  // Centres one bit apart are two spheres.
+  EXPECT_EQ(read_packing_file(temp_file("one_bit", "1 2 3 1\n1 2 3.0000000000000004 1\n")).size(),
+            2u);
+}
 
 TEST(PackingDump, RadiusColumnIsReadExactly) {
   const Particles p = read_packing_file(temp_file(

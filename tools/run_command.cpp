@@ -962,23 +962,38 @@ void refuse_to_resume_a_finished_run(const fs::path& dir, bool in_place) {
                              : " (it kept no periodic checkpoint to start again from)"));
 }
 
+namespace {
+
+// Files of the pulses before a checkpoint that are not in its folder (deleted to save space, say),
+// as a resume's warnings name them: frames and ray path files alike.
+struct MissingFiles {
+  std::string names;  // "particles_0000.vtp, particles_0003.vtp"
+  int count = 0;
+  void add(const std::string& name) { names += (count++ > 0 ? ", " : "") + name; }
+  // "2 frames of the pulses before the checkpoint are not there (...)", for `kind` = "frame".
+  std::string said(const char* kind) const {
+    return std::to_string(count) + " " + kind + plural(count) +
+           " of the pulses before the checkpoint " + (count == 1 ? "is" : "are") + " not there (" +
+           names + ")";
+  }
+  const char* them() const { return count == 1 ? "it" : "them"; }
+};
+
+}  // namespace
+
 // The checkpoint's frames that are no longer in its folder (deleted to save space, say) leave the
 // series, with a warning naming them: particles.pvd names no file that is not there.
 void drop_missing_frames(const fs::path& from, RunRecord& record) {
-  std::string missing;
-  std::size_t count = 0;
+  MissingFiles missing;
   std::erase_if(record.frames, [&](const std::pair<std::string, double>& frame) {
     std::error_code ec;
     if (fs::is_regular_file(from / frame.first, ec)) return false;
-    missing += (count++ > 0 ? ", " : "") + frame.first;
+    missing.add(frame.first);
     return true;
   });
-  if (count > 0)
-    std::fprintf(stderr,
-                 "beampack: warning: --resume %s: %zu frame%s of the pulses before the checkpoint "
-                 "%s not there (%s); particles.pvd leaves %s out\n",
-                 from.c_str(), count, plural(static_cast<long long>(count)),
-                 count == 1 ? "is" : "are", missing.c_str(), count == 1 ? "it" : "them");
+  if (missing.count > 0)
+    std::fprintf(stderr, "beampack: warning: --resume %s: %s; particles.pvd leaves %s out\n",
+                 from.c_str(), missing.said("frame").c_str(), missing.them());
 }
 
 // A run resumed into another folder than its checkpoint's continues the frames and ray paths
@@ -1004,16 +1019,12 @@ void carry_earlier_files(const fs::path& from, const fs::path& to, const RunReco
     return true;
   };
   for (const auto& [name, time] : record.frames) carry(name);  // drop_missing_frames said which
-  std::string missing;
-  int count = 0;
+  MissingFiles missing;
   for (int k = 0; output.rays && k < pulses_ended; ++k)
-    if (!carry(pulse_file("rays", k))) missing += (count++ > 0 ? ", " : "") + pulse_file("rays", k);
-  if (count > 0)  // deleted to save space, as frames may be: said, as they are
-    std::fprintf(stderr,
-                 "beampack: warning: --resume %s: %d ray path file%s of the pulses before the "
-                 "checkpoint %s not there (%s); %s will not hold %s\n",
-                 from.c_str(), count, plural(count), count == 1 ? "is" : "are", missing.c_str(),
-                 to.c_str(), count == 1 ? "it" : "them");
+    if (const std::string name = pulse_file("rays", k); !carry(name)) missing.add(name);
+  if (missing.count > 0)  // deleted to save space, as frames may be: said, as they are
+    std::fprintf(stderr, "beampack: warning: --resume %s: %s; %s will not hold %s\n", from.c_str(),
+                 missing.said("ray path file").c_str(), to.c_str(), missing.them());
 }
 
 // The figures at the end of the run's last pulse: what a run that fails later still has, whole.
