@@ -27,6 +27,7 @@ template <class T>
 void validate_beam(const BeamSpec& s, double sample_size) {
   if (!(s.power > 0.0) || !std::isfinite(s.power))
     bad("beam.power", s.power, "must be > 0 and finite");
+  if (s.power > kPowerCap.limit) bad("beam.power", s.power, cap_limit(kPowerCap).c_str());
   if (!(s.diameter_fraction > 0.0) || !std::isfinite(s.diameter_fraction))
     bad("beam.diameter_fraction", s.diameter_fraction, "must be > 0 and finite");
   if (s.rays < 1 || s.rays > (std::size_t{1} << 31))

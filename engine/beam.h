@@ -4,9 +4,16 @@
 #include <string>
 #include <vector>
 
+#include "../geometry/error.h"
 #include "../geometry/vec3.h"
 
 namespace beampack {
+
+// Far beyond it the pulse energy P tau, or the temperatures it gives, overflows.
+inline constexpr Cap kPowerCap{1e20,
+                               "W (1e5 times the most powerful lasers'; far beyond it the pulse "
+                               "energy with pulses.duration, or the temperatures it gives, "
+                               "overflows)"};
 
 struct BeamSpec {
   double power = 6000.0;                // beam.power, W: sum_k I_k A_r = P

@@ -14,6 +14,18 @@ inline std::string shown_number(double v) {
   return s.str();
 }
 
+// An upper limit beyond which a run's arithmetic breaks, physically generous: messages give it as
+// "must be <= limit why", `why` its unit and reason.
+struct Cap {
+  double limit;
+  const char* why;
+};
+
+// " must be <= 1e+20 W/(m K) (...)": the limit as messages state it.
+inline std::string cap_limit(const Cap& cap) {
+  return "must be <= " + shown_number(cap.limit) + " " + cap.why;
+}
+
 class InputError : public std::runtime_error {
  public:
   using std::runtime_error::runtime_error;

@@ -95,6 +95,55 @@ TEST(LibraryInputs, ASimulationSpecOutsideItsRangesIsRefusedByName) {
   }
 }
 
+// The limits beyond which the arithmetic breaks (conductivity 1e308 gave non-finite temperatures,
+// latent bands 1e25 booked energies the beam never gave) were the command line's alone: the
+// library took them. They are the library's now, with the command line's messages.
+TEST(LibraryInputs, ValuesBeyondWhatTheArithmeticHoldsAreRefusedByName) {
+  struct Case {
+    std::function<void(SimulationSpec&)> spoil;
+    const char* message;
+  };
+  Wall wall;
+  wall.axis = 2;
+  const Case cases[] =
+      {
+          {[](SimulationSpec& s) { s.materials[0].conductivity = 1e308; },
+           "material.conductivity = 1e+308: must be <= 1e+20 W/(m K)"},
+          {[](SimulationSpec& s) { s.materials[0].c_liquid = 1e13; },
+           "material.c_liquid = 1e+13: must be <= 1e+12 J/(kg K)"},
+          {[](SimulationSpec& s) { s.materials[0].latent_melt = 1e25; },
+           "material.latent_melt = 1e+25: must be <= 1e+12 J/(kg K) (a band's dP/dtheta"},
+          {[](SimulationSpec& s) { s.materials[0].density = 1e15; },
+           "material.density = 1e+15: must be <= 1e+12 kg/m^3"},
+          {[](SimulationSpec& s) { s.materials[0].vapor_temperature = 1e300; },
+           "material.vapor_temperature = 1e+300: must be <= 1e+12 K"},
+          {[&](SimulationSpec& s) {
+    s.thermal.walls = {wall};
+    s.thermal.walls[0].temperature = 1e300;
+           },
+           "temperature = 1e+300: must be <= 1e+12 K"},
+          {[&](SimulationSpec& s) {
+    s.thermal.walls = {wall};
+    s.thermal.walls[0].conductance = 1e306;
+           },
+           "conductance = 1e+306: must be <= 1e+20 W/K"},
+             {[](SimulationSpec& s) { s.thermal.time_scaling = 1e290; },
+              "thermal.time_scaling = 1e+290: must be <= 1e+12"},
+             {[](SimulationSpec& s) { s.beam.power = 1e300; },
+              "`beam.power` = 1e+300: must be <= 1e+20 W"},
+             };
+  for (const Case& c : cases) {
+    SimulationSpec s = one_pulse();
+    c.spoil(s);
+    testing::expect_error<InputError>([&] { Simulation sim(s, three_spheres()); }, c.message);
+  }
+  SimulationSpec at_limits = one_pulse();  // at the limits a run is taken
+  at_limits.materials[0].conductivity = 1e20;
+  at_limits.thermal.time_scaling = 1e12;
+  at_limits.beam.power = 1e20;
+  EXPECT_NO_THROW(Simulation(at_limits, three_spheres()));
+}
+
 // A beam made by hand: a direction that is not a unit vector (every ray escaped), an energy that
 // is NaN (the ledger went NaN), particles added after the tracer took them (never hit, or a
 // material it never checked).

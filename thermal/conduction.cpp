@@ -21,7 +21,11 @@ void Wall::validate(const std::string& prefix) const {
   if (!(std::isfinite(reach) && reach >= 0)) fail("reach", reach, "must be >= 0");
   if (!(std::isfinite(temperature) && temperature > 0))
     fail("temperature", temperature, "must be > 0");
+  if (temperature > kTemperatureCap.limit)
+    fail("temperature", temperature, cap_limit(kTemperatureCap).c_str());
   if (!std::isfinite(conductance)) fail("conductance", conductance, "must be finite (< 0: from K)");
+  if (conductance > kWallConductanceCap.limit)
+    fail("conductance", conductance, cap_limit(kWallConductanceCap).c_str());
 }
 
 // A sphere tangent to the face (a lattice at L = 0.5 has a layer on each face) has a gap of 0 only

@@ -9,35 +9,40 @@ namespace beampack {
 
 namespace {
 
-void require(bool ok, const std::string& prefix, const char* key, double value, const char* limit) {
+void require(bool ok, const std::string& prefix, const char* key, double value,
+             const std::string& limit) {
   if (ok) return;
   std::ostringstream msg;
   msg << prefix << '.' << key << " = " << value << ": " << limit;
   throw InputError(msg.str());
 }
 
+// value within (0 or above, as `positive` says) and at most the cap; NaN and infinities fail.
+void require_within(double value, bool positive, const Cap& cap, const std::string& prefix,
+                    const char* key) {
+  require(std::isfinite(value) && (positive ? value > 0 : value >= 0), prefix, key, value,
+          positive ? "must be > 0" : "must be >= 0");
+  require(value <= cap.limit, prefix, key, value, cap_limit(cap));
+}
+
 }  // namespace
 
 void Material::validate(const std::string& prefix) const {
-  // isfinite first: NaN and infinities fail every check below.
-  require(std::isfinite(density) && density > 0, prefix, "density", density, "must be > 0");
-  require(std::isfinite(c_solid) && c_solid > 0, prefix, "c_solid", c_solid, "must be > 0");
-  require(std::isfinite(c_liquid) && c_liquid > 0, prefix, "c_liquid", c_liquid, "must be > 0");
-  require(std::isfinite(conductivity) && conductivity >= 0, prefix, "conductivity", conductivity,
-          "must be >= 0");
-  require(std::isfinite(melt_temperature) && melt_temperature > 0, prefix, "melt_temperature",
-          melt_temperature, "must be > 0");
+  require_within(density, true, kDensityCap, prefix, "density");
+  require_within(c_solid, true, kHeatCapacityCap, prefix, "c_solid");
+  require_within(c_liquid, true, kHeatCapacityCap, prefix, "c_liquid");
+  require_within(conductivity, false, kConductivityCap, prefix, "conductivity");
+  require_within(melt_temperature, true, kTemperatureCap, prefix, "melt_temperature");
   if (!(std::isfinite(vapor_temperature) && vapor_temperature > melt_temperature)) {
     std::ostringstream limit;
     limit << "must be > " << prefix << ".melt_temperature = " << melt_temperature;
-    require(false, prefix, "vapor_temperature", vapor_temperature, limit.str().c_str());
+    require(false, prefix, "vapor_temperature", vapor_temperature, limit.str());
   }
-  require(std::isfinite(latent_melt) && latent_melt >= 0, prefix, "latent_melt", latent_melt,
-          "must be >= 0");
-  require(std::isfinite(latent_solidify) && latent_solidify >= 0, prefix, "latent_solidify",
-          latent_solidify, "must be >= 0");
-  require(std::isfinite(latent_vapor) && latent_vapor >= 0, prefix, "latent_vapor", latent_vapor,
-          "must be >= 0");
+  require(vapor_temperature <= kTemperatureCap.limit, prefix, "vapor_temperature",
+          vapor_temperature, cap_limit(kTemperatureCap));
+  require_within(latent_melt, false, kLatentBandCap, prefix, "latent_melt");
+  require_within(latent_solidify, false, kLatentBandCap, prefix, "latent_solidify");
+  require_within(latent_vapor, false, kLatentBandCap, prefix, "latent_vapor");
 }
 
 }  // namespace beampack

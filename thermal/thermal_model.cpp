@@ -44,6 +44,8 @@ void ThermalSpec::validate() const {
   if (!(phi >= 0 && phi <= 1)) input_error("thermal.phi", phi, "must be in [0, 1]");
   if (!(std::isfinite(time_scaling) && time_scaling > 0))
     input_error("thermal.time_scaling", time_scaling, "must be > 0");
+  if (time_scaling > kTimeScalingCap.limit)
+    input_error("thermal.time_scaling", time_scaling, cap_limit(kTimeScalingCap));
   if (solver != "auto" && solver != "fixed-point" && solver != "cg" && solver != "direct")
     input_error("thermal.solver", '"' + solver + '"', "must be fixed-point, cg, direct or auto");
   if (!(tolerance > 0 && tolerance < 1))

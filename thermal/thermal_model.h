@@ -16,6 +16,13 @@
 
 namespace beampack {
 
+// M multiplies every temperature rise (MODEL.md section 4): at M = 1e12 the quick preset's peak was
+// 1.2e8 K, and it grows as M: 1.2e286 K at M = 1e290, without a word.
+inline constexpr Cap kTimeScalingCap{
+    1e12,
+    "(1e6 times the paper's M = 1e6; M multiplies every temperature rise, and far "
+    "beyond it they overflow)"};
+
 struct ThermalSpec {
   double phi = 1;               // thermal.phi: 1 backward Euler, 1/2 Crank-Nicolson, 0 explicit
   double time_scaling = 1e6;    // thermal.time_scaling: M of section 4.1, divides m C

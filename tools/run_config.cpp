@@ -23,44 +23,10 @@ namespace {
 
 constexpr double kBig = std::numeric_limits<double>::max();
 
-// An upper limit beyond which a run's arithmetic breaks, physically generous, with its unit and
-// why. Measured with the quick preset (each key alone, or with walls within reach): conductivity
-// 1e308 and wall conductance 1e306 gave non-finite temperatures (exit 1, no key named); latent
-// heat 1e308 booked 1.6e280 J as stored of 8e-9 J absorbed, 1e25 (latent_melt) 4e-4 J, and the
-// heat ledger opens by more than 1e-6 from ~1e14 (latent or specific heats alike: C + L is one
-// capacity); a wall at 1e300 K booked -7.5e273 J, and conjugate gradients' residual turned NaN at
-// 1e200 K, at beam.power = 1e300 W and pulses.duration = 1e290 s; thermal.dt = 1e308 s with
-// K = 1e4 gave non-finite temperatures, and pulses.period = 1e308 s "thermal.dt = inf". At all
-// these limits together the direct solver closes the ledger and the iterative ones stop with
-// their own message; the stiff scenes the project validates (K up to 1e6 in `beampack validate
-// --stiff`, 1e9 in tests/test_thermal_stiff.cpp) are far inside.
-struct Cap {
-  double limit;
-  const char* why;  // unit and reason, after "must be <= limit"
-};
-constexpr Cap kConductivity{
-    1e20,
-    "W/(m K) (5e16 times diamond's; far larger ones overflow the conductances and the "
-    "heat flows)"};
-constexpr Cap kWallConductance{
-    1e20, "W/K per particle (far larger ones overflow the heat flows from the walls)"};
-constexpr Cap kHeatCapacity{
-    1e12,
-    "J/(kg K) (2e8 times water's; beyond it a step's warming is lost to the "
-    "temperatures' round-off: the heat ledger opens, and far beyond it books energies "
-    "the beam never gave)"};
-constexpr Cap kLatentHeat{
-    1e12,
-    "J/(kg K) (a band's dP/dtheta, added to the specific heat inside it: 2e8 times water's "
-    "specific heat; beyond it a step's warming is lost to the temperatures' round-off: the heat "
-    "ledger opens, and far beyond it books energies the beam never gave)"};
-constexpr Cap kTemperature{
-    1e12,
-    "K (hotter than any solid or liquid; far higher ones overflow the heat flows, "
-    "conductance times temperature difference)"};
-constexpr Cap kPower{1e20,
-                     "W (1e5 times the most powerful lasers'; far beyond it the pulse energy with "
-                     "pulses.duration, or the temperatures it gives, overflows)"};
+// The thermal and beam caps are the library's (thermal/material.h, thermal/thermal_model.h,
+// engine/beam.h), with the measurements behind them; these are the run's own: thermal.dt = 1e308 s
+// with K = 1e4 gave non-finite temperatures, pulses.period = 1e308 s "thermal.dt = inf", and
+// conjugate gradients' residual turned NaN at pulses.duration = 1e290 s.
 constexpr Cap kDuration{
     1e12,
     "s (30,000 years; far longer pulses overflow their energy and the temperatures it "
@@ -69,18 +35,6 @@ constexpr Cap kDuration{
 constexpr Cap kStep{1e12,
                     "s (30,000 years; far longer steps overflow their heat flows, time step times "
                     "conductance times temperature)"};
-// Density multiplies the thermal mass rho V C as the heat capacities do, and M divides it (MODEL.md
-// section 4): the quick preset's heat ledger closed to 7e-8 at rho = 1e12, 7e-7 at 1e13, and was
-// open by 1.6e-4 at 1e15 (at 1e20 it booked none of the absorbed energy as stored); at M = 1e12 its
-// peak temperature was 1.2e8 K, and it grows as M: 1.2e286 K at M = 1e290, without a word.
-constexpr Cap kDensity{
-    1e12,
-    "kg/m^3 (4e7 times osmium's; beyond it a step's warming is lost to the temperatures' "
-    "round-off: the heat ledger opens)"};
-constexpr Cap kTimeScaling{
-    1e12,
-    "(1e6 times the paper's M = 1e6; M multiplies every temperature rise, and far "
-    "beyond it they overflow)"};
 // packing.radius: the limit of every particle's radius (geometry/packing.h); from 1e3 m the heat
 // ledger opens already (a warning says so).
 constexpr Cap kFileRadius{kMaxParticleRadius, kMaxParticleRadiusWhy};
@@ -91,8 +45,7 @@ double capped(const Params& p, const std::string& key, double value, const Cap& 
   if (!(value > cap.limit)) return value;
   std::array<char, 32> shown;
   const auto end = std::to_chars(shown.data(), shown.data() + shown.size(), value).ptr;
-  p.fail(key, std::string(shown.data(), end),
-         "must be <= " + shown_number(cap.limit) + " " + cap.why);
+  p.fail(key, std::string(shown.data(), end), cap_limit(cap));
 }
 
 double number_up_to(Params& p, const std::string& key, double fallback, double lo, const Cap& cap,
@@ -132,7 +85,7 @@ void read_packing(Params& p, PackingSpec& s) {
 }
 
 void read_beam(Params& p, BeamSpec& b) {
-  b.power = number_up_to(p, "beam.power", 6000, 0, kPower, true);
+  b.power = number_up_to(p, "beam.power", 6000, 0, kPowerCap, true);
   b.diameter_fraction = p.number("beam.diameter_fraction", 0.3, 0, 10, true);
   b.rays = std::size_t(p.integer("beam.rays", 1000, 1, 100'000'000));
   b.sampling = p.choice("beam.sampling", "random", {"random", "stratified"});
@@ -219,15 +172,16 @@ void read_optics(Params& p, OpticsSpec& o) {
 }
 
 void read_material(Params& p, Material& m) {
-  m.density = number_up_to(p, "material.density", 1000, 0, kDensity, true);
-  m.c_solid = number_up_to(p, "material.c_solid", 1000, 0, kHeatCapacity, true);
-  m.c_liquid = number_up_to(p, "material.c_liquid", 2000, 0, kHeatCapacity, true);
-  m.conductivity = number_up_to(p, "material.conductivity", 0, 0, kConductivity);
-  m.melt_temperature = number_up_to(p, "material.melt_temperature", 600, 0, kTemperature, true);
-  m.vapor_temperature = number_up_to(p, "material.vapor_temperature", 700, 0, kTemperature, true);
-  m.latent_melt = number_up_to(p, "material.latent_melt", 1000, 0, kLatentHeat);
-  m.latent_solidify = number_up_to(p, "material.latent_solidify", 1000, 0, kLatentHeat);
-  m.latent_vapor = number_up_to(p, "material.latent_vapor", 1000, 0, kLatentHeat);
+  m.density = number_up_to(p, "material.density", 1000, 0, kDensityCap, true);
+  m.c_solid = number_up_to(p, "material.c_solid", 1000, 0, kHeatCapacityCap, true);
+  m.c_liquid = number_up_to(p, "material.c_liquid", 2000, 0, kHeatCapacityCap, true);
+  m.conductivity = number_up_to(p, "material.conductivity", 0, 0, kConductivityCap);
+  m.melt_temperature = number_up_to(p, "material.melt_temperature", 600, 0, kTemperatureCap, true);
+  m.vapor_temperature =
+      number_up_to(p, "material.vapor_temperature", 700, 0, kTemperatureCap, true);
+  m.latent_melt = number_up_to(p, "material.latent_melt", 1000, 0, kLatentBandCap);
+  m.latent_solidify = number_up_to(p, "material.latent_solidify", 1000, 0, kLatentBandCap);
+  m.latent_vapor = number_up_to(p, "material.latent_vapor", 1000, 0, kLatentBandCap);
   check_order(p, "material.melt_temperature", m.melt_temperature, "material.vapor_temperature",
               m.vapor_temperature);
   m.validate("material");
@@ -238,9 +192,10 @@ void read_material(Params& p, Material& m) {
 std::vector<Wall> read_walls(Params& p, double size) {
   const std::string faces = p.text("thermal.walls", "");
   const double temperature =
-      number_up_to(p, "thermal.wall_temperature", 300, 0, kTemperature, true);
+      number_up_to(p, "thermal.wall_temperature", 300, 0, kTemperatureCap, true);
   const double reach = p.number("thermal.wall_reach", 0, 0, kBig);
-  const double conductance = number_up_to(p, "thermal.wall_conductance", -1, -1, kWallConductance);
+  const double conductance =
+      number_up_to(p, "thermal.wall_conductance", -1, -1, kWallConductanceCap);
   if (conductance < 0 && conductance != -1)
     p.fail("thermal.wall_conductance", shown_number(conductance),
            "must be >= 0 (W/K per particle) or -1 (pi K R, from material.conductivity)");
@@ -275,7 +230,7 @@ struct PaperStepUse {
 // (xi R / c, the paper's ray time step: derive_paper_step).
 void read_thermal(Params& p, SimulationSpec& s, PaperStepUse& use) {
   ThermalSpec& t = s.thermal;
-  t.time_scaling = number_up_to(p, "thermal.time_scaling", 1e6, 0, kTimeScaling, true);
+  t.time_scaling = number_up_to(p, "thermal.time_scaling", 1e6, 0, kTimeScalingCap, true);
   t.phi = p.number("thermal.phi", 1.0, 0, 1);
   t.solver = p.choice("thermal.solver", "auto", {"fixed-point", "cg", "direct", "auto"});
   t.tolerance = p.number("thermal.tolerance", 1e-10, 0, 0.1, true);
@@ -433,7 +388,7 @@ RunConfig read_config(Params& p, const RunSources& sources) {
   RunConfig c;
   read_packing(p, c.sim.packing);
   c.sim.packing.initial_temperature =
-      number_up_to(p, "material.initial_temperature", 300, 0, kTemperature, true);
+      number_up_to(p, "material.initial_temperature", 300, 0, kTemperatureCap, true);
   read_beam(p, c.sim.beam);
   read_optics(p, c.sim.optics);
   Material m;
