@@ -510,7 +510,7 @@ double ThermalModel::thermal_mass(std::size_t i) const {
 // c_i = m_i C_i / M (section 4.1). A dead particle's row reads c theta = c theta; its c is the
 // mean live one so that it neither dominates nor vanishes from the relative residual of CG.
 // Over the step's rows (every particle, or busy_'s, all live).
-Eigen::VectorXd ThermalModel::base_capacity() const {
+Eigen::VectorXd ThermalModel::thermal_masses() const {
   const Eigen::Index n = rows();
   Eigen::VectorXd c(n);
   double sum = 0;
@@ -530,9 +530,9 @@ Eigen::VectorXd ThermalModel::base_capacity() const {
   return c;
 }
 
-Eigen::VectorXd ThermalModel::capacity_with_bands(const Eigen::VectorXd& theta0,
-                                                  const std::vector<std::uint8_t>& bands) const {
-  Eigen::VectorXd c = base_capacity();
+Eigen::VectorXd ThermalModel::thermal_masses_with_bands(
+    const Eigen::VectorXd& theta0, const std::vector<std::uint8_t>& bands) const {
+  Eigen::VectorXd c = thermal_masses();
   for (Eigen::Index k = 0; k < rows(); ++k) {
     const std::size_t i = particle_of(k);
     if (!p_.alive[i] || !bands[k]) continue;
@@ -777,7 +777,7 @@ int ThermalModel::correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::Ve
       report.phase_passes_capped = true;
       break;
     }
-    c = capacity_with_bands(theta0, bands);
+    c = thermal_masses_with_bands(theta0, bands);
     solve(dt, c, dh, t, report);
     report.phase_corrected = true;
     ++passes;
@@ -866,7 +866,7 @@ StepReport ThermalModel::step_once(double dt, const Heat& heat) {
   const Eigen::VectorXd dh = heat_of_rows(heat);
   t.rel0 = t.theta0.array() - reference_;
   t.rel1 = t.rel0;  // the iterative solvers' first guess: no change
-  Eigen::VectorXd c = base_capacity();
+  Eigen::VectorXd c = thermal_masses();
   solve(dt, c, dh, t, report);  // predictor
   report.phases_ran = phase_work_needed(t.theta0, t.theta1);
   if (report.phases_ran)

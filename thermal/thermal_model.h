@@ -231,9 +231,9 @@ class ThermalModel {
   std::vector<Eigen::Index> busy_rows_of_restless(const Eigen::Ref<const Eigen::VectorXd>& theta0,
                                                   const Heat& heat);
   void build_busy_system(std::vector<Eigen::Index> rows);
-  Eigen::VectorXd base_capacity() const;
-  Eigen::VectorXd capacity_with_bands(const Eigen::VectorXd& theta0,
-                                      const std::vector<std::uint8_t>& bands) const;
+  Eigen::VectorXd thermal_masses() const;
+  Eigen::VectorXd thermal_masses_with_bands(const Eigen::VectorXd& theta0,
+                                            const std::vector<std::uint8_t>& bands) const;
   void solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& dh, StepTemperatures& t,
              StepReport& report);
   void solve_relative(const System& s, double dt, const Eigen::VectorXd& c,

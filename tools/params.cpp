@@ -121,11 +121,6 @@ void merge_layer(toml::table& merged, std::map<std::string, KeyOrigin>& origin,
   }
 }
 
-// toml++ 3.3.0 (Debian 12) reaches __builtin_unreachable, i.e. undefined behaviour, in
-// is_non_ascii_horizontal_whitespace() for most code points in U+00A1..U+0499, U+2FCE..U+33C7
-// and U+FE5E..U+FEFE whenever one stands where it tests for whitespace: between tokens (found by
-// fuzz/; UBSan stops there). TOML 1.0 allows non-ASCII characters only inside strings and
-// comments, so the first one outside them is refused here, before the parser sees it.
 // TOML files must be valid UTF-8, and toml++ 3.3 reaches undefined behaviour on some invalid
 // sequences inside strings (fuzz/regressions/run_config/invalid_utf8_in_string.toml):
 // refuse overlong forms, surrogates, code points above U+10FFFF and stray bytes first.
@@ -188,10 +183,12 @@ std::uint32_t decode_utf8(std::string_view text, std::size_t& i) {
 
 // The text toml++ is given holds no byte above 0x7F outside comments: toml++ 3.3 (Debian) tests
 // such bytes as possible whitespace while it scans a token, and its Unicode table reaches
-// __builtin_unreachable for many code points (found by fuzz/). Where it would scan is not always
-// where a string seems to start (`a = 0"""è"` is a bare token to it), so no non-ASCII byte may
-// reach it there: in basic strings each character becomes its \uXXXX escape (the same string in
-// TOML), in literal strings (no escapes) and between tokens it is refused, naming the line.
+// __builtin_unreachable (undefined behaviour) in is_non_ascii_horizontal_whitespace() for most
+// code points in U+00A1..U+0499, U+2FCE..U+33C7 and U+FE5E..U+FEFE (found by fuzz/). Where it would
+// scan is not always where a string seems to start (`a = 0"""è"` is a bare token to it), so no
+// non-ASCII byte may reach it there: in basic strings each character becomes its \uXXXX escape (the
+// same string in TOML), in literal strings (no escapes) and between tokens it is refused, naming
+// the line.
 std::string ascii_for_toml(std::string_view text, const std::string& source) {
   enum { normal, comment, basic, literal, multi_basic, multi_literal } state = normal;
   std::size_t line = 1;
