@@ -891,55 +891,57 @@ void Tracer::add_chunk(Chunk& c, std::vector<double>& deposits,
   t.ended += c.ended;
 }
 
-// Runs the chunks with an event before the advance's end, in parallel, and sums them one by one in
-// chunk order as they finish, so the (serial, deterministic) reduction overlaps the tracing of
-// later chunks. The other chunks are in free flight throughout: nothing of theirs changes.
-std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
-                            std::vector<std::uint32_t>* deposited) {
-  if (!(path_budget >= 0.0))
-    throw InputError("advance: path budget " + shown_number(path_budget) + " must be >= 0");
-  check_particle_count("advance");  // fewer particles: the rays' hits would index past them
-  if (deposits.size() < particles_.size()) deposits.resize(particles_.size(), 0.0);
-  if (has_live_rays()) build_scene();
-  RayState& s = state_;
-  const std::size_t n = s.live.size();
-  const double end_clock = s.clock + path_budget;
+// The chunks with an event before end_clock, into due_chunks_; returns how many others hold live
+// rays in free flight throughout (each flies the whole budget).
+std::size_t Tracer::select_due_chunks(double end_clock) {
   std::vector<std::uint32_t>& due = due_chunks_;
   due.clear();
-  std::size_t idle = 0;  // chunks with live rays in free flight throughout: each flies the budget
+  std::size_t idle = 0;
   for (std::size_t k = 0; k < next_event_.size(); ++k) {
     if (next_event_[k] <= end_clock && next_event_[k] < kInf)
       due.push_back(static_cast<std::uint32_t>(k));
     else idle += next_event_[k] < kInf;
   }
-  bool in_flight = idle > 0;
-  std::vector<Chunk>& chunks = chunks_;
-  if (chunks.size() < due.size()) chunks.resize(due.size());
-  totals_ = Totals{};
-  totals_.ledger = s.ledger;  // summed on in the same order as ever: bit-identical ledgers
-  if (undo_.on)
-    undo_ = {true,
-             true,
-             s.ledger,
-             s.primary_segments,
-             s.bounced_segments,
-             s.hits,
-             s.live_count,
-             s.clock,
-             last_advance_path_,
-             last_chunks_live_,
-             last_chunks_run_,
-             segments_.size()};
-  last_chunks_live_ = due.size() + idle;
-  last_chunks_run_ = due.size();
-  // Chunks per pipeline item: kBatchRays rays at least, and about kItemsPerThread items per thread
-  // when there are more chunks (an item costs the pipeline about a microsecond: with 256 rays per
-  // item, a 10^5-ray pulse spent a fifth of its stepping on them).
+  return idle;
+}
+
+// What undo_advance restores: the tracer's counts before this advance (the rays' own states are
+// kept by the chunks as they first change them).
+void Tracer::open_undo_record() {
+  if (!undo_.on) return;
+  const RayState& s = state_;
+  undo_ = {.on = true,
+           .held = true,
+           .ledger = s.ledger,
+           .primary = s.primary_segments,
+           .bounced = s.bounced_segments,
+           .hits = s.hits,
+           .live_count = s.live_count,
+           .clock = s.clock,
+           .last_advance_path = last_advance_path_,
+           .last_chunks_live = last_chunks_live_,
+           .last_chunks_run = last_chunks_run_,
+           .segments = segments_.size()};
+}
+
+// Chunks per pipeline item: kBatchRays rays at least, and about kItemsPerThread items per thread
+// when there are more chunks (an item costs the pipeline about a microsecond: with 256 rays per
+// item, a 10^5-ray pulse spent a fifth of its stepping on them).
+std::size_t Tracer::chunks_per_batch() const {
   const std::size_t threads =
       std::min(static_cast<std::size_t>(tbb::this_task_arena::max_concurrency()),
                tbb::global_control::active_value(tbb::global_control::max_allowed_parallelism));
-  const std::size_t per_batch = std::max(
-      {std::size_t{1}, kBatchRays / spec_.chunk_rays, due.size() / (kItemsPerThread * threads)});
+  return std::max({std::size_t{1}, kBatchRays / spec_.chunk_rays,
+                   due_chunks_.size() / (kItemsPerThread * threads)});
+}
+
+// Runs the due chunks in parallel and sums them one by one in chunk order as they finish, so the
+// (serial, deterministic) reduction overlaps the tracing of later chunks.
+void Tracer::run_due_chunks(double end_clock, std::vector<double>& deposits,
+                            std::vector<std::uint32_t>* deposited) {
+  const std::vector<std::uint32_t>& due = due_chunks_;
+  if (chunks_.size() < due.size()) chunks_.resize(due.size());
+  const std::size_t n = state_.live.size(), per_batch = chunks_per_batch();
   const std::size_t batches = (due.size() + per_batch - 1) / per_batch;
   std::size_t next = 0;
   tbb::parallel_pipeline(
@@ -965,15 +967,37 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
       tbb::make_filter<std::size_t, void>(tbb::filter_mode::serial_in_order, [&](std::size_t b) {
         const IeeeFloatMode ieee;  // the sums must not flush denormals on some threads only
         for (std::size_t j = b * per_batch; j < std::min(due.size(), (b + 1) * per_batch); ++j)
-          add_chunk(chunks[j], deposits, deposited);
+          add_chunk(chunks_[j], deposits, deposited);
       }));
-  for (std::uint32_t k : due) in_flight |= next_event_[k] < kInf;
+}
+
+// Traces every live ray on by path_budget (of path length): the chunks with an event before the
+// advance's end are run (run_due_chunks), the others are in free flight throughout, and nothing of
+// theirs changes. Returns the rays still live.
+std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
+                            std::vector<std::uint32_t>* deposited) {
+  if (!(path_budget >= 0.0))
+    throw InputError("advance: path budget " + shown_number(path_budget) + " must be >= 0");
+  check_particle_count("advance");  // fewer particles: the rays' hits would index past them
+  if (deposits.size() < particles_.size()) deposits.resize(particles_.size(), 0.0);
+  if (has_live_rays()) build_scene();
+  RayState& s = state_;
+  const double end_clock = s.clock + path_budget;
+  const std::size_t idle = select_due_chunks(end_clock);
+  totals_ = Totals{};
+  totals_.ledger = s.ledger;  // summed on in the same order as ever: bit-identical ledgers
+  open_undo_record();
+  last_chunks_live_ = due_chunks_.size() + idle;
+  last_chunks_run_ = due_chunks_.size();
+  run_due_chunks(end_clock, deposits, deposited);
+  bool rays_fly_on = idle > 0;  // some ray is still in free flight at the advance's end
+  for (std::uint32_t k : due_chunks_) rays_fly_on |= next_event_[k] < kInf;
   s.ledger = totals_.ledger;
   s.primary_segments += totals_.primary;
   s.bounced_segments += totals_.bounced;
   s.hits += totals_.hits;
   s.live_count -= totals_.ended;
-  last_advance_path_ = in_flight ? std::max(totals_.flight, path_budget) : totals_.flight;
+  last_advance_path_ = rays_fly_on ? std::max(totals_.flight, path_budget) : totals_.flight;
   s.clock += std::isfinite(path_budget) ? path_budget : last_advance_path_;
   return s.live_count;
 }

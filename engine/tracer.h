@@ -341,6 +341,11 @@ class Tracer {
     std::size_t segments = 0;  // recorded segments before it
   };
   Undo undo_;
+  std::size_t select_due_chunks(double end_clock);
+  void open_undo_record();
+  std::size_t chunks_per_batch() const;
+  void run_due_chunks(double end_clock, std::vector<double>& deposits,
+                      std::vector<std::uint32_t>* deposited);
   // Keeps ray's state for undo_advance (when on) before an advance first changes it: the check
   // inline, since every step makes it; the copy out of line.
   void remember(std::uint32_t ray, Chunk& chunk) const {
