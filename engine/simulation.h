@@ -118,6 +118,21 @@ struct Counts {
   std::uint64_t capped_stagger_steps = 0, stagger_cycles = 0;
 };
 
+// Steps of thermal.dt per light crossing of the sample (sample.size / c / dt); 0 for one step
+// per pulse flight.
+double steps_per_crossing(const SimulationSpec& spec);
+
+// What the spec alone says of the run it asks for, one line each, before any set-up: a fixed dt
+// of millions of steps per light crossing or per pulse period, walls of pi K R with K = 0 that
+// take no heat. Legal, and seldom meant; the CLI prints them as warnings before it sets up.
+std::vector<std::string> spec_warnings(const SimulationSpec& spec);
+// Parts of Simulation::run_warnings(), of a spec and its figures: the ledgers close within
+// EnergyLedger::kOpticsTolerance of the injected energy and EnergyLedger::heat_tolerance of the
+// heat moved, one line per open one; and temperatures risen so far that the heat solves' relative
+// accuracy, in kelvin, nears the gap between melting and vaporising, one line saying so.
+std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e);
+std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f);
+
 class Simulation {
  public:
   static constexpr const char* kStageNames[] = {"trace", "heat", "phases", "stagger", "rebuild"};
@@ -155,6 +170,13 @@ class Simulation {
   // always a mistake (a file packing outside the cube the beam is centred on); the CLI prints them
   // as warnings.
   std::vector<std::string> scene_warnings() const;
+  // What the run so far says of its own results, one line each, from its counts, figures and
+  // spec: pulses that started late (a step longer than the period), heat steps whose latent-heat
+  // correction stopped at its cap, steps whose stagger did not settle (at the cap, or in a cycle),
+  // an open energy ledger, temperatures beyond what the heat solves resolve between melting and
+  // vaporising. Empty when all is well; the CLI prints them as warnings at a run's end. Call it
+  // after run() (or between steps: it judges the steps taken so far).
+  std::vector<std::string> run_warnings() const;
   // The rays every pulse launches (pulse 0's until a launch resamples); without pulses, none.
   const Beam& beam() const { return beam_; }
   const Tracer& tracer() const { return *tracer_; }

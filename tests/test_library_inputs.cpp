@@ -214,6 +214,143 @@ TEST(LibraryInputs, AMisplacedSceneIsSaidToTheCaller) {
   EXPECT_CONTAINS(lonely[0], "the wall z+ (`thermal.walls`) touches no particle");
 }
 
+// The `quick` preset's scene: 200 spheres, 200 rays, 5 pulses that melt and vaporise.
+SimulationSpec quick_scene() {
+  SimulationSpec s;
+  s.packing.sample_size = kD;
+  s.packing.count = 200;
+  s.packing.seed = 7;
+  s.beam.rays = 200;
+  s.beam.seed = 7;
+  s.pulses.count = 5;
+  s.pulses.duration = 3e-13;
+  s.materials[0].conductivity = 20.0;
+  return s;
+}
+
+// The warnings of `run_warnings()` after a run of `spec`.
+std::vector<std::string> warnings_of_run(const SimulationSpec& spec) {
+  Simulation sim(spec);
+  sim.run();
+  return sim.run_warnings();
+}
+
+// What the command line warns of at a run's end, a library caller reads from the simulation: the
+// judgement of a run's physics is the library's, and the CLI only prints it. The scenes are the
+// CLI tests' of each warning.
+TEST(LibraryInputs, ARunSaysWhereItsResultsAreInDoubt) {
+  SimulationSpec spec = quick_scene();
+  {
+    Simulation sim(spec);
+    EXPECT_TRUE(sim.run_warnings().empty());  // no step yet
+    sim.run();
+    EXPECT_TRUE(sim.run_warnings().empty()) << sim.run_warnings().front();
+  }
+  // Pulses of period 10 ps in steps of 3 ps start up to 2 ps late (the CLI's
+  // PulsesStartAtTheirPeriodAndLateStartsAreAnnounced).
+  spec.pulses.period = 1e-11;
+  spec.dt = 3e-12;
+  const std::vector<std::string> late = warnings_of_run(spec);
+  ASSERT_EQ(late.size(), 1u);
+  EXPECT_CONTAINS(late[0],
+                  "3 of 5 pulses started more than 1% of `pulses.period` = 1e-11 s after "
+                  "k x period (up to 2e-12 s late)");
+  EXPECT_CONTAINS(late[0], "`thermal.dt` does not divide the period");
+  spec.dt = 1e-12;
+  EXPECT_TRUE(warnings_of_run(spec).empty());
+  // A stagger of one redo, in the paper's scene with a liquid index of 3 that reflects far more
+  // than the solid's 1.4 (the CLI's StaggerCyclesStopTheSameWayWhateverTheCap).
+  spec = SimulationSpec{};
+  spec.packing.count = 1000;
+  spec.packing.seed = spec.beam.seed = 2013;
+  spec.pulses.duration = 3e-13;
+  spec.optics.materials[0].n_liquid = 3;
+  spec.max_staggers = 1;
+  const std::vector<std::string> staggers = warnings_of_run(spec);
+  ASSERT_EQ(staggers.size(), 1u);
+  EXPECT_CONTAINS(staggers[0],
+                  "reached `thermal.max_staggers` = 1 redos with the optics still "
+                  "changing: their result is the last redo's and depends on the cap");
+  // A beam of 2e13 W heats by ~4e11 K, where the solves' 1e-10 of a step's change is ~40 K of
+  // the 100 K between melting and vaporising (README, "Keys without a natural bound").
+  spec = quick_scene();
+  spec.beam.power = 2e13;
+  const std::vector<std::string> hot = warnings_of_run(spec);
+  ASSERT_EQ(hot.size(), 1u);
+  EXPECT_CONTAINS(hot[0], "may misplace a particle beside the hottest by ~");
+}
+
+// A band one pass adds pushes a neighbour across another (ThermalPhase's
+// ACorrectorStoppedAtItsCapWithANewBandSaysSo): a liquid sphere at 640 K touching a solid one at
+// 510 K, a step of 4 ms that equalises them, under a faint pulse. With one corrector pass the step
+// stops with the new band unsolved, and the run says so; with the default four it does not.
+TEST(LibraryInputs, ALatentHeatCorrectionCutShortIsSaidToTheCaller) {
+  SimulationSpec spec;
+  spec.packing.sample_size = kD;
+  spec.beam.rays = 100;
+  spec.beam.power = 0.1;  // W: a faint beam, that warms the pair by ~1 mK
+  spec.pulses.count = 1;
+  spec.pulses.duration = 1e-13;
+  spec.materials[0].conductivity = 1;
+  spec.dt = 4e-3;
+  Particles pair;
+  pair.add(Vec3(5e-4, 5e-4, 5e-4), 1e-4, 0, 640.0);
+  pair.add(Vec3(6.5e-4, 5e-4, 5e-4), 1e-4, 0, 510.0);
+  for (const int cap : {1, 4}) {
+    spec.thermal.max_phase_corrections = cap;
+    Simulation sim(spec, pair);
+    sim.run();
+    ASSERT_EQ(sim.counts().capped_phase_steps, cap == 1 ? 1u : 0u) << cap;
+    const std::vector<std::string> said = sim.run_warnings();
+    if (cap == 4) {
+      EXPECT_TRUE(said.empty()) << said.front();
+      continue;
+    }
+    ASSERT_EQ(said.size(), 1u);
+    EXPECT_EQ(said[0],
+              "1 heat steps stopped the latent-heat correction at its cap of 1 passes while a "
+              "particle still crossed a new band (theta_m or theta_v): that band's latent heat "
+              "is missing from the step; a shorter `thermal.dt` crosses fewer bands per step");
+  }
+}
+
+// Spheres of 1e6 m (the largest radius a packing file may give) warm by less than doubles hold:
+// the heat ledger stays open, and the run says so (the CLI's
+// NumbersBeyondTheArithmeticAreRefusedAndTheLimitsRun).
+TEST(LibraryInputs, AnOpenLedgerIsSaidToTheCaller) {
+  SimulationSpec spec = quick_scene();
+  Particles giants;
+  giants.add(Vec3(5e-4, 5e-4, 5e-4), 1e6);
+  giants.add(Vec3(3e-4, 3e-4, 3e-4), 1e6);
+  Simulation sim(spec, giants);
+  sim.run();
+  const std::vector<std::string> said = sim.run_warnings();
+  ASSERT_EQ(said.size(), 1u);
+  EXPECT_CONTAINS(said[0], "the heat ledger is open by");
+}
+
+// What the spec alone warns of, before any set-up (the CLI prints it before it sets up).
+TEST(LibraryInputs, ASpecSaysWhatItsRunWillNotDoWell) {
+  SimulationSpec spec = quick_scene();
+  EXPECT_TRUE(spec_warnings(spec).empty());
+  spec.dt = 1e-20;
+  const std::vector<std::string> tiny = spec_warnings(spec);
+  ASSERT_EQ(tiny.size(), 1u);
+  EXPECT_CONTAINS(tiny[0],
+                  "`thermal.dt` = 1e-20 s: light crosses the sample (0.001 m) in 3.34e-12 "
+                  "s, 3.34e+08 steps of this length per crossing");
+  spec = quick_scene();
+  spec.materials[0].conductivity = 0;
+  Wall wall;
+  wall.axis = 2;
+  wall.position = 0;
+  wall.conductance = -1;  // pi K R
+  spec.thermal.walls = {wall};
+  const std::vector<std::string> walls = spec_warnings(spec);
+  ASSERT_EQ(walls.size(), 1u);
+  EXPECT_CONTAINS(walls[0], "the walls take no heat");
+}
+
 }  // namespace beampack
 
 namespace beampack {

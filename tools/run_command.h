@@ -125,12 +125,6 @@ class OutDir {
   void remove_empty_made();
   std::vector<std::filesystem::path> made_;  // every folder made here, in the order made
 };
-// The ledgers close within EnergyLedger::kOpticsTolerance of the injected energy and
-// EnergyLedger::heat_tolerance of the absorbed; one message per open one.
-std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e);
-// A run whose temperatures rose so far that the heat solves' relative accuracy, in kelvin, nears
-// the gap between melting and vaporising: one warning saying so; none otherwise.
-std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f);
 // A run of a sweep or converge that threw: one line on stderr naming `label`, the error and
 // `consequence`; returns the exit code it calls for (2 bad input, 1 a failed run).
 int report_failed_run(const std::string& label, const std::exception& e, const char* consequence);

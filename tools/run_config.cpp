@@ -581,10 +581,6 @@ double bytes_per_ray(const SimulationSpec& s) {
 
 }  // namespace
 
-double steps_per_crossing(const SimulationSpec& s) {
-  return s.dt > 0 ? s.packing.sample_size / kSpeedOfLight / s.dt : 0.0;
-}
-
 double paper_step(const PackingSpec& packing, double xi, const Particles* particles) {
   return xi * (particles ? median_radius(*particles) : packing_radius(packing)) / kSpeedOfLight;
 }

@@ -87,10 +87,6 @@ std::unique_ptr<Simulation> start_simulation(const RunConfig& config,
 // `particles`' radii (read from the file when null).
 double paper_step(const PackingSpec& packing, double xi, const Particles* particles = nullptr);
 
-// Steps of thermal.dt per light crossing of the sample (sample.size / c / dt); 0 for one step
-// per pulse flight.
-double steps_per_crossing(const SimulationSpec& s);
-
 // The least memory a scene needs, in bytes: its rays and its particles, at the bytes each that
 // a run measured (BENCHMARKS.md, "Memory a run needs"). Less than a run takes, never more. A
 // file packing counts `file_particles` (0 when it has not been read).

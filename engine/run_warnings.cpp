@@ -1,0 +1,203 @@
+// What a spec or a finished run says of its own physics, as text (simulation.h: spec_warnings,
+// Simulation::run_warnings): legal runs whose numbers a caller should not trust without a look.
+// The command line prints each line as `beampack: warning: <text>`.
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "engine/simulation.h"
+
+namespace beampack {
+namespace {
+
+// The "s" of a count's noun: "1 step", "2 steps".
+const char* plural(std::uint64_t count) {
+  return count == 1 ? "" : "s";
+}
+
+// A fixed thermal.dt far below the light's crossing time of the sample makes a run of millions
+// of steps per pulse: legal (the budget per step is c dt), but said before it starts.
+void warn_of_many_steps(const SimulationSpec& spec, std::vector<std::string>& out) {
+  char text[640];
+  // A period in seconds is stepped through whole, rays or not: pulse k starts at k T_p, so the last
+  // starts after (count - 1) x period / dt steps.
+  const double periods = spec.dt > 0 ? (spec.pulses.count - 1) * spec.pulses.period / spec.dt : 0.0;
+  if (periods >= 1e7) {
+    std::snprintf(text, sizeof text,
+                  "`pulses.count` = %d pulses of `pulses.period` = %g s in steps of "
+                  "`thermal.dt` = %g s: %.3g steps at least; a longer thermal.dt cools between "
+                  "pulses in fewer steps",
+                  spec.pulses.count, spec.pulses.period, spec.dt, periods);
+    out.emplace_back(text);
+  }
+  const double steps = steps_per_crossing(spec);
+  if (steps < 1e6) return;
+  const double crossing = spec.packing.sample_size / kSpeedOfLight;
+  std::snprintf(text, sizeof text,
+                "`thermal.dt` = %g s: light crosses the sample (%g m) in %.3g s, %.3g steps of "
+                "this length per crossing; `thermal.dt = \"pulse\"` takes one step per pulse "
+                "flight",
+                spec.dt, spec.packing.sample_size, crossing, steps);
+  out.emplace_back(text);
+}
+
+// pi K R with K = 0: walls that take no heat. Legal (a sweep over K passes through 0), but not
+// what a run that names walls usually wants.
+void warn_if_walls_take_no_heat(const SimulationSpec& spec, std::vector<std::string>& out) {
+  const auto& walls = spec.thermal.walls;
+  if (walls.empty() || walls.front().conductance >= 0 || spec.materials.empty() ||
+      spec.materials.front().conductivity > 0)
+    return;
+  out.emplace_back(
+      "`thermal.walls` with `thermal.wall_conductance` = -1 (pi K R) and "
+      "`material.conductivity` = 0: the walls take no heat; give thermal.wall_conductance in W/K "
+      "for walls that do");
+}
+
+// Pulses start at step boundaries: a pulses.period shorter than a step delays them.
+void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts,
+                         std::vector<std::string>& out) {
+  if (counts.late_pulses == 0) return;
+  char text[640];
+  std::snprintf(
+      text, sizeof text,
+      "%llu of %d pulses started more than 1%% of `pulses.period` = %g s after k x period (up to "
+      "%g s late): a pulse starts at a step boundary, and %s; use a fixed `thermal.dt` that "
+      "divides the period",
+      static_cast<unsigned long long>(counts.late_pulses), spec.pulses.count, spec.pulses.period,
+      counts.max_pulse_delay,
+      spec.dt > 0
+          ? "`thermal.dt` does not divide the period"
+          : "with `thermal.dt` = \"pulse\" a step is a whole pulse flight, longer than the period");
+  out.emplace_back(text);
+}
+
+// The latent-heat corrector re-solves a step at most a few times (section 4); one that still
+// found a new band at its last pass left that band's latent heat out.
+void warn_of_capped_phase_steps(const SimulationSpec& spec, const Counts& counts,
+                                std::vector<std::string>& out) {
+  if (counts.capped_phase_steps == 0) return;
+  char text[640];
+  std::snprintf(
+      text, sizeof text,
+      "%llu heat steps stopped the latent-heat correction at its cap of %d passes while a "
+      "particle still crossed a new band (theta_m or theta_v): that band's latent heat is missing "
+      "from the step; a shorter `thermal.dt` crosses fewer bands per step",
+      static_cast<unsigned long long>(counts.capped_phase_steps),
+      spec.thermal.max_phase_corrections);
+  out.emplace_back(text);
+}
+
+// The stagger redoes a step while a phase change alters the optics of a particle the rays met; in
+// some steps the phases never settle (MODEL.md section 5, step 4).
+void warn_of_unsettled_staggers(const SimulationSpec& spec, const Counts& counts,
+                                std::vector<std::string>& out) {
+  char text[640];
+  if (counts.capped_stagger_steps > 0) {
+    std::snprintf(
+        text, sizeof text,
+        "%llu step%s reached `thermal.max_staggers` = %d redos with the optics still changing: "
+        "their result is the last redo's and depends on the cap; raise it or shorten "
+        "`thermal.dt`",
+        static_cast<unsigned long long>(counts.capped_stagger_steps),
+        plural(counts.capped_stagger_steps), spec.max_staggers);
+    out.emplace_back(text);
+  }
+  if (counts.stagger_cycles > 0) {
+    std::snprintf(
+        text, sizeof text,
+        "in %llu step%s the stagger's redos alternated between two sets of phases (a particle "
+        "melts when traced solid and does not when traced liquid, or the like): each such step "
+        "keeps the second pass of the cycle; a shorter `thermal.dt` splits the melting over steps",
+        static_cast<unsigned long long>(counts.stagger_cycles), plural(counts.stagger_cycles));
+    out.emplace_back(text);
+  }
+}
+
+}  // namespace
+
+double steps_per_crossing(const SimulationSpec& s) {
+  return s.dt > 0 ? s.packing.sample_size / kSpeedOfLight / s.dt : 0.0;
+}
+
+std::vector<std::string> spec_warnings(const SimulationSpec& spec) {
+  std::vector<std::string> out;
+  warn_of_many_steps(spec, out);
+  warn_if_walls_take_no_heat(spec, out);
+  return out;
+}
+
+std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e) {
+  const double optics = e.injected > 0 ? std::abs(e.optics_imbalance()) / e.injected : 0.0;
+  const double heat = e.heat_error();
+  const double heat_limit = EnergyLedger::heat_tolerance(spec.thermal.tolerance);
+  std::vector<std::string> out;
+  char text[640];
+  if (!(optics <= EnergyLedger::kOpticsTolerance)) {  // NaN included
+    std::snprintf(text, sizeof text,
+                  "the optics ledger is open by %.3g of the injected energy "
+                  "(round-off is ~1e-15): please report this run file",
+                  optics);
+    out.emplace_back(text);
+  }
+  if (!(heat <= heat_limit)) {
+    std::snprintf(
+        text, sizeof text,
+        "the heat ledger is open by %.3g of the energy it moves (the larger of the heat in, "
+        "absorbed and from walls, and out, stored, vaporised and to walls; more than %.3g, from "
+        "`thermal.tolerance` = %g). Every solver keeps each cluster's "
+        "energy to round-off, so the likely cause is a step whose temperature rises are "
+        "below ~1e-13 of the temperatures (a faint beam, large or dense particles, "
+        "`thermal.time_scaling` near 1): doubles cannot hold them; raise "
+        "`thermal.time_scaling` or the energy of a step. Otherwise please report this run file",
+        heat, heat_limit, spec.thermal.tolerance);
+    out.emplace_back(text);
+  }
+  return out;
+}
+
+std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f) {
+  // Without a solve there is no tolerance to blame: no conduction, or explicit steps (phi = 0).
+  if (spec.materials.empty() || !needs_conduction(spec) || spec.thermal.phi == 0)
+    return std::nullopt;
+  double gap = std::numeric_limits<double>::infinity();
+  for (const Material& m : spec.materials)
+    gap = std::min(gap, m.vapor_temperature - m.melt_temperature);
+  // Relative accuracy of a step's solve: the tolerance, or round-off for the direct solver.
+  const double accuracy =
+      spec.thermal.solver == "direct" ? 1e-15 : std::max(spec.thermal.tolerance, 1e-15);
+  if (!f.max_temperature) return std::nullopt;  // no particles
+  const double rise = *f.max_temperature - spec.packing.initial_temperature;
+  const double misplaced = accuracy * rise;
+  if (!(misplaced > 0.1 * gap)) return std::nullopt;
+  char text[640];
+  std::snprintf(
+      text, sizeof text,
+      "the peak temperature rose %.3g K, and the heat solves, accurate to %.3g of a step's largest "
+      "change (`thermal.tolerance`, or round-off), may misplace a particle beside the hottest by "
+      "~%.3g K, against %.3g K between `material.melt_temperature` and `vapor_temperature`: "
+      "whether such a particle melted or vaporised may depend on the solver (a review saw one end "
+      "2 K below its initial temperature); lower `thermal.tolerance` or the energy of a pulse",
+      rise, accuracy, misplaced, gap);
+  return std::string(text);
+}
+
+std::vector<std::string> Simulation::run_warnings() const {
+  const Counts c = counts();
+  const Figures f = figures();
+  std::vector<std::string> out;
+  warn_of_late_pulses(spec_, c, out);
+  warn_of_capped_phase_steps(spec_, c, out);
+  warn_of_unsettled_staggers(spec_, c, out);
+  for (std::string& warning : open_ledger_warnings(spec_, f.energy))
+    out.push_back(std::move(warning));
+  if (std::optional<std::string> warning = phase_resolution_warning(spec_, f))
+    out.push_back(std::move(*warning));
+  return out;
+}
+
+}  // namespace beampack
