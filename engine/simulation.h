@@ -135,6 +135,10 @@ std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, 
 
 class Simulation {
  public:
+  // The stages the simulation times: those of its steps, and the contact graph's first build, at
+  // set-up, as `rebuild`. Its caller's reading and writing are not among them (it cannot see
+  // them): the command line times its own `setup` and `output` around these (README), and any
+  // caller may time its own the same way.
   static constexpr const char* kStageNames[] = {"trace", "heat", "phases", "stagger", "rebuild"};
   static constexpr int kStages = 5;
 

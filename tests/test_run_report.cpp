@@ -87,6 +87,21 @@ TEST(RunReport, ACheckpointsRunRecordIsCheckedAsItIsRead) {
   EXPECT_CONTAINS(message(1.0, 0, {{"particles_0003.vtp", nan}}), "not finite");
 }
 
+// Format 7's set-up and output times so far are checked as the wall time is: summary.json would
+// show a NaN or negative stage.
+TEST(RunReport, ACheckpointsSetUpAndOutputTimesAreChecked) {
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  const double inf = std::numeric_limits<double>::infinity();
+  EXPECT_NO_THROW(check_checkpoint_stage_times(0.0, 0.0, "ck.bin"));
+  EXPECT_NO_THROW(check_checkpoint_stage_times(1.5, 0.25, "ck.bin"));
+  for (double bad : {nan, -1.0, inf}) {
+    testing::expect_error<InputError>([&] { check_checkpoint_stage_times(bad, 0.0, "ck.bin"); },
+                                      "ck.bin: its set-up time so far");
+    testing::expect_error<InputError>([&] { check_checkpoint_stage_times(0.0, bad, "ck.bin"); },
+                                      "ck.bin: its output time so far");
+  }
+}
+
 // The history rows a checkpoint carries into history.csv are printable text: a byte edited into
 // them (the checksum recomputed) went into history.csv as it was, invalid UTF-8 and all.
 TEST(RunReport, ACheckpointsHistoryRowsAreText) {

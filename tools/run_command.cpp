@@ -372,9 +372,47 @@ nlohmann::json toml_to_json(const toml::table& table) {
   return j;
 }
 
+// The stages `beampack run` times itself, around the simulation's (Simulation::kStageNames, what
+// its steps run), which cannot see them: `setup`, from the run's start to its simulation ready to
+// step (the packing made or read, the ray scene, a checkpoint restored; the contact graph's first
+// build is the simulation's `rebuild`), and `output`, the run's files (a pulse end's history row,
+// frame and ray paths, a checkpoint, the files of the run's end, those a resume carries over).
+// Summed over the parts of a resumed run, as the simulation's are.
+struct CommandStages {
+  StageTime setup, output;
+};
+
+// Adds the time from its making to its end to a stage, and one call.
+class StageTimer {
+ public:
+  explicit StageTimer(StageTime& stage) : stage_(stage) {}
+  StageTimer(const StageTimer&) = delete;
+  StageTimer& operator=(const StageTimer&) = delete;
+  ~StageTimer() {
+    stage_.seconds += seconds_since(start_);
+    ++stage_.calls;
+  }
+
+ private:
+  StageTime& stage_;
+  Clock::time_point start_ = Clock::now();
+};
+
+// Every stage of a run, in the order it runs: the set-up, the simulation's, the output. The
+// command's own never skip (a run that writes its figures was set up and writes them).
+std::vector<std::pair<std::string, StageTime>> run_stages(const Simulation& sim,
+                                                          const CommandStages& own) {
+  std::vector<std::pair<std::string, StageTime>> out{{"setup", own.setup}};
+  const auto times = sim.stages();
+  for (int k = 0; k < Simulation::kStages; ++k)
+    out.emplace_back(Simulation::kStageNames[k], times[k]);
+  out.emplace_back("output", own.output);
+  return out;
+}
+
 // `earlier_parts`: the builds that ran the parts of a resumed run before this one.
 nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const RunConfig& config,
-                            const std::vector<PartBuild>& earlier_parts) {
+                            const std::vector<PartBuild>& earlier_parts, const CommandStages& own) {
   const Figures& f = r.figures;
   const EnergyLedger& e = f.energy;
   nlohmann::json j;
@@ -404,14 +442,11 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
                  {"stagger_cycles", r.counts.stagger_cycles}};
   j["max_pulse_delay_s"] = r.counts.max_pulse_delay;
   nlohmann::json stages = nlohmann::json::object();
-  const auto stage_times = sim.stages();
-  for (int k = 0; k < Simulation::kStages; ++k) {
-    const StageTime& s = stage_times[k];
-    stages[Simulation::kStageNames[k]] = {{"seconds", s.seconds},
-                                          {"calls", s.calls},
-                                          {"skipped", s.calls == 0},
-                                          {"skipped_because", s.skipped_because}};
-  }
+  for (const auto& [name, s] : run_stages(sim, own))
+    stages[name] = {{"seconds", s.seconds},
+                    {"calls", s.calls},
+                    {"skipped", s.calls == 0},
+                    {"skipped_because", s.skipped_because}};
   j["stages"] = stages;
   j["wall_seconds"] = r.wall_seconds;
   j["interrupted"] = r.interrupted;
@@ -422,7 +457,7 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
   return j;
 }
 
-void print_table(const Simulation& sim, const RunResult& r) {
+void print_table(const Simulation& sim, const RunResult& r, const CommandStages& own) {
   const Figures& f = r.figures;
   const EnergyLedger& e = f.energy;
   std::printf("%-28s %14.6g\n", "vaporized fraction", f.vaporized_fraction);
@@ -441,16 +476,13 @@ void print_table(const Simulation& sim, const RunResult& r) {
               e.optics_imbalance() / std::max(e.injected, 1e-300),
               e.heat_imbalance() / std::max(e.heat_scale(), 1e-300));
   std::printf("stages, s\n");
-  const auto stage_times = sim.stages();
-  for (int k = 0; k < Simulation::kStages; ++k) {
-    const StageTime& s = stage_times[k];
+  for (const auto& [name, s] : run_stages(sim, own)) {
     if (s.calls == 0)
-      std::printf("  %-26s %14s  skipped: %s\n", Simulation::kStageNames[k], "-",
-                  s.skipped_because.c_str());
+      std::printf("  %-26s %14s  skipped: %s\n", name.c_str(), "-", s.skipped_because.c_str());
     else
-      std::printf("  %-26s %14.4f  (%llu call%s)%s\n", Simulation::kStageNames[k], s.seconds,
+      std::printf("  %-26s %14.4f  (%llu call%s)%s\n", name.c_str(), s.seconds,
                   static_cast<unsigned long long>(s.calls), plural(s.calls),
-                  stage_note(Simulation::kStageNames[k], r.counts).c_str());
+                  stage_note(name, r.counts).c_str());
   }
   std::printf("%-28s %14.3f s (%llu step%s, %llu ray%s, %llu segment%s traced", "wall time",
               r.wall_seconds, static_cast<unsigned long long>(r.counts.steps),
@@ -551,9 +583,11 @@ namespace {
 
 // Format 2 added the wall time before the checkpoint, format 3 the pulses between checkpoints,
 // format 4 the optics ledger's low parts, format 5 the revisions that ran the run so far, format 6
-// their build types, compilers and flags; format 1 is "beampack-checkpoint". Formats 5 and 4 are
-// still read (what they did not keep is "unknown").
-constexpr const char* kCheckpointMagic = "beampack-checkpoint-6";
+// their build types, compilers and flags, format 7 the set-up and output stages' times so far;
+// format 1 is "beampack-checkpoint". Formats 6, 5 and 4 are still read (what they did not keep is
+// "unknown", and their set-up and output times none: 0 s in 0 calls).
+constexpr const char* kCheckpointMagic = "beampack-checkpoint-7";
+constexpr const char* kCheckpointMagic6 = "beampack-checkpoint-6";
 constexpr const char* kCheckpointMagic5 = "beampack-checkpoint-5";
 constexpr const char* kCheckpointMagic4 = "beampack-checkpoint-4";
 
@@ -568,6 +602,7 @@ struct RunRecord {
   // The builds that ran the parts before this one, in order, one entry per resume; empty for a
   // run that did not resume.
   std::vector<PartBuild> earlier_parts;
+  CommandStages stages;  // so far, the runs this one resumes included
 };
 
 // summary.json's text. A string that is not UTF-8 (a failure's message quoting a path named in
@@ -587,6 +622,8 @@ OutputFile checkpoint_file(const fs::path& path, const Simulation& sim, const Ru
   write_part_builds(w, parts);
   w.value(wall_seconds);
   w.value(record.checkpoint_every);
+  for (const StageTime* s : {&record.stages.setup, &record.stages.output})
+    w.value(s->seconds), w.value(s->calls);
   w.text(record.config_text);
   w.text(record.history);
   w.value<std::uint64_t>(record.frames.size());
@@ -617,15 +654,24 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   if (magic == "beampack-checkpoint" || magic == "beampack-checkpoint-2" ||
       magic == "beampack-checkpoint-3")
     throw InputError(path.string() + ": a checkpoint of an earlier beampack (" + magic +
-                     "); this one reads " + kCheckpointMagic + ", " + kCheckpointMagic5 + " and " +
-                     kCheckpointMagic4);
-  if (magic != kCheckpointMagic && magic != kCheckpointMagic5 && magic != kCheckpointMagic4)
+                     "); this one reads " + kCheckpointMagic + ", " + kCheckpointMagic6 + ", " +
+                     kCheckpointMagic5 + " and " + kCheckpointMagic4);
+  if (magic != kCheckpointMagic && magic != kCheckpointMagic6 && magic != kCheckpointMagic5 &&
+      magic != kCheckpointMagic4)
     throw InputError(path.string() + ": not a beampack checkpoint");
-  record.earlier_parts = magic == kCheckpointMagic4
-                             ? std::vector<PartBuild>{unknown_build()}
-                             : read_part_builds(r, path.string(), magic == kCheckpointMagic);
+  record.earlier_parts =
+      magic == kCheckpointMagic4
+          ? std::vector<PartBuild>{unknown_build()}
+          : read_part_builds(r, path.string(),
+                             magic == kCheckpointMagic || magic == kCheckpointMagic6);
   record.earlier_seconds = r.value<double>();
   record.checkpoint_every = r.value<int>();
+  if (magic == kCheckpointMagic) {
+    for (StageTime* s : {&record.stages.setup, &record.stages.output})
+      s->seconds = r.value<double>(), s->calls = r.value<std::uint64_t>();
+    check_checkpoint_stage_times(record.stages.setup.seconds, record.stages.output.seconds,
+                                 path.string());
+  }
   record.config_text = r.text();
   record.history = r.text();
   const auto frames = r.value<std::uint64_t>();
@@ -699,6 +745,15 @@ void check_checkpoint_record(double earlier_seconds, int checkpoint_every,
       refuse("a frame named \"" + name + "\", not particles_NNNN.vtp in the run's folder");
     if (!std::isfinite(time)) refuse("frame " + name + " has a time that is not finite");
   }
+}
+
+void check_checkpoint_stage_times(double setup_seconds, double output_seconds,
+                                  const std::string& source) {
+  for (const auto& [stage, seconds] :
+       {std::pair{"set-up", setup_seconds}, {"output", output_seconds}})
+    if (!(std::isfinite(seconds) && seconds >= 0))
+      throw InputError(source + ": its " + stage + " time so far, " + std::to_string(seconds) +
+                       " s, is not a finite number >= 0 (a checkpoint edited by hand?)");
 }
 
 // Whether dir holds a run of beampack's: its checkpoint, its frames' particles.pvd or its first
@@ -913,7 +968,7 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
   r.counts = ended.counts;
   r.wall_seconds = wall_seconds;
   const double failed_at = sim.figures().time;
-  nlohmann::json j = summary_json(sim, r, config, record.earlier_parts);
+  nlohmann::json j = summary_json(sim, r, config, record.earlier_parts, record.stages);
   j["failed"] = {{"message", failure}, {"time_s", failed_at}};
   write_atomically(
       {{(out / "history.csv").string(), [&](std::ostream& o) { o << record.history; }},
@@ -963,6 +1018,7 @@ void resume_from_checkpoint(const RunOptions& options, bool into_checkpoint_fold
 void record_pulse_ends(Simulation& sim, const OutputSpec& output, const fs::path& out,
                        RunRecord& record, PulsesEnded& ended, bool& checkpoint_due) {
   sim.on_pulse_end([&sim, &output, out, &record, &ended, &checkpoint_due](int pulse) {
+    const StageTimer timer(record.stages.output);
     const Figures figures = sim.figures();  // one pass over the particles per pulse end
     ended.note(figures, sim.counts());
     record.history += history_row(figures);
@@ -980,6 +1036,18 @@ void record_pulse_ends(Simulation& sim, const OutputSpec& output, const fs::path
   });
 }
 
+// Adds a part's set-up to `setup`: `elapsed` since the run's start (less the writes in it), but the
+// simulation's own stage time in it, the contact graph's first build, which its `rebuild` stage
+// counts. A restored state replaces the simulation's stage times with the earlier parts', and
+// that build's time is then the set-up's.
+void count_set_up(StageTime& setup, const Simulation& sim, bool restored, double elapsed) {
+  double simulation_stages = 0;
+  if (!restored)
+    for (const StageTime& s : sim.stages()) simulation_stages += s.seconds;
+  setup.seconds += elapsed - simulation_stages;
+  ++setup.calls;
+}
+
 // Steps until the run is done or interrupted, with a checkpoint between steps when one is due
 // (never inside a step: a resume continues with exactly the next step). A step that fails keeps
 // the pulses ended before it, and its exception goes on.
@@ -990,9 +1058,11 @@ void run_steps(Simulation& sim, const RunConfig& config, const fs::path& out, Ru
     Progress progress(quiet, "");
     while (!sim.done() && !stop_requested().load()) {
       sim.step();
-      if (checkpoint_due && !sim.done())
+      if (checkpoint_due && !sim.done()) {
+        const StageTimer timer(record.stages.output);  // the checkpoint holds the time before it
         write_atomically({checkpoint_file(out / "checkpoint.bin", sim, record,
                                           record.earlier_seconds + seconds_since(start))});
+      }
       checkpoint_due = false;
       progress.update(sim);
     }
@@ -1007,8 +1077,9 @@ void run_steps(Simulation& sim, const RunConfig& config, const fs::path& out, Ru
 // The run's end, finished or interrupted: its files (and a checkpoint when interrupted), its
 // table and its warnings. Returns the exit code. When its files cannot be written, the pulses it
 // ended are kept as after a failed step, and the failure goes on.
-int finish_run(const Simulation& sim, const RunConfig& config, const RunRecord& record,
+int finish_run(const Simulation& sim, const RunConfig& config, RunRecord& record,
                const PulsesEnded& ended, const fs::path& out, Clock::time_point start) {
+  const auto writing = Clock::now();  // the output stage's last call: the run's end's files
   RunResult r;
   r.figures = sim.figures();
   r.counts = sim.counts();
@@ -1016,13 +1087,20 @@ int finish_run(const Simulation& sim, const RunConfig& config, const RunRecord& 
   r.wall_seconds = record.earlier_seconds + seconds_since(start);  // like the stage times
   // One set: a full disk leaves the folder as it was, not particles.csv without its summary.
   std::vector<OutputFile> files;
-  if (r.interrupted)
+  if (r.interrupted)  // its record of the times ends here, before the files of the end
     files.push_back(checkpoint_file(out / "checkpoint.bin", sim, record, r.wall_seconds));
   files.push_back({(out / "history.csv").string(), [&](std::ostream& o) { o << record.history; }});
   files.push_back(particles_csv((out / "particles.csv").string(), sim.particles(), sim.absorbed()));
-  files.push_back({(out / "summary.json").string(), [&](std::ostream& o) {
-                     o << json_text(summary_json(sim, r, config, record.earlier_parts)) << '\n';
-                   }});
+  // Filled last (write_atomically fills in order): its wall time and output stage hold the writing
+  // of the files before it (particles.csv: 0.5 s at 10^6 particles), and leave out only its own
+  // few kilobytes and the renames. The table printed after it shows the same times.
+  const auto summary = [&](std::ostream& o) {
+    record.stages.output.seconds += seconds_since(writing);
+    ++record.stages.output.calls;
+    r.wall_seconds = record.earlier_seconds + seconds_since(start);
+    o << json_text(summary_json(sim, r, config, record.earlier_parts, record.stages)) << '\n';
+  };
+  files.push_back({(out / "summary.json").string(), summary});
   try {
     write_atomically(files);
   } catch (const std::exception& failure) {
@@ -1036,7 +1114,7 @@ int finish_run(const Simulation& sim, const RunConfig& config, const RunRecord& 
   std::error_code ec;
   if (!r.interrupted && record.resumed_in_place && record.checkpoint_every == 0)
     fs::remove(out / "checkpoint.bin", ec);
-  print_table(sim, r);
+  print_table(sim, r, record.stages);
   for (const std::string& warning : sim.run_warnings())
     std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
   if (!r.interrupted) return 0;
@@ -1090,16 +1168,22 @@ int run_command(const RunOptions& options) {
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
   remove_earlier_run(out_dir, into_checkpoint_folder);
   if (saved) drop_missing_frames(options.resume, record);
-  if (saved && !into_checkpoint_folder)
-    carry_earlier_files(options.resume, out_dir, record, config.output,
-                        std::max(sim.figures().pulse - 1, 0));
-  if (saved && !record.frames.empty())  // the series as it now stands, before any new frame
-    write_pvd((fs::path(out_dir) / "particles.pvd").string(), record.frames);
+  const double output_before = record.stages.output.seconds;
+  if (saved && (!into_checkpoint_folder || !record.frames.empty())) {
+    const StageTimer timer(record.stages.output);  // the earlier pulses' files
+    if (!into_checkpoint_folder)
+      carry_earlier_files(options.resume, out_dir, record, config.output,
+                          std::max(sim.figures().pulse - 1, 0));
+    if (!record.frames.empty())  // the series as it now stands, before any new frame
+      write_pvd((fs::path(out_dir) / "particles.pvd").string(), record.frames);
+  }
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);
   bool checkpoint_due = false;
   PulsesEnded ended;
   record_pulse_ends(sim, config.output, out, record, ended, checkpoint_due);
+  count_set_up(record.stages.setup, sim, saved.has_value(),
+               seconds_since(start) - (record.stages.output.seconds - output_before));
   run_steps(sim, config, out, record, ended, checkpoint_due, options.quiet, start);
   return finish_run(sim, config, record, ended, out, start);
 }

@@ -85,6 +85,10 @@ class PulsePace {
 void check_checkpoint_record(double earlier_seconds, int checkpoint_every,
                              const std::vector<std::pair<std::string, double>>& frames,
                              const std::string& source);
+// InputError naming `source` unless a checkpoint's set-up and output times so far (format 7) are
+// finite and >= 0.
+void check_checkpoint_stage_times(double setup_seconds, double output_seconds,
+                                  const std::string& source);
 // InputError naming `source` unless a checkpoint's history rows are text (printable ASCII lines,
 // as history.csv is written): a byte edited into them went into history.csv as it was.
 void check_history_text(const std::string& history, const std::string& source);
