@@ -18,6 +18,7 @@
 #include "geometry/error.h"
 #include "geometry/packing.h"
 #include "tests/expect_error.h"
+#include "tests/quick_scene.h"
 #include "thermal/thermal_model.h"
 
 namespace beampack {
@@ -214,19 +215,7 @@ TEST(LibraryInputs, AMisplacedSceneIsSaidToTheCaller) {
   EXPECT_CONTAINS(lonely[0], "the wall z+ (`thermal.walls`) touches no particle");
 }
 
-// The `quick` preset's scene: 200 spheres, 200 rays, 5 pulses that melt and vaporise.
-SimulationSpec quick_scene() {
-  SimulationSpec s;
-  s.packing.sample_size = kD;
-  s.packing.count = 200;
-  s.packing.seed = 7;
-  s.beam.rays = 200;
-  s.beam.seed = 7;
-  s.pulses.count = 5;
-  s.pulses.duration = 3e-13;
-  s.materials[0].conductivity = 20.0;
-  return s;
-}
+using testing::quick_scene;
 
 // The warnings of `run_warnings()` after a run of `spec`.
 std::vector<std::string> warnings_of_run(const SimulationSpec& spec) {

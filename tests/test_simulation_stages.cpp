@@ -15,9 +15,12 @@
 #include "engine/state_io.h"
 #include "geometry/error.h"
 #include "tests/expect_error.h"
+#include "tests/quick_scene.h"
 
 namespace beampack {
 namespace {
+
+using testing::quick_scene;
 
 // One step of each simulation, both taken whatever the first returns: true while either goes on.
 bool step_both(Simulation& a, Simulation& b) {
@@ -27,20 +30,6 @@ bool step_both(Simulation& a, Simulation& b) {
 }
 
 constexpr double kD = 1e-3;
-
-// The `quick` preset's scene: 200 spheres, 200 rays, pulses long enough to melt and vaporise.
-SimulationSpec quick_spec() {
-  SimulationSpec s;
-  s.packing.sample_size = kD;
-  s.packing.count = 200;
-  s.packing.seed = 7;
-  s.beam.rays = 200;
-  s.beam.seed = 7;
-  s.pulses.count = 5;
-  s.pulses.duration = 3e-13;
-  s.materials[0].conductivity = 20.0;
-  return s;
-}
 
 StageTime stage(const Simulation& sim, const std::string& name) {
   for (int k = 0; k < Simulation::kStages; ++k)
@@ -64,14 +53,14 @@ void expect_skipped(const Simulation& sim, const std::string& name, const std::s
 }
 
 TEST(SimulationStages, AMeltingRunRunsEveryStageAndGivesNoReason) {
-  Simulation sim(quick_spec());
+  Simulation sim(quick_scene());
   sim.run();
   ASSERT_GT(sim.figures().vaporized_fraction, 0.0);  // the scene needs every stage
   for (const char* name : Simulation::kStageNames) expect_ran(sim, name);
 }
 
 TEST(SimulationStages, AColdRunWithoutConductionSaysWhyItSkipsPhasesStaggerAndGraph) {
-  SimulationSpec spec = quick_spec();
+  SimulationSpec spec = quick_scene();
   spec.pulses.duration = 1e-16;  // a few kelvin: nobody melts
   spec.materials[0].conductivity = 0;
   Simulation sim(spec);
@@ -86,7 +75,7 @@ TEST(SimulationStages, AColdRunWithoutConductionSaysWhyItSkipsPhasesStaggerAndGr
 }
 
 TEST(SimulationStages, NoStaggerWhenTheUserAllowsNone) {
-  SimulationSpec spec = quick_spec();
+  SimulationSpec spec = quick_scene();
   spec.max_staggers = 0;
   Simulation sim(spec);
   sim.run();
@@ -95,7 +84,7 @@ TEST(SimulationStages, NoStaggerWhenTheUserAllowsNone) {
 }
 
 TEST(SimulationStages, NoPulseSkipsTracingAndHeat) {
-  SimulationSpec spec = quick_spec();
+  SimulationSpec spec = quick_scene();
   spec.pulses.count = 0;
   Simulation sim(spec);
   sim.run();
@@ -111,14 +100,14 @@ TEST(SimulationStages, NoPulseSkipsTracingAndHeat) {
 
 // Drawing no rays is not checking no keys: a beam key out of its range is refused all the same.
 TEST(SimulationStages, NoPulseStillRefusesABadBeam) {
-  SimulationSpec spec = quick_spec();
+  SimulationSpec spec = quick_scene();
   spec.pulses.count = 0;
   spec.beam.direction = Vec3(1, 1, 0);
   testing::expect_error<InputError>([&] { Simulation sim(spec); }, "`beam.direction`");
 }
 
 TEST(SimulationStages, AnEmptyPackingTracesButHasNoHeatToConduct) {
-  SimulationSpec spec = quick_spec();
+  SimulationSpec spec = quick_scene();
   spec.packing.count = 0;
   Simulation sim(spec);
   sim.run();
@@ -133,7 +122,7 @@ TEST(SimulationStages, AnEmptyPackingTracesButHasNoHeatToConduct) {
 // steps, and the ledgers close.
 TEST(SimulationStages, ShortStepsLeaveChunksOfRaysInFreeFlightAlone) {
   for (double dt : {2e-15, 0.0}) {
-    SimulationSpec spec = quick_spec();
+    SimulationSpec spec = quick_scene();
     spec.beam.rays = 2000;
     spec.dt = dt;
     Simulation sim(spec);
@@ -157,7 +146,7 @@ TEST(SimulationStages, ShortStepsLeaveChunksOfRaysInFreeFlightAlone) {
 // per flight) is bit for bit the one that traces every pulse's primaries.
 TEST(SimulationStages, RepeatedPulsesReuseFirstHitsAndChangeNothing) {
   for (double dt : {2e-15, 0.0}) {
-    SimulationSpec spec = quick_spec();
+    SimulationSpec spec = quick_scene();
     spec.dt = dt;
     Simulation reuse(spec);
     spec.optics.reuse_primaries = false;
@@ -182,7 +171,7 @@ TEST(SimulationStages, RepeatedPulsesReuseFirstHitsAndChangeNothing) {
 // With beam.resample each pulse's rays carry the energies of that pulse's own draw (the
 // simulation keeps them with the beam): the rays a step launched start with exactly those.
 TEST(SimulationStages, ResampledPulsesCarryTheirOwnRayEnergies) {
-  SimulationSpec spec = quick_spec();
+  SimulationSpec spec = quick_scene();
   spec.beam.resample = true;
   spec.pulses.count = 3;
   Simulation sim(spec);
@@ -276,17 +265,17 @@ std::string read_error(const SimulationSpec& spec, const StateParts& parts) {
 // writer's mistake) is refused by name: a longer temperature array was copied past the
 // particles'. The state is rebuilt from a real one with one temperature too many.
 TEST(SimulationStages, AStateWithAnArrayOfTheWrongLengthIsRefused) {
-  Simulation sim(quick_spec());
+  Simulation sim(quick_scene());
   for (int k = 0; k < 3; ++k) sim.step();
   const StateParts parts(sim);
-  Simulation same(quick_spec());
+  Simulation same(quick_scene());
   StateReader as_written(parts.bytes(), "rebuilt");
   same.read_state(as_written);  // the rebuilt state, unchanged, reads: the test rebuilds it right
   EXPECT_EQ(same.particles().temperature, sim.particles().temperature);
   StateParts longer = parts;
   longer.p.temperature.push_back(300.0);
   const std::size_t n = parts.p.size();
-  EXPECT_CONTAINS(read_error(quick_spec(), longer),
+  EXPECT_CONTAINS(read_error(quick_scene(), longer),
                   "per-particle array holds " + std::to_string(n + 1));
 }
 
@@ -295,7 +284,7 @@ TEST(SimulationStages, AStateWithAnArrayOfTheWrongLengthIsRefused) {
 // materials, NaN reached the outputs, a pulse count beyond pulses.count ran extra rows. Each is
 // refused by name, and a refused state leaves the simulation as it was.
 TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
-  SimulationSpec spec = quick_spec();
+  SimulationSpec spec = quick_scene();
   spec.dt = 4e-13;  // about ten steps per pulse flight: after three, rays are in flight
   Simulation sim(spec);
   for (int k = 0; k < 3; ++k) sim.step();
@@ -412,7 +401,7 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
 }
 
 TEST(SimulationStages, BeforeTheFirstStepNothingHasRunYet) {
-  Simulation sim(quick_spec());
+  Simulation sim(quick_scene());
   expect_skipped(sim, "trace", "no step taken yet");
   expect_ran(sim, "rebuild");  // the contact graph is built with the scene
 }
@@ -465,7 +454,7 @@ struct PulseStarts {
   std::vector<std::uint64_t> steps;
 };
 PulseStarts pulse_starts(double dt, double period, int pulses) {
-  SimulationSpec spec = quick_spec();
+  SimulationSpec spec = quick_scene();
   spec.materials[0].conductivity = 0.0;
   spec.dt = dt;
   spec.pulses.period = period;
@@ -498,7 +487,7 @@ TEST(SimulationStages, PulsesDueOnAStepBoundaryStartOnItAfterManySteps) {
 TEST(SimulationStages, EveryPulseDueByAStepBoundaryStartsOnIt) {
   const double dt = 1e-11, period = 5e-12;
   const PulseStarts run = pulse_starts(dt, period, 6);
-  EXPECT_EQ(run.counts.rays, 6u * quick_spec().beam.rays);
+  EXPECT_EQ(run.counts.rays, 6u * quick_scene().beam.rays);
   EXPECT_EQ(run.steps, (std::vector<std::uint64_t>{1, 1, 2, 2, 3}));  // k T_p rounded up to dt
   EXPECT_LE(run.counts.max_pulse_delay, (dt - period) * (1 + 1e-9));
 }
@@ -529,7 +518,7 @@ TEST(SimulationStages, APulseStepLastsTheRaysFlight) {
 // pulse 2's does not. Refused as input when the run is set up, naming the pulse, not found
 // mid-run (where it ended the run without its outputs).
 TEST(SimulationStages, AResampledPulseThatCannotSampleTheProfileIsRefusedUpFront) {
-  SimulationSpec spec = quick_spec();
+  SimulationSpec spec = quick_scene();
   spec.beam.rays = 1;
   spec.beam.decay = 1000;
   spec.beam.seed = 1;
