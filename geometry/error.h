@@ -21,7 +21,7 @@ struct Cap {
   const char* why;
 };
 
-// " must be <= 1e+20 W/(m K) (...)": the limit as messages state it.
+// "must be <= 1e+20 W/(m K) (...)": the limit as messages state it.
 inline std::string cap_limit(const Cap& cap) {
   return "must be <= " + shown_number(cap.limit) + " " + cap.why;
 }
