@@ -17,32 +17,14 @@
 // the ray enters the packing's box: float spacing follows the packing's size, not its distance
 // from the origin or the beam's from it (26 times slower tracing for a bed 500 m out, before).
 #include <cstdint>
-#include <limits>
 #include <memory>
 #include <span>
 #include <string>
 
 #include "../geometry/particles.h"
+#include "ray_query.h"
 
 namespace beampack {
-
-constexpr std::uint32_t kNoParticle = std::numeric_limits<std::uint32_t>::max();
-
-// Double-precision ray data indexed by the ray ids a query names (not Embree's RTCRay::id, which
-// is the ray's slot in the packet). The callback reads origin, direction and skip (the sphere the
-// ray has just left: never hit, so no tnear fudge), and improves t_hit/particle. The caller sets
-// t_hit to the longest distance of interest (infinity) and particle to kNoParticle before a
-// query; after it, they hold the nearest outside hit.
-struct RayQuery {
-  const Vec3* origin = nullptr;
-  const Vec3* direction = nullptr;  // unit
-  const std::uint32_t* skip = nullptr;
-  double* t_hit = nullptr;
-  std::uint32_t* particle = nullptr;
-  // Optional: the outward normal at the hit in double, entry_normal (geometry/ray_sphere.h):
-  // (hit point - centre) / R, unit to the round-off of the hit point.
-  Vec3* normal = nullptr;
-};
 
 // How the acceleration structure follows removals (benchmarks/bench_trace.cpp compares them;
 // docs/bench/optics.md has the numbers). In every mode a removed particle is masked at once in

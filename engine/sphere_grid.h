@@ -9,7 +9,7 @@
 #include <vector>
 
 #include "../geometry/particles.h"
-#include "embree_scene.h"
+#include "ray_query.h"
 
 namespace beampack {
 

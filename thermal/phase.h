@@ -1,5 +1,7 @@
 #pragma once
-// Phase change by latent-heat bands (paper, section 4; MODEL.md section 5 step 3).
+// Phase change by latent-heat bands (paper, section 4; MODEL.md section 5 step 3): the heat
+// capacity C_i of (4.1), and of (4.2) once phases change, chosen per step by the paper's five
+// cases.
 #include <cstdint>
 
 #include "../geometry/particles.h"
@@ -19,8 +21,9 @@ inline std::uint8_t crossed_bands(const Material& m, double theta_old, double th
   return b;
 }
 
-// C_eff of a step that starts at theta_old: the capacity of the phase the step starts in
-// (C_S below theta_m, C_L at or above, as in the paper's five cases) plus every band crossed.
+// C_i^K(t + dt) of (4.2) for a step that starts at theta_old: the capacity of the phase the step
+// starts in (C_S below theta_m, C_L at or above, as in the paper's five cases after (4.1)) plus
+// every band dP/dtheta crossed, which the re-solve of (4.1) adds.
 inline double effective_heat_capacity(const Material& m, double theta_old, std::uint8_t bands) {
   double c = theta_old < m.melt_temperature ? m.c_solid : m.c_liquid;
   if (bands & band_melt) c += m.latent_melt;

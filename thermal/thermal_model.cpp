@@ -751,12 +751,12 @@ bool ThermalModel::phase_work_needed(const Eigen::VectorXd& theta0,
   return false;
 }
 
-// Paper, section 4 (predictor-corrector): a particle whose predicted step crosses theta_m or
-// theta_v is re-solved with C_eff = C + delta P / delta theta for every band crossed. Bands are
+// Paper, section 4 (predictor-corrector, (4.2)): a particle whose predicted step crosses theta_m
+// or theta_v is re-solved with C_eff = C + delta P / delta theta for every band crossed. Bands are
 // kept once crossed within the step so the passes cannot cycle; passes stop when no new band
-// appears (or at thermal.max_phase_corrections). Returns the number of corrector solves.
-int ThermalModel::correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::VectorXd& c,
-                                 StepTemperatures& t, StepReport& report) {
+// appears (or at thermal.max_phase_corrections).
+void ThermalModel::correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::VectorXd& c,
+                                  StepTemperatures& t, StepReport& report) {
   const Eigen::VectorXd& theta0 = t.theta0;
   const Eigen::VectorXd& theta1 = t.theta1;
   std::vector<std::uint8_t> bands(static_cast<std::size_t>(rows()), 0);
@@ -782,7 +782,6 @@ int ThermalModel::correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::Ve
     report.phase_corrected = true;
     ++passes;
   }
-  return passes;
 }
 
 // The ledger: stored gains the M-scaled (m C_eff / M) dtheta actually used in the solve, so

@@ -248,8 +248,8 @@ class ThermalModel {
   double contraction_estimate(const System& s, double dt, const Eigen::VectorXd& c) const;
   std::string choose_solver(double contraction) const;
   bool phase_work_needed(const Eigen::VectorXd& theta0, const Eigen::VectorXd& theta1) const;
-  int correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::VectorXd& c, StepTemperatures& t,
-                     StepReport& report);
+  void correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::VectorXd& c, StepTemperatures& t,
+                      StepReport& report);
   void account(double dt, const Eigen::VectorXd& c, const StepTemperatures& t,
                const Eigen::VectorXd& dh);
   void update_phases(const Eigen::VectorXd& theta1, StepReport& report);
