@@ -122,12 +122,12 @@ TEST(LibraryInputs, ValuesBeyondWhatTheArithmeticHoldsAreRefusedByName) {
     s.thermal.walls = {wall};
     s.thermal.walls[0].temperature = 1e300;
            },
-           "temperature = 1e+300: must be <= 1e+12 K"},
+           "thermal.walls[0].temperature = 1e+300: must be <= 1e+12 K"},
           {[&](SimulationSpec& s) {
     s.thermal.walls = {wall};
     s.thermal.walls[0].conductance = 1e306;
            },
-           "conductance = 1e+306: must be <= 1e+20 W/K"},
+           "thermal.walls[0].conductance = 1e+306: must be <= 1e+20 W/K"},
              {[](SimulationSpec& s) { s.thermal.time_scaling = 1e290; },
               "thermal.time_scaling = 1e+290: must be <= 1e+12"},
              {[](SimulationSpec& s) { s.beam.power = 1e300; },

@@ -55,7 +55,7 @@ void ThermalSpec::validate() const {
   if (max_phase_corrections < 1)
     input_error("thermal.max_phase_corrections", max_phase_corrections, "must be >= 1");
   for (std::size_t w = 0; w < walls.size(); ++w)
-    walls[w].validate("thermal.wall[" + std::to_string(w) + "]");
+    walls[w].validate("thermal.walls[" + std::to_string(w) + "]");
 }
 
 ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials, ThermalSpec spec)
