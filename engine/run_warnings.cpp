@@ -118,6 +118,28 @@ void warn_of_unsettled_staggers(const SimulationSpec& spec, const Counts& counts
   }
 }
 
+// pulses.duration sets a pulse's energy, P tau (MODEL.md section 2), and its rays deliver that
+// within their flight (section 5), however long tau is. Pulses whose durations add up to far more
+// than the simulated time they took were read as lasting tau, and did not: the heat saw flashes.
+void warn_of_flashed_pulses(const SimulationSpec& spec, const Figures& f,
+                            std::vector<std::string>& out) {
+  if (f.pulse == 0 || !(f.time > 0)) return;
+  const double average = f.energy.injected / f.time;
+  if (!(average > 2 * spec.beam.power)) return;
+  char text[640];
+  std::snprintf(
+      text, sizeof text,
+      "`pulses.duration` = %g s sets each pulse's energy (`beam.power` x duration = %.3g J), "
+      "which its rays deliver within their flight, not over the duration (MODEL.md section 5): "
+      "the %d pulse%s took %.3g s of simulated time, an average of %.3g W, %.3g times "
+      "`beam.power` = %g W; for heat spread over time give more pulses of a shorter duration, "
+      "with `pulses.period` set",
+      spec.pulses.duration, spec.beam.power * spec.pulses.duration, f.pulse,
+      plural(static_cast<std::uint64_t>(f.pulse)), f.time, average, average / spec.beam.power,
+      spec.beam.power);
+  out.emplace_back(text);
+}
+
 }  // namespace
 
 double steps_per_crossing(const SimulationSpec& s) {
@@ -191,6 +213,7 @@ std::vector<std::string> Simulation::run_warnings() const {
   const Figures f = figures();
   std::vector<std::string> out;
   warn_of_late_pulses(spec_, c, out);
+  warn_of_flashed_pulses(spec_, f, out);
   warn_of_capped_phase_steps(spec_, c, out);
   warn_of_unsettled_staggers(spec_, c, out);
   for (std::string& warning : open_ledger_warnings(spec_, f.energy))

@@ -269,6 +269,23 @@ TEST(LibraryInputs, ARunSaysWhereItsResultsAreInDoubt) {
   EXPECT_CONTAINS(hot[0], "may misplace a particle beside the hottest by ~");
 }
 
+// pulses.duration sets a pulse's energy, delivered within the rays' flight (MODEL.md section 5):
+// pulses of 1 ns that took ~2e-11 s together are flashes, ~270 times beam.power on average, and
+// the run says so; the same pulses a period of 1 ns apart average 5/4 of it, and it does not.
+TEST(LibraryInputs, PulsesLongerThanTheTimeTheyTookAreSaidToBeFlashes) {
+  SimulationSpec spec = quick_scene();
+  spec.pulses.duration = 1e-9;
+  const std::vector<std::string> flashes = warnings_of_run(spec);
+  ASSERT_EQ(flashes.size(), 1u);
+  EXPECT_CONTAINS(flashes[0],
+                  "`pulses.duration` = 1e-09 s sets each pulse's energy (`beam.power` x "
+                  "duration = 6e-06 J), which its rays deliver within their flight");
+  EXPECT_CONTAINS(flashes[0], "the 5 pulses took ");
+  spec.pulses.period = 1e-9;
+  const std::vector<std::string> spaced = warnings_of_run(spec);
+  EXPECT_TRUE(spaced.empty()) << spaced.front();
+}
+
 // A band one pass adds pushes a neighbour across another (ThermalPhase's
 // ACorrectorStoppedAtItsCapWithANewBandSaysSo): a liquid sphere at 640 K touching a solid one at
 // 510 K, a step of 4 ms that equalises them, under a faint pulse. With one corrector pass the step
