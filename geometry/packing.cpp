@@ -436,6 +436,16 @@ void refuse_repeated_centres(const Particles& p, const PackingLines& lines) {
 // What a row of words may have meant to be: numbers in another notation than C's read as words.
 constexpr const char* kNumberNotation = "numbers as 1.5e-4: not Fortran's 1.5D-4 or hex";
 
+// Twice the columns a row needs, with commas among them: numbers written with decimal commas
+// (European spreadsheets' "1,5"), each read as two columns.
+bool looks_like_decimal_commas(const std::vector<std::string_view>& cols, std::size_t need) {
+  if (cols.size() != 2 * need) return false;
+  const std::string_view span(
+      cols.front().data(),
+      static_cast<std::size_t>(cols.back().data() + cols.back().size() - cols.front().data()));
+  return span.find(',') != std::string_view::npos;
+}
+
 // Columns x y z r (or x y z with default_radius > 0) after at most one header line; `lines`
 // stands on the first line that holds something.
 Particles read_plain_columns(PackingLines& lines, double default_radius) {
@@ -460,6 +470,9 @@ Particles read_plain_columns(PackingLines& lines, double default_radius) {
              (need == 4 && cols.size() == 3 ? "; for x y z rows give the radius with packing.radius"
               : need == 3 && cols.size() == 4
                   ? "; packing.radius is set, which takes x y z rows: drop it to read the radii"
+              : looks_like_decimal_commas(cols, need)
+                  ? "; decimal commas? A number's decimal mark is a point (1.5): 1,5 reads as two "
+                    "columns"
                   : "");
     });
     double v[4] = {0, 0, 0, default_radius};
