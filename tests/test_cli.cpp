@@ -198,6 +198,12 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
       {"run.toml:2", "material.conductivty", "did you mean `material.conductivity`"});
   expect_input_error("type", "[beam]\nrays = \"many\"\n", "",
                      {"run.toml:2", "beam.rays", "must be an integer"});
+  // A whole number in float notation is a float to TOML; the message says how to write it.
+  expect_input_error("float_for_integer", "[beam]\nrays = 1e3\n", "",
+                     {"run.toml:2",
+                      "`beam.rays` = 1000.0: must be an integer >= 1 and <= "
+                      "100000000, written without a decimal point or exponent (TOML reads 1e3 "
+                      "and 1000.0 as floats)"});
   expect_input_error("negative", "[sample]\n\nsize = -1e-3\n", "",
                      {"run.toml:3", "sample.size", "must be >= 1e-12 and <= 1e+06"});
   expect_input_error("nan", "[material]\nconductivity = nan\n", "",

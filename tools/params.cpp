@@ -537,13 +537,25 @@ double Params::number(const std::string& key, double fallback, double lo, double
   return v;
 }
 
+namespace {
+
+// A whole number written as a float (1e3, 1000.0) is a float to TOML: say how to write it.
+std::string written_as_integer_hint(const toml::node& node) {
+  const auto* f = node.as_floating_point();
+  if (!f || !std::isfinite(f->get()) || f->get() != std::trunc(f->get())) return "";
+  return ", written without a decimal point or exponent (TOML reads 1e3 and 1000.0 as floats)";
+}
+
+}  // namespace
+
 std::int64_t Params::integer(const std::string& key, std::int64_t fallback, std::int64_t lo,
                              std::int64_t hi) {
   std::int64_t v = fallback;
   if (const toml::node* node = find(key)) {
     if (!node->is_integer())
       fail(key, repr(*node),
-           "must be an integer >= " + std::to_string(lo) + " and <= " + std::to_string(hi));
+           "must be an integer >= " + std::to_string(lo) + " and <= " + std::to_string(hi) +
+               written_as_integer_hint(*node));
     v = node->as_integer()->get();
   }
   if (v < lo || v > hi)
