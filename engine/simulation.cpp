@@ -114,12 +114,10 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
   check_step_limit();
   absorbed_.assign(particles_.size(), 0.0);
   deposits_.assign(particles_.size(), 0.0);
-  CompensatedSum volume;  // as volume_fractions sums: 6 of 200 equal spheres read 0.03, not ...9988
   for (std::size_t i = 0; i < particles_.size(); ++i) {
-    volume.add(particles_.volume(i));
+    total_volume_.add(particles_.volume(i));  // as volume_fractions sums its phases
     max_temperature_ = std::max(max_temperature_, particles_.temperature[i]);
   }
-  total_volume_ = volume.value();
   counts_.particles = particles_.size();
 }
 
@@ -603,15 +601,15 @@ std::string Simulation::skip_reason(int stage) const {
 // sum of 10^6 volumes drifts by ~1e-13, and equal spheres' fractions showed it
 // (0.029999999999999884 for 6 of 200).
 void Simulation::volume_fractions(Figures& f) const {
-  if (total_volume_ <= 0) return;
+  if (total_volume_.value() <= 0) return;
   CompensatedSum vapor, liquid;
   for (std::size_t i = 0; i < particles_.size(); ++i) {
     const Phase phase = particles_.phase[i];
     if (phase == Phase::vapor) vapor.add(particles_.volume(i));
     else if (phase == Phase::liquid) liquid.add(particles_.volume(i));
   }
-  f.vaporized_fraction = vapor.value() / total_volume_;
-  f.melted_fraction = liquid.value() / total_volume_;
+  f.vaporized_fraction = compensated_ratio(vapor, total_volume_);
+  f.melted_fraction = compensated_ratio(liquid, total_volume_);
 }
 
 Figures Simulation::figures() const {

@@ -14,6 +14,7 @@
 #include <utility>
 #include <vector>
 
+#include "../geometry/compensated_sum.h"
 #include "../geometry/packing.h"
 #include "../thermal/thermal_model.h"
 #include "beam.h"
@@ -240,7 +241,8 @@ class Simulation {
   std::vector<double> deposits_;       // this step's dH
   std::vector<std::uint32_t> heated_;  // the particles with a deposit this step (zero elsewhere)
   std::vector<RaySegment> ray_paths_;
-  double time_ = 0, next_pulse_time_ = 0, max_temperature_ = 0, total_volume_ = 0;
+  double time_ = 0, next_pulse_time_ = 0, max_temperature_ = 0;
+  CompensatedSum total_volume_;  // of all particles, vaporised ones included
   int launched_ = 0;
   bool failed_ = false;      // a step threw: the simulation is half-stepped and refuses more
   std::string failed_step_;  // what that step threw

@@ -5,6 +5,8 @@
 // ledger of twenty pulses by ~1e-10). Deterministic: the same terms in the same order give the
 // same bits. Needs IEEE arithmetic (no -ffast-math, which would reassociate the correction away).
 
+#include <cmath>
+
 namespace beampack {
 
 // value + low += x. value stays the rounded total, so readers of value alone see the best double.
@@ -21,10 +23,20 @@ class CompensatedSum {
  public:
   void add(double x) { add_compensated(value_, low_, x); }
   double value() const { return value_; }
+  double low() const { return low_; }  // what value rounded away from the total
 
  private:
   double value_ = 0.0;
   double low_ = 0.0;
 };
+
+// a / b of two compensated sums, rounded once from nearly the exact quotient of their totals:
+// k of N equal volumes give k / N as a double, where the two rounded values' quotient could be an
+// ulp off it (60 of 1000 printed 0.060000000000000005). The remainder a - q b is exact by fma.
+inline double compensated_ratio(const CompensatedSum& a, const CompensatedSum& b) {
+  const double q = a.value() / b.value();
+  const double remainder = std::fma(-q, b.value(), a.value()) + (a.low() - q * b.low());
+  return q + remainder / b.value();
+}
 
 }  // namespace beampack

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <functional>
 #include <limits>
+#include <numbers>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -408,8 +409,9 @@ TEST(LibraryMisuse, ParticlesPassedInDeadAreVaporised) {
   EXPECT_EQ(sim.figures().melted_fraction, 0.0);
 }
 
-// Volume fractions of equal spheres are k / N to an ulp or two: plain sums gave 6 of 200
-// vaporised as 0.029999999999999884 (17 ulps) in summary.json beside particles.csv's 6 rows.
+// Volume fractions of equal spheres are k / N to the bit: plain sums gave 6 of 200 vaporised as
+// 0.029999999999999884 (17 ulps) in summary.json beside particles.csv's 6 rows, and the quotient
+// of the compensated sums' values 60 of 1000 as 0.060000000000000005.
 TEST(LibraryInputs, FractionsOfEqualSpheresAreTheirCountsShare) {
   const Particles all = random_overlap_packing(200, kD, 0.325, 7);
   SimulationSpec spec = one_pulse();
@@ -418,15 +420,14 @@ TEST(LibraryInputs, FractionsOfEqualSpheresAreTheirCountsShare) {
     Particles p = all;
     for (std::size_t i = 0; i < k; ++i) p.alive[i] = 0;
     const double share = double(k) / double(all.size());
-    EXPECT_NEAR(Simulation(spec, p).figures().vaporized_fraction, share,
-                2 * std::numeric_limits<double>::epsilon() * share)
-        << k << " of " << all.size();
+    EXPECT_EQ(Simulation(spec, p).figures().vaporized_fraction, share) << k << " of " << all.size();
   }
 }
 
 // The fractions to the bit, for spheres of many sizes: each phase's volumes as a compensated sum in
-// particle order, over the whole volume summed the same way (summary.json and history.csv print
-// all 17 digits, so an order or a rounding changed is a changed output).
+// particle order, over the whole volume summed the same way, divided as compensated sums
+// (summary.json and history.csv print all 17 digits, so an order or a rounding changed is a
+// changed output).
 TEST(LibraryInputs, FractionsAreCompensatedSumsInParticleOrder) {
   Particles p = random_overlap_packing(30000, kD, 0.325, 11);
   for (std::size_t i = 0; i < p.size(); ++i) {
@@ -443,8 +444,27 @@ TEST(LibraryInputs, FractionsAreCompensatedSumsInParticleOrder) {
   SimulationSpec spec = one_pulse();
   spec.pulses.count = 0;
   const Figures f = Simulation(spec, p).figures();
-  EXPECT_EQ(f.vaporized_fraction, vapor.value() / all.value());
-  EXPECT_EQ(f.melted_fraction, liquid.value() / all.value());
+  EXPECT_EQ(f.vaporized_fraction, compensated_ratio(vapor, all));
+  EXPECT_EQ(f.melted_fraction, compensated_ratio(liquid, all));
+}
+
+// The division behind the fractions: k of N equal volumes is k / N, to the bit, for every k and
+// sphere size, where the quotient of the two sums' rounded values is an ulp off for some.
+TEST(LibraryInputs, CompensatedRatioOfEqualVolumesIsTheCountsRatio) {
+  int off_before = 0;
+  for (const double radius : {3.25e-5, 1.7e-6, 4.1e-4}) {
+    const std::size_t n = 1000;
+    CompensatedSum all, vapor;
+    for (std::size_t i = 0; i < n; ++i)
+      all.add(4.0 / 3.0 * std::numbers::pi * radius * radius * radius);
+    for (std::size_t k = 0; k <= n; k += 1) {
+      if (k > 0) vapor.add(4.0 / 3.0 * std::numbers::pi * radius * radius * radius);
+      const double exact = double(k) / double(n);
+      off_before += vapor.value() / all.value() != exact;
+      ASSERT_EQ(compensated_ratio(vapor, all), exact) << radius << " " << k;
+    }
+  }
+  EXPECT_GT(off_before, 0);  // the plain quotient is off for some: the test can tell them apart
 }
 
 // Embree asserted on the invalid float rays and aborted the process.
