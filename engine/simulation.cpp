@@ -131,19 +131,24 @@ void Simulation::mark_dead_as_vapour() {
 }
 
 // The spec's own numbers, for library callers (the run file's ranges hold them for the CLI): a
-// negative or NaN thermal.dt read as "pulse", a negative period or stagger cap ran without a word.
+// negative or NaN thermal.dt read as "pulse", a negative period or stagger cap ran without a word,
+// and so did times beyond their caps (the quick scene's thermal.dt = 1e308 s to a clock of inf).
 void Simulation::check_run_numbers() const {
-  const auto refuse = [](const char* key, double value, const char* limit) {
+  const auto refuse = [](const char* key, double value, const std::string& limit) {
     throw InputError(std::string("`") + key + "` = " + shown_number(value) + ": " + limit);
   };
   const PulseSpec& p = spec_.pulses;
   if (p.count < 0) refuse("pulses.count", p.count, "must be >= 0");
   if (!(p.duration > 0) || !std::isfinite(p.duration))
     refuse("pulses.duration", p.duration, "must be > 0 and finite");
+  if (p.duration > kDurationCap.limit)
+    refuse("pulses.duration", p.duration, cap_limit(kDurationCap));
   if (!(p.period >= 0) || !std::isfinite(p.period))
     refuse("pulses.period", p.period, "must be >= 0 (0: each pulse when the last has ended)");
+  if (p.period > kStepCap.limit) refuse("pulses.period", p.period, cap_limit(kStepCap));
   if (!(spec_.dt >= 0) || !std::isfinite(spec_.dt))
     refuse("thermal.dt", spec_.dt, "must be >= 0 (0: one step per pulse flight)");
+  if (spec_.dt > kStepCap.limit) refuse("thermal.dt", spec_.dt, cap_limit(kStepCap));
   if (spec_.max_staggers < 0) refuse("thermal.max_staggers", spec_.max_staggers, "must be >= 0");
 }
 

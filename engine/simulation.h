@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "../geometry/compensated_sum.h"
+#include "../geometry/error.h"
 #include "../geometry/packing.h"
 #include "../thermal/thermal_model.h"
 #include "beam.h"
@@ -25,10 +26,24 @@ namespace beampack {
 
 constexpr double kSpeedOfLight = 2.99792458e8;  // m/s
 
+// The limits of a run's times, physically generous, beyond which its arithmetic breaks:
+// thermal.dt = 1e308 s with K = 1e4 gave non-finite temperatures, pulses.period = 1e308 s
+// "thermal.dt = inf", and conjugate gradients' residual turned NaN at pulses.duration = 1e290 s.
+inline constexpr Cap kDurationCap{
+    1e12,
+    "s (30,000 years; far longer pulses overflow their energy and the temperatures it "
+    "gives)"};
+// thermal.dt, and pulses.period: with thermal.dt = "pulse" the wait for the next pulse is one step.
+inline constexpr Cap kStepCap{
+    1e12,
+    "s (30,000 years; far longer steps overflow their heat flows, time step times "
+    "conductance times temperature)"};
+
 struct PulseSpec {
   int count = 20;       // pulses.count
-  double duration = 0;  // tau, s: E_k = I_k A_r tau
-  double period = 0;    // s between pulse starts; 0: "auto", when the previous pulse has ended
+  double duration = 0;  // tau, s: E_k = I_k A_r tau; at most kDurationCap
+  double period = 0;    // s between pulse starts; 0: "auto", when the previous pulse has ended;
+                        // at most kStepCap
 };
 
 struct SimulationSpec {
@@ -38,7 +53,7 @@ struct SimulationSpec {
   std::vector<Material> materials{Material{}};
   ThermalSpec thermal;
   PulseSpec pulses;
-  double dt = 0;         // thermal.dt, s; 0: one step per pulse flight ("pulse")
+  double dt = 0;         // thermal.dt, s; 0: one step per pulse flight ("pulse"); <= kStepCap
   int max_staggers = 4;  // redo a step at most this often when a phase change alters optics
 };
 

@@ -2616,3 +2616,45 @@ TEST(Cli, PulsesStartAtTheirPeriodAndLateStartsAreAnnounced) {
   EXPECT_NOT_CONTAINS(exact.output, "warning");
   EXPECT_EQ(int(read_json(out / "summary.json")["counts"]["late_pulses"]), 0);
 }
+
+// A run's warnings follow its table also when stdout and stderr share a pipe (a batch log): stdout
+// was flushed only at exit, so the warning came first.
+TEST(Cli, RunWarningsFollowTheTableInAPipe) {
+  const fs::path dir = fresh_dir("warning_order");
+  const Result r =
+      run("run --preset quick --quiet --set pulses.duration=1e-9 --out " + dir.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  const std::size_t table = r.output.find("peak temperature"), warning = r.output.find("warning:");
+  ASSERT_NE(warning, std::string::npos) << r.output;
+  EXPECT_LT(table, warning) << r.output;
+}
+
+// sweep and converge say each run's warnings, as `run` does, after the value or rung they belong
+// to (they said none: a value's late pulses went unseen); one of every run's spec is said once,
+// without a value (walls with K = 0 take no heat, whatever thermal.dt is).
+TEST(Cli, SweepAndConvergeSayEachRunsWarningsAfterItsValue) {
+  const fs::path dir = fresh_dir("sweep_warnings");
+  const std::string idle_walls = " --set material.conductivity=0 --set thermal.walls=z- --quiet ";
+  const std::string no_heat = "beampack: warning: `thermal.walls` with `thermal.wall_conductance`";
+  const Result sweep =
+      run("sweep --preset quick --set pulses.period=1e-11" + idle_walls +
+          "--param thermal.dt --values 3e-12,1e-12 --out " + (dir / "sweep").string());
+  ASSERT_EQ(sweep.code, 0) << sweep.output;
+  EXPECT_CONTAINS(sweep.output,
+                  "beampack: sweep thermal.dt = 3e-12: warning: 3 of 5 pulses started more than 1% "
+                  "of `pulses.period` = 1e-11 s");
+  EXPECT_NOT_CONTAINS(sweep.output, "thermal.dt = 1e-12: warning");
+  EXPECT_CONTAINS(sweep.output, no_heat);
+  EXPECT_EQ(sweep.output.find("the walls take no heat"),
+            sweep.output.rfind("the walls take no heat"))
+      << sweep.output;
+  const Result converge = run("converge --preset quick --set pulses.period=1e-14" + idle_walls +
+                              "--out " + (dir / "converge").string());
+  ASSERT_EQ(converge.code, 0) << converge.output;
+  EXPECT_CONTAINS(converge.output, "beampack: time step \"pulse\": warning: 4 of 5 pulses started");
+  EXPECT_CONTAINS(converge.output, "beampack: rays per pulse 100: warning: 4 of 5 pulses started");
+  EXPECT_CONTAINS(converge.output, no_heat);
+  EXPECT_EQ(converge.output.find("the walls take no heat"),
+            converge.output.rfind("the walls take no heat"))
+      << converge.output;
+}

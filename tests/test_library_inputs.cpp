@@ -98,8 +98,9 @@ TEST(LibraryInputs, ASimulationSpecOutsideItsRangesIsRefusedByName) {
 }
 
 // The limits beyond which the arithmetic breaks (conductivity 1e308 gave non-finite temperatures,
-// latent bands 1e25 booked energies the beam never gave) were the command line's alone: the
-// library took them. They are the library's now, with the command line's messages.
+// latent bands 1e25 booked energies the beam never gave, thermal.dt = 1e308 s ran to a clock of
+// inf) were the command line's alone: the library took them. They are the library's now, with the
+// command line's messages.
 TEST(LibraryInputs, ValuesBeyondWhatTheArithmeticHoldsAreRefusedByName) {
   struct Case {
     std::function<void(SimulationSpec&)> spoil;
@@ -133,6 +134,12 @@ TEST(LibraryInputs, ValuesBeyondWhatTheArithmeticHoldsAreRefusedByName) {
               "thermal.time_scaling = 1e+290: must be <= 1e+12"},
              {[](SimulationSpec& s) { s.beam.power = 1e300; },
               "`beam.power` = 1e+300: must be <= 1e+20 W"},
+             {[](SimulationSpec& s) { s.pulses.duration = 2e12; },
+              "`pulses.duration` = 2e+12: must be <= 1e+12 s (30,000 years; far longer pulses"},
+             {[](SimulationSpec& s) { s.pulses.period = 2e12; },
+              "`pulses.period` = 2e+12: must be <= 1e+12 s (30,000 years; far longer steps"},
+             {[](SimulationSpec& s) { s.dt = 2e12; },
+              "`thermal.dt` = 2e+12: must be <= 1e+12 s (30,000 years; far longer steps"},
              };
   for (const Case& c : cases) {
     SimulationSpec s = one_pulse();
@@ -143,6 +150,9 @@ TEST(LibraryInputs, ValuesBeyondWhatTheArithmeticHoldsAreRefusedByName) {
   at_limits.materials[0].conductivity = 1e20;
   at_limits.thermal.time_scaling = 1e12;
   at_limits.beam.power = 1e20;
+  at_limits.pulses.duration = 1e12;
+  at_limits.pulses.period = 1e12;
+  at_limits.dt = 1e12;
   EXPECT_NO_THROW(Simulation(at_limits, three_spheres()));
 }
 
@@ -356,6 +366,24 @@ TEST(LibraryInputs, ASpecSaysWhatItsRunWillNotDoWell) {
   const std::vector<std::string> walls = spec_warnings(spec);
   ASSERT_EQ(walls.size(), 1u);
   EXPECT_CONTAINS(walls[0], "the walls take no heat");
+}
+
+// The quick scene, conducting, with one of its times far beyond its cap: each was the command
+// line's to refuse, and a library caller's ran. Refused as the run file's value is, by its key.
+TEST(LibraryInputs, TimesBeyondTheirCapsAreRefusedByName) {
+  const std::function<void(SimulationSpec&)> spoils[] = {
+      [](SimulationSpec& s) { s.pulses.duration = 1e300; },
+      [](SimulationSpec& s) { s.pulses.period = 1e300; },
+      [](SimulationSpec& s) { s.dt = 1e300; },
+  };
+  const char* keys[] = {"`pulses.duration` = 1e+300: must be <= 1e+12 s",
+                        "`pulses.period` = 1e+300: must be <= 1e+12 s",
+                        "`thermal.dt` = 1e+300: must be <= 1e+12 s"};
+  for (int k = 0; k < 3; ++k) {
+    SimulationSpec spec = quick_scene();
+    spoils[k](spec);
+    testing::expect_error<InputError>([&] { Simulation sim(spec); }, keys[k]);
+  }
 }
 
 }  // namespace beampack

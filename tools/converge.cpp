@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <optional>
+#include <set>
 #include <sstream>
 #include <string>
 
@@ -66,8 +67,9 @@ std::vector<Ladder> ladders(const RunConfig& base) {
 // Runs every rung of the ladder that can run; a rung that fails is reported and left out, and an
 // interrupted one is not kept (a part of a run is not a result). The reference is the finest
 // rung, run first: without it the others have nothing to be compared with, so when it fails the
-// ladder stops there. Returns the exit code so far.
-int run_ladder(Ladder& ladder, bool quiet) {
+// ladder stops there. The spec warnings `said` for every rung are not said again. Returns the
+// exit code so far.
+int run_ladder(Ladder& ladder, bool quiet, const std::set<std::string>& said) {
   int code = 0;
   std::fflush(stdout);  // the last ladder's lines before this one's failures, when both are piped
   for (std::size_t k = 0; k < ladder.values.size(); ++k) {
@@ -77,7 +79,7 @@ int run_ladder(Ladder& ladder, bool quiet) {
     }
     const std::string rung = ladder.name + " " + ladder.values[k], label = rung + ": ";
     try {
-      RunResult r = run_scene(ladder.configs[k], quiet, label);
+      RunResult r = run_scene(ladder.configs[k], quiet, label, said);
       if (r.interrupted) {
         std::fprintf(stderr,
                      "beampack: converge interrupted during %s; that rung and the rest "
@@ -277,13 +279,17 @@ int converge_command(const RunOptions& options) {
   std::vector<Chart> panels = convergence_panels(drop_unmeasurable_ladders(all, base.sim));
   base.packing.reset();  // each rung reads its packing when it runs: one copy at a time
   for (Ladder& ladder : all) configure_rungs(ladder, read_xi);  // a bad rung fails before any run
+  std::vector<const RunConfig*> rungs;
+  for (const Ladder& ladder : all)
+    for (const RunConfig& config : ladder.configs) rungs.push_back(&config);
+  const std::set<std::string> said = warn_of_shared_specs(rungs);
   std::string csv =
       "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
       "temperature_l2_error_K,temperature_max_error_K,temperature_particles,end_time_s,"
       "peak_temperature_K,peak_temperature_error_K\n";
   int code = 0;
   for (Ladder& ladder : all) {
-    code = std::max(code, run_ladder(ladder, options.quiet));
+    code = std::max(code, run_ladder(ladder, options.quiet, said));
     if (ladder.rungs.empty()) continue;
     tabulate_ladder(ladder, csv, panels);
   }

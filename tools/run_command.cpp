@@ -18,6 +18,7 @@
 #include <nlohmann/json.hpp>
 #include <optional>
 #include <regex>
+#include <set>
 #include <sstream>
 #include <string_view>
 #include <thread>
@@ -555,7 +556,50 @@ std::unique_ptr<tbb::global_control> limit_threads(int threads) {
                                                std::size_t(threads));
 }
 
-RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label) {
+namespace {
+
+// Warnings on stderr, each after `label`, the value or rung of a sweep or converge they belong to
+// (as its failures are): "beampack: sweep K = 400: warning: ...".
+void say_warnings(const std::string& label, const std::vector<std::string>& warnings) {
+  if (!warnings.empty()) std::fflush(stdout);  // after what stdout printed, when both are piped
+  for (const std::string& warning : warnings)
+    std::fprintf(stderr, "beampack: %swarning: %s\n", label.c_str(), warning.c_str());
+}
+
+}  // namespace
+
+std::set<std::string> warn_of_shared_specs(const std::vector<const RunConfig*>& configs) {
+  std::vector<std::string> shared;  // in the order of the first run's, as `run` says them
+  if (!configs.empty()) shared = spec_warnings(configs.front()->sim);
+  for (const RunConfig* config : configs) {
+    const std::vector<std::string> lines = spec_warnings(config->sim);
+    std::erase_if(shared, [&](const std::string& line) {
+      return std::find(lines.begin(), lines.end(), line) == lines.end();
+    });
+  }
+  say_warnings("", shared);
+  return {shared.begin(), shared.end()};
+}
+
+namespace {
+
+// Steps the simulation to its end or an interrupt, with a progress line after `label`.
+void step_until_done(Simulation& sim, bool quiet, const std::string& label) {
+  Progress progress(quiet, label);
+  while (!sim.done() && !stop_requested().load()) {
+    sim.step();
+    progress.update(sim);
+  }
+}
+
+}  // namespace
+
+RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label,
+                    const std::set<std::string>& said) {
+  std::vector<std::string> unsaid;
+  for (const std::string& line : spec_warnings(config.sim))
+    if (!said.contains(line)) unsaid.push_back(line);
+  say_warnings(label, unsaid);
   const auto start = Clock::now();
   const std::unique_ptr<Simulation> owned = set_up_unless_interrupted(config, quiet, label);
   if (!owned) {  // interrupted during its set-up: no figures, and not a result
@@ -564,11 +608,8 @@ RunResult run_scene(const RunConfig& config, bool quiet, const std::string& labe
     return r;
   }
   Simulation& sim = *owned;
-  Progress progress(quiet, label);
-  while (!sim.done() && !stop_requested().load()) {
-    sim.step();
-    progress.update(sim);
-  }
+  say_warnings(label, sim.scene_warnings());
+  step_until_done(sim, quiet, label);
   RunResult r;
   r.figures = sim.figures();
   r.counts = sim.counts();
@@ -576,6 +617,7 @@ RunResult run_scene(const RunConfig& config, bool quiet, const std::string& labe
   r.alive = sim.particles().alive;
   r.interrupted = !sim.done();
   r.wall_seconds = seconds_since(start);
+  if (!r.interrupted) say_warnings(label, sim.run_warnings());  // a part of a run says nothing
   return r;
 }
 
@@ -1115,8 +1157,7 @@ int finish_run(const Simulation& sim, const RunConfig& config, RunRecord& record
   if (!r.interrupted && record.resumed_in_place && record.checkpoint_every == 0)
     fs::remove(out / "checkpoint.bin", ec);
   print_table(sim, r, record.stages);
-  for (const std::string& warning : sim.run_warnings())
-    std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
+  say_warnings("", sim.run_warnings());
   if (!r.interrupted) return 0;
   const std::string where = r.figures.pulse > 0
                                 ? "in pulse " + std::to_string(r.figures.pulse) + " of " +
@@ -1143,8 +1184,7 @@ int run_command(const RunOptions& options) {
     resume_from_checkpoint(options, into_checkpoint_folder, record, saved, sources);
   RunConfig config = load_run_config(sources);
   warn_of_input({&config});
-  for (const std::string& warning : spec_warnings(config.sim))
-    std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
+  say_warnings("", spec_warnings(config.sim));
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
   if (options.resume.empty() || options.checkpoint_set)
     record.checkpoint_every = options.checkpoint_every;
@@ -1162,8 +1202,7 @@ int run_command(const RunOptions& options) {
   }
   config.packing.reset();  // the simulation holds its own copy
   Simulation& sim = *owned;
-  for (const std::string& warning : sim.scene_warnings())
-    std::fprintf(stderr, "beampack: warning: %s\n", warning.c_str());
+  say_warnings("", sim.scene_warnings());
   if (saved) sim.read_state(*saved);
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
   remove_earlier_run(out_dir, into_checkpoint_folder);
@@ -1398,6 +1437,7 @@ int sweep_command(const SweepOptions& options) {
   std::vector<const RunConfig*> resolved;
   for (const RunConfig& c : configs) resolved.push_back(&c);
   warn_of_input(resolved);
+  const std::set<std::string> said = warn_of_shared_specs(resolved);
   const fs::path out(options.run.out_dir);
   const std::vector<std::string> tables = {"sweep.csv", "sweep.svg"};
   refuse_non_files_at_outputs(out, tables);
@@ -1412,7 +1452,7 @@ int sweep_command(const SweepOptions& options) {
     const std::string label = "sweep " + param + " = " + values[k] + ": ";
     RunResult r;
     try {
-      r = run_scene(configs[k], options.run.quiet, label);
+      r = run_scene(configs[k], options.run.quiet, label, said);
     } catch (const std::exception& e) {
       code = std::max(code, report_failed_run(label, e, "its row in sweep.csv is empty"));
       csv += csv_cell(values[k]) + empty_cells(header) + '\n';

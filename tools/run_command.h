@@ -8,6 +8,7 @@
 #include <functional>
 #include <memory>
 #include <optional>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -153,6 +154,12 @@ void refuse_run_only_outputs(const RunConfig& config, const char* command);
 // not depend on it; only the wall time does.
 std::unique_ptr<tbb::global_control> limit_threads(int threads);
 
-RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label = "");
+// The spec warnings of a sweep's or converge's runs, before the first run: those every run gives
+// are said once, as `run` says them, and returned, for run_scene to leave out.
+std::set<std::string> warn_of_shared_specs(const std::vector<const RunConfig*>& configs);
+// One run of a sweep or converge, its warnings on stderr after `label` (the value or rung): its
+// spec's but those `said` before, its scene's once set up, its run's once ended.
+RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label = "",
+                    const std::set<std::string>& said = {});
 
 }  // namespace beampack::tools

@@ -23,18 +23,9 @@ namespace {
 
 constexpr double kBig = std::numeric_limits<double>::max();
 
-// The thermal and beam caps are the library's (thermal/material.h, thermal/thermal_model.h,
-// engine/beam.h), with the measurements behind them; these are the run's own: thermal.dt = 1e308 s
-// with K = 1e4 gave non-finite temperatures, pulses.period = 1e308 s "thermal.dt = inf", and
-// conjugate gradients' residual turned NaN at pulses.duration = 1e290 s.
-constexpr Cap kDuration{
-    1e12,
-    "s (30,000 years; far longer pulses overflow their energy and the temperatures it "
-    "gives)"};
-// thermal.dt, and pulses.period: with thermal.dt = "pulse" the wait for the next pulse is one step.
-constexpr Cap kStep{1e12,
-                    "s (30,000 years; far longer steps overflow their heat flows, time step times "
-                    "conductance times temperature)"};
+// The caps are the library's (thermal/material.h, thermal/thermal_model.h, engine/beam.h,
+// engine/simulation.h), with the measurements behind them; the run file's messages state them.
+
 // packing.radius: the limit of every particle's radius (geometry/packing.h); from 1e3 m the heat
 // ledger opens already (a warning says so).
 constexpr Cap kFileRadius{kMaxParticleRadius, kMaxParticleRadiusWhy};
@@ -239,8 +230,8 @@ void read_thermal(Params& p, SimulationSpec& s, PaperStepUse& use) {
   s.max_staggers = int(p.integer("thermal.max_staggers", 4, 0, 1000));
   double dt = 0;
   const std::string word = p.number_or_word("thermal.dt", dt, 0, kBig, {"pulse", "paper"}, "pulse",
-                                            "seconds", true, kStep.limit);
-  capped(p, "thermal.dt", dt, kStep);
+                                            "seconds", true, kStepCap.limit);
+  capped(p, "thermal.dt", dt, kStepCap);
   use.dt = word == "paper";
   s.dt = word == "pulse" || use.dt ? 0.0 : dt;
   t.validate();
@@ -264,26 +255,26 @@ void read_pulses(Params& p, SimulationSpec& s, PaperStepUse& use) {
   s.pulses.count = int(p.integer("pulses.count", 20, 0, 10'000'000));
   double tau = 0;
   const std::string word = p.number_or_word("pulses.duration", tau, 0, kBig, {"auto", "energy"},
-                                            "auto", "seconds", true, kDuration.limit);
-  capped(p, "pulses.duration", tau, kDuration);
+                                            "auto", "seconds", true, kDurationCap.limit);
+  capped(p, "pulses.duration", tau, kDurationCap);
   use.xi = p.number("pulses.xi", 0.05, 0, 10, true);
   use.duration = word == "auto";
   const double energy = p.number("pulses.energy", 1e-9, 0, kBig, true);
   if (word == "energy") tau = energy / s.beam.power;
   // Each input is in range, but a quotient can still overflow or underflow (found by fuzz/).
-  if (word == "energy" && !(std::isfinite(tau) && tau > 0 && tau <= kDuration.limit)) {
+  if (word == "energy" && !(std::isfinite(tau) && tau > 0 && tau <= kDurationCap.limit)) {
     std::ostringstream m;
     m << "`pulses.duration` = \"energy\" gives tau = " << tau
       << " s (pulses.energy / beam.power): must be > 0 "
-      << "and <= " << kDuration.limit << " " << kDuration.why
+      << "and <= " << kDurationCap.limit << " " << kDurationCap.why
       << "; give pulses.duration in seconds";
     throw InputError(m.str());
   }
   s.pulses.duration = tau;
   double period = 0;
   const std::string pw = p.number_or_word("pulses.period", period, 0, kBig, {"auto"}, "auto",
-                                          "seconds", true, kStep.limit);
-  capped(p, "pulses.period", period, kStep);
+                                          "seconds", true, kStepCap.limit);
+  capped(p, "pulses.period", period, kStepCap);
   s.pulses.period = pw == "auto" ? 0.0 : period;
 }
 
@@ -295,7 +286,7 @@ void derive_paper_step(RunConfig& c, const PaperStepUse& use) {
   if (c.sim.packing.source == "file" && !c.packing)
     c.packing = std::make_shared<const Particles>(make_packing(c.sim.packing));
   const double step = paper_step(c.sim.packing, use.xi, c.packing.get());
-  if (std::isfinite(step) && step > 0 && step <= kStep.limit) {
+  if (std::isfinite(step) && step > 0 && step <= kStepCap.limit) {
     if (use.duration) c.sim.pulses.duration = step;
     if (use.dt) c.sim.dt = step;
     return;
@@ -304,7 +295,7 @@ void derive_paper_step(RunConfig& c, const PaperStepUse& use) {
   m << (use.duration ? "`pulses.duration` = \"auto\" gives tau" : "`thermal.dt` = \"paper\" gives")
     << " = pulses.xi * R / c = " << step
     << " s (R from sample.size and packing.*, or a file's median radius): must be > 0 and <= "
-    << kStep.limit << " s; give " << (use.duration ? "pulses.duration" : "thermal.dt")
+    << kStepCap.limit << " s; give " << (use.duration ? "pulses.duration" : "thermal.dt")
     << " in seconds";
   throw InputError(m.str());
 }

@@ -1,10 +1,16 @@
 #include "tools/writers.h"
 
+#include <cerrno>
 #include <charconv>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <memory>
+#include <system_error>
+
+#include <fcntl.h>
+#include <unistd.h>
 
 #include "geometry/error.h"
 #include "tools/quit_cleanup.h"
@@ -42,13 +48,46 @@ void remove_temporaries(const std::vector<std::unique_ptr<Staged>>& staged) {
   for (const auto& s : staged) std::filesystem::remove(s->tmp, ec);
 }
 
+// fsync of the file or directory at `path` (`flags` open it): 0, or the errno of the failure.
+int sync_to_disk(const std::string& path, int flags) {
+  const int fd = ::open(path.c_str(), flags | O_CLOEXEC);
+  if (fd < 0) return errno;
+  const int error = ::fsync(fd) == 0 ? 0 : errno;
+  ::close(fd);
+  return error;
+}
+
+std::string error_text(int error) {
+  return std::generic_category().message(error);
+}
+
 void stage(const Staged& s, const std::function<void(std::ostream&)>& fill) {
   std::ofstream out(s.tmp, std::ios::binary);
   // A failed run, not bad input: the command checked --out was writable before it started.
   if (!out) throw RunError("output file \"" + s.path + "\": cannot write in its directory");
   fill(out);
-  out.flush();
+  out.close();
   if (!out) throw RunError("output file \"" + s.path + "\": write failed (disk full?)");
+  // The data on the disk before the rename: the file system may write the rename first, and a
+  // power loss between the two can leave the renamed file empty.
+  if (const int error = sync_to_disk(s.tmp, O_RDONLY))
+    throw RunError("output file \"" + s.path + "\": fsync failed: " + error_text(error));
+}
+
+// The renames on the disk: a directory's entries are synced as a file's data is. EINVAL is a
+// file system that cannot sync a directory, where there is nothing more to do.
+void sync_directories(const std::vector<std::unique_ptr<Staged>>& staged) {
+  std::map<std::string, std::string> files_of;  // a file in each directory, to name it by
+  for (const auto& s : staged) {
+    const std::string dir = std::filesystem::path(s->path).parent_path().string();
+    files_of.emplace(dir.empty() ? "." : dir, s->path);
+  }
+  for (const auto& [dir, file] : files_of) {
+    const int error = sync_to_disk(dir, O_RDONLY | O_DIRECTORY);
+    if (error != 0 && error != EINVAL)
+      throw RunError("output file \"" + file + "\": fsync of its directory failed: " +
+                     error_text(error) + " (the file was replaced)");
+  }
 }
 
 }  // namespace
@@ -72,6 +111,7 @@ void write_atomically(const std::vector<OutputFile>& files) {
     throw RunError("output file \"" + staged[k]->path + "\": rename failed: " + ec.message() +
                    (k > 0 ? " (the files before it in the set were replaced)" : ""));
   }
+  sync_directories(staged);
 }
 
 void write_atomically(const std::string& path, const std::function<void(std::ostream&)>& fill) {

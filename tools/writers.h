@@ -1,6 +1,7 @@
 #pragma once
 // Output files of a run (INTERFACE.md). Every file is written to a temporary name in the same
-// directory and renamed into place, so an interrupted run never leaves a half-written file.
+// directory and renamed into place, so an interrupted run never leaves a half-written file; the
+// file is synced to disk before its rename and the directory after, so neither does a power loss.
 #include <functional>
 #include <optional>
 #include <ostream>
@@ -18,7 +19,7 @@ struct OutputFile {
   std::function<void(std::ostream&)> fill;
 };
 
-// Writes through `fill`, then renames; RunError if it cannot be written.
+// Writes through `fill`, then renames; RunError if it cannot be written or synced to disk.
 void write_atomically(const std::string& path, const std::function<void(std::ostream&)>& fill);
 // A set of files that belong together (a run's particles.csv and its summary.json): every one is
 // written to its temporary first, and only when all are whole are they renamed into place, in
