@@ -764,6 +764,12 @@ void register_all() {
                                  [mode = mode](benchmark::State& s) {
       run_tracer(s, tracer_spec(true, 20.0, 1000, mode));
     })->Apply(large);
+  for (const auto& [name, mode] :
+       {std::pair{"deferred", SceneUpdate::deferred}, std::pair{"bricks", SceneUpdate::bricks}})
+    benchmark::RegisterBenchmark(("trace/scene_mode/" + std::string(name) + "/primary").c_str(),
+                                 [mode = mode](benchmark::State& s) {
+      run_tracer(s, tracer_spec(true, 20.0, 1, mode));
+    })->Apply(large);
   // Embree primitive = a cluster of K consecutive (Morton) spheres: fewer callbacks, looser boxes.
   for (unsigned k : {1u, 2u, 4u, 8u}) {
     benchmark::RegisterBenchmark(("trace/cluster/k" + std::to_string(k) + "/n200").c_str(),
