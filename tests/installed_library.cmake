@@ -1,6 +1,8 @@
 # Install.AProjectOfYourOwnBuildsAgainstTheInstalledLibrary (ctest runs this with cmake -P):
 # installs this build into a scratch prefix, builds examples/ against it as another project does
 # (find_package(beampack), #include <beampack/...>), runs the example and checks what it prints.
+# With -DFROM_BUILD_TREE=ON it installs nothing and finds the package in the build tree
+# (Install.AProjectOfYourOwnBuildsAgainstThisBuildTree).
 #   -DSOURCE=<source tree> -DBUILD=<build tree> -DWORK=<scratch folder> -DCXX=<compiler>
 #   -DGENERATOR=<the build's generator> -DMAKE_PROGRAM=<its make program>
 #   -DPREFIXES=<the build's CMAKE_PREFIX_PATH, "|" between entries>
@@ -19,11 +21,15 @@ function(step what)
   set(printed "${out}" PARENT_SCOPE)
 endfunction()
 
-step("install" ${CMAKE_COMMAND} --install ${BUILD} ${config} --prefix ${WORK}/prefix)
-if(EXISTS ${WORK}/prefix/include/engine OR EXISTS ${WORK}/prefix/include/geometry)
-  message(FATAL_ERROR "headers installed outside include/beampack")
+if(FROM_BUILD_TREE)  # Install.AProjectOfYourOwnBuildsAgainstThisBuildTree: no install
+  string(REPLACE "|" ";" prefixes "${BUILD}|${PREFIXES}")
+else()
+  step("install" ${CMAKE_COMMAND} --install ${BUILD} ${config} --prefix ${WORK}/prefix)
+  if(EXISTS ${WORK}/prefix/include/engine OR EXISTS ${WORK}/prefix/include/geometry)
+    message(FATAL_ERROR "headers installed outside include/beampack")
+  endif()
+  string(REPLACE "|" ";" prefixes "${WORK}/prefix|${PREFIXES}")
 endif()
-string(REPLACE "|" ";" prefixes "${WORK}/prefix|${PREFIXES}")
 step("configuring examples/" ${CMAKE_COMMAND} -S ${SOURCE}/examples -B ${WORK}/build
      -G ${GENERATOR} -DCMAKE_MAKE_PROGRAM=${MAKE_PROGRAM} "-DCMAKE_PREFIX_PATH=${prefixes}"
      -DCMAKE_CXX_COMPILER=${CXX} -DCMAKE_BUILD_TYPE=${CONFIG})
