@@ -300,6 +300,23 @@ void warn_if_beam_meets_nothing(const SimulationSpec& spec, const Particles& p, 
   warnings.push_back(m.str());
 }
 
+// The beam is sized by sample.size (a disk of diameter_fraction D): one narrower than the
+// particles meets one or a few of them, legal but seldom meant (a file's bed of 1 cm spheres with
+// sample.size left at its 1 mm default).
+void warn_if_beam_narrower_than_particles(const SimulationSpec& spec, const Particles& p,
+                                          std::vector<std::string>& warnings) {
+  if (spec.pulses.count == 0 || p.alive_count() == 0) return;
+  const double width = spec.beam.diameter_fraction * spec.packing.sample_size;
+  const double diameter = 2 * median_radius(p);
+  if (!(width < diameter)) return;
+  warnings.push_back("the beam is " + shown_number(width) +
+                     " m wide (`beam.diameter_fraction` x `sample.size` = " +
+                     shown_number(spec.packing.sample_size) +
+                     " m), narrower than the particles (median diameter " + shown_number(diameter) +
+                     " m): it meets one or a few of them; `sample.size` sizes the beam and the "
+                     "cube [0, sample.size]^3 it is centred on: set it to the packing's extent");
+}
+
 // Without particles every ray escapes at once: a pulse's flight is 0, so with the automatic
 // period and one step per flight no step has a length and time stays 0 in history.csv.
 void warn_if_time_stands_still(const SimulationSpec& spec, const Particles& p,
@@ -317,6 +334,7 @@ void warn_if_time_stands_still(const SimulationSpec& spec, const Particles& p,
 std::vector<std::string> Simulation::scene_warnings() const {
   std::vector<std::string> warnings;
   warn_if_beam_meets_nothing(spec_, particles_, beam_, warnings);
+  warn_if_beam_narrower_than_particles(spec_, particles_, warnings);
   warn_of_walls_touching_nothing(spec_, particles_, warnings);
   warn_if_time_stands_still(spec_, particles_, warnings);
   return warnings;

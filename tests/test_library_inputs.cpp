@@ -224,6 +224,18 @@ TEST(LibraryInputs, AMisplacedSceneIsSaidToTheCaller) {
   const std::vector<std::string> lonely = Simulation(spec, three_spheres()).scene_warnings();
   ASSERT_EQ(lonely.size(), 1u);
   EXPECT_CONTAINS(lonely[0], "the wall z+ (`thermal.walls`) touches no particle");
+  // A bed of 1 cm spheres under the 1 mm default cube: the 0.3 mm beam meets one of them.
+  spec.thermal.walls.clear();
+  Particles large;
+  large.add(Vec3(5e-4, 5e-4, 5e-4), 1e-2);
+  large.add(Vec3(2.5e-2, 5e-4, 5e-4), 1e-2);
+  const std::vector<std::string> outgrown = Simulation(spec, large).scene_warnings();
+  ASSERT_EQ(outgrown.size(), 1u);
+  EXPECT_CONTAINS(outgrown[0],
+                  "the beam is 0.0003 m wide (`beam.diameter_fraction` x `sample.size` = 0.001 "
+                  "m), narrower than the particles (median diameter 0.02 m)");
+  spec.pulses.count = 0;  // no beam: the cube places nothing the particles miss
+  EXPECT_TRUE(Simulation(spec, large).scene_warnings().empty());
 }
 
 using testing::quick_scene;
