@@ -68,8 +68,22 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
   if (!packing_from_spec_) check_particles(particles_);
   mark_dead_as_vapour();
   check_run_numbers();
-  // A run without pulses draws no rays, only checks the beam's keys: at 10^7 rays the draw alone
-  // took 3 s and 0.45 GB.
+  check_thermal_masses(set_up_beam() * std::max(spec_.pulses.count, 1));
+  set_up_tracer();
+  set_up_thermal();
+  check_step_limit();
+  absorbed_.assign(particles_.size(), 0.0);
+  deposits_.assign(particles_.size(), 0.0);
+  for (std::size_t i = 0; i < particles_.size(); ++i) {
+    total_volume_.add(particles_.volume(i));  // as volume_fractions sums its phases
+    max_temperature_ = std::max(max_temperature_, particles_.temperature[i]);
+  }
+  counts_.particles = particles_.size();
+}
+
+// The beam and its rays' energies in a pulse; returns a pulse's energy. A run without pulses draws
+// no rays, only checks the beam's keys: at 10^7 rays the draw alone took 3 s and 0.45 GB.
+double Simulation::set_up_beam() {
   if (builds_ray_scene(spec_)) {
     use_beam(make_beam(spec_.beam, spec_.packing.sample_size));
   } else {
@@ -93,7 +107,10 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
       << " s: the pulse energy overflows double precision";
     throw InputError(m.str());
   }
-  check_thermal_masses(pulse_energy * std::max(spec_.pulses.count, 1));
+  return pulse_energy;
+}
+
+void Simulation::set_up_tracer() {
   OpticsSpec optics = spec_.optics;
   optics.chunk_rays = spec_.dt > 0 ? 64 : 256;  // short budgets leave small chunks alone
   // The same rays every pulse: their first hits are reused (not with one pulse, or new rays each).
@@ -104,21 +121,16 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
   // The ray scene and bounce grid (~1 s at 10^6 particles) are built here, at set-up, for a run
   // that launches pulses; one without pulses never builds them.
   if (builds_ray_scene(spec_)) tracer_->build_scene();
+}
+
+// Leave out what the scene does not need: without conductivity or walls there is no graph, and
+// without pulses no step that would conduct.
+void Simulation::set_up_thermal() {
   thermal_ = std::make_unique<ThermalModel>(particles_, spec_.materials, spec_.thermal);
-  // Leave out what the scene does not need: without conductivity or walls there is no graph, and
-  // without pulses no step that would conduct.
   if (builds_contact_graph(spec_)) {
     StageClock clock(stages_[kRebuild]);
     thermal_->set_contacts(find_contacts(particles_));
   }
-  check_step_limit();
-  absorbed_.assign(particles_.size(), 0.0);
-  deposits_.assign(particles_.size(), 0.0);
-  for (std::size_t i = 0; i < particles_.size(); ++i) {
-    total_volume_.add(particles_.volume(i));  // as volume_fractions sums its phases
-    max_temperature_ = std::max(max_temperature_, particles_.temperature[i]);
-  }
-  counts_.particles = particles_.size();
 }
 
 Simulation::~Simulation() = default;

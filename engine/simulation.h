@@ -217,6 +217,9 @@ class Simulation {
  private:
   bool take_step();
   void mark_dead_as_vapour();
+  double set_up_beam();
+  void set_up_tracer();
+  void set_up_thermal();
   bool pulse_due() const;
   void launch_due_pulses();
   void launch_pulse();
