@@ -413,19 +413,37 @@ bool Simulation::step() {
   }
 }
 
+// One time step of MODEL.md section 5, its stages in the physics' order.
 bool Simulation::take_step() {
   if constexpr (BEAMPACK_CHECKS_ON) name_step_for_checks();
   launch_due_pulses();
   const double budget =
       spec_.dt > 0 ? kSpeedOfLight * spec_.dt : std::numeric_limits<double>::infinity();
   tracer_->compact_if_sparse();  // ended rays would be scanned by every chunk that runs
+  // Trace, heat and phases, redone while a phase change alters the optics the rays met.
+  const StepOutcome step = trace_and_heat(budget);
+  book_step(step);
+  // Numerical hygiene: a NaN or infinity stops the run here, before it reaches any output.
+  check_finite_and_note_peak();
+  // Rebuild: vaporised particles leave the scene and the contact graph (paper, Remark 10).
+  if (!step.report.vaporized.empty()) remove_vaporized(step.report.vaporized);
+  if constexpr (BEAMPACK_CHECKS_ON) check_ledgers_close();
+  // Output: the last pulse ends with the run (the others end as the next one starts).
+  if (done()) end_pulse(launched_ - 1);
+  return !done();
+}
+
+// Trace (every live ray advances by at most `budget` of path, depositing into dH), then the
+// implicit step (3.10) with dH and the latent-heat bands (section 4); then the stagger: a phase
+// change that alters the optics of a particle the rays met sends the step back to the trace,
+// with the new indices (bounded number of times). Redos that would only alternate between two
+// sets of phases (a particle melts when traced solid and stays solid when traced liquid) stop at
+// the second pass of the cycle, whatever the cap.
+Simulation::StepOutcome Simulation::trace_and_heat(double budget) {
   PhaseOverride seen;         // where the phases the rays see differ from the particles' (a redo)
   PhaseOverride seen_before;  // the pass before's
-  StepReport report;
-  double dt = 0;
-  std::size_t chunks_run = 0, chunks_live = 0;  // of the last pass
+  StepOutcome out;
   for (int pass = 0;; ++pass) {
-    // Trace: every live ray advances by at most c dt of path, depositing into dH.
     for (std::uint32_t i : heated_) deposits_[i] = 0.0;
     heated_.clear();
     const bool traced = tracer_->has_live_rays();
@@ -433,31 +451,12 @@ bool Simulation::take_step() {
       StageClock clock(stages_[kTrace]);
       swap_phases(seen);
       tracer_->advance(budget, deposits_, &heated_);
-      chunks_run = tracer_->last_chunks_run(), chunks_live = tracer_->last_chunks_live();
+      out.chunks_run = tracer_->last_chunks_run(), out.chunks_live = tracer_->last_chunks_live();
       swap_phases(seen);
     }
-    dt = step_length(traced);
-    // A step of no length cannot take the heat its trace deposited: it would leave the ledger.
-    if (!(dt > 0) && std::any_of(heated_.begin(), heated_.end(),
-                                 [&](std::uint32_t i) { return deposits_[i] > 0; }))
-      throw RunError("step " + std::to_string(counts_.steps) +
-                     ": rays deposited energy in a step of "
-                     "length 0 (the rays travelled no path); please report the run file");
-    // Heat and phases: the implicit step (3.10) with dH, then the latent-heat bands (section 4).
-    if (dt > 0) {
-      {
-        StageClock clock(stages_[kHeat]);
-        report = heat_step(dt);
-      }
-      // The latent-heat work runs inside the thermal step; its time is the phases stage's.
-      stages_[kHeat].seconds -= report.phases_seconds;
-      stages_[kPhases].seconds += report.phases_seconds;
-      if (report.phases_ran) ++stages_[kPhases].calls;
-    }
-    // Stagger: a phase change that alters the optics of a particle the rays met in this step
-    // sends the step back to the trace, with the new indices (bounded number of times). Redos
-    // that would only alternate between two sets of phases (a particle melts when traced solid
-    // and stays solid when traced liquid) stop at the second pass of the cycle, whatever the cap.
+    out.dt = step_length(traced);
+    refuse_heat_without_time(out.dt);
+    if (out.dt > 0) out.report = heat_and_phases(out.dt);
     if (!optics_changed(seen)) break;
     PhaseOverride next = optics_after_step();
     const bool cycle = pass > 0 && next == seen_before;
@@ -471,22 +470,52 @@ bool Simulation::take_step() {
     seen = std::move(next);
     if (traced) tracer_->undo_advance();  // its recorded segments too: the redo records its own
     thermal_->undo_step();
-    report = StepReport{};
+    out.report = StepReport{};
   }
+  return out;
+}
+
+// A step of no length cannot take the heat its trace deposited: it would leave the ledger.
+void Simulation::refuse_heat_without_time(double dt) const {
+  if (dt > 0 || std::none_of(heated_.begin(), heated_.end(),
+                             [&](std::uint32_t i) { return deposits_[i] > 0; }))
+    return;
+  throw RunError("step " + std::to_string(counts_.steps) +
+                 ": rays deposited energy in a step of "
+                 "length 0 (the rays travelled no path); please report the run file");
+}
+
+// The heat step and, inside it, the latent-heat work, whose time is the phases stage's.
+StepReport Simulation::heat_and_phases(double dt) {
+  StepReport report;
+  {
+    StageClock clock(stages_[kHeat]);
+    report = heat_step(dt);
+  }
+  stages_[kHeat].seconds -= report.phases_seconds;
+  stages_[kPhases].seconds += report.phases_seconds;
+  if (report.phases_ran) ++stages_[kPhases].calls;
+  return report;
+}
+
+// The step's deposits, ray paths, counts and clock.
+void Simulation::book_step(const StepOutcome& step) {
   for (std::uint32_t i : heated_) absorbed_[i] += deposits_[i];
   for (RaySegment& seg : tracer_->take_segments()) ray_paths_.push_back(seg);
   ++counts_.steps;
   // Fixed steps: the clock is n dt, rounded once. As a running sum its round-off grew with the
   // steps, past the due test's slack after ~1e4 steps a period: a pulse due on a step boundary
   // started one step late.
-  time_ = spec_.dt > 0 ? static_cast<double>(counts_.steps) * spec_.dt : time_ + dt;
-  counts_.heat_rows_solved += report.solved_rows;
-  counts_.capped_phase_steps += report.phase_passes_capped;
-  counts_.heat_rows_live += report.live_rows;
-  counts_.ray_chunks_run += chunks_run;
-  counts_.ray_chunks_live += chunks_live;
-  // Numerical hygiene: a NaN or infinity stops the run here, before it reaches any output.
-  // Only the particles the heat step changed can have new temperatures.
+  time_ = spec_.dt > 0 ? static_cast<double>(counts_.steps) * spec_.dt : time_ + step.dt;
+  counts_.heat_rows_solved += step.report.solved_rows;
+  counts_.capped_phase_steps += step.report.phase_passes_capped;
+  counts_.heat_rows_live += step.report.live_rows;
+  counts_.ray_chunks_run += step.chunks_run;
+  counts_.ray_chunks_live += step.chunks_live;
+}
+
+// Only the particles the heat step changed can have new temperatures.
+void Simulation::check_finite_and_note_peak() {
   for (std::uint32_t i : heated_)
     if (!std::isfinite(deposits_[i])) non_finite(i, particles_.temperature[i], deposits_[i]);
   double peak = max_temperature_;
@@ -496,11 +525,6 @@ bool Simulation::take_step() {
     peak = std::max(peak, t);
   });
   max_temperature_ = peak;
-  // Rebuild: vaporised particles leave the scene and the contact graph (paper, Remark 10).
-  if (!report.vaporized.empty()) remove_vaporized(report.vaporized);
-  if constexpr (BEAMPACK_CHECKS_ON) check_ledgers_close();
-  if (done()) end_pulse(launched_ - 1);
-  return !done();
 }
 
 // What a failed check (geometry/check.h) prints to say how to reproduce it.

@@ -215,7 +215,18 @@ class Simulation {
   static Particles saved_packing(StateReader in, const SimulationSpec& spec);
 
  private:
+  // What one pass of trace, heat and phases leaves (the last pass, with a stagger's redos).
+  struct StepOutcome {
+    StepReport report;
+    double dt = 0;
+    std::size_t chunks_run = 0, chunks_live = 0;
+  };
   bool take_step();
+  StepOutcome trace_and_heat(double budget);
+  void refuse_heat_without_time(double dt) const;
+  StepReport heat_and_phases(double dt);
+  void book_step(const StepOutcome& step);
+  void check_finite_and_note_peak();
   void mark_dead_as_vapour();
   double set_up_beam();
   void set_up_tracer();
