@@ -788,6 +788,42 @@ void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
         "a recorded ray path holds a value that is not a finite number");
 }
 
+// A checkpoint's state, read whole and checked against the simulation's own packing (`current`)
+// before the simulation changes; the tracer reads its part.
+SavedRun read_saved_run(StateReader& in, Tracer& tracer, const Particles& current) {
+  if (in.value<std::uint32_t>() != kStateVersion)
+    throw InputError("checkpoint: written by another version of beampack's state format");
+  SavedRun s;
+  Particles& p = s.particles;
+  in.vector(p.centre), in.vector(p.radius), in.vector(p.material);
+  in.vector(p.temperature), in.vector(p.phase), in.vector(p.alive);
+  if (p.size() != current.size() || p.centre.size() != p.size())
+    throw InputError("checkpoint: its packing has " + std::to_string(p.size()) +
+                     " particles, the run file's has " + std::to_string(current.size()));
+  in.vector(s.absorbed);
+  s.time = in.value<double>(), s.next_pulse_time = in.value<double>();
+  s.max_temperature = in.value<double>(), s.launched = in.value<int>();
+  s.counts = in.value<Counts>();
+  for (StageTime& t : s.stages) t.seconds = in.value<double>(), t.calls = in.value<std::uint64_t>();
+  s.rays.read(in);
+  s.first_hits = tracer.read_first_hits(in);
+  in.vector(s.heat.stored);
+  s.heat.ledger = in.value<ThermalLedger>();
+  in.vector(s.ray_paths);
+  // The geometry must be the run file's: the scene, the grid and the contact graph were built
+  // from it.
+  if (p.centre != current.centre || p.radius != current.radius)
+    throw InputError("checkpoint: its packing differs from the run file's (other seed or file?)");
+  // A checksum guards the bytes, not a writer's mistake: every per-particle array must fit.
+  const std::size_t n = p.size();
+  for (std::size_t size : {p.material.size(), p.temperature.size(), p.phase.size(), p.alive.size(),
+                           s.absorbed.size(), s.heat.stored.size()})
+    if (size != n)
+      throw InputError("checkpoint: a per-particle array holds " + std::to_string(size) +
+                       " values for " + std::to_string(n) + " particles");
+  return s;
+}
+
 }  // namespace
 
 Particles Simulation::saved_packing(StateReader in, const SimulationSpec& spec) {
@@ -815,44 +851,17 @@ void Simulation::read_state(StateReader& in) {
   if (counts_.steps > 0 || launched_ > 0)
     throw InputError("checkpoint: this simulation has taken " + std::to_string(counts_.steps) +
                      " steps: restore a state into a new Simulation built from the same spec");
-  if (in.value<std::uint32_t>() != kStateVersion)
-    throw InputError("checkpoint: written by another version of beampack's state format");
-  SavedRun s;
-  Particles& p = s.particles;
-  in.vector(p.centre), in.vector(p.radius), in.vector(p.material);
-  in.vector(p.temperature), in.vector(p.phase), in.vector(p.alive);
-  if (p.size() != particles_.size() || p.centre.size() != p.size())
-    throw InputError("checkpoint: its packing has " + std::to_string(p.size()) +
-                     " particles, the run file's has " + std::to_string(particles_.size()));
-  in.vector(s.absorbed);
-  s.time = in.value<double>(), s.next_pulse_time = in.value<double>();
-  s.max_temperature = in.value<double>(), s.launched = in.value<int>();
-  s.counts = in.value<Counts>();
-  for (StageTime& t : s.stages) t.seconds = in.value<double>(), t.calls = in.value<std::uint64_t>();
-  s.rays.read(in);
-  s.first_hits = tracer_->read_first_hits(in);
-  in.vector(s.heat.stored);
-  s.heat.ledger = in.value<ThermalLedger>();
-  in.vector(s.ray_paths);
-  // The geometry must be the run file's: the scene, the grid and the contact graph were built
-  // from it. The state arrays are copied into place; the tracer and the heat model keep their
-  // references to particles_.
-  if (p.centre != particles_.centre || p.radius != particles_.radius)
-    throw InputError("checkpoint: its packing differs from the run file's (other seed or file?)");
-  // A checksum guards the bytes, not a writer's mistake: every per-particle array must fit.
-  const std::size_t n = p.size();
-  for (std::size_t size : {p.material.size(), p.temperature.size(), p.phase.size(), p.alive.size(),
-                           s.absorbed.size(), s.heat.stored.size()})
-    if (size != n)
-      throw InputError("checkpoint: a per-particle array holds " + std::to_string(size) +
-                       " values for " + std::to_string(n) + " particles");
+  SavedRun s = read_saved_run(in, *tracer_, particles_);
   check_saved_values(s, spec_);
+  // The state arrays are copied into place: the tracer and the heat model keep their references
+  // to particles_.
   time_ = s.time, next_pulse_time_ = s.next_pulse_time, max_temperature_ = s.max_temperature;
   launched_ = s.launched, counts_ = s.counts;
   for (int k = 0; k < kStages; ++k)
     stages_[k].seconds = s.stages[k].seconds, stages_[k].calls = s.stages[k].calls;
   absorbed_ = std::move(s.absorbed);
   ray_paths_ = std::move(s.ray_paths);
+  const Particles& p = s.particles;
   std::copy(p.material.begin(), p.material.end(), particles_.material.begin());
   std::copy(p.temperature.begin(), p.temperature.end(), particles_.temperature.begin());
   std::copy(p.phase.begin(), p.phase.end(), particles_.phase.begin());
