@@ -26,6 +26,12 @@ namespace beampack {
 
 constexpr double kSpeedOfLight = 2.99792458e8;  // m/s
 
+// The paper's ray time step xi R / c (MODEL.md sections 2 and 5; xi = 0.05..0.1): the
+// duration of a pulse by default (`pulses.duration = "auto"`), and thermal.dt = "paper".
+constexpr double paper_time_step(double xi, double radius) {
+  return xi * radius / kSpeedOfLight;
+}
+
 // The limits of a run's times, physically generous, beyond which its arithmetic breaks:
 // thermal.dt = 1e308 s with K = 1e4 gave non-finite temperatures, pulses.period = 1e308 s
 // "thermal.dt = inf", and conjugate gradients' residual turned NaN at pulses.duration = 1e290 s.

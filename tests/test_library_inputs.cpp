@@ -240,6 +240,13 @@ TEST(LibraryInputs, AMisplacedSceneIsSaidToTheCaller) {
 
 using testing::quick_scene;
 
+// The paper's ray time step, xi R / c: 5.4e-15 s for its scene (R = 0.325 (D^3 / 1000)^(1/3)
+// = 32.5 um, xi = 0.05), as README's Table 1 notes say.
+TEST(LibraryInputs, ThePapersRayTimeStepIsXiRoverC) {
+  EXPECT_DOUBLE_EQ(paper_time_step(0.05, 3.25e-5), 0.05 * 3.25e-5 / 2.99792458e8);
+  EXPECT_NEAR(paper_time_step(0.05, 3.25e-5), 5.4e-15, 0.05e-15);
+}
+
 // The warnings of `run_warnings()` after a run of `spec`.
 std::vector<std::string> warnings_of_run(const SimulationSpec& spec) {
   Simulation sim(spec);

@@ -573,7 +573,7 @@ double bytes_per_ray(const SimulationSpec& s) {
 }  // namespace
 
 double paper_step(const PackingSpec& packing, double xi, const Particles* particles) {
-  return xi * (particles ? median_radius(*particles) : packing_radius(packing)) / kSpeedOfLight;
+  return paper_time_step(xi, particles ? median_radius(*particles) : packing_radius(packing));
 }
 
 double least_memory_need(const SimulationSpec& s, std::size_t file_particles) {
