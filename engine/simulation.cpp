@@ -76,7 +76,9 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
   deposits_.assign(particles_.size(), 0.0);
   for (std::size_t i = 0; i < particles_.size(); ++i) {
     total_volume_.add(particles_.volume(i));  // as volume_fractions sums its phases
-    max_temperature_ = std::max(max_temperature_, particles_.temperature[i]);
+    // A particle passed in dead left before this run: its temperature is no peak of the run's.
+    if (particles_.alive[i])
+      max_temperature_ = std::max(max_temperature_, particles_.temperature[i]);
   }
   counts_.particles = particles_.size();
 }
@@ -161,6 +163,12 @@ void Simulation::check_run_numbers() const {
   if (!(spec_.dt >= 0) || !std::isfinite(spec_.dt))
     refuse("thermal.dt", spec_.dt, "must be >= 0 (0: one step per pulse flight)");
   if (spec_.dt > kStepCap.limit) refuse("thermal.dt", spec_.dt, cap_limit(kStepCap));
+  if (steps_per_crossing(spec_) > kMaxStepsPerCrossing) {  // run without end: 1e-30 s
+    const double crossing = spec_.packing.sample_size / kSpeedOfLight;
+    refuse("thermal.dt", spec_.dt,
+           "must be >= sample.size / c / 1e9 = " + shown_number(crossing / kMaxStepsPerCrossing) +
+               " s (light crosses the sample in " + shown_number(crossing) + " s)");
+  }
   if (spec_.max_staggers < 0) refuse("thermal.max_staggers", spec_.max_staggers, "must be >= 0");
 }
 
@@ -676,7 +684,7 @@ Figures Simulation::figures() const {
   f.time = time_;
   f.pulse = launched_;
   volume_fractions(f);
-  if (particles_.size() > 0) f.max_temperature = max_temperature_;
+  if (max_temperature_ > 0) f.max_temperature = max_temperature_;  // temperatures are > 0 K
   f.particles = particles_.size();
   const OpticsLedger& o = tracer_->ledger();
   const ThermalLedger& h = thermal_->ledger();

@@ -39,6 +39,9 @@ inline constexpr Cap kDurationCap{
     1e12,
     "s (30,000 years; far longer pulses overflow their energy and the temperatures it "
     "gives)"};
+// More steps than this per light crossing of the sample (a fixed thermal.dt) would never finish
+// (a typo of the exponent, most likely); the paper's dt takes thousands.
+inline constexpr double kMaxStepsPerCrossing = 1e9;
 // thermal.dt, and pulses.period: with thermal.dt = "pulse" the wait for the next pulse is one step.
 inline constexpr Cap kStepCap{
     1e12,
@@ -112,7 +115,8 @@ struct Figures {
   int pulse = 0;                          // pulses launched so far
   double vaporized_fraction = 0;          // v_v, volume of vaporised / volume of all particles
   double melted_fraction = 0;             // volume liquid now / volume of all particles
-  std::optional<double> max_temperature;  // K, peak over the run so far; none without particles
+  std::optional<double> max_temperature;  // K, peak of live particles over the run so far; none
+                                          // without particles or with all passed in dead
   std::size_t particles = 0;              // particles in the scene, vaporised ones included
   EnergyLedger energy;
 };

@@ -240,6 +240,19 @@ TEST(LibraryInputs, AMisplacedSceneIsSaidToTheCaller) {
 
 using testing::quick_scene;
 
+// A particle passed in dead left before the run: its temperature is not the run's peak (one at
+// 5000 K was, before any step); with every particle dead there is no peak at all.
+TEST(LibraryInputs, ParticlesPassedInDeadSetNoPeak) {
+  SimulationSpec spec = one_pulse();
+  spec.pulses.count = 0;
+  Particles p = three_spheres();
+  p.alive[1] = 0;
+  p.temperature[1] = 5000;
+  EXPECT_EQ(Simulation(spec, p).figures().max_temperature, std::optional<double>(300.0));
+  for (std::size_t i = 0; i < p.size(); ++i) p.alive[i] = 0;
+  EXPECT_FALSE(Simulation(spec, p).figures().max_temperature.has_value());
+}
+
 // The paper's ray time step, xi R / c: 5.4e-15 s for its scene (R = 0.325 (D^3 / 1000)^(1/3)
 // = 32.5 um, xi = 0.05), as README's Table 1 notes say.
 TEST(LibraryInputs, ThePapersRayTimeStepIsXiRoverC) {
@@ -403,6 +416,16 @@ TEST(LibraryInputs, TimesBeyondTheirCapsAreRefusedByName) {
     spoils[k](spec);
     testing::expect_error<InputError>([&] { Simulation sim(spec); }, keys[k]);
   }
+  // A step so short that the run would never end (3.3e18 steps per light crossing of 1 mm) is
+  // refused as the run file's is; 1e9 steps per crossing is the limit.
+  SimulationSpec spec = quick_scene();
+  spec.dt = 1e-30;
+  testing::expect_error<InputError>(
+      [&] { Simulation sim(spec); },
+      "`thermal.dt` = 1e-30: must be >= sample.size / c / 1e9 = 3.33564e-21 s (light crosses "
+      "the sample in 3.33564e-12 s)");
+  spec.dt = 1e-3 / kSpeedOfLight / kMaxStepsPerCrossing;
+  Simulation at_limit(spec);  // accepted (and not run: 1e9 steps)
 }
 
 }  // namespace beampack

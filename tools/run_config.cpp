@@ -237,10 +237,8 @@ void read_thermal(Params& p, SimulationSpec& s, PaperStepUse& use) {
   t.validate();
 }
 
-// More steps than this per light crossing of the sample would never finish (a typo of the
-// exponent, most likely); the paper's dt takes thousands.
+// kMaxStepsPerCrossing (engine/simulation.h), checked here to name the run file's line.
 void check_steps_per_crossing(Params& p, const SimulationSpec& s, bool paper) {
-  constexpr double kMaxStepsPerCrossing = 1e9;
   const double crossing = s.packing.sample_size / kSpeedOfLight;
   if (steps_per_crossing(s) > kMaxStepsPerCrossing)
     p.fail("thermal.dt",
