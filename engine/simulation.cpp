@@ -5,6 +5,7 @@
 #include <cmath>
 #include <limits>
 #include <sstream>
+#include <utility>
 
 #include "geometry/check.h"
 #include "geometry/compensated_sum.h"
@@ -261,7 +262,12 @@ void Simulation::end_pulse(int pulse) {
     bool& running;
     ~Reset() { running = false; }  // when the callback throws too
   } reset{in_callback_};
-  on_pulse_end_(pulse);
+  try {
+    on_pulse_end_(pulse);
+  } catch (...) {
+    callback_threw_ = true;  // at a pulse boundary, nothing of the step half done: step() may go on
+    throw;
+  }
 }
 
 void Simulation::launch_pulse() {
@@ -415,8 +421,14 @@ bool Simulation::step() {
   try {
     return take_step();
   } catch (const std::exception& e) {
+    if (std::exchange(callback_threw_, false)) throw;  // the caller's own error: not a failed step
     failed_ = true;
     failed_step_ = e.what();
+    throw;
+  } catch (...) {
+    if (std::exchange(callback_threw_, false)) throw;
+    failed_ = true;
+    failed_step_ = "an exception of a type not derived from std::exception";
     throw;
   }
 }

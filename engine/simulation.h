@@ -172,16 +172,21 @@ class Simulation {
   Simulation(SimulationSpec spec, Particles particles);  // packing given (spec.packing unused)
   ~Simulation();
 
-  // One time step of MODEL.md section 5; false once every pulse has been launched and ended.
-  // A step that throws leaves the simulation half-stepped (its rays traced, its heat not): every
-  // later step() throws RunError; restore a state saved before it into a new Simulation.
+  // One time step of MODEL.md section 5. Returns whether steps remain: the step that ends the run
+  // returns false, so `do { ... } while (sim.step())` sees every step, `while (sim.step())` not
+  // the last. A step that throws leaves the simulation half-stepped (its rays traced, its heat
+  // not): every later step() throws RunError; restore a state saved before it into a new
+  // Simulation. A throw from on_pulse_end is the exception: see there.
   bool step();
   // Steps until done or until `stop` becomes true.
   void run(const std::atomic<bool>* stop = nullptr);
   // Called with k when pulse k's time is over: just before pulse k+1 launches, or after the last
   // step. With pulses.period shorter than a pulse's flight, pulse k's rays are still in flight
   // then (the figures count them in the ledger's in_flight bin). It runs inside a step: step()
-  // or run() called from it throws InputError (it recursed until the stack ran out).
+  // or run() called from it throws InputError (it recursed until the stack ran out). What it
+  // throws reaches the caller of step() or run(), and the simulation stays whole: the callback
+  // runs before anything of its step is done, so the next step() calls it again for the same
+  // pulse and goes on (the last pulse's call, after the run's last step, is not repeated).
   void on_pulse_end(std::function<void(int pulse)> callback) {
     on_pulse_end_ = std::move(callback);
   }
@@ -288,7 +293,8 @@ class Simulation {
   std::array<StageTime, kStages> stages_{};
   Counts counts_{};
   std::function<void(int)> on_pulse_end_;
-  bool in_callback_ = false;  // on_pulse_end_ is running: a step() now would re-enter this one
+  bool in_callback_ = false;     // on_pulse_end_ is running: a step() now would re-enter this one
+  bool callback_threw_ = false;  // on_pulse_end_ threw: the step stopped at a pulse boundary
 };
 
 }  // namespace beampack
