@@ -49,16 +49,20 @@ inline constexpr Cap kStepCap{
     "conductance times temperature)"};
 
 struct PulseSpec {
-  int count = 20;       // pulses.count
-  double duration = 0;  // tau, s: E_k = I_k A_r tau; at most kDurationCap
-  double period = 0;    // s between pulse starts; 0: "auto", when the previous pulse has ended;
-                        // at most kStepCap
+  int count = 20;  // pulses.count
+  // tau, s: E_k = I_k A_r tau, delivered within the rays' flight, not over tau (MODEL.md section
+  // 5). Required, > 0 and at most kDurationCap: the run file's "auto" is paper_time_step(xi, R).
+  double duration = 0;
+  double period = 0;  // s between pulse starts; 0: "auto", when the previous pulse has ended;
+                      // at most kStepCap
 };
 
 struct SimulationSpec {
   PackingSpec packing;
   BeamSpec beam;
   OpticsSpec optics;
+  // Material ids index both this and optics.materials (the indices): two materials need both
+  // resized. Messages name run-file keys (INTERFACE.md), whose fields are noted beside them.
   std::vector<Material> materials{Material{}};
   ThermalSpec thermal;
   PulseSpec pulses;
@@ -220,7 +224,10 @@ class Simulation {
   std::vector<RaySegment> take_ray_paths() { return std::exchange(ray_paths_, {}); }
 
   // Checkpoint: the complete state between two steps (particles, rays, heat, clocks, counters).
-  // Restoring it into a Simulation built from the same spec continues bit-identically.
+  // Restoring it into a Simulation built from the same spec continues bit-identically. The state
+  // holds no spec: read_state checks the packing, not the rest (a state of K = 50 read into a
+  // spec of K = 10 goes on with K = 10); keeping them together is the caller's (the command line
+  // stores the run file with its checkpoint and refuses --set on a resume).
   void write_state(StateWriter& out) const;
   void read_state(StateReader& in);
   // The particles a state was written for (centres, radii, materials), as a new simulation of

@@ -24,8 +24,11 @@ inline constexpr Cap kTimeScalingCap{
     "beyond it they overflow)"};
 
 struct ThermalSpec {
-  double phi = 1;               // thermal.phi: 1 backward Euler, 1/2 Crank-Nicolson, 0 explicit
-  double time_scaling = 1e6;    // thermal.time_scaling: M of section 4.1, divides m C
+  double phi = 1;  // thermal.phi: 1 backward Euler, 1/2 Crank-Nicolson, 0 explicit
+  // thermal.time_scaling: M of section 4.1, (4.5), divides m C: every temperature rise is M times
+  // what the absorbed energy gives (one pulse heats as M would). 1e6 as in the paper; 1 for the
+  // physical rise of the energy injected.
+  double time_scaling = 1e6;
   std::string solver = "auto";  // thermal.solver: fixed-point | cg | direct | auto
   double tolerance = 1e-10;     // thermal.tolerance: relative, see solvers.h
   int max_iterations = 1000;    // thermal.max_iterations: fixed-point and cg
