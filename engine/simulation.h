@@ -174,6 +174,10 @@ class Simulation {
 
   explicit Simulation(SimulationSpec spec);              // packing from spec.packing
   Simulation(SimulationSpec spec, Particles particles);  // packing given (spec.packing unused)
+  // Neither copied nor moved: the tracer and the heat model hold references to its particles.
+  // Keep several through std::unique_ptr.
+  Simulation(const Simulation&) = delete;
+  Simulation& operator=(const Simulation&) = delete;
   ~Simulation();
 
   // One time step of MODEL.md section 5. Returns whether steps remain: the step that ends the run
