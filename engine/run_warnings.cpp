@@ -119,24 +119,31 @@ void warn_of_unsettled_staggers(const SimulationSpec& spec, const Counts& counts
 }
 
 // pulses.duration sets a pulse's energy, P tau (MODEL.md section 2), and its rays deliver that
-// within their flight (section 5), however long tau is. Pulses whose durations add up to far more
-// than the simulated time they took were read as lasting tau, and did not: the heat saw flashes.
-void warn_of_flashed_pulses(const SimulationSpec& spec, const Figures& f,
+// within their flight (section 5), however long tau is. Each pulse has the period, or with
+// "auto" its rays' flight, before the next: a tau far beyond that was read as a pulse lasting
+// tau, and was not one (the heat saw flashes). Judged on a finished run: part way, the time so far
+// is no pulse's whole share.
+void warn_of_flashed_pulses(const SimulationSpec& spec, const Figures& f, bool done,
                             std::vector<std::string>& out) {
-  if (f.pulse == 0 || !(f.time > 0)) return;
-  const double average = f.energy.injected / f.time;
-  if (!(average > 2 * spec.beam.power)) return;
-  char text[640];
+  if (!done || f.pulse == 0) return;
+  const bool auto_period = !(spec.pulses.period > 0);
+  const double share = auto_period ? f.time / f.pulse : spec.pulses.period;
+  const double tau = spec.pulses.duration;
+  if (!(share > 0) || !(tau > 2 * share)) return;
+  char text[800];
   std::snprintf(
       text, sizeof text,
       "`pulses.duration` = %g s sets each pulse's energy (`beam.power` x duration = %.3g J), "
       "which its rays deliver within their flight, not over the duration (MODEL.md section 5): "
-      "the %d pulse%s took %.3g s of simulated time, an average of %.3g W, %.3g times "
-      "`beam.power` = %g W; for heat spread over time give more pulses of a shorter duration, "
-      "with `pulses.period` set",
-      spec.pulses.duration, spec.beam.power * spec.pulses.duration, f.pulse,
-      plural(static_cast<std::uint64_t>(f.pulse)), f.time, average, average / spec.beam.power,
-      spec.beam.power);
+      "each pulse had %.3g s (%s) before the next, so the heat saw %.3g W on average, %.3g times "
+      "`beam.power` = %g W; %s",
+      tau, spec.beam.power * tau, share,
+      auto_period ? "its rays' mean flight, with `pulses.period` = \"auto\"" : "`pulses.period`",
+      spec.beam.power * tau / share, tau / share, spec.beam.power,
+      auto_period ? "for heat spread over time give more pulses of a shorter duration, with "
+                    "`pulses.period` set"
+                  : "a duration longer than the period adds energy, not time: give "
+                    "`pulses.duration` <= `pulses.period`");
   out.emplace_back(text);
 }
 
@@ -213,7 +220,7 @@ std::vector<std::string> Simulation::run_warnings() const {
   const Figures f = figures();
   std::vector<std::string> out;
   warn_of_late_pulses(spec_, c, out);
-  warn_of_flashed_pulses(spec_, f, out);
+  warn_of_flashed_pulses(spec_, f, done(), out);
   warn_of_capped_phase_steps(spec_, c, out);
   warn_of_unsettled_staggers(spec_, c, out);
   for (std::string& warning : open_ledger_warnings(spec_, f.energy))

@@ -326,19 +326,25 @@ void warn_if_beam_meets_nothing(const SimulationSpec& spec, const Particles& p, 
   warnings.push_back(m.str());
 }
 
-// The beam is sized by sample.size (a disk of diameter_fraction D): one narrower than the
-// particles meets one or a few of them, legal but seldom meant (a file's bed of 1 cm spheres with
-// sample.size left at its 1 mm default).
+// The beam is sized by sample.size (a disk of diameter_fraction D): on a packing file's particles
+// it may be narrower than they are, and meet one or a few (a bed of 1 cm spheres with sample.size
+// left at its 1 mm default). Generated packings scale their radius with D: with ten particles or
+// fewer they are wider than the beam by design, and nothing is said of them.
 void warn_if_beam_narrower_than_particles(const SimulationSpec& spec, const Particles& p,
                                           std::vector<std::string>& warnings) {
-  if (spec.pulses.count == 0 || p.alive_count() == 0) return;
+  if (spec.pulses.count == 0 || spec.packing.source != "file") return;
+  std::vector<double> radii;
+  for (std::size_t i = 0; i < p.size(); ++i)
+    if (p.alive[i]) radii.push_back(p.radius[i]);
+  if (radii.empty()) return;
+  const auto mid = radii.begin() + std::ptrdiff_t(radii.size() / 2);
+  std::nth_element(radii.begin(), mid, radii.end());
   const double width = spec.beam.diameter_fraction * spec.packing.sample_size;
-  const double diameter = 2 * median_radius(p);
-  if (!(width < diameter)) return;
-  warnings.push_back("the beam is " + shown_number(width) +
-                     " m wide (`beam.diameter_fraction` x `sample.size` = " +
-                     shown_number(spec.packing.sample_size) +
-                     " m), narrower than the particles (median diameter " + shown_number(diameter) +
+  if (!(width < 2 * *mid)) return;
+  warnings.push_back("the beam is " + shown_number(width) + " m wide (`beam.diameter_fraction` = " +
+                     shown_number(spec.beam.diameter_fraction) +
+                     " x `sample.size` = " + shown_number(spec.packing.sample_size) +
+                     " m), narrower than the particles (median diameter " + shown_number(2 * *mid) +
                      " m): it meets one or a few of them; `sample.size` sizes the beam and the "
                      "cube [0, sample.size]^3 it is centred on: set it to the packing's extent");
 }

@@ -192,13 +192,16 @@ class Simulation {
   // step. With pulses.period shorter than a pulse's flight, pulse k's rays are still in flight
   // then (the figures count them in the ledger's in_flight bin). It runs inside a step: step()
   // or run() called from it throws InputError (it recursed until the stack ran out). What it
-  // throws reaches the caller of step() or run(), and the simulation stays whole: the callback
-  // runs before anything of its step is done, so the next step() calls it again for the same
-  // pulse and goes on (the last pulse's call, after the run's last step, is not repeated).
+  // throws reaches the caller of step() or run(), and the simulation stays whole: it is called
+  // at a pulse boundary (before the step's trace, or after the run's last step), so the next
+  // step() calls it again for the same pulse and goes on (the call after the last step is not
+  // repeated).
   void on_pulse_end(std::function<void(int pulse)> callback) {
     on_pulse_end_ = std::move(callback);
   }
   bool done() const;
+  // A step threw and left the simulation half-stepped (not a throw from on_pulse_end).
+  bool failed() const { return failed_; }
 
   const Particles& particles() const { return particles_; }
   const std::vector<double>& absorbed() const { return absorbed_; }  // J per particle, cumulative

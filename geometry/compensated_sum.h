@@ -35,6 +35,7 @@ class CompensatedSum {
 // ulp off it (60 of 1000 printed 0.060000000000000005). The remainder a - q b is exact by fma.
 inline double compensated_ratio(const CompensatedSum& a, const CompensatedSum& b) {
   const double q = a.value() / b.value();
+  if (!std::isfinite(q) || !std::isfinite(b.value())) return q;  // fma(-q, inf, a) is NaN
   const double remainder = std::fma(-q, b.value(), a.value()) + (a.low() - q * b.low());
   return q + remainder / b.value();
 }

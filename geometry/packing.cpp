@@ -436,14 +436,29 @@ void refuse_repeated_centres(const Particles& p, const PackingLines& lines) {
 // What a row of words may have meant to be: numbers in another notation than C's read as words.
 constexpr const char* kNumberNotation = "numbers as 1.5e-4: not Fortran's 1.5D-4 or hex";
 
-// Twice the columns a row needs, with commas among them: numbers written with decimal commas
-// (European spreadsheets' "1,5"), each read as two columns.
+// The text between two columns of a row (their views share the line).
+std::string_view between(std::string_view left, std::string_view right) {
+  const char* end = left.data() + left.size();
+  return {end, static_cast<std::size_t>(right.data() - end)};
+}
+
+bool all_digits(std::string_view text, bool signed_) {
+  if (signed_ && !text.empty() && (text[0] == '-' || text[0] == '+')) text.remove_prefix(1);
+  return !text.empty() &&
+         std::all_of(text.begin(), text.end(), [](char c) { return c >= '0' && c <= '9'; });
+}
+
+// Numbers written with decimal commas (a European spreadsheet's "1,5;2,5"), each read as two
+// columns: twice the columns a row needs, each pair an integer part and digits joined by a lone
+// comma, the pairs apart by something else (1e-4,2e-4,... is a plain comma-separated row).
 bool looks_like_decimal_commas(const std::vector<std::string_view>& cols, std::size_t need) {
   if (cols.size() != 2 * need) return false;
-  const std::string_view span(
-      cols.front().data(),
-      static_cast<std::size_t>(cols.back().data() + cols.back().size() - cols.front().data()));
-  return span.find(',') != std::string_view::npos;
+  for (std::size_t k = 0; k < cols.size(); k += 2) {
+    if (!all_digits(cols[k], true) || !all_digits(cols[k + 1], false)) return false;
+    if (between(cols[k], cols[k + 1]) != ",") return false;
+    if (k + 2 < cols.size() && between(cols[k + 1], cols[k + 2]) == ",") return false;
+  }
+  return true;
 }
 
 // Columns x y z r (or x y z with default_radius > 0) after at most one header line; `lines`

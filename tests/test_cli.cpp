@@ -2262,6 +2262,9 @@ TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
   EXPECT_EQ(mid.code, 1) << mid.output;
   const std::string checkpoint = (dir / "mid" / "checkpoint.bin").string();
   EXPECT_CONTAINS(mid.output, "run failed: output file \"" + checkpoint + "\": write failed");
+  // The simulation was whole (the write came at a pulse's end, not inside a step): said so.
+  EXPECT_CONTAINS(mid.output,
+                  "no particles.csv: the run stopped at a pulse's end, writing its files");
   const std::vector<std::string> before = {"history.csv", "particles.pvd", "particles_0000.vtp",
                                            "particles_0001.vtp", "summary.json"};
   EXPECT_EQ(names_in(dir / "mid"), before);

@@ -229,11 +229,17 @@ TEST(LibraryInputs, AMisplacedSceneIsSaidToTheCaller) {
   Particles large;
   large.add(Vec3(5e-4, 5e-4, 5e-4), 1e-2);
   large.add(Vec3(2.5e-2, 5e-4, 5e-4), 1e-2);
+  spec.packing.source = "file";  // as read from a file (generated packings are not judged)
   const std::vector<std::string> outgrown = Simulation(spec, large).scene_warnings();
   ASSERT_EQ(outgrown.size(), 1u);
   EXPECT_CONTAINS(outgrown[0],
-                  "the beam is 0.0003 m wide (`beam.diameter_fraction` x `sample.size` = 0.001 "
-                  "m), narrower than the particles (median diameter 0.02 m)");
+                  "the beam is 0.0003 m wide (`beam.diameter_fraction` = 0.3 x `sample.size` = "
+                  "0.001 m), narrower than the particles (median diameter 0.02 m)");
+  // Eight generated spheres are wider than the beam by design (R = 0.325 D / 2): not judged.
+  SimulationSpec few = spec;
+  few.packing.source = "random-overlap";
+  few.packing.count = 8;
+  EXPECT_TRUE(Simulation(few).scene_warnings().empty());
   spec.pulses.count = 0;  // no beam: the cube places nothing the particles miss
   EXPECT_TRUE(Simulation(spec, large).scene_warnings().empty());
 }
@@ -313,9 +319,10 @@ TEST(LibraryInputs, ARunSaysWhereItsResultsAreInDoubt) {
 }
 
 // pulses.duration sets a pulse's energy, delivered within the rays' flight (MODEL.md section 5):
-// pulses of 1 ns that took ~2e-11 s together are flashes, ~270 times beam.power on average, and
-// the run says so; the same pulses a period of 1 ns apart average 5/4 of it, and it does not.
-TEST(LibraryInputs, PulsesLongerThanTheTimeTheyTookAreSaidToBeFlashes) {
+// pulses of 1 ns whose rays flew ~4e-12 s each are flashes, and the run says so; the same pulses
+// a period of 1 ns apart are not, whatever their count; a duration of three periods is; a run
+// stopped part way says nothing (its time so far is no pulse's whole share).
+TEST(LibraryInputs, PulsesLongerThanTheTimeTheyHadAreSaidToBeFlashes) {
   SimulationSpec spec = quick_scene();
   spec.pulses.duration = 1e-9;
   const std::vector<std::string> flashes = warnings_of_run(spec);
@@ -323,10 +330,25 @@ TEST(LibraryInputs, PulsesLongerThanTheTimeTheyTookAreSaidToBeFlashes) {
   EXPECT_CONTAINS(flashes[0],
                   "`pulses.duration` = 1e-09 s sets each pulse's energy (`beam.power` x "
                   "duration = 6e-06 J), which its rays deliver within their flight");
-  EXPECT_CONTAINS(flashes[0], "the 5 pulses took ");
+  EXPECT_CONTAINS(flashes[0], "(its rays' mean flight, with `pulses.period` = \"auto\")");
   spec.pulses.period = 1e-9;
-  const std::vector<std::string> spaced = warnings_of_run(spec);
-  EXPECT_TRUE(spaced.empty()) << spaced.front();
+  for (const int count : {1, 2, 5}) {
+    spec.pulses.count = count;
+    const std::vector<std::string> spaced = warnings_of_run(spec);
+    EXPECT_TRUE(spaced.empty()) << count << ": " << spaced.front();
+  }
+  spec.pulses.duration = 3e-9;
+  const std::vector<std::string> overlapping = warnings_of_run(spec);
+  ASSERT_EQ(overlapping.size(), 1u);
+  EXPECT_CONTAINS(overlapping[0],
+                  "each pulse had 1e-09 s (`pulses.period`) before the next, so the heat saw "
+                  "1.8e+04 W on average, 3 times `beam.power` = 6000 W; a duration longer than "
+                  "the period adds energy, not time");
+  spec.pulses.period = 0;
+  Simulation part(spec);
+  part.step();
+  EXPECT_FALSE(part.done());
+  EXPECT_TRUE(part.run_warnings().empty()) << part.run_warnings().front();
 }
 
 // A band one pass adds pushes a neighbour across another (ThermalPhase's

@@ -219,14 +219,19 @@ TEST(PackingFile, EachErrorNamesItsLine) {
   EXPECT_CONTAINS(read_error("empty_field_4", "1;;2;0.1\n"), ":1: column 2 '' is not a number");
   EXPECT_CONTAINS(read_error("leading_empty", "x,y,z\n,0.4,0.5,0.5\n", 0.05),
                   ":2: expected 3 columns (x y z), found 4");
-  // Decimal commas (a European spreadsheet's export) split each number in two: said so, where
-  // twice the columns with commas among them can mean nothing else.
+  // Decimal commas (a European spreadsheet's export) split each number in two: said so where
+  // each pair is an integer part and digits joined by a lone comma, the pairs apart by another
+  // separator.
   EXPECT_CONTAINS(read_error("decimal_commas", "1,5;2,5;3,5;0,1\n"),
                   ":1: expected 4 columns (x y z r), found 8; decimal commas? A number's decimal "
                   "mark is a point (1.5): 1,5 reads as two columns");
   EXPECT_CONTAINS(read_error("decimal_commas_xyz", "x y z\n0,4 0,5 0,5\n", 0.05),
                   ":2: expected 3 columns (x y z), found 6; decimal commas?");
   EXPECT_EQ(read_error("eight_columns", "1 2 3 1 5 6 7 8\n").find("decimal"), std::string::npos);
+  // A plain comma-separated row of eight numbers is not one of decimal commas.
+  EXPECT_EQ(read_error("eight_csv", "1e-4,2e-4,3e-4,5e-5,0,0,0,1\n").find("decimal"),
+            std::string::npos);
+  EXPECT_EQ(read_error("eight_int_csv", "1,5,2,5,3,5,0,1\n").find("decimal"), std::string::npos);
   EXPECT_CONTAINS(read_error("plus_minus", "+-1 2 3 1\n"), ":1: column 1 '+-1' is not a number");
   // A NUL or other control byte is binary data, refused and shown (not left to end the message);
   // a header line of them was taken as a header and read past.

@@ -1111,7 +1111,8 @@ void run_steps(Simulation& sim, const RunConfig& config, const fs::path& out, Ru
   } catch (const std::exception& failure) {
     try_to_keep_pulses(out, sim, record, ended, config, failure.what(),
                        record.earlier_seconds + seconds_since(start),
-                       "the particles are part way through a step");
+                       sim.failed() ? "the particles are part way through a step"
+                                    : "the run stopped at a pulse's end, writing its files");
     throw;
   }
 }

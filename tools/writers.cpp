@@ -5,8 +5,8 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
-#include <map>
 #include <memory>
+#include <set>
 #include <system_error>
 
 #include <fcntl.h>
@@ -70,24 +70,23 @@ void stage(const Staged& s, const std::function<void(std::ostream&)>& fill) {
   if (!out) throw RunError("output file \"" + s.path + "\": write failed (disk full?)");
   // The data on the disk before the rename: the file system may write the rename first, and a
   // power loss between the two can leave the renamed file empty.
-  if (const int error = sync_to_disk(s.tmp, O_RDONLY))
+  // A file system that cannot sync (EINVAL, ENOTSUP) has nothing to do; EIO or ENOSPC now is a
+  // write that failed.
+  const int error = sync_to_disk(s.tmp, O_RDONLY);
+  if (error != 0 && error != EINVAL && error != ENOTSUP && error != EOPNOTSUPP)
     throw RunError("output file \"" + s.path + "\": fsync failed: " + error_text(error));
 }
 
-// The renames on the disk: a directory's entries are synced as a file's data is. EINVAL is a
-// file system that cannot sync a directory, where there is nothing more to do.
+// The renames on the disk: a directory's entries are synced as a file's data is. Best effort:
+// the files are whole and renamed by now, and some file systems (network, FUSE) or a folder
+// opened without read permission refuse it; a run is not failed for its folder's durability.
 void sync_directories(const std::vector<std::unique_ptr<Staged>>& staged) {
-  std::map<std::string, std::string> files_of;  // a file in each directory, to name it by
+  std::set<std::string> dirs;
   for (const auto& s : staged) {
     const std::string dir = std::filesystem::path(s->path).parent_path().string();
-    files_of.emplace(dir.empty() ? "." : dir, s->path);
+    dirs.insert(dir.empty() ? "." : dir);
   }
-  for (const auto& [dir, file] : files_of) {
-    const int error = sync_to_disk(dir, O_RDONLY | O_DIRECTORY);
-    if (error != 0 && error != EINVAL)
-      throw RunError("output file \"" + file + "\": fsync of its directory failed: " +
-                     error_text(error) + " (the file was replaced)");
-  }
+  for (const std::string& dir : dirs) sync_to_disk(dir, O_RDONLY | O_DIRECTORY);
 }
 
 }  // namespace
