@@ -153,6 +153,12 @@ double steps_per_crossing(const SimulationSpec& s) {
   return s.dt > 0 ? s.packing.sample_size / kSpeedOfLight / s.dt : 0.0;
 }
 
+std::string least_step_limit(const SimulationSpec& spec) {
+  const double crossing = spec.packing.sample_size / kSpeedOfLight;
+  return "must be >= sample.size / c / 1e9 = " + shown_number(crossing / kMaxStepsPerCrossing) +
+         " s (light crosses the sample in " + shown_number(crossing) + " s)";
+}
+
 std::vector<std::string> spec_warnings(const SimulationSpec& spec) {
   std::vector<std::string> out;
   warn_of_many_steps(spec, out);

@@ -151,6 +151,9 @@ struct Counts {
 // Steps of thermal.dt per light crossing of the sample (sample.size / c / dt); 0 for one step
 // per pulse flight.
 double steps_per_crossing(const SimulationSpec& spec);
+// The least fixed thermal.dt (kMaxStepsPerCrossing), as a refusal states it: "must be >=
+// sample.size / c / 1e9 = ... s (light crosses the sample in ... s)".
+std::string least_step_limit(const SimulationSpec& spec);
 
 // What the spec alone says of the run it asks for, one line each, before any set-up: a fixed dt
 // of millions of steps per light crossing or per pulse period, walls of pi K R with K = 0 that

@@ -239,12 +239,10 @@ void read_thermal(Params& p, SimulationSpec& s, PaperStepUse& use) {
 
 // kMaxStepsPerCrossing (engine/simulation.h), checked here to name the run file's line.
 void check_steps_per_crossing(Params& p, const SimulationSpec& s, bool paper) {
-  const double crossing = s.packing.sample_size / kSpeedOfLight;
   if (steps_per_crossing(s) > kMaxStepsPerCrossing)
     p.fail("thermal.dt",
            paper ? "\"paper\" (xi R / c = " + shown_number(s.dt) + " s)" : shown_number(s.dt),
-           "must be >= sample.size / c / 1e9 = " + shown_number(crossing / kMaxStepsPerCrossing) +
-               " s (light crosses the sample in " + shown_number(crossing) + " s)");
+           least_step_limit(s));
 }
 
 // tau: seconds, or "auto" = xi R / c (the paper's ray time step: derive_paper_step), or from
