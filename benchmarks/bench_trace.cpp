@@ -510,9 +510,10 @@ void run_brute(benchmark::State& state, double n_hat) {
 // ---- scene updates --------------------------------------------------------------------------
 
 // 1% of the spheres: uniformly at random, or the 1% nearest the beam's entry (where vaporisation
-// actually happens: a compact region, which is what spatial bricks exploit).
-std::vector<std::uint32_t> victims(const Particles& p, bool under_beam) {
-  const std::size_t count = p.size() / 100;
+// actually happens: a compact region, which is what spatial bricks exploit). With `rounds`, that
+// many such sets one after another (under the beam: the next layer in, as a burn front goes).
+std::vector<std::uint32_t> victims(const Particles& p, bool under_beam, std::size_t rounds = 1) {
+  const std::size_t count = rounds * (p.size() / 100);
   std::vector<std::uint32_t> ids(p.size());
   std::iota(ids.begin(), ids.end(), 0u);
   if (under_beam) {
@@ -566,6 +567,82 @@ void run_tracer_remove(benchmark::State& state, bool under_beam) {
   };
   time_removal(state, under_beam, tracer_in_flight,
                [](Tracer& tracer, const auto& ids) { tracer.remove_particles(ids); });
+}
+
+// A run's updates in a row: eleven removals of 1% each, the tenth past the rebuild threshold
+// (10% of N), for the scene alone and for the tracer with a pulse in flight. Manual time: the
+// slowest of the eleven, what one time step waits for at worst; mean_ms: their mean. Deferred's
+// slowest is its synchronous rebuild; background's is the update that starts its build.
+template <class Make, class Remove>
+void time_update_sequence(benchmark::State& state, bool under_beam, Make make, Remove remove) {
+  constexpr std::size_t kRounds = 11;
+  const auto ids = victims(packing(static_cast<std::size_t>(state.range(0))), under_beam, kRounds);
+  const std::size_t count = ids.size() / kRounds;
+  double sum = 0.0;
+  std::size_t updates = 0;
+  std::vector<double> each(kRounds, 0.0);
+  for (auto _ : state) {
+    auto owner = make();  // manual time: made and destroyed untimed
+    double worst = 0.0;
+    for (std::size_t k = 0; k < kRounds; ++k) {
+      const auto start = std::chrono::steady_clock::now();
+      remove(*owner, std::span<const std::uint32_t>(ids.data() + k * count, count));
+      const double took =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+      worst = std::max(worst, took), sum += took, ++updates;
+      each[k] = std::max(each[k], took);
+    }
+    state.SetIterationTime(worst);
+    owner.reset();  // background: stops the build in flight
+  }
+  state.counters["mean_ms"] = 1e3 * sum / static_cast<double>(updates);
+  // The slowest of each update over the iterations: the 10th crosses the threshold.
+  for (std::size_t k = 9; k < kRounds; ++k)
+    state.counters["update" + std::to_string(k + 1) + "_ms"] = 1e3 * each[k];
+  state.counters["removed_each"] = static_cast<double>(count);
+}
+
+void run_update_sequence(benchmark::State& state, SceneUpdate mode, bool under_beam) {
+  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  time_update_sequence(
+      state, under_beam, [&] { return std::make_unique<EmbreeScene>(p, mode); },
+      [](EmbreeScene& scene, auto ids) { scene.remove(ids); });
+}
+
+void run_tracer_update_sequence(benchmark::State& state, SceneUpdate mode, bool under_beam) {
+  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  auto tracer_in_flight = [&] {
+    OpticsSpec spec;
+    spec.scene_update = mode;
+    auto tracer = std::make_unique<Tracer>(p, spec);
+    tracer->launch(paper_beam(), 1e-9);
+    std::vector<double> deposits;
+    tracer->advance(2e-4, deposits);  // rays in flight inside the packing
+    return tracer;
+  };
+  time_update_sequence(state, under_beam, tracer_in_flight,
+                       [](Tracer& tracer, auto ids) { tracer.remove_particles(ids); });
+}
+
+// What a rebuild costs the run, not the update alone: removing 11% at random (past the
+// threshold), then range(1) pulses (the paper's beam, 10^4 rays, n = 1.4, all bounces; ~9 ms
+// each at 1e6), then the rebuild finished. Deferred rebuilds before the pulses; background
+// builds during them, on the same two cores. (Measured: the background build confined to its own
+// thread, a one-thread TBB arena, took twice as long, ~0.8 s; at nice 19 no better.)
+void run_pulse_with_rebuild(benchmark::State& state, SceneUpdate mode) {
+  const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
+  const auto ids = victims(p, false, 11);
+  for (auto _ : state) {
+    state.PauseTiming();
+    TracerPulses run(p, tracer_spec(true, 1.4, 1000, mode), paper_beam());
+    state.ResumeTiming();
+    run.tracer.remove_particles(ids);
+    for (long k = 0; k < state.range(1); ++k) run.pulse();
+    run.tracer.finish_scene_rebuild();
+    state.PauseTiming();
+    if (run.tracer.scene_rebuilds() != 1) state.SkipWithError("expected one rebuild");
+    state.ResumeTiming();
+  }
 }
 
 void run_build(benchmark::State& state, SceneUpdate mode) {
@@ -824,11 +901,10 @@ void register_all() {
   benchmark::RegisterBenchmark("trace/primary/builtin_sphere_packets", [](benchmark::State& s) {
     run_builtin_packets(s);
   })->Apply(sizes);
-  const std::pair<const char*, SceneUpdate> modes[] = {{"deferred", SceneUpdate::deferred},
-                                                       {"mask_only", SceneUpdate::mask_only},
-                                                       {"rebuild", SceneUpdate::rebuild},
-                                                       {"refit", SceneUpdate::refit},
-                                                       {"bricks", SceneUpdate::bricks}};
+  const std::pair<const char*, SceneUpdate> modes[] = {
+      {"deferred", SceneUpdate::deferred},   {"background", SceneUpdate::background},
+      {"mask_only", SceneUpdate::mask_only}, {"rebuild", SceneUpdate::rebuild},
+      {"refit", SceneUpdate::refit},         {"bricks", SceneUpdate::bricks}};
   for (bool beam : {false, true})
     benchmark::RegisterBenchmark((std::string("scene_update/tracer_remove_particles") +
                                   (beam ? "/beam_1pct" : "/random_1pct"))
@@ -839,6 +915,35 @@ void register_all() {
         ->Unit(benchmark::kMillisecond)
         ->Iterations(5)
         ->UseRealTime();
+  for (const auto& [name, mode] : {std::pair{"deferred", SceneUpdate::deferred},
+                                   std::pair{"background", SceneUpdate::background}}) {
+    for (bool beam : {false, true}) {
+      const std::string where = beam ? "/beam_11x1pct" : "/random_11x1pct";
+      benchmark::RegisterBenchmark(
+          ("scene_update/sequence/" + std::string(name) + where).c_str(),
+          [mode = mode, beam](benchmark::State& s) { run_update_sequence(s, mode, beam); })
+          ->Arg(100000)
+          ->Arg(1000000)
+          ->Unit(benchmark::kMillisecond)
+          ->Iterations(3)
+          ->UseManualTime();
+      benchmark::RegisterBenchmark(
+          ("scene_update/sequence/tracer_" + std::string(name) + where).c_str(),
+          [mode = mode, beam](benchmark::State& s) { run_tracer_update_sequence(s, mode, beam); })
+          ->Arg(1000000)
+          ->Unit(benchmark::kMillisecond)
+          ->Iterations(3)
+          ->UseManualTime();
+    }
+    benchmark::RegisterBenchmark(
+        ("scene_update/pulse_with_rebuild/" + std::string(name)).c_str(),
+        [mode = mode](benchmark::State& s) { run_pulse_with_rebuild(s, mode); })
+        ->Args({1000000, 1})
+        ->Args({1000000, 6})
+        ->Unit(benchmark::kMillisecond)
+        ->Iterations(3)
+        ->UseRealTime();
+  }
   for (const auto& [name, mode] : modes) {
     for (bool beam : {false, true}) {
       const std::string label =

@@ -14,9 +14,12 @@
 #include <bit>
 #include <cmath>
 #include <cstdint>
+#include <exception>
 #include <mutex>
 #include <numeric>
 #include <string>
+#include <thread>
+#include <utility>
 
 #include "geometry/error.h"
 #include "geometry/ray_sphere.h"
@@ -327,48 +330,28 @@ bool monitor_memory(void* user, ssize_t bytes, bool post) noexcept {
   return false;
 }
 
-}  // namespace
-
-struct EmbreeScene::Impl {
+// One structure Embree traverses: a device (its errors and allocations reported apart), a scene,
+// and the sphere records its geometries point into. SceneUpdate::background builds the next one
+// on another thread, over its own copy of the records, while this one serves the queries.
+struct Structure {
   DeviceReport report;
   RTCDevice device = nullptr;
   RTCScene scene = nullptr;
-  std::vector<SphereRecord> spheres;    // Morton order
-  std::vector<std::uint32_t> particle;  // particle id of each sphere
-  std::vector<std::uint32_t> rank;      // sphere (Morton rank) of each particle
-  std::size_t brick_size = 0;           // spheres per geometry (bricks mode: contiguous runs)
-  std::vector<SphereSet> sets;          // one per geometry
+  std::vector<SphereRecord> spheres;  // Morton order; a removed sphere's radius is negated
+  std::vector<SphereSet> sets;        // one per geometry, pointing into `spheres`
   std::vector<RTCGeometry> geometries;
-  // Embree sees coordinates relative to `frame`, the centre of the live spheres' box, and rays
-  // clipped to `reach`, that box padded (clip_to_scene): float spacing then scales with the
-  // packing's size, not with its distance from the origin or the rays' from it.
-  Vec3 frame = Vec3::Zero();
-  Box reach;
-  double slack = 0.0;
 
-  // Embree's frame and float margins from the live spheres' box. A sample far from the origin (a
-  // DEM frame in metres, spheres of microns) has float spacing of many radii in world
-  // coordinates: bounds padded for it overlapped by hundreds of radii, and tracing was 26 times
-  // slower. Relative to the box's centre, and with rays clipped to the box (clip_to_scene), float
-  // error scales with the box; the slack covers it in culling distances and the packet
-  // prefilter, and the double round-off of world coordinates in hit distances besides. Ray
-  // starts are computed without that round-off (clipped_start): the bounds' pads do not cover it.
-  void set_frame(const Box& box) {
-    if (box.empty()) return;
-    frame = 0.5 * (box.lower + box.upper);
-    const Vec3 half = 0.5 * (box.upper - box.lower);
-    const double world = box.lower.cwiseAbs().cwiseMax(box.upper.cwiseAbs()).maxCoeff();
-    slack = kFloatPad * (2.0 * half.norm() + half.maxCoeff()) + 1e-12 * world;
-    reach = box;
-    reach.lower.array() -= 4.0 * slack;
-    reach.upper.array() += 4.0 * slack;
+  Structure(std::vector<SphereRecord> records, std::int64_t byte_limit)
+      : spheres(std::move(records)) {
+    report.byte_limit.store(byte_limit, std::memory_order_relaxed);
   }
-
-  // Ray `id` clipped to the scene, as Embree's single ray with its context: false when no sphere
-  // can improve on the ray's nearest hit (nothing to trace).
-  bool single_ray(const RayQuery& query, std::uint32_t id, QueryContext& ctx, RTCRay& ray) const;
-
-  std::uint32_t rank_of(std::uint32_t p) const { return p < rank.size() ? rank[p] : kNoParticle; }
+  Structure(const Structure&) = delete;
+  Structure& operator=(const Structure&) = delete;
+  ~Structure() {
+    for (RTCGeometry g : geometries) rtcReleaseGeometry(g);
+    if (scene) rtcReleaseScene(scene);
+    if (device) rtcReleaseDevice(device);
+  }
 
   // Throws the errors Embree reported since the last check, naming what was being done. Called
   // after every build and update (build = true) and after every query (check_query). A failed
@@ -409,12 +392,91 @@ struct EmbreeScene::Impl {
     if (report.failed.load(std::memory_order_relaxed)) [[unlikely]]
       check(what, false);
   }
+};
+
+// Bit 0 of a build's progress: Embree asks between its steps and stops when told (a background
+// build the scene no longer wants: RTC_ERROR_CANCELLED, and the structure is dropped).
+bool keep_building(void* cancel, double) noexcept {
+  return !static_cast<const std::atomic<bool>*>(cancel)->load(std::memory_order_relaxed);
+}
+
+}  // namespace
+
+struct EmbreeScene::Impl {
+  // Fixed at construction, shared by every structure built.
+  SceneUpdate update = SceneUpdate::deferred;
+  std::string device_config;
+  std::vector<std::uint32_t> particle;  // particle id of each sphere
+  std::vector<std::uint32_t> rank;      // sphere (Morton rank) of each particle
+  std::size_t brick_size = 0;           // spheres per geometry (bricks mode: contiguous runs)
+  std::size_t per_prim = 1;             // spheres per primitive
+  // Embree sees coordinates relative to `frame`, the centre of the live spheres' box, and rays
+  // clipped to `reach`, that box padded (clip_to_scene): float spacing then scales with the
+  // packing's size, not with its distance from the origin or the rays' from it.
+  Vec3 frame = Vec3::Zero();
+  Box reach;
+  double slack = 0.0;
+  std::atomic<std::int64_t> byte_limit{std::numeric_limits<std::int64_t>::max()};
+
+  std::unique_ptr<Structure> live;  // what the queries traverse
+
+  // SceneUpdate::background: at most one build in flight. The builder thread owns `next`,
+  // `next_error` and its copy of the records until it sets `built`; the calling thread masks the
+  // particles removed meanwhile in `live` and lists them for `next`.
+  std::thread builder;
+  std::atomic<bool> built{false};
+  std::atomic<bool> cancel{false};
+  std::unique_ptr<Structure> next;
+  std::exception_ptr next_error;
+  std::vector<std::uint32_t> removed_while_building;
+  // The records of the structure before the live one, kept for the next build's copy (pages in
+  // memory already): the copy is the removal's cost that starts a build.
+  std::vector<SphereRecord> spare;
 
   ~Impl() {
-    for (RTCGeometry g : geometries) rtcReleaseGeometry(g);
-    if (scene) rtcReleaseScene(scene);
-    if (device) rtcReleaseDevice(device);
+    if (!builder.joinable()) return;
+    cancel.store(true, std::memory_order_relaxed);  // the build is not wanted: stop it early
+    builder.join();
   }
+
+  bool building() const { return builder.joinable(); }
+
+  // Embree's frame and float margins from the live spheres' box. A sample far from the origin (a
+  // DEM frame in metres, spheres of microns) has float spacing of many radii in world
+  // coordinates: bounds padded for it overlapped by hundreds of radii, and tracing was 26 times
+  // slower. Relative to the box's centre, and with rays clipped to the box (clip_to_scene), float
+  // error scales with the box; the slack covers it in culling distances and the packet
+  // prefilter, and the double round-off of world coordinates in hit distances besides. Ray
+  // starts are computed without that round-off (clipped_start): the bounds' pads do not cover it.
+  void set_frame(const Box& box) {
+    if (box.empty()) return;
+    frame = 0.5 * (box.lower + box.upper);
+    const Vec3 half = 0.5 * (box.upper - box.lower);
+    const double world = box.lower.cwiseAbs().cwiseMax(box.upper.cwiseAbs()).maxCoeff();
+    slack = kFloatPad * (2.0 * half.norm() + half.maxCoeff()) + 1e-12 * world;
+    reach = box;
+    reach.lower.array() -= 4.0 * slack;
+    reach.upper.array() += 4.0 * slack;
+  }
+
+  // A device, a scene and its geometries over `records`, committed. Embree's errors are left in
+  // the structure's report for the caller to check (Structure::check); a device Embree refuses
+  // is a RunError at once. With `cancel`, the build stops when it turns true.
+  std::unique_ptr<Structure> build(std::vector<SphereRecord> records,
+                                   const std::atomic<bool>* stop) const;
+
+  // Ray `id` clipped to the scene, as Embree's single ray with its context: false when no sphere
+  // can improve on the ray's nearest hit (nothing to trace).
+  bool single_ray(const RayQuery& query, std::uint32_t id, QueryContext& ctx, RTCRay& ray) const;
+
+  std::uint32_t rank_of(std::uint32_t p) const { return p < rank.size() ? rank[p] : kNoParticle; }
+
+  // Background mode: a build of the live records as they are now, on another thread.
+  void start_rebuild();
+  // Background mode: puts a finished build in the place of the live structure (with `wait`, waits
+  // for one in flight). The particles removed while it was built are masked in it first. A
+  // failed build throws, and the live structure (correct: removals are masked in it) stays.
+  bool adopt_rebuild(bool wait);
 };
 
 namespace {
@@ -455,6 +517,85 @@ std::vector<std::uint32_t> morton_order(const Particles& particles) {
 
 }  // namespace
 
+std::unique_ptr<Structure> EmbreeScene::Impl::build(std::vector<SphereRecord> records,
+                                                    const std::atomic<bool>* stop) const {
+  auto st =
+      std::make_unique<Structure>(std::move(records), byte_limit.load(std::memory_order_relaxed));
+  st->device = rtcNewDevice(device_config.empty() ? nullptr : device_config.c_str());
+  if (!st->device)
+    throw RunError("Embree: rtcNewDevice(\"" + device_config + "\") failed (" +
+                   error_name(rtcGetDeviceError(nullptr)) + ")");
+  rtcSetDeviceErrorFunction(st->device, record_error, &st->report);
+  rtcSetDeviceMemoryMonitorFunction(st->device, monitor_memory, &st->report);
+  st->scene = rtcNewScene(st->device);
+  // Per-geometry build quality (refit, bricks) is honoured only under a LOW-quality scene,
+  // which builds two levels: one BVH per geometry and a top level over them.
+  const bool two_level = update == SceneUpdate::refit || update == SceneUpdate::bricks;
+  rtcSetSceneBuildQuality(st->scene, two_level ? RTC_BUILD_QUALITY_LOW : RTC_BUILD_QUALITY_MEDIUM);
+  if (update == SceneUpdate::bricks) rtcSetSceneFlags(st->scene, RTC_SCENE_FLAG_DYNAMIC);
+  if (stop)
+    rtcSetSceneProgressMonitorFunction(st->scene, keep_building,
+                                       const_cast<std::atomic<bool>*>(stop));
+  const std::size_t n = st->spheres.size();
+  const std::size_t geometries = std::max<std::size_t>(1, (n + brick_size - 1) / brick_size);
+  st->sets.reserve(geometries);  // never reallocated: the geometries point at their sets
+  for (std::size_t b = 0; b < geometries; ++b) {
+    const std::size_t first = b * brick_size;
+    const std::size_t count = std::min(n, first + brick_size) - std::min(n, first);
+    st->sets.push_back({frame, st->spheres.data() + first, particle.data() + first,
+                        static_cast<std::uint32_t>(first), static_cast<std::uint32_t>(count),
+                        static_cast<std::uint32_t>(per_prim)});
+    RTCGeometry g = rtcNewGeometry(st->device, RTC_GEOMETRY_TYPE_USER);
+    rtcSetGeometryUserPrimitiveCount(g, static_cast<unsigned>((count + per_prim - 1) / per_prim));
+    rtcSetGeometryUserData(g, &st->sets.back());
+    rtcSetGeometryBoundsFunction(g, sphere_bounds, nullptr);
+    rtcSetGeometryIntersectFunction(g, sphere_intersect);
+    rtcSetGeometryOccludedFunction(g, sphere_occluded);
+    rtcSetGeometryBuildQuality(
+        g, update == SceneUpdate::refit ? RTC_BUILD_QUALITY_REFIT : RTC_BUILD_QUALITY_LOW);
+    rtcCommitGeometry(g);
+    rtcAttachGeometry(st->scene, g);
+    st->geometries.push_back(g);
+  }
+  const KeepFloatMode keep;  // Embree's build may set FTZ/DAZ on this thread
+  rtcCommitScene(st->scene);
+  return st;
+}
+
+void EmbreeScene::Impl::start_rebuild() {
+  // The builder's own copy (no race on the masks), written into pages already touched: into
+  // fresh ones, the copy took 82 ms at 1e6 on the 2-core VM (page faults), into these ~3 ms.
+  spare.assign(live->spheres.begin(), live->spheres.end());
+  std::vector<SphereRecord> records = std::exchange(spare, {});
+  built.store(false, std::memory_order_relaxed);
+  builder = std::thread([this, records = std::move(records)]() mutable {
+    try {
+      next = build(std::move(records), &cancel);
+    } catch (...) {
+      next_error = std::current_exception();
+    }
+    built.store(true, std::memory_order_release);
+  });
+}
+
+bool EmbreeScene::Impl::adopt_rebuild(bool wait) {
+  if (!building() || (!wait && !built.load(std::memory_order_acquire))) return false;
+  builder.join();
+  std::unique_ptr<Structure> fresh = std::move(next);
+  const std::vector<std::uint32_t> late = std::exchange(removed_while_building, {});
+  if (next_error) std::rethrow_exception(std::exchange(next_error, nullptr));
+  try {
+    fresh->check("rebuilding the particle scene in the background", true);
+  } catch (...) {
+    spare = std::move(fresh->spheres);  // for the next try
+    throw;
+  }
+  for (std::uint32_t p : late) fresh->spheres[rank[p]].radius *= -1.0;
+  std::swap(live, fresh);
+  spare = std::move(fresh->spheres);  // no query runs: the old structure goes unused from here
+  return true;
+}
+
 EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
                          std::size_t particles_per_brick, double rebuild_fraction,
                          unsigned spheres_per_primitive, const std::string& device_config)
@@ -462,98 +603,102 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
   Impl& im = *impl_;
   const std::size_t n = particles.size();
   removed_.resize(n);
+  im.update = update;
+  im.device_config = device_config;
   im.particle = morton_order(particles);
   im.rank.resize(n);
-  im.spheres.resize(n);
+  std::vector<SphereRecord> records(n);
   for (std::size_t k = 0; k < n; ++k) {
     const std::uint32_t p = im.particle[k];
     im.rank[p] = static_cast<std::uint32_t>(k);
     removed_[p] = particles.alive[p] ? 0 : 1;
-    im.spheres[k] = {particles.centre[p], removed_[p] ? -particles.radius[p] : particles.radius[p]};
+    records[k] = {particles.centre[p], removed_[p] ? -particles.radius[p] : particles.radius[p]};
   }
-  im.device = rtcNewDevice(device_config.empty() ? nullptr : device_config.c_str());
-  if (!im.device)
-    throw RunError("Embree: rtcNewDevice(\"" + device_config + "\") failed (" +
-                   error_name(rtcGetDeviceError(nullptr)) + ")");
-  rtcSetDeviceErrorFunction(im.device, record_error, &im.report);
-  rtcSetDeviceMemoryMonitorFunction(im.device, monitor_memory, &im.report);
-  im.scene = rtcNewScene(im.device);
-  // Per-geometry build quality (refit, bricks) is honoured only under a LOW-quality scene,
-  // which builds two levels: one BVH per geometry and a top level over them.
-  const bool two_level = update == SceneUpdate::refit || update == SceneUpdate::bricks;
-  rtcSetSceneBuildQuality(im.scene, two_level ? RTC_BUILD_QUALITY_LOW : RTC_BUILD_QUALITY_MEDIUM);
-  if (update == SceneUpdate::bricks) rtcSetSceneFlags(im.scene, RTC_SCENE_FLAG_DYNAMIC);
-  const std::size_t per_prim = std::clamp(spheres_per_primitive, 1u, 64u);
+  im.per_prim = std::clamp(spheres_per_primitive, 1u, 64u);
   // Bricks hold whole clusters.
   im.brick_size = update == SceneUpdate::bricks
-                      ? per_prim * std::max<std::size_t>(1, particles_per_brick / per_prim)
+                      ? im.per_prim * std::max<std::size_t>(1, particles_per_brick / im.per_prim)
                       : std::max<std::size_t>(1, n);
   im.set_frame(particles.bounds());
-  const std::size_t geometries = std::max<std::size_t>(1, (n + im.brick_size - 1) / im.brick_size);
-  im.sets.reserve(geometries);
-  for (std::size_t b = 0; b < geometries; ++b) {
-    const std::size_t first = b * im.brick_size;
-    const std::size_t count = std::min(n, first + im.brick_size) - std::min(n, first);
-    im.sets.push_back({im.frame, im.spheres.data() + first, im.particle.data() + first,
-                       static_cast<std::uint32_t>(first), static_cast<std::uint32_t>(count),
-                       static_cast<std::uint32_t>(per_prim)});
-    RTCGeometry g = rtcNewGeometry(im.device, RTC_GEOMETRY_TYPE_USER);
-    rtcSetGeometryUserPrimitiveCount(g, static_cast<unsigned>((count + per_prim - 1) / per_prim));
-    rtcSetGeometryUserData(g, &im.sets.back());
-    rtcSetGeometryBoundsFunction(g, sphere_bounds, nullptr);
-    rtcSetGeometryIntersectFunction(g, sphere_intersect);
-    rtcSetGeometryOccludedFunction(g, sphere_occluded);
-    rtcSetGeometryBuildQuality(
-        g, update == SceneUpdate::refit ? RTC_BUILD_QUALITY_REFIT : RTC_BUILD_QUALITY_LOW);
-    rtcCommitGeometry(g);
-    rtcAttachGeometry(im.scene, g);
-    im.geometries.push_back(g);
-  }
-  {
-    const KeepFloatMode keep;  // Embree's build may set FTZ/DAZ on this thread
-    rtcCommitScene(im.scene);
-  }
-  im.check("building the particle scene", true);
+  if (update == SceneUpdate::background) im.spare = records;  // touched now, not at a removal
+  im.live = im.build(std::move(records), nullptr);
+  im.live->check("building the particle scene", true);
 }
 
 EmbreeScene::~EmbreeScene() = default;
 
 void EmbreeScene::limit_memory(std::size_t bytes) {
-  impl_->report.byte_limit.store(static_cast<std::int64_t>(std::min<std::size_t>(
-                                     bytes, std::numeric_limits<std::int64_t>::max())),
-                                 std::memory_order_relaxed);
+  const auto limit = static_cast<std::int64_t>(
+      std::min<std::size_t>(bytes, std::numeric_limits<std::int64_t>::max()));
+  impl_->byte_limit.store(limit, std::memory_order_relaxed);
+  impl_->live->report.byte_limit.store(limit, std::memory_order_relaxed);
+}
+
+bool EmbreeScene::rebuilding() const {
+  return impl_->building();
+}
+
+void EmbreeScene::adopt_rebuilt() {
+  take_rebuilt(false);
+}
+
+void EmbreeScene::finish_rebuild() {
+  take_rebuilt(true);
+}
+
+void EmbreeScene::take_rebuilt(bool wait) {
+  try {
+    impl_->adopt_rebuild(wait);
+  } catch (...) {
+    masked_in_structure_ += masked_before_build_;  // the failed build's removals are still masked
+    throw;
+  }
 }
 
 void EmbreeScene::remove(std::span<const std::uint32_t> ids) {
   Impl& im = *impl_;
   check_removal_ids(ids, removed_.size());
+  std::size_t masked = 0;
   for (std::uint32_t p : ids) {
-    if (!removed_[p]) im.spheres[im.rank[p]].radius *= -1.0;  // masked in the callback from now on
+    if (removed_[p]) continue;
     removed_[p] = 1;
+    im.live->spheres[im.rank[p]].radius *= -1.0;  // masked in the callback from now on
+    if (im.building()) im.removed_while_building.push_back(p);
+    ++masked;
   }
   if (ids.empty() || update_ == SceneUpdate::mask_only) return;
-  if (update_ == SceneUpdate::deferred) {
+  if (update_ == SceneUpdate::deferred || update_ == SceneUpdate::background) {
     // Masked spheres cost traversal time, not correctness: rebuild only once they are many.
-    masked_in_structure_ += ids.size();
+    // (Background: counted from the build's start, so an adopted build holds exactly these.)
+    masked_in_structure_ += masked;
+    if (update_ == SceneUpdate::background) take_rebuilt(false);
     if (masked_in_structure_ <= rebuild_fraction_ * static_cast<double>(removed_.size())) return;
+    if (update_ == SceneUpdate::background) {
+      if (im.building()) return;  // one build at a time; the next removal looks again
+      masked_before_build_ = std::exchange(masked_in_structure_, 0);
+      ++rebuilds_;
+      im.start_rebuild();
+      return;
+    }
     masked_in_structure_ = 0;
   }
   ++rebuilds_;
+  Structure& st = *im.live;
   if (update_ == SceneUpdate::bricks) {
     std::vector<std::size_t> touched;
     touched.reserve(ids.size());
     for (std::uint32_t p : ids) touched.push_back(im.rank[p] / im.brick_size);
     std::sort(touched.begin(), touched.end());
     touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
-    for (std::size_t b : touched) rtcCommitGeometry(im.geometries[b]);
+    for (std::size_t b : touched) rtcCommitGeometry(st.geometries[b]);
   } else {
-    rtcCommitGeometry(im.geometries.front());
+    rtcCommitGeometry(st.geometries.front());
   }
   {
     const KeepFloatMode keep;  // Embree's build may set FTZ/DAZ on this thread
-    rtcCommitScene(im.scene);
+    rtcCommitScene(st.scene);
   }
-  im.check("updating the particle scene", true);
+  st.check("updating the particle scene", true);
 }
 
 namespace {
@@ -664,8 +809,8 @@ void EmbreeScene::intersect1(const RayQuery& query, std::uint32_t id) const {
   if (!impl_->single_ray(query, id, ctx, rh.ray)) return;
   rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
-  rtcIntersect1(impl_->scene, &ctx.base, &rh);
-  impl_->check_query("tracing a ray (rtcIntersect1)");
+  rtcIntersect1(impl_->live->scene, &ctx.base, &rh);
+  impl_->live->check_query("tracing a ray (rtcIntersect1)");
 }
 
 void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, int count,
@@ -700,16 +845,16 @@ void EmbreeScene::intersect16(const RayQuery& query, const std::uint32_t* ids, i
   std::fill(std::begin(rh.ray.flags), std::end(rh.ray.flags), 0u);
   std::fill(std::begin(rh.hit.geomID), std::end(rh.hit.geomID), RTC_INVALID_GEOMETRY_ID);
   std::fill(std::begin(rh.hit.instID[0]), std::end(rh.hit.instID[0]), RTC_INVALID_GEOMETRY_ID);
-  rtcIntersect16(valid, im.scene, &ctx.base, &rh);
-  impl_->check_query("tracing a packet of rays (rtcIntersect16)");
+  rtcIntersect16(valid, im.live->scene, &ctx.base, &rh);
+  impl_->live->check_query("tracing a packet of rays (rtcIntersect16)");
 }
 
 bool EmbreeScene::occluded1(const RayQuery& query, std::uint32_t id) const {
   QueryContext ctx;
   RTCRay ray;
   if (!impl_->single_ray(query, id, ctx, ray)) return false;
-  rtcOccluded1(impl_->scene, &ctx.base, &ray);
-  impl_->check_query("a shadow query (rtcOccluded1)");
+  rtcOccluded1(impl_->live->scene, &ctx.base, &ray);
+  impl_->live->check_query("a shadow query (rtcOccluded1)");
   return ray.tfar < 0.0f;
 }
 

@@ -247,6 +247,19 @@ void Tracer::build_scene() {
   removed_unbuilt_.clear();
 }
 
+std::size_t Tracer::scene_rebuilds() const {
+  return scene_ ? scene_->rebuilds() : 0;
+}
+
+void Tracer::finish_scene_rebuild() {
+  if (scene_) scene_->finish_rebuild();
+}
+
+void Tracer::prepare_scene() {
+  build_scene();
+  scene_->adopt_rebuilt();  // a background rebuild, if one has finished (no query runs now)
+}
+
 void Tracer::check_particle_count(const char* when) const {
   if (particles_.size() != particle_count_)
     throw InputError(std::string(when) + ": the particles were " + std::to_string(particle_count_) +
@@ -308,7 +321,7 @@ void Tracer::launch(const Beam& beam, std::span<const double> energies) {
     throw InputError("launch: " + std::to_string(energies.size()) + " energies for " +
                      std::to_string(beam.size()) + " rays");
   check_launch(beam, energies);
-  build_scene();
+  prepare_scene();
   compact_if_sparse();
   undo_.held = false;
   const bool moved_live_rays = rebase_clock();  // each pulse starts at 0 on the path clock
@@ -980,7 +993,7 @@ std::size_t Tracer::advance(double path_budget, std::vector<double>& deposits,
     throw InputError("advance: path budget " + shown_number(path_budget) + " must be >= 0");
   check_particle_count("advance");  // fewer particles: the rays' hits would index past them
   if (deposits.size() < particles_.size()) deposits.resize(particles_.size(), 0.0);
-  if (has_live_rays()) build_scene();
+  if (has_live_rays()) prepare_scene();
   RayState& s = state_;
   const double end_clock = s.clock + path_budget;
   const std::size_t idle = select_due_chunks(end_clock);

@@ -66,7 +66,8 @@ struct OpticsSpec {
   bool packets = true;        // primary rays in coherent 16-ray packets (false: single rays)
   BounceSearch bounce_search = BounceSearch::grid;
   double grid_cell_factor = 3.0;  // grid cell edge / largest radius (measured best of 1.5-4)
-  SceneUpdate scene_update = SceneUpdate::deferred;  // docs/bench/optics.md: fastest measured
+  // Background: every update under 4 ms at 1e6, the rebuild off the critical path (BENCHMARKS.md).
+  SceneUpdate scene_update = SceneUpdate::background;
   unsigned spheres_per_primitive = 1;  // Embree primitive = cluster of this many spheres
   // Embree's device configuration (rtcNewDevice), e.g. "max_isa=sse4.2" to trace as on a machine
   // without AVX2 (the tests trace under each ISA: Embree splits packets wider than its own).
@@ -193,6 +194,11 @@ class Tracer {
   // time and its errors at set-up rather than at the first launch.
   void build_scene();
   bool has_scene() const { return scene_ != nullptr; }
+  // Updates of the ray scene's structure since its build (EmbreeScene::rebuilds).
+  std::size_t scene_rebuilds() const;
+  // Waits for a background rebuild of the ray scene in flight and takes it (benchmarks, and a
+  // caller about to time something).
+  void finish_scene_rebuild();
 
   // Adds the beam's rays (energy E_k = I_k A_r tau each) to the live rays, starting on a plane
   // upstream of every particle, in the beam's (tiled) order: 16 consecutive rays are a packet.
@@ -281,6 +287,8 @@ class Tracer {
   };
   void check_launch(const Beam& beam, std::span<const double> energies) const;
   void check_beam_points(const Beam& beam) const;
+  // build_scene, then the scene takes a finished background rebuild (SceneUpdate::background).
+  void prepare_scene();
   void check_particle_count(const char* when) const;
   double start_plane(const Beam& beam) const;
   Vec3 beam_field(const Vec3& direction) const;

@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <numbers>
+#include <numeric>
 
 #include "engine/beam.h"
 #include "engine/embree_scene.h"
@@ -411,7 +412,8 @@ void expect_brute_force_hits(const EmbreeScene& scene, const Particles& p,
   const RayQuery q1{rays.org.data(), rays.dir.data(), rays.skip.data(), t1.data(), hit1.data()};
   const RayQuery q16{rays.org.data(), rays.dir.data(), rays.skip.data(), t16.data(), hit16.data()};
   for (std::uint32_t r = 0; r < n; ++r) scene.intersect1(q1, r), ids[r] = r;
-  for (std::size_t r = 0; r < n; r += 16) scene.intersect16(q16, ids.data() + r, 16);
+  for (std::size_t r = 0; r < n; r += 16)
+    scene.intersect16(q16, ids.data() + r, static_cast<int>(std::min<std::size_t>(16, n - r)));
   for (std::size_t r = 0; r < n; ++r) {
     const NearestHit truth = brute_force_nearest(p, gone, rays, r);
     ASSERT_EQ(hit1[r], truth.particle) << "ray " << r;
@@ -431,14 +433,18 @@ TEST(OpticsSphere, SceneHitsEqualBruteForceBeforeAndAfterRemoval) {
   std::vector<std::uint32_t> victims;
   for (std::uint32_t i = 0; i < p.size(); i += 10) victims.push_back(i), gone[i] = 1;
   for (const char* isa : test::kEmbreeIsas) {
-    for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::mask_only, SceneUpdate::rebuild,
-                             SceneUpdate::refit, SceneUpdate::bricks}) {
+    for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::background, SceneUpdate::mask_only,
+                             SceneUpdate::rebuild, SceneUpdate::refit, SceneUpdate::bricks}) {
       SCOPED_TRACE(std::string(isa) + " mode " + std::to_string(static_cast<int>(mode)));
       EmbreeScene scene(p, mode, 256, 0.05, 1, isa);
       expect_brute_force_hits(scene, p, std::vector<std::uint8_t>(p.size(), 0), rays);
       scene.remove(victims);
       EXPECT_EQ(scene.rebuilds(), mode == SceneUpdate::mask_only ? 0u : 1u);
-      expect_brute_force_hits(scene, p, gone, rays);
+      EXPECT_EQ(scene.rebuilding(), mode == SceneUpdate::background);
+      expect_brute_force_hits(scene, p, gone, rays);  // background: either structure
+      scene.finish_rebuild();
+      EXPECT_FALSE(scene.rebuilding());
+      expect_brute_force_hits(scene, p, gone, rays);  // background: the rebuilt one
     }
   }
 }
@@ -508,8 +514,8 @@ TEST(OpticsSphere, OccludedExactlyWhenTheNearestHitIsBeforeTheLimit) {
   const RayQuery q{rays.org.data(), rays.dir.data(), rays.skip.data(), t_hit.data(),
                    particle.data()};
   std::size_t occluded = 0, queries = 0;
-  for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::mask_only, SceneUpdate::rebuild,
-                           SceneUpdate::refit, SceneUpdate::bricks}) {
+  for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::background, SceneUpdate::mask_only,
+                           SceneUpdate::rebuild, SceneUpdate::refit, SceneUpdate::bricks}) {
     EmbreeScene scene(p, mode, 256, 0.5);
     for (int pass = 0; pass < 2; ++pass) {
       if (pass == 1) scene.remove(victims);
@@ -586,6 +592,87 @@ TEST(OpticsSphere, EmbreeErrorsAreThrownNamingTheCodeAndTheTask) {
     hits += particle[r] != kNoParticle;
   }
   EXPECT_GE(hits, 4u);  // (7 of the 16)
+}
+
+// Background rebuilds, whenever they land: a removal past the threshold starts one and returns;
+// the particles removed while it is built are masked in the old structure at once and in the new
+// one when it takes over. Round after round of removals (each of 3%, rebuild_fraction 2%: a
+// build starts, or one is in flight, at every round), the hits equal the brute-force answer
+// with the build adopted by the next removal, by adopt_rebuilt, by finish_rebuild, or not yet.
+// The particles of each round are those the rays hit most, so a structure that missed the mask
+// of one would return it.
+TEST(OpticsSphere, BackgroundRebuildsAnswerAsBruteForceWheneverTheyLand) {
+  const Particles p = random_overlap_packing(3000, 1e-3, 0.325, 21);
+  const RandomRays rays(p, 3000, 22);
+  EmbreeScene scene(p, SceneUpdate::background, 4096, 0.02);
+  std::vector<std::uint8_t> gone(p.size(), 0);
+  for (int round = 0; round < 8; ++round) {
+    SCOPED_TRACE("round " + std::to_string(round));
+    // The live spheres the rays hit first now, most hit first.
+    std::vector<std::uint32_t> count(p.size(), 0);
+    for (std::size_t r = 0; r < rays.org.size(); ++r) {
+      const NearestHit h = brute_force_nearest(p, gone, rays, r);
+      if (h.particle != kNoParticle) ++count[h.particle];
+    }
+    std::vector<std::uint32_t> order(p.size());
+    std::iota(order.begin(), order.end(), 0u);
+    std::stable_sort(order.begin(), order.end(),
+                     [&](std::uint32_t a, std::uint32_t b) { return count[a] > count[b]; });
+    // Two removals in a row: the second lands while the first one's build is in flight (or
+    // finished and not yet adopted: either way listed for it).
+    const std::vector<std::uint32_t> first(order.begin(), order.begin() + 70);  // 2.3% > 2%
+    const std::vector<std::uint32_t> second(order.begin() + 70, order.begin() + 120);
+    scene.remove(first);
+    EXPECT_TRUE(scene.rebuilding());
+    scene.remove(second);
+    for (std::uint32_t i : first) gone[i] = 1;
+    for (std::uint32_t i : second) gone[i] = 1;
+    ASSERT_GT(count[second.front()], 0u);  // the rays do meet them
+    if (round % 3 == 1) scene.adopt_rebuilt();
+    if (round % 3 == 2) scene.finish_rebuild();
+    expect_brute_force_hits(scene, p, gone, rays);
+  }
+  scene.finish_rebuild();
+  expect_brute_force_hits(scene, p, gone, rays);
+  EXPECT_FALSE(scene.rebuilding());
+  EXPECT_GE(scene.rebuilds(), 4u);  // at least every other round started one
+}
+
+// A background build that fails (Embree's allocations limited to 1 kB) is a RunError where it is
+// adopted, naming the task and Embree's error; the structure in use stays whole and keeps
+// answering right (unlike a failed synchronous build, it was never replaced). With room again,
+// the next removal past the threshold builds, and its structure answers right too. A scene
+// destroyed with a build in flight stops the build and waits for it (no use after free: ASan).
+TEST(OpticsSphere, AFailedBackgroundBuildIsThrownAndTheCurrentStructureServesOn) {
+  const Particles p = random_overlap_packing(2000, 1e-3, 0.325, 23);
+  const RandomRays rays(p, 1000, 24);
+  EmbreeScene scene(p, SceneUpdate::background, 4096, 0.05);
+  std::vector<std::uint8_t> gone(p.size(), 0);
+  std::vector<std::uint32_t> victims;
+  for (std::uint32_t i = 0; i < p.size(); i += 10) victims.push_back(i), gone[i] = 1;
+  scene.limit_memory(1024);
+  scene.remove(victims);  // returns: the build fails on its own thread
+  testing::expect_error<RunError>(
+      [&] { scene.finish_rebuild(); },
+      "rebuilding the particle scene in the background: Embree error RTC_ERROR_OUT_OF_MEMORY (4)",
+      "limited to 1024 bytes");
+  EXPECT_FALSE(scene.rebuilding());
+  expect_brute_force_hits(scene, p, gone, rays);
+  scene.limit_memory(std::numeric_limits<std::size_t>::max());
+  const std::vector<std::uint32_t> more = {1, 2, 3};
+  for (std::uint32_t i : more) gone[i] = 1;
+  scene.remove(more);  // still past the threshold: the failed build's removals were not built
+  EXPECT_TRUE(scene.rebuilding());
+  scene.finish_rebuild();
+  expect_brute_force_hits(scene, p, gone, rays);
+  {
+    const Particles big = random_overlap_packing(100000, 1e-3, 0.325, 25);
+    EmbreeScene doomed(big, SceneUpdate::background, 4096, 0.05);
+    std::vector<std::uint32_t> many;
+    for (std::uint32_t i = 0; i < big.size(); i += 5) many.push_back(i);
+    doomed.remove(many);
+    EXPECT_TRUE(doomed.rebuilding());
+  }  // destroyed in flight
 }
 
 // A device configuration Embree refuses (OpticsSpec::embree_config) is a RunError naming the
