@@ -12,12 +12,15 @@
 #include <algorithm>
 #include <atomic>
 #include <bit>
+#include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <exception>
+#include <future>
 #include <mutex>
 #include <numeric>
 #include <string>
+#include <system_error>
 #include <thread>
 #include <utility>
 
@@ -430,8 +433,25 @@ struct EmbreeScene::Impl {
   std::exception_ptr next_error;
   std::vector<std::uint32_t> removed_while_building;
   // The records of the structure before the live one, kept for the next build's copy (pages in
-  // memory already): the copy is the removal's cost that starts a build.
+  // memory already): the copy is the removal's cost that starts a build. The first spare is
+  // allocated and touched on another thread from the first removal on (prepare_spare), not at
+  // construction: a scene that never loses a particle never holds one.
   std::vector<SphereRecord> spare;
+  std::future<std::vector<SphereRecord>> touched_spare;
+
+  bool spare_ready() const {
+    return !spare.empty() || !touched_spare.valid() ||
+           touched_spare.wait_for(std::chrono::seconds(0)) == std::future_status::ready;
+  }
+  void prepare_spare() {
+    if (!spare.empty() || touched_spare.valid() || building()) return;
+    try {
+      touched_spare = std::async(std::launch::async, [n = live->spheres.size()] {
+        return std::vector<SphereRecord>(n, SphereRecord{Vec3::Zero(), 0.0});  // every page
+      });
+    } catch (const std::system_error&) {  // no thread to be had: the copy will fault its pages
+    }
+  }
 
   ~Impl() {
     if (!builder.joinable()) return;
@@ -565,6 +585,7 @@ std::unique_ptr<Structure> EmbreeScene::Impl::build(std::vector<SphereRecord> re
 void EmbreeScene::Impl::start_rebuild() {
   // The builder's own copy (no race on the masks), written into pages already touched: into
   // fresh ones, the copy took 82 ms at 1e6 on the 2-core VM (page faults), into these ~3 ms.
+  if (spare.empty() && touched_spare.valid()) spare = touched_spare.get();
   spare.assign(live->spheres.begin(), live->spheres.end());
   std::vector<SphereRecord> records = std::exchange(spare, {});
   built.store(false, std::memory_order_relaxed);
@@ -620,7 +641,6 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
                       ? im.per_prim * std::max<std::size_t>(1, particles_per_brick / im.per_prim)
                       : std::max<std::size_t>(1, n);
   im.set_frame(particles.bounds());
-  if (update == SceneUpdate::background) im.spare = records;  // touched now, not at a removal
   im.live = im.build(std::move(records), nullptr);
   im.live->check("building the particle scene", true);
 }
@@ -638,12 +658,31 @@ bool EmbreeScene::rebuilding() const {
   return impl_->building();
 }
 
-void EmbreeScene::adopt_rebuilt() {
+bool EmbreeScene::rebuild_due() const {
+  return masked_in_structure_ > rebuild_fraction_ * static_cast<double>(removed_.size());
+}
+
+void EmbreeScene::poll_rebuild() {
+  if (update_ != SceneUpdate::background) return;
   take_rebuilt(false);
+  start_rebuild_if_due(false);
 }
 
 void EmbreeScene::finish_rebuild() {
+  if (update_ != SceneUpdate::background) return;
   take_rebuilt(true);
+  start_rebuild_if_due(true);
+  take_rebuilt(true);
+}
+
+// One build at a time. Put off, to the next removal or poll, while the first spare's pages are
+// still being touched (`wait`: waits for them): copied into fresh pages, the records took 82 ms.
+void EmbreeScene::start_rebuild_if_due(bool wait) {
+  Impl& im = *impl_;
+  if (im.building() || !rebuild_due() || (!wait && !im.spare_ready())) return;
+  masked_before_build_ = std::exchange(masked_in_structure_, 0);
+  ++rebuilds_;
+  im.start_rebuild();
 }
 
 void EmbreeScene::take_rebuilt(bool wait) {
@@ -671,15 +710,12 @@ void EmbreeScene::remove(std::span<const std::uint32_t> ids) {
     // Masked spheres cost traversal time, not correctness: rebuild only once they are many.
     // (Background: counted from the build's start, so an adopted build holds exactly these.)
     masked_in_structure_ += masked;
-    if (update_ == SceneUpdate::background) take_rebuilt(false);
-    if (masked_in_structure_ <= rebuild_fraction_ * static_cast<double>(removed_.size())) return;
     if (update_ == SceneUpdate::background) {
-      if (im.building()) return;  // one build at a time; the next removal looks again
-      masked_before_build_ = std::exchange(masked_in_structure_, 0);
-      ++rebuilds_;
-      im.start_rebuild();
+      im.prepare_spare();
+      poll_rebuild();
       return;
     }
+    if (!rebuild_due()) return;
     masked_in_structure_ = 0;
   }
   ++rebuilds_;

@@ -36,9 +36,10 @@ enum class SceneUpdate {
                // rebuilds takes a full build (~0.3-0.4 s at 1e6, BENCHMARKS.md).
   background,  // as deferred, but the rebuild runs on another thread over a copy of the spheres
                // while the current structure (removals masked in it) serves the queries. The
-               // removal that starts it pays the copy (2-4 ms at 1e6, into pages kept from the
-               // structure before: fresh ones took 80 ms), then returns. The finished structure
-               // takes over at the next remove() or adopt_rebuilt() (0.2-0.3 ms). Tracing is
+               // removal that starts it pays the copy (2-4 ms at 1e6, into pages touched on
+               // another thread since the first removal, or kept from the structure before:
+               // fresh ones took 80 ms), then returns. The finished structure
+               // takes over at the next remove() or poll_rebuild() (0.2-0.3 ms). Tracing is
                // bit-identical whichever structure answers (the callback's double test and its
                // tie rule decide every hit), so when the swap happens changes no result. Costs:
                // one more copy of the spheres held (32 bytes each), and the build shares the
@@ -59,7 +60,7 @@ class EmbreeScene {
   EmbreeScene& operator=(const EmbreeScene&) = delete;
 
   // Masks the particles at once (never hit again), then updates the structure per SceneUpdate.
-  // Not concurrent with queries (nor are adopt_rebuilt and finish_rebuild).
+  // Not concurrent with queries (nor are poll_rebuild and finish_rebuild).
   void remove(std::span<const std::uint32_t> ids);
   bool removed(std::uint32_t id) const { return removed_[id] != 0; }
   SceneUpdate update_mode() const { return update_; }
@@ -67,13 +68,15 @@ class EmbreeScene {
   std::size_t rebuilds() const { return rebuilds_; }
   // Background mode: a build is in flight, or finished and not yet adopted.
   bool rebuilding() const;
-  // Background mode: puts a finished build in place of the structure, with the particles removed
-  // since its start masked in it; does nothing while none has finished (or in other modes). Call
-  // it where no query is running (the tracer does, at each launch and advance). A build that
-  // failed throws RunError here, naming Embree's error; the current structure stays, correct,
-  // and the next removal past the threshold tries again.
-  void adopt_rebuilt();
-  // The same, after waiting for a build in flight (tests, benchmarks, a caller about to time).
+  // Background mode (nothing in the others): puts a finished build in place of the structure,
+  // with the particles removed since its start masked in it, and starts the build a removal past
+  // the threshold put off (while the first spare copy's pages were still being touched). Call it
+  // where no query is running (the tracer does, at each launch and advance; remove() does too).
+  // A build that failed throws RunError here, naming Embree's error; the current structure stays,
+  // correct, and the next poll or removal tries again.
+  void poll_rebuild();
+  // The same, waiting: a build in flight or due is finished and in place on return (tests,
+  // benchmarks, a caller about to time).
   void finish_rebuild();
 
   // Nearest outside hit of one ray (rtcIntersect1).
@@ -99,6 +102,8 @@ class EmbreeScene {
  private:
   struct Impl;
   void take_rebuilt(bool wait);  // adopts a finished background build; a failed one throws
+  bool rebuild_due() const;      // masked since the last build > rebuild_fraction of N
+  void start_rebuild_if_due(bool wait);
   SceneUpdate update_;
   double rebuild_fraction_;
   std::size_t masked_in_structure_ = 0;  // removed since the last build (deferred, background)

@@ -257,7 +257,7 @@ void Tracer::finish_scene_rebuild() {
 
 void Tracer::prepare_scene() {
   build_scene();
-  scene_->adopt_rebuilt();  // a background rebuild, if one has finished (no query runs now)
+  scene_->poll_rebuild();  // a background rebuild taken or started (no query runs now)
 }
 
 void Tracer::check_particle_count(const char* when) const {

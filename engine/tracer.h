@@ -196,8 +196,8 @@ class Tracer {
   bool has_scene() const { return scene_ != nullptr; }
   // Updates of the ray scene's structure since its build (EmbreeScene::rebuilds).
   std::size_t scene_rebuilds() const;
-  // Waits for a background rebuild of the ray scene in flight and takes it (benchmarks, and a
-  // caller about to time something).
+  // Finishes a background rebuild of the ray scene in flight or due, and takes it (benchmarks,
+  // and a caller about to time something).
   void finish_scene_rebuild();
 
   // Adds the beam's rays (energy E_k = I_k A_r tau each) to the live rays, starting on a plane
@@ -287,7 +287,8 @@ class Tracer {
   };
   void check_launch(const Beam& beam, std::span<const double> energies) const;
   void check_beam_points(const Beam& beam) const;
-  // build_scene, then the scene takes a finished background rebuild (SceneUpdate::background).
+  // build_scene, then the scene takes a finished background rebuild or starts a due one
+  // (SceneUpdate::background).
   void prepare_scene();
   void check_particle_count(const char* when) const;
   double start_plane(const Beam& beam) const;
