@@ -432,6 +432,7 @@ struct EmbreeScene::Impl {
   std::unique_ptr<Structure> next;
   std::exception_ptr next_error;
   std::vector<std::uint32_t> removed_while_building;
+  std::vector<SphereRecord> records;  // the builder's copy, until it hands it to build()
   // The records of the structure before the live one, kept for the next build's copy (pages in
   // memory already): the copy is the removal's cost that starts a build. The first spare is
   // allocated and touched on another thread from the first removal on (prepare_spare), not at
@@ -491,12 +492,21 @@ struct EmbreeScene::Impl {
 
   std::uint32_t rank_of(std::uint32_t p) const { return p < rank.size() ? rank[p] : kNoParticle; }
 
-  // Background mode: a build of the live records as they are now, on another thread.
-  void start_rebuild();
+  // Background mode: a build of the live records as they are now, on another thread. False when
+  // it could not start (noted as a failure).
+  bool start_rebuild();
   // Background mode: puts a finished build in the place of the live structure (with `wait`, waits
-  // for one in flight). The particles removed while it was built are masked in it first. A
-  // failed build throws, and the live structure (correct: removals are masked in it) stays.
+  // for one in flight), true when it did. The particles removed while it was built are masked in
+  // it first. A failed build is noted (failures, last_failure), not thrown: the live structure,
+  // removals masked in it, stays and is correct.
   bool adopt_rebuild(bool wait);
+  std::size_t failures = 0;
+  std::size_t failures_seen = 0;  // by finish_rebuild, which throws the new ones
+  std::string last_failure;
+  void note_failure(std::string what) {
+    ++failures;
+    last_failure = std::move(what);
+  }
 };
 
 namespace {
@@ -582,21 +592,28 @@ std::unique_ptr<Structure> EmbreeScene::Impl::build(std::vector<SphereRecord> re
   return st;
 }
 
-void EmbreeScene::Impl::start_rebuild() {
-  // The builder's own copy (no race on the masks), written into pages already touched: into
-  // fresh ones, the copy took 82 ms at 1e6 on the 2-core VM (page faults), into these ~3 ms.
-  if (spare.empty() && touched_spare.valid()) spare = touched_spare.get();
-  spare.assign(live->spheres.begin(), live->spheres.end());
-  std::vector<SphereRecord> records = std::exchange(spare, {});
-  built.store(false, std::memory_order_relaxed);
-  builder = std::thread([this, records = std::move(records)]() mutable {
-    try {
-      next = build(std::move(records), &cancel);
-    } catch (...) {
-      next_error = std::current_exception();
-    }
-    built.store(true, std::memory_order_release);
-  });
+bool EmbreeScene::Impl::start_rebuild() {
+  try {
+    // The builder's own copy (no race on the masks), written into pages already touched: into
+    // fresh ones, the copy took 82 ms at 1e6 on the 2-core VM (page faults), into these ~3 ms.
+    if (spare.empty() && touched_spare.valid()) spare = touched_spare.get();
+    spare.assign(live->spheres.begin(), live->spheres.end());
+    records = std::exchange(spare, {});
+    built.store(false, std::memory_order_relaxed);
+    builder = std::thread([this] {
+      try {
+        next = build(std::move(records), &cancel);
+      } catch (...) {
+        next_error = std::current_exception();
+      }
+      built.store(true, std::memory_order_release);
+    });
+    return true;
+  } catch (const std::exception& e) {  // no memory for the copy, or no thread to be had
+    if (spare.empty()) spare = std::move(records);
+    note_failure(std::string("starting the background rebuild of the particle scene: ") + e.what());
+    return false;
+  }
 }
 
 bool EmbreeScene::Impl::adopt_rebuild(bool wait) {
@@ -604,14 +621,16 @@ bool EmbreeScene::Impl::adopt_rebuild(bool wait) {
   builder.join();
   std::unique_ptr<Structure> fresh = std::move(next);
   const std::vector<std::uint32_t> late = std::exchange(removed_while_building, {});
-  if (next_error) std::rethrow_exception(std::exchange(next_error, nullptr));
   try {
+    if (next_error) std::rethrow_exception(std::exchange(next_error, nullptr));
     fresh->check("rebuilding the particle scene in the background", true);
-  } catch (...) {
-    spare = std::move(fresh->spheres);  // for the next try
-    throw;
+  } catch (const std::exception& e) {
+    if (fresh) spare = std::move(fresh->spheres);  // for the next try
+    note_failure(e.what());
+    return false;
   }
-  for (std::uint32_t p : late) fresh->spheres[rank[p]].radius *= -1.0;
+  for (std::uint32_t p : late)
+    fresh->spheres[rank[p]].radius = -std::abs(fresh->spheres[rank[p]].radius);
   std::swap(live, fresh);
   spare = std::move(fresh->spheres);  // no query runs: the old structure goes unused from here
   return true;
@@ -664,57 +683,65 @@ bool EmbreeScene::rebuild_due() const {
 
 void EmbreeScene::poll_rebuild() {
   if (update_ != SceneUpdate::background) return;
-  take_rebuilt(false);
+  impl_->adopt_rebuild(false);
   start_rebuild_if_due(false);
 }
 
 void EmbreeScene::finish_rebuild() {
   if (update_ != SceneUpdate::background) return;
-  take_rebuilt(true);
+  Impl& im = *impl_;
+  im.adopt_rebuild(true);
   start_rebuild_if_due(true);
-  take_rebuilt(true);
+  im.adopt_rebuild(true);
+  if (im.failures == im.failures_seen) return;
+  im.failures_seen = im.failures;
+  throw RunError(im.last_failure);
+}
+
+std::size_t EmbreeScene::failed_rebuilds() const {
+  return impl_->failures;
+}
+
+const std::string& EmbreeScene::last_failed_rebuild() const {
+  return impl_->last_failure;
 }
 
 // One build at a time. Put off, to the next removal or poll, while the first spare's pages are
 // still being touched (`wait`: waits for them): copied into fresh pages, the records took 82 ms.
+// The count restarts with the build, failed or not: after a failure the next try waits for
+// another rebuild_fraction of N removed.
 void EmbreeScene::start_rebuild_if_due(bool wait) {
   Impl& im = *impl_;
   if (im.building() || !rebuild_due() || (!wait && !im.spare_ready())) return;
-  masked_before_build_ = std::exchange(masked_in_structure_, 0);
-  ++rebuilds_;
-  im.start_rebuild();
-}
-
-void EmbreeScene::take_rebuilt(bool wait) {
-  try {
-    impl_->adopt_rebuild(wait);
-  } catch (...) {
-    masked_in_structure_ += masked_before_build_;  // the failed build's removals are still masked
-    throw;
-  }
+  masked_in_structure_ = 0;
+  if (im.start_rebuild()) ++rebuilds_;
 }
 
 void EmbreeScene::remove(std::span<const std::uint32_t> ids) {
   Impl& im = *impl_;
   check_removal_ids(ids, removed_.size());
+  if (im.building())  // no allocation can fail between a mask and its listing
+    im.removed_while_building.reserve(im.removed_while_building.size() + ids.size());
   std::size_t masked = 0;
   for (std::uint32_t p : ids) {
     if (removed_[p]) continue;
     removed_[p] = 1;
-    im.live->spheres[im.rank[p]].radius *= -1.0;  // masked in the callback from now on
+    SphereRecord& sphere = im.live->spheres[im.rank[p]];
+    sphere.radius = -std::abs(sphere.radius);  // masked in the callback from now on
     if (im.building()) im.removed_while_building.push_back(p);
     ++masked;
   }
+  masked_in_structure_ += masked;
+  if (update_ == SceneUpdate::background) {
+    // Counted from the build's start, so an adopted build holds exactly these; never throws
+    // for a failed build (poll_rebuild).
+    if (masked > 0) im.prepare_spare();
+    poll_rebuild();
+    return;
+  }
   if (ids.empty() || update_ == SceneUpdate::mask_only) return;
-  if (update_ == SceneUpdate::deferred || update_ == SceneUpdate::background) {
+  if (update_ == SceneUpdate::deferred) {
     // Masked spheres cost traversal time, not correctness: rebuild only once they are many.
-    // (Background: counted from the build's start, so an adopted build holds exactly these.)
-    masked_in_structure_ += masked;
-    if (update_ == SceneUpdate::background) {
-      im.prepare_spare();
-      poll_rebuild();
-      return;
-    }
     if (!rebuild_due()) return;
     masked_in_structure_ = 0;
   }

@@ -39,11 +39,13 @@ enum class SceneUpdate {
                // removal that starts it pays the copy (2-4 ms at 1e6, into pages touched on
                // another thread since the first removal, or kept from the structure before:
                // fresh ones took 80 ms), then returns. The finished structure
-               // takes over at the next remove() or poll_rebuild() (0.2-0.3 ms). Tracing is
+               // takes over at the next remove() or poll_rebuild() (0.2-0.9 ms). Tracing is
                // bit-identical whichever structure answers (the callback's double test and its
                // tie rule decide every hit), so when the swap happens changes no result. Costs:
-               // one more copy of the spheres held (32 bytes each), and the build shares the
-               // cores with whatever runs meanwhile. The tracer's default.
+               // one more copy of the spheres held from the first removal (32 bytes each); during
+               // a build two Embree structures (peak ~100 bytes per sphere above deferred's, 308
+               // against 211 MB at 1e6; limit_memory caps each); the build shares the cores with
+               // whatever runs meanwhile. The tracer's default.
   mask_only,   // keep the structure; removed spheres are culled in the callback only
   rebuild,     // one geometry, static high-quality build, rebuilt on every update
   refit,       // one geometry, refit with empty bounds for removed spheres
@@ -72,12 +74,17 @@ class EmbreeScene {
   // with the particles removed since its start masked in it, and starts the build a removal past
   // the threshold put off (while the first spare copy's pages were still being touched). Call it
   // where no query is running (the tracer does, at each launch and advance; remove() does too).
-  // A build that failed throws RunError here, naming Embree's error; the current structure stays,
-  // correct, and the next poll or removal tries again.
+  // A build that failed (Embree's error, no memory for the copy, no thread) throws nothing here:
+  // the structure in use stays, correct (removals are masked in it), only slower to trace; the
+  // failure is counted and kept (failed_rebuilds, last_failed_rebuild), and the next try comes
+  // once another rebuild_fraction of N has been removed.
   void poll_rebuild();
   // The same, waiting: a build in flight or due is finished and in place on return (tests,
-  // benchmarks, a caller about to time).
+  // benchmarks, a caller about to time). Throws RunError, naming the task and Embree's error,
+  // for a failure not thrown before.
   void finish_rebuild();
+  std::size_t failed_rebuilds() const;
+  const std::string& last_failed_rebuild() const;  // empty while none has failed
 
   // Nearest outside hit of one ray (rtcIntersect1).
   void intersect1(const RayQuery& query, std::uint32_t ray_id) const;
@@ -87,7 +94,8 @@ class EmbreeScene {
                    bool coherent = true) const;
   // True when some particle is hit before query.t_hit[ray_id] (rtcOccluded1).
   bool occluded1(const RayQuery& query, std::uint32_t ray_id) const;
-  // Errors: construction and remove() throw RunError when Embree reports one during their build,
+  // Errors: construction and remove() throw RunError when Embree reports one during their build
+  // (in background mode, remove() builds nothing itself: see poll_rebuild),
   // and the queries when it reports one during them (on the calling thread, once Embree has
   // returned), naming Embree's error code and what was being done. After a failed build every
   // query throws (Embree has no structure left, and would miss every sphere without an error)
@@ -101,13 +109,11 @@ class EmbreeScene {
 
  private:
   struct Impl;
-  void take_rebuilt(bool wait);  // adopts a finished background build; a failed one throws
-  bool rebuild_due() const;      // masked since the last build > rebuild_fraction of N
+  bool rebuild_due() const;  // masked since the last build > rebuild_fraction of N
   void start_rebuild_if_due(bool wait);
   SceneUpdate update_;
   double rebuild_fraction_;
   std::size_t masked_in_structure_ = 0;  // removed since the last build (deferred, background)
-  std::size_t masked_before_build_ = 0;  // background: those the build in flight leaves out
   std::size_t rebuilds_ = 0;
   std::vector<std::uint8_t> removed_;
   std::unique_ptr<Impl> impl_;

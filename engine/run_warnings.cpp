@@ -233,6 +233,12 @@ std::vector<std::string> Simulation::run_warnings() const {
     out.push_back(std::move(warning));
   if (std::optional<std::string> warning = phase_resolution_warning(spec_, f))
     out.push_back(std::move(*warning));
+  if (const std::size_t failed = tracer_->failed_scene_rebuilds(); failed > 0)
+    out.push_back("the ray scene's background rebuild failed " + std::to_string(failed) + " time" +
+                  plural(failed) + " (the last: " + tracer_->last_failed_scene_rebuild() +
+                  "); the traces went on with the structure before it, in which the removed "
+                  "particles are masked: the results are those of a rebuilt scene, only traced "
+                  "slower");
   return out;
 }
 

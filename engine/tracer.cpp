@@ -251,6 +251,14 @@ std::size_t Tracer::scene_rebuilds() const {
   return scene_ ? scene_->rebuilds() : 0;
 }
 
+std::size_t Tracer::failed_scene_rebuilds() const {
+  return scene_ ? scene_->failed_rebuilds() : 0;
+}
+
+std::string Tracer::last_failed_scene_rebuild() const {
+  return scene_ ? scene_->last_failed_rebuild() : std::string();
+}
+
 void Tracer::finish_scene_rebuild() {
   if (scene_) scene_->finish_rebuild();
 }
@@ -1049,8 +1057,11 @@ void Tracer::remove_particles(std::span<const std::uint32_t> ids) {
     removed_unbuilt_.insert(removed_unbuilt_.end(), ids.begin(), ids.end());
     return;
   }
-  scene_->remove(ids);
+  check_removal_ids(ids, particles_.size());
+  // The grid first: were the scene's removal to throw after masking, a grid still offering a
+  // masked particle would send a ray back to it for ever (step_ray retraces on a removed hit).
   if (grid_) grid_->remove(ids);
+  scene_->remove(ids);
 }
 
 }  // namespace beampack

@@ -196,6 +196,10 @@ class Tracer {
   bool has_scene() const { return scene_ != nullptr; }
   // Updates of the ray scene's structure since its build (EmbreeScene::rebuilds).
   std::size_t scene_rebuilds() const;
+  // Background rebuilds of the ray scene that failed (the traces went on with the structure
+  // before, correct and slower), and the last one's message (EmbreeScene::poll_rebuild).
+  std::size_t failed_scene_rebuilds() const;
+  std::string last_failed_scene_rebuild() const;
   // Finishes a background rebuild of the ray scene in flight or due, and takes it (benchmarks,
   // and a caller about to time something).
   void finish_scene_rebuild();
