@@ -639,7 +639,7 @@ bool EmbreeScene::Impl::adopt_rebuild(bool wait) {
 EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
                          std::size_t particles_per_brick, double rebuild_fraction,
                          unsigned spheres_per_primitive, const std::string& device_config)
-    : update_(update), rebuild_fraction_(rebuild_fraction), impl_(std::make_unique<Impl>()) {
+    : rebuild_fraction_(rebuild_fraction), impl_(std::make_unique<Impl>()) {
   Impl& im = *impl_;
   const std::size_t n = particles.size();
   removed_.resize(n);
@@ -673,6 +673,10 @@ void EmbreeScene::limit_memory(std::size_t bytes) {
   impl_->live->report.byte_limit.store(limit, std::memory_order_relaxed);
 }
 
+SceneUpdate EmbreeScene::update_mode() const {
+  return impl_->update;
+}
+
 bool EmbreeScene::rebuilding() const {
   return impl_->building();
 }
@@ -682,13 +686,13 @@ bool EmbreeScene::rebuild_due() const {
 }
 
 void EmbreeScene::poll_rebuild() {
-  if (update_ != SceneUpdate::background) return;
+  if (impl_->update != SceneUpdate::background) return;
   impl_->adopt_rebuild(false);
   start_rebuild_if_due(false);
 }
 
 void EmbreeScene::finish_rebuild() {
-  if (update_ != SceneUpdate::background) return;
+  if (impl_->update != SceneUpdate::background) return;
   Impl& im = *impl_;
   im.adopt_rebuild(true);
   start_rebuild_if_due(true);
@@ -732,22 +736,22 @@ void EmbreeScene::remove(std::span<const std::uint32_t> ids) {
     ++masked;
   }
   masked_in_structure_ += masked;
-  if (update_ == SceneUpdate::background) {
+  if (im.update == SceneUpdate::background) {
     // Counted from the build's start, so an adopted build holds exactly these; never throws
     // for a failed build (poll_rebuild).
     if (masked > 0) im.prepare_spare();
     poll_rebuild();
     return;
   }
-  if (ids.empty() || update_ == SceneUpdate::mask_only) return;
-  if (update_ == SceneUpdate::deferred) {
+  if (ids.empty() || im.update == SceneUpdate::mask_only) return;
+  if (im.update == SceneUpdate::deferred) {
     // Masked spheres cost traversal time, not correctness: rebuild only once they are many.
     if (!rebuild_due()) return;
     masked_in_structure_ = 0;
   }
   ++rebuilds_;
   Structure& st = *im.live;
-  if (update_ == SceneUpdate::bricks) {
+  if (im.update == SceneUpdate::bricks) {
     std::vector<std::size_t> touched;
     touched.reserve(ids.size());
     for (std::uint32_t p : ids) touched.push_back(im.rank[p] / im.brick_size);

@@ -65,7 +65,7 @@ class EmbreeScene {
   // Not concurrent with queries (nor are poll_rebuild and finish_rebuild).
   void remove(std::span<const std::uint32_t> ids);
   bool removed(std::uint32_t id) const { return removed_[id] != 0; }
-  SceneUpdate update_mode() const { return update_; }
+  SceneUpdate update_mode() const;
   // Structure updates after construction (background: builds started, adopted or not).
   std::size_t rebuilds() const { return rebuilds_; }
   // Background mode: a build is in flight, or finished and not yet adopted.
@@ -111,7 +111,6 @@ class EmbreeScene {
   struct Impl;
   bool rebuild_due() const;  // masked since the last build > rebuild_fraction of N
   void start_rebuild_if_due(bool wait);
-  SceneUpdate update_;
   double rebuild_fraction_;
   std::size_t masked_in_structure_ = 0;  // removed since the last build (deferred, background)
   std::size_t rebuilds_ = 0;

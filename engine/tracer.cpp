@@ -1057,9 +1057,9 @@ void Tracer::remove_particles(std::span<const std::uint32_t> ids) {
     removed_unbuilt_.insert(removed_unbuilt_.end(), ids.begin(), ids.end());
     return;
   }
-  check_removal_ids(ids, particles_.size());
-  // The grid first: were the scene's removal to throw after masking, a grid still offering a
-  // masked particle would send a ray back to it for ever (step_ray retraces on a removed hit).
+  // The grid first (it checks the ids before changing anything, as the scene does): were the
+  // scene's removal to throw after masking, a grid still offering a masked particle would send a
+  // ray back to it for ever (step_ray retraces on a removed hit).
   if (grid_) grid_->remove(ids);
   scene_->remove(ids);
 }
