@@ -2632,6 +2632,33 @@ TEST(Cli, RunWarningsFollowTheTableInAPipe) {
   EXPECT_LT(table, warning) << r.output;
 }
 
+// sweep and converge print a stage table over their runs, as `run` prints its own, and say
+// which runs skipped a stage and why: 1 W heats nothing to melting, so that value's phases never
+// ran (a sweep said no stage it skipped).
+TEST(Cli, SweepAndConvergeSayWhichRunsSkippedAStage) {
+  const fs::path dir = fresh_dir("sweep_stages");
+  const Result sweep =
+      run("sweep --preset quick --quiet --param beam.power --values 1,60000 --out " +
+          (dir / "sweep").string());
+  ASSERT_EQ(sweep.code, 0) << sweep.output;
+  EXPECT_CONTAINS(sweep.output, "stages over 2 runs, s");
+  const std::size_t phases = sweep.output.find("\n  phases");
+  ASSERT_NE(phases, std::string::npos) << sweep.output;
+  const std::string line =
+      sweep.output.substr(phases + 1, sweep.output.find('\n', phases + 1) - phases - 1);
+  EXPECT_CONTAINS(line,
+                  "skipped in 1 of 2 runs: no particle whose temperature changed was at the "
+                  "melting temperature (beam.power = 1)");
+  EXPECT_LT(sweep.output.find("stages over"), sweep.output.find("sweep: 2 runs")) << sweep.output;
+  const Result converge = run("converge --preset quick --quiet --set pulses.count=0 --out " +
+                              (dir / "converge").string());
+  ASSERT_EQ(converge.code, 0) << converge.output;
+  EXPECT_CONTAINS(converge.output, "stages over ");
+  EXPECT_CONTAINS(converge.output,
+                  "  trace                                   -  skipped: "
+                  "`pulses.count` = 0: no pulse, no ray scene or bounce grid built");
+}
+
 // sweep and converge say each run's warnings, as `run` does, after the value or rung they belong
 // to (they said none: a value's late pulses went unseen); one of every run's spec is said once,
 // without a value (walls with K = 0 take no heat, whatever thermal.dt is).

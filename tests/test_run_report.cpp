@@ -224,6 +224,40 @@ TEST(RunReport, TemperatureErrorsCompareParticlesLiveInBothRuns) {
   EXPECT_FALSE(none.max);
 }
 
+// A sweep's or converge's stage table sums its runs' seconds and calls and says, for a stage
+// some runs skipped, in which of them and why (the runs' labels grouped by reason, a few named).
+TEST(RunReport, AStageTableOfSeveralRunsSaysWhichSkippedAStageAndWhy) {
+  const auto run = [](const std::string& label, StageTime phases, StageTime rebuild) {
+    StageTable stages = {{"setup", {0.25, 1, ""}}, {"phases", phases}, {"rebuild", rebuild}};
+    return LabelledRun{label, stages, Counts{}};
+  };
+  const StageTime cold{0, 0, "no particle at the melting temperature"};
+  const StageTime rigid{0, 0, "no contact graph"}, empty{0, 0, "no particles"};
+  std::vector<LabelledRun> runs = {run("P = 1", cold, rigid), run("P = 2", {0.5, 3, ""}, rigid),
+                                   run("P = 3", {1.0, 4, ""}, rigid)};
+  std::vector<std::string> lines = stage_total_lines(runs, {0.125, 1, ""});
+  ASSERT_EQ(lines.size(), 5u);
+  EXPECT_EQ(lines[0], "stages over 3 runs, s");
+  EXPECT_CONTAINS(lines[1], "0.7500  (3 calls)");
+  EXPECT_CONTAINS(lines[2],
+                  "1.5000  (7 calls); skipped in 1 of 3 runs: no particle at the "
+                  "melting temperature (P = 1)");
+  EXPECT_CONTAINS(lines[3], "-  skipped: no contact graph");  // every run, one reason: no names
+  EXPECT_NOT_CONTAINS(lines[3], "P = ");
+  EXPECT_CONTAINS(lines[4], "output");
+  EXPECT_CONTAINS(lines[4], "0.1250  (1 call)");
+  // Every run skipped it, for two reasons: each names its runs, three at most.
+  for (int k = 4; k <= 8; ++k) runs.push_back(run("P = " + std::to_string(k), cold, empty));
+  lines = stage_total_lines(runs, {0.125, 1, ""});
+  EXPECT_CONTAINS(lines[3],
+                  "skipped: no contact graph (P = 1, P = 2, P = 3); no particles "
+                  "(P = 4, P = 5, P = 6 and 2 more)");
+  EXPECT_CONTAINS(lines[2],
+                  "skipped in 6 of 8 runs: no particle at the melting temperature "
+                  "(P = 1, P = 4, P = 5 and 3 more)");
+  EXPECT_TRUE(stage_total_lines({}, {0.125, 1, ""}).empty());  // no run ended: no table
+}
+
 TEST(RunReport, AClosedLedgerGivesNoWarning) {
   EXPECT_TRUE(open_ledger_warnings(SimulationSpec{}, closed_ledger()).empty());
   EnergyLedger round_off = closed_ledger();

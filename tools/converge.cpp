@@ -262,6 +262,15 @@ void tabulate_ladder(const Ladder& ladder, std::string& csv, std::vector<Chart>&
   if (absorbed) warn_if_no_rung_differs(ladder);
 }
 
+// Every rung that ran to its end, labelled as its lines are, for the stage table.
+std::vector<LabelledRun> labelled_runs(const std::vector<Ladder>& all) {
+  std::vector<LabelledRun> runs;
+  for (const Ladder& ladder : all)
+    for (const Rung& rung : ladder.rungs)
+      runs.push_back({ladder.name + " " + rung.value, rung.result.stages, rung.result.counts});
+  return runs;
+}
+
 }  // namespace
 
 int converge_command(const RunOptions& options) {
@@ -302,9 +311,15 @@ int converge_command(const RunOptions& options) {
                         out, tables);
     return cut ? std::max(code, 1) : code;
   }
-  write_atomically(
-      {{(out / "convergence.csv").string(), [&](std::ostream& o) { o << csv; }},
-       {(out / "convergence.svg").string(), [&](std::ostream& o) { o << render_svg(panels); }}});
+  StageTime output;
+  {
+    const StageTimer timer(output);
+    write_atomically(
+        {{(out / "convergence.csv").string(), [&](std::ostream& o) { o << csv; }},
+         {(out / "convergence.svg").string(), [&](std::ostream& o) { o << render_svg(panels); }}});
+  }
+  for (const std::string& line : stage_total_lines(labelled_runs(all), output))
+    std::printf("%s\n", line.c_str());
   std::printf("converge: %s/convergence.csv, %s/convergence.svg\n", options.out_dir.c_str(),
               options.out_dir.c_str());
   return cut ? std::max(code, 1) : code;

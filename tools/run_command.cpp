@@ -383,32 +383,45 @@ struct CommandStages {
   StageTime setup, output;
 };
 
-// Adds the time from its making to its end to a stage, and one call.
-class StageTimer {
- public:
-  explicit StageTimer(StageTime& stage) : stage_(stage) {}
-  StageTimer(const StageTimer&) = delete;
-  StageTimer& operator=(const StageTimer&) = delete;
-  ~StageTimer() {
-    stage_.seconds += seconds_since(start_);
-    ++stage_.calls;
-  }
+// Adds a part's set-up to `setup`: `elapsed` since the run's start (less the writes in it), but the
+// simulation's own stage time in it, the contact graph's first build, which its `rebuild` stage
+// counts. A restored state replaces the simulation's stage times with the earlier parts', and
+// that build's time is then the set-up's.
+void count_set_up(StageTime& setup, const Simulation& sim, bool restored, double elapsed) {
+  double simulation_stages = 0;
+  if (!restored)
+    for (const StageTime& s : sim.stages()) simulation_stages += s.seconds;
+  setup.seconds += elapsed - simulation_stages;
+  ++setup.calls;
+}
 
- private:
-  StageTime& stage_;
-  Clock::time_point start_ = Clock::now();
-};
-
-// Every stage of a run, in the order it runs: the set-up, the simulation's, the output. The
-// command's own never skip (a run that writes its figures was set up and writes them).
-std::vector<std::pair<std::string, StageTime>> run_stages(const Simulation& sim,
-                                                          const CommandStages& own) {
-  std::vector<std::pair<std::string, StageTime>> out{{"setup", own.setup}};
+// The set-up, then the simulation's stages, in the order they run.
+StageTable set_up_and_simulation_stages(const Simulation& sim, const StageTime& setup) {
+  StageTable out{{"setup", setup}};
   const auto times = sim.stages();
   for (int k = 0; k < Simulation::kStages; ++k)
     out.emplace_back(Simulation::kStageNames[k], times[k]);
+  return out;
+}
+
+// Every stage of a run, in the order it runs: the set-up, the simulation's, the output. The
+// command's own never skip (a run that writes its figures was set up and writes them).
+StageTable run_stages(const Simulation& sim, const CommandStages& own) {
+  StageTable out = set_up_and_simulation_stages(sim, own.setup);
   out.emplace_back("output", own.output);
   return out;
+}
+
+// A line of a stage table: the stage's seconds, its calls and `note`; or, never run, why not.
+std::string stage_line(const std::string& name, const StageTime& s, const std::string& note) {
+  char text[128];
+  if (s.calls == 0) {
+    std::snprintf(text, sizeof text, "  %-26s %14s  skipped: ", name.c_str(), "-");
+    return text + s.skipped_because;
+  }
+  std::snprintf(text, sizeof text, "  %-26s %14.4f  (%llu call%s)", name.c_str(), s.seconds,
+                static_cast<unsigned long long>(s.calls), plural(s.calls));
+  return text + note;
 }
 
 // `earlier_parts`: the builds that ran the parts of a resumed run before this one.
@@ -477,14 +490,8 @@ void print_table(const Simulation& sim, const RunResult& r, const CommandStages&
               e.optics_imbalance() / std::max(e.injected, 1e-300),
               e.heat_imbalance() / std::max(e.heat_scale(), 1e-300));
   std::printf("stages, s\n");
-  for (const auto& [name, s] : run_stages(sim, own)) {
-    if (s.calls == 0)
-      std::printf("  %-26s %14s  skipped: %s\n", name.c_str(), "-", s.skipped_because.c_str());
-    else
-      std::printf("  %-26s %14.4f  (%llu call%s)%s\n", name.c_str(), s.seconds,
-                  static_cast<unsigned long long>(s.calls), plural(s.calls),
-                  stage_note(name, r.counts).c_str());
-  }
+  for (const auto& [name, s] : run_stages(sim, own))
+    std::printf("%s\n", stage_line(name, s, stage_note(name, r.counts)).c_str());
   std::printf("%-28s %14.3f s (%llu step%s, %llu ray%s, %llu segment%s traced", "wall time",
               r.wall_seconds, static_cast<unsigned long long>(r.counts.steps),
               plural(r.counts.steps), static_cast<unsigned long long>(r.counts.rays),
@@ -568,6 +575,11 @@ void say_warnings(const std::string& label, const std::vector<std::string>& warn
 
 }  // namespace
 
+StageTimer::~StageTimer() {
+  stage_.seconds += seconds_since(start_);
+  ++stage_.calls;
+}
+
 std::set<std::string> warn_of_shared_specs(const std::vector<const RunConfig*>& configs) {
   std::vector<std::string> shared;  // in the order of the first run's, as `run` says them
   if (!configs.empty()) shared = spec_warnings(configs.front()->sim);
@@ -608,9 +620,12 @@ RunResult run_scene(const RunConfig& config, bool quiet, const std::string& labe
     return r;
   }
   Simulation& sim = *owned;
+  StageTime setup;
+  count_set_up(setup, sim, false, seconds_since(start));
   say_warnings(label, sim.scene_warnings());
   step_until_done(sim, quiet, label);
   RunResult r;
+  r.stages = set_up_and_simulation_stages(sim, setup);
   r.figures = sim.figures();
   r.counts = sim.counts();
   r.temperature = sim.particles().temperature;
@@ -619,6 +634,88 @@ RunResult run_scene(const RunConfig& config, bool quiet, const std::string& labe
   r.wall_seconds = seconds_since(start);
   if (!r.interrupted) say_warnings(label, sim.run_warnings());  // a part of a run says nothing
   return r;
+}
+
+namespace {
+
+// The runs that skipped a stage, by why: each reason once, in the order first met, with the
+// labels of its runs.
+using SkipGroups = std::vector<std::pair<std::string, std::vector<std::string>>>;
+
+// "<why> (a, b, c and 4 more)"; a reason every run of the table gave names none.
+std::string skip_groups_text(const SkipGroups& groups, std::size_t runs) {
+  constexpr std::size_t kNamed = 3;
+  std::string text;
+  for (const auto& [why, labels] : groups) {
+    if (!text.empty()) text += "; ";
+    text += why;
+    if (labels.size() == runs) continue;
+    text += " (";
+    for (std::size_t k = 0; k < std::min(labels.size(), kNamed); ++k)
+      text += (k > 0 ? ", " : "") + labels[k];
+    if (labels.size() > kNamed) text += " and " + std::to_string(labels.size() - kNamed) + " more";
+    text += ")";
+  }
+  return text;
+}
+
+// One stage summed over the runs (seconds and calls), with the runs that skipped it.
+struct StageTotal {
+  StageTime time;
+  SkipGroups skipped;
+  std::size_t skips = 0;
+};
+
+StageTotal total_of_stage(const std::vector<LabelledRun>& runs, std::size_t stage) {
+  StageTotal total;
+  for (const LabelledRun& run : runs) {
+    const StageTime& s = run.stages.at(stage).second;
+    total.time.seconds += s.seconds;
+    total.time.calls += s.calls;
+    if (s.calls > 0) continue;
+    ++total.skips;
+    auto group = std::find_if(total.skipped.begin(), total.skipped.end(),
+                              [&](const auto& g) { return g.first == s.skipped_because; });
+    if (group == total.skipped.end())
+      group = total.skipped.insert(total.skipped.end(), {s.skipped_because, {}});
+    group->second.push_back(run.label);
+  }
+  total.time.skipped_because = skip_groups_text(total.skipped, runs.size());
+  return total;
+}
+
+// The shares the heat and trace stages' notes give, over every run.
+Counts summed_shares(const std::vector<LabelledRun>& runs) {
+  Counts sum;
+  for (const LabelledRun& run : runs) {
+    sum.heat_rows_solved += run.counts.heat_rows_solved;
+    sum.heat_rows_live += run.counts.heat_rows_live;
+    sum.ray_chunks_run += run.counts.ray_chunks_run;
+    sum.ray_chunks_live += run.counts.ray_chunks_live;
+  }
+  return sum;
+}
+
+}  // namespace
+
+std::vector<std::string> stage_total_lines(const std::vector<LabelledRun>& runs,
+                                           const StageTime& output) {
+  if (runs.empty()) return {};
+  const std::size_t n = runs.size();
+  std::vector<std::string> lines{"stages over " + std::to_string(n) + " run" +
+                                 plural(static_cast<long long>(n)) + ", s"};
+  const Counts shares = summed_shares(runs);
+  for (std::size_t k = 0; k < runs.front().stages.size(); ++k) {
+    const std::string& name = runs.front().stages[k].first;
+    const StageTotal total = total_of_stage(runs, k);
+    std::string note = stage_note(name, shares);
+    if (total.skips > 0 && total.skips < n)
+      note += "; skipped in " + std::to_string(total.skips) + " of " + std::to_string(n) +
+              " runs: " + total.time.skipped_because;
+    lines.push_back(stage_line(name, total.time, note));
+  }
+  lines.push_back(stage_line("output", output, ""));
+  return lines;
 }
 
 namespace {
@@ -1078,18 +1175,6 @@ void record_pulse_ends(Simulation& sim, const OutputSpec& output, const fs::path
   });
 }
 
-// Adds a part's set-up to `setup`: `elapsed` since the run's start (less the writes in it), but the
-// simulation's own stage time in it, the contact graph's first build, which its `rebuild` stage
-// counts. A restored state replaces the simulation's stage times with the earlier parts', and
-// that build's time is then the set-up's.
-void count_set_up(StageTime& setup, const Simulation& sim, bool restored, double elapsed) {
-  double simulation_stages = 0;
-  if (!restored)
-    for (const StageTime& s : sim.stages()) simulation_stages += s.seconds;
-  setup.seconds += elapsed - simulation_stages;
-  ++setup.calls;
-}
-
 // Steps until the run is done or interrupted, with a checkpoint between steps when one is due
 // (never inside a step: a resume continues with exactly the next step). A step that fails keeps
 // the pulses ended before it, and its exception goes on.
@@ -1447,6 +1532,7 @@ int sweep_command(const SweepOptions& options) {
   Series vv{"vaporized fraction", {}, {}};
   const SweepAxis axis = sweep_axis(values);
   const auto start = Clock::now();
+  std::vector<LabelledRun> ran;  // the values that ran to their end, for the stage table
   int code = 0;  // a value that fails leaves its row empty; the others still run and are written
   bool cut = false;  // an interrupt left values out (one after the last value ends leaves none)
   for (std::size_t k = 0; k < configs.size(); ++k) {
@@ -1477,6 +1563,7 @@ int sweep_command(const SweepOptions& options) {
            ',' + exact(r.wall_seconds) + '\n';
     vv.x.push_back(axis.x[k]);
     vv.y.push_back(f.vaporized_fraction);
+    ran.push_back({param + " = " + values[k], std::move(r.stages), r.counts});
     std::printf("%-24s %s = %-10s v_v = %.4f  melted = %.4f  T_max = %s  (%.2f s)\n", "sweep",
                 param.c_str(), values[k].c_str(), f.vaporized_fraction, f.melted_fraction,
                 peak_text(f, "%.0f K").c_str(), r.wall_seconds);
@@ -1487,9 +1574,14 @@ int sweep_command(const SweepOptions& options) {
     return cut ? std::max(code, 1) : code;
   }
   const Chart chart = sweep_chart(param, values, axis, vv);
-  write_atomically(
-      {{(out / "sweep.csv").string(), [&](std::ostream& o) { o << csv; }},
-       {(out / "sweep.svg").string(), [&](std::ostream& o) { o << render_svg(chart); }}});
+  StageTime output;
+  {
+    const StageTimer timer(output);
+    write_atomically(
+        {{(out / "sweep.csv").string(), [&](std::ostream& o) { o << csv; }},
+         {(out / "sweep.svg").string(), [&](std::ostream& o) { o << render_svg(chart); }}});
+  }
+  for (const std::string& line : stage_total_lines(ran, output)) std::printf("%s\n", line.c_str());
   const double total = seconds_since(start);
   std::printf("sweep: %zu run%s in %.2f s; %s/sweep.csv, %s/sweep.svg\n", vv.x.size(),
               plural(static_cast<long long>(vv.x.size())), total, options.run.out_dir.c_str(),

@@ -3,6 +3,7 @@
 #include <tbb/global_control.h>
 
 #include <atomic>
+#include <chrono>
 #include <exception>
 #include <filesystem>
 #include <functional>
@@ -10,6 +11,7 @@
 #include <optional>
 #include <set>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "tools/run_config.h"
@@ -105,6 +107,22 @@ struct SweepOptions {
 };
 int sweep_command(const SweepOptions& options);
 
+// Adds the time from its making to its end to a stage, and one call.
+class StageTimer {
+ public:
+  explicit StageTimer(StageTime& stage) : stage_(stage) {}
+  StageTimer(const StageTimer&) = delete;
+  StageTimer& operator=(const StageTimer&) = delete;
+  ~StageTimer();
+
+ private:
+  StageTime& stage_;
+  std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
+};
+
+// A run's stages in the order they run, each with its time, its calls and why it never ran.
+using StageTable = std::vector<std::pair<std::string, StageTime>>;
+
 // The result of one finished run, for sweeps and convergence studies.
 struct RunResult {
   Figures figures;
@@ -113,6 +131,8 @@ struct RunResult {
   std::vector<double> temperature;
   std::vector<std::uint8_t> alive;  // per particle, 0 once vaporised
   bool interrupted = false;
+  StageTable
+      stages;  // `setup`, then the simulation's (a run of a sweep writes no files of its own)
 };
 // A command's --out folder, made (with any missing parents) and checked writable at once, so an
 // unusable --out fails before any run. When the command leaves the folders it made empty (bad
@@ -161,5 +181,18 @@ std::set<std::string> warn_of_shared_specs(const std::vector<const RunConfig*>& 
 // spec's but those `said` before, its scene's once set up, its run's once ended.
 RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label = "",
                     const std::set<std::string>& said = {});
+
+// One finished run of a sweep or converge, as its stage table counts it: its label (the value or
+// rung its lines name), its stages and its counts.
+struct LabelledRun {
+  std::string label;
+  StageTable stages;
+  Counts counts;
+};
+// The stage table of a sweep or converge, as `run` prints its own: each stage's seconds and calls
+// summed over `runs`, then the command's own `output` (its tables). A stage that some or all runs
+// skipped says in which and why: "skipped in 2 of 5 runs: <why> (K = 0, K = 10)".
+std::vector<std::string> stage_total_lines(const std::vector<LabelledRun>& runs,
+                                           const StageTime& output);
 
 }  // namespace beampack::tools
