@@ -554,19 +554,25 @@ void run_update(benchmark::State& state, SceneUpdate mode, bool under_beam) {
       [](EmbreeScene& scene, const auto& ids) { scene.remove(ids); });
 }
 
+// A tracer over `p`, updating its scene by `mode`, with a pulse of the paper's beam in flight
+// inside the packing.
+std::unique_ptr<Tracer> tracer_in_flight(const Particles& p, SceneUpdate mode) {
+  OpticsSpec spec;
+  spec.scene_update = mode;
+  auto tracer = std::make_unique<Tracer>(p, spec);
+  tracer->launch(paper_beam(), 1e-9);
+  std::vector<double> deposits;
+  tracer->advance(2e-4, deposits);
+  return tracer;
+}
+
 // What the driver pays: Tracer::remove_particles (scene + grid masks, rays heading for a removed
 // sphere retraced later) with a pulse in flight.
 void run_tracer_remove(benchmark::State& state, bool under_beam) {
   const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
-  auto tracer_in_flight = [&] {
-    auto tracer = std::make_unique<Tracer>(p, OpticsSpec{});
-    tracer->launch(paper_beam(), 1e-9);
-    std::vector<double> deposits;
-    tracer->advance(2e-4, deposits);  // rays in flight inside the packing
-    return tracer;
-  };
-  time_removal(state, under_beam, tracer_in_flight,
-               [](Tracer& tracer, const auto& ids) { tracer.remove_particles(ids); });
+  time_removal(
+      state, under_beam, [&] { return tracer_in_flight(p, OpticsSpec{}.scene_update); },
+      [](Tracer& tracer, const auto& ids) { tracer.remove_particles(ids); });
 }
 
 // A run's updates in a row: eleven removals of 1% each, the eleventh past the rebuild threshold
@@ -619,17 +625,8 @@ void run_update_sequence(benchmark::State& state, SceneUpdate mode, bool under_b
 
 void run_tracer_update_sequence(benchmark::State& state, SceneUpdate mode, bool under_beam) {
   const Particles& p = packing(static_cast<std::size_t>(state.range(0)));
-  auto tracer_in_flight = [&] {
-    OpticsSpec spec;
-    spec.scene_update = mode;
-    auto tracer = std::make_unique<Tracer>(p, spec);
-    tracer->launch(paper_beam(), 1e-9);
-    std::vector<double> deposits;
-    tracer->advance(2e-4, deposits);  // rays in flight inside the packing
-    return tracer;
-  };
   time_update_sequence(
-      state, under_beam, tracer_in_flight,
+      state, under_beam, [&] { return tracer_in_flight(p, mode); },
       [](Tracer& tracer, auto ids) { tracer.remove_particles(ids); },
       [](const Tracer& tracer) { return tracer.scene_rebuilds(); });
 }
