@@ -621,12 +621,14 @@ bool EmbreeScene::Impl::adopt_rebuild(bool wait) {
   builder.join();
   std::unique_ptr<Structure> fresh = std::move(next);
   const std::vector<std::uint32_t> late = std::exchange(removed_while_building, {});
+  const std::string what = "rebuilding the particle scene in the background";
   try {
     if (next_error) std::rethrow_exception(std::exchange(next_error, nullptr));
-    fresh->check("rebuilding the particle scene in the background", true);
+    fresh->check(what.c_str(), true);
   } catch (const std::exception& e) {
+    // A build that threw (no device, no memory) made no structure, and its message no context.
+    note_failure(fresh ? e.what() : what + ": " + e.what());
     if (fresh) spare = std::move(fresh->spheres);  // for the next try
-    note_failure(e.what());
     return false;
   }
   for (std::uint32_t p : late)
