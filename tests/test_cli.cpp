@@ -1071,11 +1071,24 @@ for i, row in enumerate(rows):
     assert float(row['absorbed_J']) == a.GetValue(i), i
     assert float(row['r']) == rad.GetValue(i), i
 print('ok', len(frames), len(rows))
+# The start frame, first at t = 0: the bed as it starts, every particle alive at 300 K, no
+# energy absorbed, at the centres and radii of particles.csv.
+times = [float(d.get('timestep')) for d in ET.parse(out + '/particles.pvd').getroot().iter('DataSet')]
+assert frames[0] == 'particles_start.vtp' and times[0] == 0 and times[1] > 0, (frames, times)
+r = vtk.vtkXMLPolyDataReader(); r.SetFileName(out + '/' + frames[0]); r.Update()
+start = r.GetOutput().GetPointData()
+assert r.GetOutput().GetNumberOfPoints() == len(rows)
+for i, row in enumerate(rows):
+    assert start.GetArray('temperature').GetValue(i) == 300, i
+    assert start.GetArray('absorbed_energy').GetValue(i) == 0, i
+    assert start.GetArray('alive').GetValue(i) == 1, i
+    assert start.GetArray('radius').GetValue(i) == float(row['r']), i
+print('start ok')
 # Ray paths: one file per pulse; the segments' energies end where the ledger says they do.
 import glob, json
 summary = json.load(open(out + '/summary.json'))
 files = sorted(glob.glob(out + '/rays_*.vtp'))
-assert len(files) == len(frames), (len(files), len(frames))
+assert len(files) == len(frames) - 1, (len(files), len(frames))
 for f in files:
     rr = vtk.vtkXMLPolyDataReader(); rr.SetFileName(f); rr.Update()
     lines = rr.GetOutput()
@@ -1094,7 +1107,8 @@ print('rays ok', len(files))
     return Result{WIFEXITED(status) ? WEXITSTATUS(status) : -1, text};
   }();
   EXPECT_EQ(py.code, 0) << py.output;
-  EXPECT_CONTAINS(py.output, "ok 5 ");
+  EXPECT_CONTAINS(py.output, "ok 6 ");
+  EXPECT_CONTAINS(py.output, "start ok");
   EXPECT_CONTAINS(py.output, "rays ok 5");
 }
 
@@ -1241,8 +1255,9 @@ TEST(Cli, TheSetUpAndTheOutputAreStagesAndTheStagesMakeUpTheWallTime) {
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_TRUE(std::regex_search(r.output, std::regex("\n  setup +[0-9.]+  \\(1 call\\)\n")))
       << r.output;
-  // One call per pulse end (its history row and frame) and one for the files of the run's end.
-  EXPECT_TRUE(std::regex_search(r.output, std::regex("\n  output +[0-9.]+  \\(6 calls\\)\n")))
+  // One call for the start frame, one per pulse end (its history row and frame) and one for the
+  // files of the run's end.
+  EXPECT_TRUE(std::regex_search(r.output, std::regex("\n  output +[0-9.]+  \\(7 calls\\)\n")))
       << r.output;
   const nlohmann::json summary = read_json(out / "summary.json");
   for (const char* stage : {"setup", "output"}) {
@@ -1252,7 +1267,7 @@ TEST(Cli, TheSetUpAndTheOutputAreStagesAndTheStagesMakeUpTheWallTime) {
     EXPECT_EQ(s["skipped_because"], "") << stage;
   }
   EXPECT_EQ(summary["stages"]["setup"]["calls"], 1);
-  EXPECT_EQ(summary["stages"]["output"]["calls"], 6);
+  EXPECT_EQ(summary["stages"]["output"]["calls"], 7);
   const StageSum whole = stage_sum(summary);
   EXPECT_GE(whole.wall, whole.stages) << summary["stages"].dump();
   EXPECT_LE(whole.wall - whole.stages, 0.1 * whole.wall + 0.02) << summary["stages"].dump();
@@ -1315,7 +1330,8 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
     EXPECT_TRUE(file_text(e.path()) == file_text(other / name)) << name << " differs";
     ++compared;
   }
-  EXPECT_EQ(compared, 13u);  // 5 frames, 5 ray files, particles.pvd, particles.csv, history.csv
+  // The start frame and 5 pulses' frames, 5 ray files, particles.pvd, particles.csv, history.csv.
+  EXPECT_EQ(compared, 14u);
   // A checkpoint folder whose early frames were deleted (to save space): the resumed series
   // leaves them out of particles.pvd, with a warning, rather than name files that are not there.
   const fs::path thinned = fresh_dir("series_thinned"), resumed = fresh_dir("series_resumed");
@@ -2196,11 +2212,12 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
       run("run --preset quick --quiet --set pulses.count=2 --out " + out.string());
   ASSERT_EQ(second.code, 0) << second.output;
   // It says what it removed: the files there, by name, not the kinds a run might leave.
-  EXPECT_CONTAINS(second.output, "removed 10 files of an earlier run from " + out.string() +
+  EXPECT_CONTAINS(second.output, "removed 11 files of an earlier run from " + out.string() +
                                      ": checkpoint.bin, history.csv, particles.csv, particles.pvd "
-                                     "and 6 more");
+                                     "and 7 more");
   EXPECT_FALSE(fs::exists(out / "checkpoint.bin"));
   EXPECT_FALSE(fs::exists(out / "particles_0000.vtp"));
+  EXPECT_FALSE(fs::exists(out / "particles_start.vtp"));
   EXPECT_FALSE(fs::exists(out / "particles.pvd"));
   EXPECT_TRUE(fs::exists(mine));
   EXPECT_EQ(int(read_json(out / "summary.json")["pulses"]), 2);
@@ -2265,8 +2282,9 @@ TEST(Cli, AWriteThatFailsDuringARunIsAFailedRunLeavingNoHalfFile) {
   // The simulation was whole (the write came at a pulse's end, not inside a step): said so.
   EXPECT_CONTAINS(mid.output,
                   "no particles.csv: the run stopped at a pulse's end, writing its files");
-  const std::vector<std::string> before = {"history.csv", "particles.pvd", "particles_0000.vtp",
-                                           "particles_0001.vtp", "summary.json"};
+  const std::vector<std::string> before = {"history.csv",         "particles.pvd",
+                                           "particles_0000.vtp",  "particles_0001.vtp",
+                                           "particles_start.vtp", "summary.json"};
   EXPECT_EQ(names_in(dir / "mid"), before);
   const nlohmann::json kept = read_json(dir / "mid" / "summary.json");
   EXPECT_EQ(kept["pulses"], 2);
@@ -2329,7 +2347,7 @@ TEST(Cli, AFrameCopiedForAResumeIsWholeOrAbsent) {
   const Result r = run_with_file_size_limit(
       20, "run --quiet --resume " + whole.string() + " --out " + other.string());
   EXPECT_EQ(r.code, 1) << r.output;
-  EXPECT_CONTAINS(r.output, (other / "particles_0000.vtp").string() + "\": write failed");
+  EXPECT_CONTAINS(r.output, (other / "particles_start.vtp").string() + "\": write failed");
   for (const std::string& name : names_in(other)) {
     EXPECT_NOT_CONTAINS(name, ".tmp.");
     if (name.ends_with(".vtp")) {

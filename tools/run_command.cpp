@@ -853,10 +853,13 @@ std::string pulse_file(const char* stem, int pulse) {
 // The pulse number and suffix of pulse_file's names, as a pattern: four digits or more.
 constexpr const char* kPulseFileNumber = R"(_\d{4,}\.vtp)";
 
-// A frame as pulse_file names it.
+// The frame of the state a run starts from, before its first pulse (pulse_file's frames follow).
+constexpr const char* kStartFrame = "particles_start.vtp";
+
+// A frame as pulse_file names it, or the start frame.
 bool is_frame_name(const std::string& name) {
   static const std::regex frame(std::string("particles") + kPulseFileNumber);
-  return std::regex_match(name, frame);
+  return name == kStartFrame || std::regex_match(name, frame);
 }
 
 void check_history_text(const std::string& history, const std::string& source) {
@@ -881,7 +884,8 @@ void check_checkpoint_record(double earlier_seconds, int checkpoint_every,
     refuse("its --checkpoint-every, " + std::to_string(checkpoint_every) + ", is below 0");
   for (const auto& [name, time] : frames) {
     if (!is_frame_name(name))
-      refuse("a frame named \"" + name + "\", not particles_NNNN.vtp in the run's folder");
+      refuse("a frame named \"" + name + "\", not particles_NNNN.vtp or " + kStartFrame +
+             " in the run's folder");
     if (!std::isfinite(time)) refuse("frame " + name + " has a time that is not finite");
   }
 }
@@ -913,7 +917,7 @@ bool holds_earlier_run(const fs::path& dir) {
 // writes them through (a killed run can leave one).
 bool is_output_name(const fs::path& file) {
   static const std::regex ours(std::string(R"(((particles|rays))") + kPulseFileNumber +
-                               R"(|particles\.pvd|checkpoint\.bin|)"
+                               R"(|particles_start\.vtp|particles\.pvd|checkpoint\.bin|)"
                                R"(summary\.json|history\.csv|particles\.csv)(\.tmp\.\d+)?)");
   return std::regex_match(file.filename().string(), ours);
 }
@@ -1152,6 +1156,15 @@ void resume_from_checkpoint(const RunOptions& options, bool into_checkpoint_fold
   };
 }
 
+// The frame of the state a new run starts from, at its start time, first in particles.pvd: the
+// bed before the beam (a resumed run has it from its checkpoint's folder).
+void write_start_frame(const Simulation& sim, const fs::path& out, RunRecord& record) {
+  const StageTimer timer(record.stages.output);
+  write_particles_vtp((out / kStartFrame).string(), sim.particles(), sim.absorbed());
+  record.frames.emplace_back(kStartFrame, sim.figures().time);
+  write_pvd((out / "particles.pvd").string(), record.frames);
+}
+
 // What a pulse end leaves: a history row, the pulse's ray paths and particle frame when asked
 // for, the figures a later failure keeps, and whether a checkpoint is due after the step.
 void record_pulse_ends(Simulation& sim, const OutputSpec& output, const fs::path& out,
@@ -1304,6 +1317,7 @@ int run_command(const RunOptions& options) {
   }
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);
+  if (!saved && config.output.frames) write_start_frame(sim, out, record);
   bool checkpoint_due = false;
   PulsesEnded ended;
   record_pulse_ends(sim, config.output, out, record, ended, checkpoint_due);
