@@ -960,8 +960,9 @@ int ThermalModel::substep_count(double dt) const {
     std::ostringstream msg;
     msg << "a step of " << dt << " s with thermal.phi = " << spec_.phi << " exceeds the "
         << (spec_.phi < 0.5 ? "explicit stability limit " : "limit for a monotone step ") << limit
-        << " s (min_i m_i C_i / (M (1 - phi) sum_j G_ij)) and would need " << parts
-        << " sub-steps > thermal.max_substeps = " << spec_.max_substeps
+        << " s (min_i m_i C_i / (M (1 - phi) (sum_j G_ij + W_i)), C_i the lesser of C_S and C_L, "
+           "W_i the walls' conductance) and would need "
+        << parts << " sub-steps > thermal.max_substeps = " << spec_.max_substeps
         << ": use thermal.phi = 1 (monotone at any step) or a smaller thermal.dt";
     throw InputError(msg.str());
   }
