@@ -22,6 +22,7 @@
 #include "engine/state_io.h"
 #include "tests/cli_runner.h"
 #include "tests/expect_error.h"
+#include "tests/long_tests.h"
 #include "tests/test_dirs.h"
 #include "tools/run_config.h"
 
@@ -1166,7 +1167,7 @@ TEST(Cli, ConvergeWritesLaddersWithTheFinestAsReference) {
 }
 
 TEST(CliLong, StabilityGridHasNoFailure) {
-  if (!std::getenv("BEAMPACK_LONG")) GTEST_SKIP() << "about a minute; set BEAMPACK_LONG=1";
+  if (!beampack::test::long_tests_asked()) GTEST_SKIP() << "about a minute; set BEAMPACK_LONG=1";
   const Result r = run("validate --stiff --quiet");
   EXPECT_EQ(r.code, 0) << r.output;
   EXPECT_CONTAINS(r.output, " 0 failed");

@@ -15,11 +15,13 @@
 #include <numeric>
 
 #include "engine/beam.h"
+#include "engine/float_mode.h"
 #include "engine/state_io.h"
 #include "engine/tracer.h"
 #include "geometry/packing.h"
 #include "geometry/ray_sphere.h"
 #include "tests/expect_error.h"
+#include "tests/long_tests.h"
 #include "tests/optics_reference.h"
 
 namespace beampack {
@@ -120,6 +122,20 @@ TEST(OpticsTracer, CutoffAndBounceLimitEndRaysIntoTheCutoffBin) {
   const Traced run = trace(packing_1e4(), spec, BeamSpec{});
   EXPECT_GT(run.ledger.cutoff, 0.0);
   EXPECT_LE(run.hits, 2u * 1000u);
+  // From below too: a second hit is made (a limit that ended every ray at its first passes the
+  // bounds above), and ray by ray as the reference's own bounce count has it.
+  spec.max_bounces = 1;
+  const Traced once = trace(packing_1e4(), spec, BeamSpec{});
+  EXPECT_LE(once.hits, 1000u);
+  EXPECT_GT(run.hits, once.hits + 100u);
+  spec.max_bounces = 2;
+  {
+    const Beam beam = make_beam(BeamSpec{}, kD);
+    std::uint64_t hits = 0;
+    test::expect_rays_match_reference(packing_1e4(), spec, beam.origin, beam.direction, hits,
+                                      nullptr, 1e-9, 1e-9);
+    EXPECT_EQ(hits, run.hits);
+  }
   EXPECT_NEAR(run.ledger.absorbed + run.ledger.escaped + run.ledger.cutoff, run.ledger.injected,
               1e-12 * run.ledger.injected);
   spec = optics_for(20.0);
@@ -965,7 +981,7 @@ TEST(OpticsTracer, LiquidParticlesUseTheLiquidIndex) {
 }
 
 TEST(OpticsTracerLong, LedgerClosesOn1e5PacketWithManyRays) {
-  if (!std::getenv("BEAMPACK_LONG")) GTEST_SKIP() << "set BEAMPACK_LONG=1";
+  if (!beampack::test::long_tests_asked()) GTEST_SKIP() << "set BEAMPACK_LONG=1";
   const Particles p = random_overlap_packing(100000, kD, 0.325, 9);
   BeamSpec beam;
   beam.rays = 100000;
@@ -1226,6 +1242,34 @@ TEST(OpticsTracer, ALazyBuildGivesTheEagerBuildsDepositsBitForBit) {
     EXPECT_EQ(eager.ledger().absorbed, lazy.ledger().absorbed);
     for (auto v : victims) EXPECT_EQ(b[v], 0.0) << v;
   }
+}
+
+// The physics runs in IEEE mode whatever mode its thread was left in (Embree's build leaves
+// flush-to-zero on TBB threads): inside IeeeFloatMode a denormal survives arithmetic, and after
+// it, as after KeepFloatMode, the thread has its own mode back. Without the guard results would
+// depend on which thread took a chunk.
+TEST(FloatMode, TheGuardsKeepDenormalsAndRestoreTheThreadsMode) {
+  const float_mode::Word ieee = float_mode::read() & ~float_mode::kFlushBits;
+  const float_mode::Word flushing = ieee | float_mode::kFlushBits;
+  volatile double tiny = 1e-310;  // a denormal
+  float_mode::write(flushing);    // as Embree leaves a TBB thread
+  {
+    const volatile double flushed = tiny * 0.5;
+    EXPECT_EQ(flushed, 0.0);  // the mode this test set is in force
+  }
+  {
+    const IeeeFloatMode guard;
+    EXPECT_EQ(float_mode::read() & float_mode::kFlushBits, 0u);
+    const volatile double half = tiny * 0.5;
+    EXPECT_EQ(half, 5e-311);
+  }
+  EXPECT_EQ(float_mode::read(), flushing);
+  {
+    const KeepFloatMode keep;
+    float_mode::write(ieee);  // as rtcCommitScene may
+  }
+  EXPECT_EQ(float_mode::read(), flushing);
+  float_mode::write(ieee);
 }
 
 }  // namespace

@@ -10,6 +10,7 @@
 #include "geometry/error.h"
 #include "geometry/packing.h"
 #include "tests/expect_error.h"
+#include "tests/long_tests.h"
 #include "thermal/thermal_model.h"
 
 namespace beampack {
@@ -720,8 +721,7 @@ TEST(ThermalState, AStepWhoseSolverFailsChangesNothing) {
 }
 
 TEST(ThermalLong, LongLedgerOnLargePacking) {
-  if (const char* e = std::getenv("BEAMPACK_LONG"); !e || std::string(e) != "1")
-    GTEST_SKIP() << "set BEAMPACK_LONG=1";
+  if (!beampack::test::long_tests_asked()) GTEST_SKIP() << "set BEAMPACK_LONG=1";
   Particles p = random_overlap_packing(100000, 1e-3, 0.325, 1);
   Material m;
   m.conductivity = 100;
