@@ -58,6 +58,26 @@ void warn_if_walls_take_no_heat(const SimulationSpec& spec, std::vector<std::str
       "for walls that do");
 }
 
+// A bed that starts at or above a material's melting temperature starts liquid (phase_at): legal
+// (a bed preheated into the melt), but every such particle counts as melted before the beam
+// comes, which a preheated solid bed set one kelvin too high did not mean.
+void warn_if_bed_starts_liquid(const SimulationSpec& spec, std::vector<std::string>& out) {
+  for (std::size_t k = 0; k < spec.materials.size(); ++k) {
+    const Material& m = spec.materials[k];
+    const double start = spec.packing.initial_temperature;
+    if (!(start >= m.melt_temperature && start < m.vapor_temperature)) continue;
+    const std::string table =
+        spec.materials.size() == 1 ? "material" : "material[" + std::to_string(k) + "]";
+    char text[640];
+    std::snprintf(text, sizeof text,
+                  "`material.initial_temperature` = %g K is at or above `%s.melt_temperature` = "
+                  "%g K: its particles start liquid (index `optics.n_liquid`, `%s.c_liquid`) and "
+                  "count in the melted fraction before any pulse; a solid bed starts below it",
+                  start, table.c_str(), m.melt_temperature, table.c_str());
+    out.emplace_back(text);
+  }
+}
+
 // Pulses start at step boundaries: a pulses.period shorter than a step delays them.
 void warn_of_late_pulses(const SimulationSpec& spec, const Counts& counts,
                          std::vector<std::string>& out) {
@@ -163,6 +183,7 @@ std::vector<std::string> spec_warnings(const SimulationSpec& spec) {
   std::vector<std::string> out;
   warn_of_many_steps(spec, out);
   warn_if_walls_take_no_heat(spec, out);
+  warn_if_bed_starts_liquid(spec, out);
   return out;
 }
 

@@ -420,6 +420,19 @@ TEST(LibraryInputs, ASpecSaysWhatItsRunWillNotDoWell) {
   const std::vector<std::string> walls = spec_warnings(spec);
   ASSERT_EQ(walls.size(), 1u);
   EXPECT_CONTAINS(walls[0], "the walls take no heat");
+  // A bed at its melting temperature starts liquid, and its melted fraction counts it; a kelvin
+  // below, it starts solid and nothing is said.
+  spec = quick_scene();
+  spec.packing.initial_temperature = spec.materials[0].melt_temperature;
+  const std::vector<std::string> molten = spec_warnings(spec);
+  ASSERT_EQ(molten.size(), 1u);
+  EXPECT_CONTAINS(molten[0],
+                  "`material.initial_temperature` = 600 K is at or above "
+                  "`material.melt_temperature` = 600 K: its particles start liquid");
+  Simulation sim(spec);
+  EXPECT_EQ(sim.figures().melted_fraction, 1.0);
+  spec.packing.initial_temperature -= 1;
+  EXPECT_TRUE(spec_warnings(spec).empty());
 }
 
 // The quick scene, conducting, with one of its times far beyond its cap: each was the command
