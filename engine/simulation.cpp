@@ -478,7 +478,7 @@ Simulation::StepOutcome Simulation::trace_and_heat(double budget) {
     }
     out.dt = step_length(traced);
     refuse_heat_without_time(out.dt);
-    if (out.dt > 0) out.report = heat_and_phases(out.dt);
+    if (out.dt > 0 && particles_.size() > 0) out.report = heat_and_phases(out.dt);
     if (!optics_changed(seen)) break;
     PhaseOverride next = optics_after_step();
     const bool cycle = pass > 0 && next == seen_before;
@@ -669,8 +669,8 @@ std::string Simulation::skip_reason(int stage) const {
                    : "`pulses.count` = 0: no pulse";
   }
   if (stage == kTrace) return "no ray was live in any step";
-  if (stage == kHeat)
-    return particles_.size() == 0 ? "no particles" : "no step had a positive length";
+  if (particles_.size() == 0) return "no particles";  // heat, phases and stagger have none to do
+  if (stage == kHeat) return "no step had a positive length";
   if (stage == kPhases)
     return "no particle whose temperature changed was at the melting temperature";
   if (spec_.max_staggers == 0) return "`thermal.max_staggers` = 0";

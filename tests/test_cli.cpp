@@ -2466,7 +2466,8 @@ TEST(Cli, VersionNamesTheBuildAndEverySummaryRecordsIt) {
 
 // An empty bed has no peak temperature in convergence.csv either (as in history.csv), nor a
 // temperature field to compare: empty cells, not a peak of 0 K and errors of 0 K; the console
-// prints '-' for its errors.
+// prints '-' for its errors. Its runs skip the stages that have no particle to work on, whatever
+// their step.
 TEST(Cli, AConvergeOverAnEmptyBedHasNoPeakTemperature) {
   const fs::path out = fresh_dir("converge_empty_bed");
   const Result r = run("converge --preset quick --set packing.count=0 --out " + out.string());
@@ -2481,6 +2482,13 @@ TEST(Cli, AConvergeOverAnEmptyBedHasNoPeakTemperature) {
     EXPECT_EQ(row.at("temperature_l2_error_K"), "") << row.at("ladder");
     EXPECT_EQ(row.at("temperature_max_error_K"), "") << row.at("ladder");
     EXPECT_EQ(row.at("temperature_particles"), "0") << row.at("ladder");
+  }
+  // No stage has a particle to heat, in any rung: its fixed steps (the time-step ladder) ran the
+  // heat stage over none, and named another reason for skipping phases.
+  for (const char* stage : {"heat", "phases", "stagger"}) {
+    char line[96];
+    std::snprintf(line, sizeof line, "\n  %-26s %14s  skipped: no particles\n", stage, "-");
+    EXPECT_CONTAINS(r.output, line);
   }
 }
 
