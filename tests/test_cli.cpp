@@ -1413,6 +1413,7 @@ TEST(Cli, SigkillAtRandomMomentsLeavesALoadableCheckpoint) {
   const double run_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
   const std::string reference = file_text(whole / "particles.csv");
+  const std::string history = file_text(whole / "history.csv");
   std::uint64_t seed = 12345;
   int resumed = 0, refreshed = 0;
   for (int trial = 0; trial < 4; ++trial) {
@@ -1430,6 +1431,12 @@ TEST(Cli, SigkillAtRandomMomentsLeavesALoadableCheckpoint) {
     // Finished before the kill (a machine faster now than for the timed run): --resume of a
     // finished run is refused by design (Cli.AResumeIntoAnotherFolderContinuesTheWholeSeries).
     if (fs::exists(dir / "summary.json")) continue;
+    // history.csv grows a row as each pulse ends: the killed run's rows, whole, are the first of
+    // the uninterrupted run's.
+    const std::string kept = file_text(dir / "history.csv");
+    EXPECT_TRUE(history.starts_with(kept) && kept.ends_with('\n')) << "trial " << trial << ":\n"
+                                                                   << kept;
+    EXPECT_GE(std::count(kept.begin(), kept.end(), '\n'), 2) << "trial " << trial;
     const auto killed_at = fs::last_write_time(dir / "checkpoint.bin");
     const Result r = run("run --resume " + dir.string() + " --quiet");
     ASSERT_EQ(r.code, 0) << "trial " << trial << " (killed after " << delay_ms
@@ -2243,6 +2250,17 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   EXPECT_FALSE(fs::exists(out / "history.csv"));
   EXPECT_FALSE(fs::exists(out / "particles.csv"));
   EXPECT_TRUE(fs::exists(mine));
+  // A run killed before it wrote anything but its history.csv (a row as each pulse ends) left an
+  // earlier run's by that file's header alone.
+  const fs::path killed = fresh_dir("earlier_run_killed");
+  ASSERT_EQ(run("run --preset quick --quiet --out " + killed.string()).code, 0);
+  for (const char* name : {"summary.json", "particles.csv"}) fs::remove(killed / name);
+  const Result after_kill =
+      run("run --preset quick --quiet --set pulses.count=0 --out " + killed.string());
+  ASSERT_EQ(after_kill.code, 0) << after_kill.output;
+  EXPECT_CONTAINS(after_kill.output,
+                  "removed 1 file of an earlier run from " + killed.string() + ": history.csv");
+  EXPECT_EQ(read_csv(killed / "history.csv").size(), 0u);  // the new run's, of no pulse
 }
 
 namespace {

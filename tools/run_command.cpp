@@ -899,15 +899,17 @@ void check_checkpoint_stage_times(double setup_seconds, double output_seconds,
                        " s, is not a finite number >= 0 (a checkpoint edited by hand?)");
 }
 
-// Whether dir holds a run of beampack's: its checkpoint, its frames' particles.pvd or its first
-// ray paths (a killed run leaves only those), or its summary.json (the figures and the
-// configuration). Files of beampack's names in a folder without any of them are the user's own.
+// Whether dir holds a run of beampack's: its checkpoint, its frames' particles.pvd, its first
+// ray paths or its history.csv (a killed run leaves only those), or its summary.json (the figures
+// and the configuration). Files of beampack's names in a folder without any of them are the user's own.
 bool holds_earlier_run(const fs::path& dir) {
   if (head_of(dir / "checkpoint.bin", 64).find("beampack-checkpoint") != std::string::npos)
     return true;
   if (head_of(dir / "particles.pvd", 4096).find("file=\"particles_0") != std::string::npos)
     return true;
   if (head_of(dir / "rays_0000.vtp", 256).find("<!-- written by beampack -->") != std::string::npos)
+    return true;
+  if (head_of(dir / "history.csv", 4096).starts_with(history_header()))  // a killed run's rows
     return true;
   const nlohmann::json j = summary_in(dir);
   return j.is_object() && j.contains("vaporized_fraction") && j.contains("config");
@@ -1168,12 +1170,15 @@ void write_start_frame(const Simulation& sim, const fs::path& out, RunRecord& re
 // What a pulse end leaves: a history row, the pulse's ray paths and particle frame when asked
 // for, the figures a later failure keeps, and whether a checkpoint is due after the step.
 void record_pulse_ends(Simulation& sim, const OutputSpec& output, const fs::path& out,
-                       RunRecord& record, PulsesEnded& ended, bool& checkpoint_due) {
-  sim.on_pulse_end([&sim, &output, out, &record, &ended, &checkpoint_due](int pulse) {
+                       RunRecord& record, GrowingFile& history, PulsesEnded& ended,
+                       bool& checkpoint_due) {
+  sim.on_pulse_end([&sim, &output, out, &record, &history, &ended, &checkpoint_due](int pulse) {
     const StageTimer timer(record.stages.output);
     const Figures figures = sim.figures();  // one pass over the particles per pulse end
     ended.note(figures, sim.counts());
-    record.history += history_row(figures);
+    const std::string row = history_row(figures);
+    record.history += row;
+    history.append(record.history, row);
     if (output.rays)
       write_rays_vtp((out / pulse_file("rays", pulse)).string(), sim.take_ray_paths());
     if (output.frames) {
@@ -1320,7 +1325,8 @@ int run_command(const RunOptions& options) {
   if (!saved && config.output.frames) write_start_frame(sim, out, record);
   bool checkpoint_due = false;
   PulsesEnded ended;
-  record_pulse_ends(sim, config.output, out, record, ended, checkpoint_due);
+  GrowingFile history((out / "history.csv").string());  // a row as each pulse ends
+  record_pulse_ends(sim, config.output, out, record, history, ended, checkpoint_due);
   count_set_up(record.stages.setup, sim, saved.has_value(),
                seconds_since(start) - (record.stages.output.seconds - output_before));
   run_steps(sim, config, out, record, ended, checkpoint_due, options.quiet, start);

@@ -117,6 +117,29 @@ void write_atomically(const std::string& path, const std::function<void(std::ost
   write_atomically({OutputFile{path, fill}});
 }
 
+GrowingFile::~GrowingFile() {
+  if (fd_ >= 0) ::close(fd_);
+}
+
+void GrowingFile::append(const std::string& whole, const std::string& tail) {
+  if (fd_ < 0) {
+    write_atomically(path_, [&](std::ostream& o) { o << whole; });
+    fd_ = ::open(path_.c_str(), O_WRONLY | O_APPEND | O_CLOEXEC);
+    if (fd_ < 0)
+      throw RunError("output file \"" + path_ +
+                     "\": cannot reopen to append: " + error_text(errno));
+    return;
+  }
+  for (std::size_t done = 0; done < tail.size();) {
+    const ssize_t n = ::write(fd_, tail.data() + done, tail.size() - done);
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0)
+      throw RunError("output file \"" + path_ +
+                     "\": write failed: " + error_text(n < 0 ? errno : ENOSPC));
+    done += static_cast<std::size_t>(n);
+  }
+}
+
 OutputFile particles_csv(const std::string& path, const Particles& p,
                          const std::vector<double>& absorbed_J) {
   return {path, [&p, &absorbed_J](std::ostream& out) {

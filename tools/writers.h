@@ -26,6 +26,26 @@ void write_atomically(const std::string& path, const std::function<void(std::ost
 // order. A failure while writing (a full disk) replaces none of them.
 void write_atomically(const std::vector<OutputFile>& files);
 
+// A file that grows by whole lines while a run goes (history.csv: a row as each pulse ends, so a
+// killed run keeps its rows and `tail -f` follows a run). Its first `append` writes the text so
+// far whole, atomically (an earlier run's or a killed one's file is replaced, not continued);
+// each later one appends its text with one write(), so the file never holds part of a line but
+// where the disk filled. RunError naming the file when a write fails. A run's end still replaces
+// it whole with write_atomically.
+class GrowingFile {
+ public:
+  explicit GrowingFile(std::string path) : path_(std::move(path)) {}
+  ~GrowingFile();
+  GrowingFile(const GrowingFile&) = delete;
+  GrowingFile& operator=(const GrowingFile&) = delete;
+  // `whole`: the file's text so far, `tail` included; `tail`: what this call adds to it.
+  void append(const std::string& whole, const std::string& tail);
+
+ private:
+  std::string path_;
+  int fd_ = -1;
+};
+
 // id,x,y,z,r,temperature_K,phase,absorbed_J for every particle, vaporised ones included (the
 // file refers to p and absorbed_J: they must outlive the write).
 OutputFile particles_csv(const std::string& path, const Particles& p,
