@@ -197,6 +197,19 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
   expect_input_error(
       "unknown", "[material]\nconductivty = 3\n", "",
       {"run.toml:2", "material.conductivty", "did you mean `material.conductivity`"});
+  // A key in the wrong table or none, or cut short, is not a spelling: its known places are
+  // named. A commented key of `config` uncommented under the file's last table is one.
+  expect_input_error("wrong_table", "[thermal]\nconductivity = 3\n", "",
+                     {"run.toml:2",
+                      "unknown key `thermal.conductivity` (did you mean "
+                      "`material.conductivity`?)"});
+  expect_input_error("uncommented", "[thermal]\nbeam.gaussian_width = 0.5\n", "",
+                     {"unknown key `thermal.beam.gaussian_width` (did you mean "
+                      "`beam.gaussian_width`?)"});
+  expect_input_error("no_table", "", "--set conductivity=3",
+                     {"unknown key `conductivity` (did you mean `material.conductivity`?)"});
+  expect_input_error("cut_short", "", "--set beam.diameter=0.2",
+                     {"unknown key `beam.diameter` (did you mean `beam.diameter_fraction`?)"});
   expect_input_error("type", "[beam]\nrays = \"many\"\n", "",
                      {"run.toml:2", "beam.rays", "must be an integer"});
   // A whole number in float notation is a float to TOML; the message says how to write it.

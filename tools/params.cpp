@@ -633,6 +633,35 @@ std::size_t edit_distance(const std::string& a, const std::string& b) {
   return row[b.size()];
 }
 
+namespace {
+
+// The part of a dotted key after its last dot: "conductivity" of "material.conductivity".
+std::string leaf_of(const std::string& key) {
+  const std::size_t dot = key.rfind('.');
+  return dot == std::string::npos ? key : key.substr(dot + 1);
+}
+
+// " (did you mean `material.conductivity`?)" for a key in the wrong table or none
+// (`thermal.conductivity`, `conductivity`, or a commented key uncommented under the last table
+// of a file, `thermal.beam.gaussian_width`): the known keys of the same last name; else for a
+// key cut short (`beam.diameter`), those it begins. did_you_mean's spelling is tried first.
+std::string key_elsewhere(const std::string& typed, const std::set<std::string>& known) {
+  if (std::string near = did_you_mean(typed, known); !near.empty()) return near;
+  std::vector<std::string> same_leaf, longer;
+  for (const std::string& key : known) {
+    if (leaf_of(key) == leaf_of(typed)) same_leaf.push_back(key);
+    else if (typed.size() >= 4 && key.starts_with(typed)) longer.push_back(key);
+  }
+  const std::vector<std::string>& found = same_leaf.empty() ? longer : same_leaf;
+  if (found.empty() || found.size() > 4) return "";
+  std::string text = " (did you mean ";
+  for (std::size_t k = 0; k < found.size(); ++k)
+    text += (k == 0 ? "" : k + 1 == found.size() ? " or " : ", ") + ("`" + found[k] + "`");
+  return text + "?)";
+}
+
+}  // namespace
+
 void Params::check_all_used() const {
   for (const std::string& key : leaf_keys(merged_)) {
     if (used_.count(key)) continue;
@@ -645,7 +674,7 @@ void Params::check_all_used() const {
       throw InputError(where(key) + "`" + key + "` is a table of keys (`" + *member +
                        "`, ...): write it once as [" + key + "], not as [[" + key +
                        "]] or a value");
-    throw InputError(where(key) + "unknown key `" + key + "`" + did_you_mean(key, used_));
+    throw InputError(where(key) + "unknown key `" + key + "`" + key_elsewhere(key, used_));
   }
 }
 
