@@ -2179,12 +2179,22 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
       run("sweep --preset quick --param material.conductivty --values 1 --out " + out.string());
   EXPECT_EQ(typo.code, 2) << typo.output;
   EXPECT_CONTAINS(typo.output, "--param material.conductivty --values 1: unknown key");
+  // Counts: a whole number first (2.5 was said to be "not in range 0 to 4096"), then its range.
   for (const char* command : {"sweep --param material.conductivity --values 0", "converge"}) {
-    const Result threads =
-        run(std::string(command) + " --preset quick --threads -3 --out " + out.string());
-    EXPECT_EQ(threads.code, 2) << command << ": " << threads.output;
-    EXPECT_CONTAINS(threads.output, "beampack: error: --threads: Value -3 not in range 0 to 4096");
+    const std::pair<const char*, const char*> refusals[] = {
+        {"-3", "Value -3 is not a whole number >= 0"},
+        {"2.5", "Value 2.5 is not a whole number >= 0"},
+        {"5000", "Value 5000 not in range 0 to 4096"}};
+    for (const auto& [value, said] : refusals) {
+      const Result threads = run(std::string(command) + " --preset quick --threads " + value +
+                                 " --out " + out.string());
+      EXPECT_EQ(threads.code, 2) << command << ": " << threads.output;
+      EXPECT_CONTAINS(threads.output, std::string("beampack: error: --threads: ") + said);
+    }
   }
+  const Result every = run("run --preset quick --checkpoint-every 1e3 --out " + out.string());
+  EXPECT_EQ(every.code, 2) << every.output;
+  EXPECT_CONTAINS(every.output, "--checkpoint-every: Value 1e3 is not a whole number >= 0");
   // The command line parser's refusals read as beampack's own (they had CLI11's words alone).
   const Result missing = run("run " + (out / "no_such.toml").string());
   EXPECT_EQ(missing.code, 2) << missing.output;

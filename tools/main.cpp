@@ -146,6 +146,15 @@ int table_written(int code) {
 int main(int argc, char** argv) {
   stdout_closed = keep_standard_streams_open();
   install_interrupt_handler();
+  // A count is checked as a whole number before its range: CLI11's Range reads 2.5 as a number
+  // and said "not in range 0 to 4096" of it.
+  const CLI::Validator kWhole(
+      [](std::string& text) -> std::string {
+        const bool digits =
+            !text.empty() && text.find_first_not_of("0123456789") == std::string::npos;
+        return digits ? "" : "Value " + text + " is not a whole number >= 0";
+      },
+      "WHOLE");
   const CLI::Range kThreads(0, 4096);
   CLI::App app{"beampack: laser processing of packed powders (Zohdi 2013)", "beampack"};
   app.require_subcommand(1);
@@ -160,11 +169,14 @@ int main(int argc, char** argv) {
   CLI::App* run_cmd = app.add_subcommand("run", "run one scene and write its outputs");
   add_run_sources(run_cmd, run);
   run_cmd->add_option("--out", run.out_dir, "output directory")->capture_default_str();
-  run_cmd->add_option("--threads", run.threads, "worker threads (0: all cores)")->check(kThreads);
+  run_cmd->add_option("--threads", run.threads, "worker threads (0: all cores)")
+      ->check(kWhole)
+      ->check(kThreads);
   run_cmd->add_flag("--quiet", run.quiet, "no progress line");
   run_cmd
       ->add_option("--checkpoint-every", run.checkpoint_every,
                    "write DIR/checkpoint.bin every N pulses (atomically)")
+      ->check(kWhole)
       ->check(CLI::Range(0, 1'000'000'000));
   run_cmd->add_option("--resume", run.resume, "continue the run whose checkpoint is in DIR")
       ->check(CLI::ExistingDirectory);
@@ -181,6 +193,7 @@ int main(int argc, char** argv) {
       ->type_name("V1,V2,...");
   sweep_cmd->add_option("--out", sweep.run.out_dir, "output directory")->capture_default_str();
   sweep_cmd->add_option("--threads", sweep.run.threads, "worker threads (0: all cores)")
+      ->check(kWhole)
       ->check(kThreads);
   sweep_cmd->add_flag("--quiet", sweep.run.quiet, "no progress line");
 
@@ -190,6 +203,7 @@ int main(int argc, char** argv) {
   add_run_sources(converge_cmd, converge);
   converge_cmd->add_option("--out", converge.out_dir, "output directory")->capture_default_str();
   converge_cmd->add_option("--threads", converge.threads, "worker threads (0: all cores)")
+      ->check(kWhole)
       ->check(kThreads);
   converge_cmd->add_flag("--quiet", converge.quiet, "no progress line");
 
