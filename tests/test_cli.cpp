@@ -755,6 +755,14 @@ TEST(Cli, RunFileLayersPathsAndArgumentsAreReadAsWritten) {
       run("run " + file + " --set pulses.count=1 --quiet --out " + (dir / "a").string());
   ASSERT_EQ(from_file.code, 0) << from_file.output;
   EXPECT_CONTAINS(file_text(dir / "a" / "summary.json"), "\"particles\": 1");
+  // A run file through a pipe (`run <(...)`, its folder /dev/fd) reads a relative packing.file
+  // from the working directory, as a --set does (it looked for /dev/fd/one.xyz).
+  const std::string piped = "cd '" + (dir / "sub").string() + "' && bash -c '" + BEAMPACK_CLI +
+                            " run <(cat bed.toml) --set pulses.count=1 --quiet --out " +
+                            (dir / "piped").string() + "' >/dev/null 2>&1";
+  ASSERT_EQ(std::system(piped.c_str()), 0) << piped;
+  EXPECT_CONTAINS(file_text(dir / "piped" / "summary.json"),
+                  fs::absolute(dir / "sub" / "one.xyz").lexically_normal().string());
   // The resolved run file holds the path made absolute: it runs from any folder.
   const Result printed = run("config " + file);
   ASSERT_EQ(printed.code, 0) << printed.output;

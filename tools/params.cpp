@@ -480,10 +480,13 @@ std::string Params::path(const std::string& key) {
   const std::string v = text(key, "");
   const KeyOrigin* o = origin(key);
   if (v.empty() || std::filesystem::path(v).is_absolute()) return v;
-  // Absolute in the resolved run file: `config` output and a checkpoint work from anywhere.
-  const std::filesystem::path folder = o && !o->file.empty()
-                                           ? std::filesystem::path(o->file).parent_path()
-                                           : std::filesystem::path();
+  // Absolute in the resolved run file: `config` output and a checkpoint work from anywhere. From
+  // the run file's folder, unless the run file is a pipe (`run <(...)`: its folder is /dev/fd),
+  // when it is read from the working directory, as a `--set` is.
+  std::error_code ec;
+  const bool in_a_folder = o && !o->file.empty() && std::filesystem::is_regular_file(o->file, ec);
+  const std::filesystem::path folder =
+      in_a_folder ? std::filesystem::path(o->file).parent_path() : std::filesystem::path();
   const std::string resolved = std::filesystem::absolute(folder / v).lexically_normal().string();
   // The run file's folder may be named in any bytes; config, checkpoints and summary.json hold
   // the path as UTF-8 text (a summary of such a path failed at the run's end, losing the run).
