@@ -446,21 +446,31 @@ void expect_brute_force_hits(const EmbreeScene& scene, const Particles& p,
   }
 }
 
+// 2000 random-overlap spheres, random rays through them, and the spheres to remove: every
+// `stride`-th from `first`.
+struct RemovalCase {
+  Particles p = random_overlap_packing(2000, 1e-3, 0.325, 11);
+  RandomRays rays;
+  std::vector<std::uint8_t> none = std::vector<std::uint8_t>(p.size(), 0), gone = none;
+  std::vector<std::uint32_t> victims;
+  RemovalCase(std::size_t ray_count, std::uint64_t seed, std::uint32_t first, std::uint32_t stride)
+      : rays(p, ray_count, seed) {
+    for (std::uint32_t i = first; i < p.size(); i += stride) victims.push_back(i), gone[i] = 1;
+  }
+};
+
 // Nearest outside hit from the scene (single rays and packets) equals the brute-force minimum of
 // ray_sphere_entry over all spheres, skipping the sphere the ray leaves: same particle, same t;
 // and again after removing 10% of the spheres, in every update mode and under each Embree ISA.
 TEST(OpticsSphere, SceneHitsEqualBruteForceBeforeAndAfterRemoval) {
-  const Particles p = random_overlap_packing(2000, 1e-3, 0.325, 11);
-  const RandomRays rays(p, 4000, 5);
-  std::vector<std::uint8_t> gone(p.size(), 0);
-  std::vector<std::uint32_t> victims;
-  for (std::uint32_t i = 0; i < p.size(); i += 10) victims.push_back(i), gone[i] = 1;
+  const RemovalCase c(4000, 5, 0, 10);
+  const auto& [p, rays, none, gone, victims] = c;
   for (const char* isa : test::kEmbreeIsas) {
     for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::background, SceneUpdate::mask_only,
                              SceneUpdate::rebuild, SceneUpdate::refit, SceneUpdate::bricks}) {
       SCOPED_TRACE(std::string(isa) + " mode " + std::to_string(static_cast<int>(mode)));
       EmbreeScene scene(p, mode, 256, 0.05, 1, isa);
-      expect_brute_force_hits(scene, p, std::vector<std::uint8_t>(p.size(), 0), rays);
+      expect_brute_force_hits(scene, p, none, rays);
       scene.remove(victims);
       expect_brute_force_hits(scene, p, gone, rays);  // background: either structure
       scene.finish_rebuild();
@@ -475,17 +485,14 @@ TEST(OpticsSphere, SceneHitsEqualBruteForceBeforeAndAfterRemoval) {
 // measured slower than one): the same brute-force answers, a cluster cut short by the end of the
 // packing (2000 = 3 x 666 + 2) and bricks holding whole clusters, before and after removal.
 TEST(OpticsSphere, ClustersOfSpheresPerPrimitiveHitAsBruteForce) {
-  const Particles p = random_overlap_packing(2000, 1e-3, 0.325, 11);
-  const RandomRays rays(p, 2000, 6);
-  std::vector<std::uint8_t> gone(p.size(), 0);
-  std::vector<std::uint32_t> victims;
-  for (std::uint32_t i = 3; i < p.size(); i += 7) victims.push_back(i), gone[i] = 1;
+  const RemovalCase c(2000, 6, 3, 7);
+  const auto& [p, rays, none, gone, victims] = c;
   for (unsigned per : {3u, 16u}) {
     for (SceneUpdate mode : {SceneUpdate::deferred, SceneUpdate::mask_only, SceneUpdate::bricks}) {
       SCOPED_TRACE(std::to_string(per) + " per primitive, mode " +
                    std::to_string(static_cast<int>(mode)));
       EmbreeScene scene(p, mode, 256, 0.05, per);
-      expect_brute_force_hits(scene, p, std::vector<std::uint8_t>(p.size(), 0), rays);
+      expect_brute_force_hits(scene, p, none, rays);
       scene.remove(victims);
       scene.finish_rebuild();
       expect_brute_force_hits(scene, p, gone, rays);
