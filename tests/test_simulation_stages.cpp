@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cmath>
 #include <functional>
 #include <limits>
 #include <string>
@@ -30,6 +31,19 @@ bool step_both(Simulation& a, Simulation& b) {
 }
 
 constexpr double kD = 1e-3;
+
+// Both ledgers of a run close as the code promises (EnergyLedger): the optics one to round-off of
+// the injected energy, the heat one to heat_tolerance(thermal.tolerance) of the heat moved.
+void expect_ledgers_close(const Simulation& sim) {
+  const EnergyLedger e = sim.figures().energy;
+  ASSERT_GT(e.injected, 0.0);
+  ASSERT_GT(e.absorbed, 0.0);  // the heat ledger has something to close
+  EXPECT_LE(std::abs(e.optics_imbalance()), EnergyLedger::kOpticsTolerance * e.injected);
+  EXPECT_LE(std::abs(e.heat_imbalance()),
+            EnergyLedger::heat_tolerance(sim.spec().thermal.tolerance) * e.heat_scale())
+      << "absorbed " << e.absorbed << ", stored " << e.stored << ", vaporised " << e.vaporized
+      << ", walls " << e.walls << " J";
+}
 
 StageTime stage(const Simulation& sim, const std::string& name) {
   for (int k = 0; k < Simulation::kStages; ++k)
@@ -143,6 +157,9 @@ TEST(SimulationStages, ShortStepsLeaveChunksOfRaysInFreeFlightAlone) {
     const EnergyLedger& e = sim.figures().energy;
     EXPECT_NEAR(e.absorbed + e.escaped + e.cutoff + e.in_flight, e.injected, 1e-12 * e.injected)
         << dt;
+    SCOPED_TRACE("dt " + std::to_string(dt));
+    expect_ledgers_close(sim);
+    EXPECT_GT(e.vaporized, 0.0);  // the heat ledger's every column is in play
   }
 }
 
@@ -170,6 +187,13 @@ TEST(SimulationStages, RepeatedPulsesReuseFirstHitsAndChangeNothing) {
     EXPECT_EQ(traced.counts().primaries_reused, 0u) << dt;
     EXPECT_EQ(reuse.counts().segments + reuse.counts().primaries_reused, traced.counts().segments)
         << dt;
+    // Reused hits carry the energy traced ones would: both runs' ledgers close, on the same
+    // joules injected.
+    SCOPED_TRACE("dt " + std::to_string(dt));
+    expect_ledgers_close(reuse);
+    expect_ledgers_close(traced);
+    EXPECT_EQ(reuse.figures().energy.injected, traced.figures().energy.injected);
+    EXPECT_EQ(reuse.figures().energy.absorbed, traced.figures().energy.absorbed);
   }
 }
 

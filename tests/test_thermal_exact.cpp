@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <Eigen/Eigenvalues>
+#include <algorithm>
 #include <cmath>
 #include <numbers>
 
@@ -58,31 +59,37 @@ double measured_order(double phi) {
   return std::log2(e1 / e2);
 }
 
-TEST(ThermalExact, ConvergenceOrderOneForBackwardEuler) {
-  EXPECT_NEAR(measured_order(1.0), 1.0, 0.05);
-}
+// Two overlapping spheres of different size and material, at 500 and 300 K, with their contact's
+// conductance G, their thermal masses m C / M by hand (section 1, 4.1; M = 1e6 by default: rho
+// 4/3 pi r^3 C_S / M) and the rate G (1/c1 + 1/c2) at which their difference decays.
+struct TwoSpheres {
+  Particles p;
+  Material a, b;
+  std::vector<Contact> contacts;
+  double g = 0, rate = 0;
+  const double c1 = 1000.0 * 4.0 / 3.0 * std::numbers::pi * std::pow(1e-4, 3) * 1000.0 / 1e6;
+  const double c2 = 3000.0 * 4.0 / 3.0 * std::numbers::pi * std::pow(0.8e-4, 3) * 700.0 / 1e6;
+  TwoSpheres() {
+    p.add(Vec3(0, 0, 0), 1e-4, 0, 500.0);
+    p.add(Vec3(1.6e-4, 0, 0), 0.8e-4, 1, 300.0);
+    a.conductivity = 50;
+    b.conductivity = 150;
+    b.density = 3000;
+    b.c_solid = 700;
+    contacts = find_contacts(p);
+    const ContactGeometry geo = contact_geometry(1.6e-4, 1e-4, 0.8e-4);
+    g = 0.5 * (50 + 150) * geo.area / geo.distance;
+    rate = g * (1.0 / c1 + 1.0 / c2);
+  }
+};
 
-TEST(ThermalExact, ConvergenceOrderTwoForCrankNicolson) {
-  EXPECT_NEAR(measured_order(0.5), 2.0, 0.05);
-}
-
-// Two overlapping spheres of different size and material: theta_1 - theta_2 decays as
-// exp(-G (1/c1 + 1/c2) t) and c1 theta_1 + c2 theta_2 is constant.
+// theta_1 - theta_2 decays as exp(-G (1/c1 + 1/c2) t) and c1 theta_1 + c2 theta_2 is constant.
 class TwoParticles : public ::testing::TestWithParam<const char*> {};
 
 TEST_P(TwoParticles, DifferenceDecaysExponentiallyEnergyConstant) {
-  Particles p;
-  p.add(Vec3(0, 0, 0), 1e-4, 0, 500.0);
-  p.add(Vec3(1.6e-4, 0, 0), 0.8e-4, 1, 300.0);
-  Material a, b;
-  a.conductivity = 50;
-  b.conductivity = 150;
-  b.density = 3000;
-  b.c_solid = 700;
-  const auto contacts = find_contacts(p);
+  TwoSpheres two;
+  auto& [p, a, b, contacts, g, rate, c1, c2] = two;
   ASSERT_EQ(contacts.size(), 1u);
-  const ContactGeometry geo = contact_geometry(1.6e-4, 1e-4, 0.8e-4);
-  const double g = 0.5 * (50 + 150) * geo.area / geo.distance;
   EXPECT_DOUBLE_EQ(contact_conductances(p, {a, b}, contacts)[0], g);
 
   ThermalSpec spec;
@@ -90,13 +97,8 @@ TEST_P(TwoParticles, DifferenceDecaysExponentiallyEnergyConstant) {
   spec.solver = GetParam();
   ThermalModel model(p, {a, b}, spec);
   model.set_contacts(contacts);
-  // m C / M by hand (section 1, 4.1; M = 1e6 by default), each sphere with its own material and
-  // radius: rho 4/3 pi r^3 C_S / M.
-  const double c1 = 1000.0 * 4.0 / 3.0 * std::numbers::pi * std::pow(1e-4, 3) * 1000.0 / 1e6;
-  const double c2 = 3000.0 * 4.0 / 3.0 * std::numbers::pi * std::pow(0.8e-4, 3) * 700.0 / 1e6;
   EXPECT_NEAR(model.thermal_mass(0) / c1, 1.0, 1e-14);
   EXPECT_NEAR(model.thermal_mass(1) / c2, 1.0, 1e-14);
-  const double rate = g * (1.0 / c1 + 1.0 / c2);
   const double energy0 = c1 * p.temperature[0] + c2 * p.temperature[1];
   const double dt = 0.002 / rate;  // the fixed-point contraction dt phi 2G/c_min is < 0.002
   const int steps = 1000;
@@ -117,6 +119,45 @@ INSTANTIATE_TEST_SUITE_P(Solvers, TwoParticles, ::testing::Values("fixed-point",
   return s == "fixed-point" ? std::string("fixed_point") : s;
 });
 
+// The explicit step (phi = 0) on the same two spheres, against its own algebra rather than the
+// exponential: theta^{n+1} = theta^n + dt Q(theta^n) / c gives each sphere -dt G d^n / c_i, so the
+// difference d = theta_1 - theta_2 shrinks by exactly (1 - rate dt) a step, rate = G (1/c1 +
+// 1/c2), while c1 theta_1 + c2 theta_2 stays fixed. After 100 steps of rate dt = 0.01 this is
+// 200 x 0.99^100 = 73.2 K, which differs from the exponential's 200 e^{-1} by 0.5% and from
+// backward Euler's 200 / 1.01^100 by 1%: 1e-12 tells them apart, and any slip in the explicit
+// update's conductance, capacity or dt (only round-off, ~1e-14 here, is allowed).
+TEST(ThermalExact, ExplicitStepShrinksTheDifferenceByOneMinusRateDtEachStep) {
+  TwoSpheres two;
+  auto& [p, a, b, contacts, g, rate, c1, c2] = two;
+  ASSERT_EQ(contacts.size(), 1u);
+  ThermalSpec spec;
+  spec.phi = 0;
+  ThermalModel model(p, {a, b}, spec);
+  model.set_contacts(contacts);
+  const double dt = 0.01 / rate;
+  // The step is within the explicit limit min_i c_i / G (C_S < C_L for both): one step, no split.
+  EXPECT_NEAR(model.monotone_step_limit(), std::min(c1, c2) / g, 1e-12 * std::min(c1, c2) / g);
+  const double energy0 = c1 * p.temperature[0] + c2 * p.temperature[1];
+  const int steps = 100;
+  for (int s = 0; s < steps; ++s) {
+    const StepReport r = model.step(dt, {});
+    ASSERT_EQ(r.solver, "explicit");
+    ASSERT_EQ(r.substeps, 1);
+  }
+  const double shrink = std::pow(1.0 - rate * dt, steps);
+  const double difference = 200.0 * shrink;
+  EXPECT_NEAR((p.temperature[0] - p.temperature[1]) / difference, 1.0, 1e-12);
+  // Each sphere: the mean c-weighted temperature plus its share of the difference.
+  const double mean = energy0 / (c1 + c2);
+  EXPECT_NEAR(p.temperature[0], mean + c2 / (c1 + c2) * difference, 1e-12 * mean);
+  EXPECT_NEAR(p.temperature[1], mean - c1 / (c1 + c2) * difference, 1e-12 * mean);
+  const double energy = c1 * p.temperature[0] + c2 * p.temperature[1];
+  EXPECT_NEAR(energy / energy0, 1.0, 1e-13);
+  EXPECT_NEAR(model.ledger().stored, 0.0, 1e-12 * energy0);
+  // The answer is not the continuous one: the assertion above could tell an implicit step apart.
+  EXPECT_GT(std::abs(shrink / std::exp(-rate * dt * steps) - 1.0), 1e-3);
+}
+
 // Exact solution of the discrete system c theta' = b - (L + W) theta by the generalised symmetric
 // eigenproblem (L + W) v = lambda C v (V^T C V = I):
 //   theta(t) = theta* + V exp(-Lambda t) V^T C (theta0 - theta*),  theta* = (L + W)^{-1} b.
@@ -130,56 +171,114 @@ Eigen::VectorXd chain_exact(const Eigen::MatrixXd& lw, const Eigen::VectorXd& c,
   return steady + v * decay.asDiagonal() * v.transpose() * c.asDiagonal() * (theta0 - steady);
 }
 
-TEST(ThermalExact, ChainMatchesMatrixExponential) {
-  const int n = 8;
-  const double a = 1e-4;
-  Particles p = test::chain(n, a);
+// Eight spheres in a row, alternating a light (K = 20) and a heavy (K = 80, rho = 4000) material,
+// at 300 .. 475 K, the first touching a wall at 250 K: contacts, a wall and two materials. The
+// exact system (3.2) and the wall rule are assembled by hand, independently of the model.
+struct Chain {
+  static constexpr int n = 8;
+  static constexpr double a = 1e-4;
   Material light, heavy;
-  light.conductivity = 20;
-  heavy.conductivity = 80;
-  heavy.density = 4000;
-  for (int k = 0; k < n; ++k) {
-    p.material[k] = k % 2;
-    p.temperature[k] = 300.0 + 25.0 * k;  // 300 .. 475 K
+  Eigen::MatrixXd lw;
+  Eigen::VectorXd c, b, theta0;
+
+  Chain() {
+    light.conductivity = 20;
+    heavy.conductivity = 80;
+    heavy.density = 4000;
+    const Particles p = particles();
+    lw = test::dense_conduction(n, find_contacts(p), [](const Contact& ct) {
+      return conductance(ct.i % 2 ? 80 : 20, ct.j % 2 ? 80 : 20, ct.area, ct.distance);
+    });
+    const double g_wall = std::numbers::pi * 20 * 0.6 * a;
+    lw(0, 0) += g_wall;
+    b = Eigen::VectorXd::Zero(n);
+    b[0] = g_wall * 250.0;
+    // m C / M by hand: rho 4/3 pi (0.6 a)^3 C_S / M with rho = 1000 (even k) or 4000 (odd k),
+    // C_S = 1000 and M = 1e6 (the defaults).
+    c.resize(n), theta0.resize(n);
+    for (int k = 0; k < n; ++k) {
+      const double rho = k % 2 ? 4000.0 : 1000.0;
+      c[k] = rho * 4.0 / 3.0 * std::numbers::pi * std::pow(0.6 * a, 3) * 1000.0 / 1e6;
+      theta0[k] = p.temperature[k];
+    }
   }
-  ThermalSpec spec;
-  spec.phi = 0.5;
-  spec.solver = "direct";
-  spec.tolerance = 1e-12;
-  spec.walls.push_back({0, 0.0, 0.0, 250.0, -1.0});  // the first sphere touches x = 0
-  ThermalModel model(p, {light, heavy}, spec);
+  Particles particles() const {
+    Particles p = test::chain(n, a);
+    for (int k = 0; k < n; ++k) {
+      p.material[k] = k % 2;
+      p.temperature[k] = 300.0 + 25.0 * k;  // 300 .. 475 K
+    }
+    return p;
+  }
+  ThermalSpec spec(double phi) const {
+    ThermalSpec s;
+    s.phi = phi;
+    s.solver = "direct";
+    s.tolerance = 1e-12;
+    s.walls.push_back({0, 0.0, 0.0, 250.0, -1.0});  // the first sphere touches x = 0
+    return s;
+  }
+  Eigen::VectorXd exact(double t) const { return chain_exact(lw, c, b, theta0, t); }
+  Eigen::VectorXd eigenvalues() const {
+    return Eigen::GeneralizedSelfAdjointEigenSolver<Eigen::MatrixXd>(
+               lw, Eigen::MatrixXd(c.asDiagonal()))
+        .eigenvalues();
+  }
+  // The largest error over the chain after `steps` equal steps to t_end; each must be one step
+  // (no sub-steps, which would change the step length the order is measured in).
+  double error(double phi, int steps, double t_end) const {
+    Particles p = particles();
+    ThermalModel model(p, {light, heavy}, spec(phi));
+    model.set_contacts(find_contacts(p));
+    for (int s = 0; s < steps; ++s) EXPECT_EQ(model.step(t_end / steps, {}).substeps, 1);
+    const Eigen::VectorXd theta = Eigen::Map<const Eigen::VectorXd>(p.temperature.data(), n);
+    return (theta - exact(t_end)).cwiseAbs().maxCoeff();
+  }
+};
+
+TEST(ThermalExact, ChainMatchesMatrixExponential) {
+  const Chain chain;
+  const int n = Chain::n;
+  Particles p = chain.particles();
+  ThermalModel model(p, {chain.light, chain.heavy}, chain.spec(0.5));
   model.set_contacts(find_contacts(p));
+  // The model's own masses must agree with those by hand.
+  for (int k = 0; k < n; ++k)
+    EXPECT_NEAR(model.thermal_mass(static_cast<std::size_t>(k)) / chain.c[k], 1.0, 1e-14) << k;
 
-  // The exact system, assembled independently of the model from (3.2) and the wall rule.
-  Eigen::MatrixXd lw = test::dense_conduction(n, find_contacts(p), [](const Contact& ct) {
-    return conductance(ct.i % 2 ? 80 : 20, ct.j % 2 ? 80 : 20, ct.area, ct.distance);
-  });
-  Eigen::VectorXd c(n), b = Eigen::VectorXd::Zero(n), theta0(n);
-  const double g_wall = std::numbers::pi * 20 * 0.6 * a;
-  lw(0, 0) += g_wall;
-  b[0] = g_wall * 250.0;
-  // m C / M by hand: rho 4/3 pi (0.6 a)^3 C_S / M with rho = 1000 (even k) or 4000 (odd k),
-  // C_S = 1000 and M = 1e6 (the defaults); the model's own masses must agree.
-  for (int k = 0; k < n; ++k) {
-    const double rho = k % 2 ? 4000.0 : 1000.0;
-    c[k] = rho * 4.0 / 3.0 * std::numbers::pi * std::pow(0.6 * a, 3) * 1000.0 / 1e6;
-    theta0[k] = p.temperature[k];
-    EXPECT_NEAR(model.thermal_mass(static_cast<std::size_t>(k)) / c[k], 1.0, 1e-14) << k;
-  }
-
-  Eigen::GeneralizedSelfAdjointEigenSolver<Eigen::MatrixXd> eig(lw,
-                                                                Eigen::MatrixXd(c.asDiagonal()));
-  const double slowest = eig.eigenvalues().minCoeff(), fastest = eig.eigenvalues().maxCoeff();
+  const Eigen::VectorXd lambda = chain.eigenvalues();
+  const double slowest = lambda.minCoeff(), fastest = lambda.maxCoeff();
   const double t_end = 1.0 / slowest;
   const int steps = 4000;
   for (int s = 0; s < steps; ++s) model.step(t_end / steps, {});
-  const Eigen::VectorXd exact = chain_exact(lw, c, b, theta0, t_end);
+  const Eigen::VectorXd exact = chain.exact(t_end);
   // CN error ~ (lambda dt)^2 / 12 per unit time for the fastest mode that is still alive:
   // 4.1e-7 K measured; backward Euler's first-order error would be ~1e-2 K.
   const double dt_lambda = fastest * t_end / steps;
   ASSERT_LT(dt_lambda, 1.0);
   for (int k = 0; k < n; ++k) EXPECT_NEAR(p.temperature[k], exact[k], 1e-5) << "particle " << k;
-  EXPECT_GT((exact - theta0).cwiseAbs().maxCoeff(), 10.0);  // the solution did move
+  EXPECT_GT((exact - chain.theta0).cwiseAbs().maxCoeff(), 10.0);  // the solution did move
+}
+
+// The order of the step on a scene with contacts (the lumped sphere above has none): from 400 to
+// 800 steps over t_end = 1 / lambda_min, the error of the explicit and backward-Euler steps
+// halves (9.8e-2 -> 4.9e-2 K measured) and that of Crank-Nicolson quarters (4.1e-5 -> 1.0e-5 K).
+// 400 steps is 0.55 times the explicit limit (fewer would be split into sub-steps, which
+// Chain::error refuses: at 200 steps the explicit error equalled 400 steps' to the digit).
+double chain_order(double phi) {
+  const Chain chain;
+  const double t_end = 1.0 / chain.eigenvalues().minCoeff();
+  return std::log2(chain.error(phi, 400, t_end) / chain.error(phi, 800, t_end));
+}
+
+// The theta method's order: 1 for explicit (phi = 0) and backward Euler (1), 2 for
+// Crank-Nicolson (1/2), on the lumped sphere (walls only: the explicit step's "diagonal" path;
+// dt = tau / 20 and tau / 40, within its limit tau) and on the conducting chain.
+TEST(ThermalExact, ConvergenceOrderIsOneForEulerAndTwoForCrankNicolson) {
+  for (const auto& [phi, order] : {std::pair{0.0, 1.0}, {1.0, 1.0}, {0.5, 2.0}}) {
+    EXPECT_NEAR(measured_order(phi), order, 0.05) << "lumped sphere, phi = " << phi;
+    EXPECT_NEAR(chain_order(phi), order, 0.05) << "chain, phi = " << phi;
+  }
 }
 
 }  // namespace

@@ -235,21 +235,32 @@ TEST(ThermalPhase, VaporisedParticleCarriesItsEnergyAndLeavesTheGraph) {
 
 // A step split into sub-steps (phi = 0 beyond its limit) whose first sub-step vaporises the
 // heated sphere: the heat aimed at it in the later sub-steps leaves with the vapour. Stored is
-// then exactly the neighbour's heat, vaporised the rest.
+// then exactly the neighbour's heat, vaporised the rest. The heated sphere starts at 590 K, solid
+// just below theta_m, the neighbour at 300 K: the explicit first sub-step conducts on the
+// starting temperatures, G (590 - 300) over dt / 5 = 0.9 c / G, so the neighbour ends at exactly
+// 300 + 0.9 x 290 = 561 K (from equal temperatures it would not warm at all, and the ledger's
+// split between stored and vaporised would be 0 and everything, whatever conduction did).
 TEST(ThermalPhase, HeatForASphereVaporisedInAnEarlierSubStepLeavesWithIt) {
   ThermalSpec spec;
   spec.phi = 0;
   Particles p;
-  p.add(Vec3::Zero(), kRadius, 0, 300.0);
+  p.add(Vec3::Zero(), kRadius, 0, 590.0);
   p.add(Vec3(1.5 * kRadius, 0, 0), kRadius, 0, 300.0);
   Material m;
   m.conductivity = 1e-3;
   ThermalModel model(p, {m}, spec);
-  model.set_contacts(find_contacts(p));
+  const auto contacts = find_contacts(p);
+  model.set_contacts(contacts);
+  ASSERT_EQ(p.phase[0], Phase::solid);
   const double dh = 1e3 * mass_over_m(m) * m.c_liquid * 400.0;  // vaporises it in one sub-step
-  const StepReport r = model.step(4.5 * model.monotone_step_limit(), {dh, 0.0});
-  ASSERT_GT(r.substeps, 2);
+  const double dt = 4.5 * model.monotone_step_limit();
+  const StepReport r = model.step(dt, {dh, 0.0});
+  ASSERT_EQ(r.substeps, 5);
   ASSERT_FALSE(p.alive[0]);
+  const double g = contact_conductances(p, {m}, contacts)[0];
+  const double c = mass_over_m(m) * m.c_solid;
+  EXPECT_NEAR(p.temperature[1], 300.0 + dt / r.substeps * g * 290.0 / c, 1e-9);
+  EXPECT_NEAR(p.temperature[1], 561.0, 1e-9);  // the limit is c / G: C_S < C_L
   const double neighbour = mass_over_m(m) * m.c_solid * (p.temperature[1] - 300.0);
   EXPECT_NEAR(model.ledger().stored, neighbour, 1e-9 * dh);
   EXPECT_NEAR(model.ledger().vaporized, dh - neighbour, 1e-9 * dh);

@@ -900,8 +900,8 @@ void check_checkpoint_stage_times(double setup_seconds, double output_seconds,
 }
 
 // Whether dir holds a run of beampack's: its checkpoint, its frames' particles.pvd, its first
-// ray paths or its history.csv (a killed run leaves only those), or its summary.json (the figures
-// and the configuration). Files of beampack's names in a folder without any of them are the user's own.
+// ray paths or its history.csv (a killed run leaves only those), or its summary.json (figures and
+// configuration). Files of beampack's names in a folder without any of them are the user's own.
 bool holds_earlier_run(const fs::path& dir) {
   if (head_of(dir / "checkpoint.bin", 64).find("beampack-checkpoint") != std::string::npos)
     return true;
