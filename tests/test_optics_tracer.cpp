@@ -980,6 +980,31 @@ TEST(OpticsTracer, LiquidParticlesUseTheLiquidIndex) {
   EXPECT_EQ(uncut.deposits, run.deposits);
 }
 
+// Each particle's hits take its own material's index: two spheres side by side, of materials
+// n = 1.4 and n = 3, each met head-on by a pencil through its centre, absorb 1 - ((n - 1) /
+// (n + 1))^2 of it (normal incidence: 97.2% and 75%); the reflections go straight back out. A
+// tracer that took material 0's index for both would give the second 97.2%.
+TEST(OpticsTracer, EachParticleReflectsWithItsOwnMaterialsIndex) {
+  Particles p;
+  p.add(Vec3(5e-4, 3e-4, 5e-4), 1e-4, 0);
+  p.add(Vec3(5e-4, 7e-4, 5e-4), 1e-4, 1);
+  OpticsSpec spec;
+  spec.materials.resize(2);
+  spec.materials[0].n_solid = {1.4, 0.0};
+  spec.materials[1].n_solid = {3.0, 0.0};
+  Tracer tracer(p, spec);
+  const std::vector<double> energies = {1.0, 1.0};
+  tracer.launch(test::custom_beam({Vec3(0, 3e-4, 5e-4), Vec3(0, 7e-4, 5e-4)}, Vec3(1, 0, 0)),
+                energies);
+  std::vector<double> deposits;
+  tracer.advance(std::numeric_limits<double>::infinity(), deposits);
+  ASSERT_EQ(tracer.hits(), 2u);
+  const auto absorbed = [](double n) { return 1.0 - std::pow((n - 1.0) / (n + 1.0), 2); };
+  EXPECT_NEAR(deposits[0], absorbed(1.4), 1e-15);
+  EXPECT_NEAR(deposits[1], absorbed(3.0), 1e-15);
+  EXPECT_NEAR(tracer.ledger().escaped, 2.0 - absorbed(1.4) - absorbed(3.0), 1e-15);
+}
+
 TEST(OpticsTracerLong, LedgerClosesOn1e5PacketWithManyRays) {
   if (!beampack::test::long_tests_asked()) GTEST_SKIP() << "set BEAMPACK_LONG=1";
   const Particles p = random_overlap_packing(100000, kD, 0.325, 9);

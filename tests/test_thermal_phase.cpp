@@ -91,6 +91,27 @@ TEST(ThermalPhase, MeltingUsesSolidPlusMeltBand) {
   EXPECT_NEAR(s.p.temperature[0], 615.0, 1e-9);
 }
 
+// Each particle changes phase at its own material's temperatures, with its own bands: two
+// spheres apart, at 550 K, the same heat (m C_S 130 / M, a predicted 680 K). Material 0 melts at
+// 600 K: corrected with C_S + dP_SL = 2000 to 615 K, liquid. Material 1 melts at 700 K: 680 K,
+// solid, no band. With material 0's temperatures for both, the second would melt too.
+TEST(ThermalPhase, EachParticleMeltsAtItsOwnMaterialsTemperature) {
+  Particles p;
+  p.add(Vec3::Zero(), kRadius, 0, 550.0);
+  p.add(Vec3(1e-3, 0, 0), kRadius, 1, 550.0);
+  Material low = distinct_bands(), high = distinct_bands();
+  high.melt_temperature = 700;
+  high.vapor_temperature = 900;
+  ThermalModel model(p, {low, high}, {});
+  const double dh = mass_over_m(low) * low.c_solid * 130.0;
+  const StepReport r = model.step(1e-9, {dh, dh});
+  EXPECT_EQ(r.phase_changed, std::vector<std::uint32_t>{0});
+  EXPECT_EQ(p.phase[0], Phase::liquid);
+  EXPECT_NEAR(p.temperature[0], 615.0, 1e-9);
+  EXPECT_EQ(p.phase[1], Phase::solid);
+  EXPECT_NEAR(p.temperature[1], 680.0, 1e-9);
+}
+
 // MODEL.md 5 step 3: a liquid crossing theta_v upward is re-solved with C = C_L + dP_LV/dtheta.
 // Liquid at 650 K, dH = m C_L 80 / M: predictor 730 K >= theta_v = 700 K; corrector with
 // C_eff = 2000 + 5000 = 7000: 650 + 80 * 2000 / 7000 = 672.857 K, below theta_v, so it stays
