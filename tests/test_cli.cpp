@@ -1118,6 +1118,12 @@ for f in files:
     e = lines.GetCellData().GetArray('energy')
     assert all(e.GetValue(i) > 0 for i in range(e.GetNumberOfTuples())), f
 print('rays ok', len(files))
+# rays.pvd times the ray files as particles.pvd times the frames: each pulse at its end.
+series = [(d.get('file'), float(d.get('timestep')))
+          for d in ET.parse(out + '/rays.pvd').getroot().iter('DataSet')]
+assert [out + '/' + name for name, _ in series] == files, series
+assert [t for _, t in series] == times[1:], (series, times)
+print('rays.pvd ok')
 )");
   const Result py = [&] {
     std::FILE* pipe =
@@ -1132,6 +1138,7 @@ print('rays ok', len(files))
   EXPECT_CONTAINS(py.output, "ok 6 ");
   EXPECT_CONTAINS(py.output, "start ok");
   EXPECT_CONTAINS(py.output, "rays ok 5");
+  EXPECT_CONTAINS(py.output, "rays.pvd ok");
 }
 
 TEST(Cli, ConvergeWritesLaddersWithTheFinestAsReference) {
@@ -1352,8 +1359,9 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
     EXPECT_TRUE(file_text(e.path()) == file_text(other / name)) << name << " differs";
     ++compared;
   }
-  // The start frame and 5 pulses' frames, 5 ray files, particles.pvd, particles.csv, history.csv.
-  EXPECT_EQ(compared, 14u);
+  // The start frame and 5 pulses' frames, 5 ray files, particles.pvd, rays.pvd (rebuilt from the
+  // checkpoint's history rows), particles.csv, history.csv.
+  EXPECT_EQ(compared, 15u);
   // A checkpoint folder whose early frames were deleted (to save space): the resumed series
   // leaves them out of particles.pvd, with a warning, rather than name files that are not there.
   const fs::path thinned = fresh_dir("series_thinned"), resumed = fresh_dir("series_resumed");
@@ -1378,6 +1386,10 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
     EXPECT_CONTAINS(pvd, frame);
     EXPECT_TRUE(fs::exists(resumed / frame)) << frame;
   }
+  const std::string rays_pvd = file_text(resumed / "rays.pvd");  // nor does rays.pvd
+  EXPECT_NOT_CONTAINS(rays_pvd, "rays_0001.vtp");
+  for (const char* rays : {"rays_0000.vtp", "rays_0002.vtp", "rays_0004.vtp"})
+    EXPECT_CONTAINS(rays_pvd, rays);
   // Several of each are listed in one warning per kind.
   const fs::path sparse = fresh_dir("series_sparse"), refilled = fresh_dir("series_refilled");
   for (const fs::directory_entry& e : fs::directory_iterator(whole))

@@ -735,6 +735,9 @@ struct RunRecord {
   std::string config_text;
   std::string history = history_header();
   std::vector<std::pair<std::string, double>> frames;
+  // rays.pvd's series: each pulse's ray path file and end time (not in the checkpoint: a resume
+  // rebuilds it from the history rows, ray_series).
+  std::vector<std::pair<std::string, double>> ray_files;
   double earlier_seconds = 0;     // wall time of the runs this one resumes
   int checkpoint_every = 0;       // --checkpoint-every of the run: a resume keeps it
   bool resumed_in_place = false;  // --resume into the checkpoint's own folder
@@ -919,7 +922,7 @@ bool holds_earlier_run(const fs::path& dir) {
 // writes them through (a killed run can leave one).
 bool is_output_name(const fs::path& file) {
   static const std::regex ours(std::string(R"(((particles|rays))") + kPulseFileNumber +
-                               R"(|particles_start\.vtp|particles\.pvd|checkpoint\.bin|)"
+                               R"(|particles_start\.vtp|particles\.pvd|rays\.pvd|checkpoint\.bin|)"
                                R"(summary\.json|history\.csv|particles\.csv)(\.tmp\.\d+)?)");
   return std::regex_match(file.filename().string(), ours);
 }
@@ -1088,6 +1091,25 @@ void carry_earlier_files(const fs::path& from, const fs::path& to, const RunReco
                  missing.said("ray path file").c_str(), to.c_str(), missing.them());
 }
 
+// rays.pvd's series as a resume finds it: the ray path file of each pulse in the history rows
+// (`time_s,pulse,...`), at that pulse's end time, where the file is in `dir` (one deleted to save
+// space is left out, as its frame is from particles.pvd).
+std::vector<std::pair<std::string, double>> ray_series(const std::string& history,
+                                                       const fs::path& dir) {
+  std::vector<std::pair<std::string, double>> series;
+  std::istringstream rows(history);
+  std::string row;
+  std::getline(rows, row);  // the header
+  while (std::getline(rows, row)) {
+    const std::size_t comma = row.find(',');
+    const int pulse = std::atoi(row.c_str() + comma + 1);
+    const std::string name = pulse_file("rays", pulse - 1);
+    std::error_code ec;
+    if (fs::is_regular_file(dir / name, ec)) series.emplace_back(name, std::stod(row));
+  }
+  return series;
+}
+
 // The figures at the end of the run's last pulse: what a run that fails later still has, whole.
 struct PulsesEnded {
   int count = 0;  // in this run (a resumed one: since the checkpoint)
@@ -1179,8 +1201,12 @@ void record_pulse_ends(Simulation& sim, const OutputSpec& output, const fs::path
     const std::string row = history_row(figures);
     record.history += row;
     history.append(record.history, row);
-    if (output.rays)
-      write_rays_vtp((out / pulse_file("rays", pulse)).string(), sim.take_ray_paths());
+    if (output.rays) {
+      const std::string name = pulse_file("rays", pulse);
+      write_rays_vtp((out / name).string(), sim.take_ray_paths());
+      record.ray_files.emplace_back(name, figures.time);
+      write_pvd((out / "rays.pvd").string(), record.ray_files);
+    }
     if (output.frames) {
       const std::string name = pulse_file("particles", pulse);
       write_particles_vtp((out / name).string(), sim.particles(), sim.absorbed());
@@ -1319,6 +1345,12 @@ int run_command(const RunOptions& options) {
                           std::max(sim.figures().pulse - 1, 0));
     if (!record.frames.empty())  // the series as it now stands, before any new frame
       write_pvd((fs::path(out_dir) / "particles.pvd").string(), record.frames);
+  }
+  if (saved && config.output.rays) {  // the ray series so far, in its own folder too
+    const StageTimer timer(record.stages.output);
+    record.ray_files = ray_series(record.history, out_dir);
+    if (!record.ray_files.empty())
+      write_pvd((fs::path(out_dir) / "rays.pvd").string(), record.ray_files);
   }
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);
