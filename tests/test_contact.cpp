@@ -111,8 +111,9 @@ void expect_graph_equals_brute_force(const Particles& p) {
   for (std::size_t k = 0; k < contacts.size(); ++k) {
     ASSERT_EQ(std::make_tuple(contacts[k].i, contacts[k].j), expected[k]) << "pair " << k;
     const double d = (p.centre[contacts[k].i] - p.centre[contacts[k].j]).norm();
-    ASSERT_EQ(contacts[k].area,
-              contact_geometry(d, p.radius[contacts[k].i], p.radius[contacts[k].j]).area);
+    const ContactGeometry g = contact_geometry(d, p.radius[contacts[k].i], p.radius[contacts[k].j]);
+    ASSERT_EQ(contacts[k].area, g.area);
+    ASSERT_EQ(contacts[k].distance, g.distance);  // the conduction distance of (3.2) too
   }
 }
 

@@ -186,8 +186,20 @@ struct Chain {
     heavy.conductivity = 80;
     heavy.density = 4000;
     const Particles p = particles();
-    lw = test::dense_conduction(n, find_contacts(p), [](const Contact& ct) {
-      return conductance(ct.i % 2 ? 80 : 20, ct.j % 2 ? 80 : 20, ct.area, ct.distance);
+    // Neighbours a apart, radii 0.6 a: lens radius^2 = (0.6 a)^2 - (a / 2)^2 = 0.11 a^2 (3.9),
+    // G = (K_k + K_k+1) / 2 x pi 0.11 a^2 / a (3.2), written here, not taken from the code.
+    std::vector<Contact> hand;
+    for (std::uint32_t k = 0; k + 1 < n; ++k)
+      hand.push_back({k, k + 1, std::numbers::pi * 0.11 * a * a, a});
+    const auto contacts = find_contacts(p);  // what the model will use: the same graph
+    EXPECT_EQ(contacts.size(), hand.size());
+    for (std::size_t k = 0; k < std::min(contacts.size(), hand.size()); ++k) {
+      EXPECT_EQ(contacts[k].j, hand[k].j);
+      EXPECT_NEAR(contacts[k].area / hand[k].area, 1.0, 1e-14) << k;
+      EXPECT_NEAR(contacts[k].distance / hand[k].distance, 1.0, 1e-14) << k;
+    }
+    lw = test::dense_conduction(n, hand, [](const Contact& ct) {
+      return 0.5 * ((ct.i % 2 ? 80 : 20) + (ct.j % 2 ? 80 : 20)) * ct.area / ct.distance;
     });
     const double g_wall = std::numbers::pi * 20 * 0.6 * a;
     lw(0, 0) += g_wall;
