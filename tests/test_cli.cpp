@@ -2738,10 +2738,25 @@ TEST(Cli, SweepAndConvergeSayWhichRunsSkippedAStage) {
                   "skipped in 1 of 2 runs: no particle whose temperature changed was at the "
                   "melting temperature (beam.power = 1)");
   EXPECT_LT(sweep.output.find("stages over"), sweep.output.find("sweep: 2 runs")) << sweep.output;
+  // sweep.csv has each run's stage seconds beside its wall seconds: 0 for the stage it skipped,
+  // and together no more than its wall time.
+  const auto rows = read_csv(dir / "sweep" / "sweep.csv");
+  ASSERT_EQ(rows.size(), 2u);
+  EXPECT_EQ(rows[0].at("phases_s"), "0");
+  EXPECT_GT(std::stod(rows[1].at("phases_s")), 0.0);
+  for (const auto& row : rows) {
+    double stages = 0;
+    for (const char* stage : {"setup", "trace", "heat", "phases", "stagger", "rebuild"})
+      stages += std::stod(row.at(std::string(stage) + "_s"));
+    EXPECT_GT(stages, 0.0);
+    EXPECT_LE(stages, std::stod(row.at("wall_seconds")));
+  }
   const Result converge = run("converge --preset quick --quiet --set pulses.count=0 --out " +
                               (dir / "converge").string());
   ASSERT_EQ(converge.code, 0) << converge.output;
   EXPECT_CONTAINS(converge.output, "stages over ");
+  for (const auto& row : read_csv(dir / "converge" / "convergence.csv"))
+    EXPECT_EQ(row.at("trace_s"), "0") << row.at("ladder");  // no pulse: no trace in any rung
   EXPECT_CONTAINS(converge.output,
                   "  trace                                   -  skipped: "
                   "`pulses.count` = 0: no pulse, no ray scene or bounce grid built");

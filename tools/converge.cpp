@@ -242,7 +242,8 @@ void tabulate_ladder(const Ladder& ladder, std::string& csv, std::vector<Chart>&
         << ',' << r.counts.steps << ',' << r.counts.rays << ','
         << exact(r.figures.vaporized_fraction) << ',' << exact(vv_error) << ',' << exact(t.l2)
         << ',' << exact(t.max) << ',' << t.compared << ',' << exact(r.figures.time) << ','
-        << exact(r.figures.max_temperature) << ',' << exact(peak_error) << '\n';
+        << exact(r.figures.max_temperature) << ',' << exact(peak_error) << ','
+        << stage_cells(r.stages) << '\n';
     csv += row.str();
     std::printf("%-18s %-22s %9.3f s  v_v = %.4f  error %.2e  T L2 error %s  peak error %s\n",
                 ladder.name.c_str(), rung.value.c_str(), r.wall_seconds,
@@ -293,9 +294,12 @@ int converge_command(const RunOptions& options) {
     for (const RunConfig& config : ladder.configs) rungs.push_back(&config);
   const std::set<std::string> said = warn_of_shared_specs(rungs);
   std::string csv =
-      "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
-      "temperature_l2_error_K,temperature_max_error_K,temperature_particles,end_time_s,"
-      "peak_temperature_K,peak_temperature_error_K\n";
+      std::string(
+          "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_"
+          "error,"
+          "temperature_l2_error_K,temperature_max_error_K,temperature_particles,end_time_s,"
+          "peak_temperature_K,peak_temperature_error_K,") +
+      stage_columns() + "\n";
   int code = 0;
   for (Ladder& ladder : all) {
     code = std::max(code, run_ladder(ladder, options.quiet, said));

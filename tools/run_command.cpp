@@ -698,6 +698,18 @@ Counts summed_shares(const std::vector<LabelledRun>& runs) {
 
 }  // namespace
 
+std::string stage_columns() {
+  std::string columns = "setup_s";
+  for (const char* name : Simulation::kStageNames) columns += std::string(",") + name + "_s";
+  return columns;
+}
+
+std::string stage_cells(const StageTable& stages) {
+  std::string cells;
+  for (const auto& [name, time] : stages) cells += (cells.empty() ? "" : ",") + exact(time.seconds);
+  return cells;
+}
+
 std::vector<std::string> stage_total_lines(const std::vector<LabelledRun>& runs,
                                            const StageTime& output) {
   if (runs.empty()) return {};
@@ -1579,7 +1591,8 @@ int sweep_command(const SweepOptions& options) {
   const fs::path out(options.run.out_dir);
   const std::vector<std::string> tables = {"sweep.csv", "sweep.svg"};
   refuse_non_files_at_outputs(out, tables);
-  const std::string header = param + ',' + kFigureColumns + ",steps,wall_seconds";
+  const std::string header =
+      param + ',' + kFigureColumns + ",steps,wall_seconds," + stage_columns();
   std::string csv = header + '\n';
   Series vv{"vaporized fraction", {}, {}};
   const SweepAxis axis = sweep_axis(values);
@@ -1612,7 +1625,7 @@ int sweep_command(const SweepOptions& options) {
     }
     const Figures& f = r.figures;
     csv += csv_cell(values[k]) + ',' + figure_columns(f) + ',' + std::to_string(r.counts.steps) +
-           ',' + exact(r.wall_seconds) + '\n';
+           ',' + exact(r.wall_seconds) + ',' + stage_cells(r.stages) + '\n';
     vv.x.push_back(axis.x[k]);
     vv.y.push_back(f.vaporized_fraction);
     ran.push_back({param + " = " + values[k], std::move(r.stages), r.counts});

@@ -182,6 +182,12 @@ std::set<std::string> warn_of_shared_specs(const std::vector<const RunConfig*>& 
 RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label = "",
                     const std::set<std::string>& said = {});
 
+// sweep.csv's and convergence.csv's stage columns, "setup_s,trace_s,...,rebuild_s", and a run's
+// cells for them: its seconds in each stage, 0 in one it skipped (where its time went, beside
+// its wall seconds).
+std::string stage_columns();
+std::string stage_cells(const StageTable& stages);
+
 // One finished run of a sweep or converge, as its stage table counts it: its label (the value or
 // rung its lines name), its stages and its counts.
 struct LabelledRun {
