@@ -210,6 +210,9 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"unknown key `conductivity` (did you mean `material.conductivity`?)"});
   expect_input_error("cut_short", "", "--set beam.diameter=0.2",
                      {"unknown key `beam.diameter` (did you mean `beam.diameter_fraction`?)"});
+  expect_input_error("cut_short_of_three", "", "--set beam.direction=1",
+                     {"(did you mean `beam.direction_x`, `beam.direction_y` or "
+                      "`beam.direction_z`?)"});
   expect_input_error("type", "[beam]\nrays = \"many\"\n", "",
                      {"run.toml:2", "beam.rays", "must be an integer"});
   // A whole number in float notation is a float to TOML; the message says how to write it.
@@ -762,6 +765,13 @@ TEST(Cli, RunFileLayersPathsAndArgumentsAreReadAsWritten) {
                             (dir / "piped").string() + "' >/dev/null 2>&1";
   ASSERT_EQ(std::system(piped.c_str()), 0) << piped;
   EXPECT_CONTAINS(file_text(dir / "piped" / "summary.json"),
+                  fs::absolute(dir / "sub" / "one.xyz").lexically_normal().string());
+  // And through standard input (`run /dev/stdin < bed.toml`: a regular file in /dev).
+  const std::string redirected = "cd '" + (dir / "sub").string() + "' && " + BEAMPACK_CLI +
+                                 " run /dev/stdin --set pulses.count=1 --quiet --out " +
+                                 (dir / "redirected").string() + " < bed.toml >/dev/null 2>&1";
+  ASSERT_EQ(std::system(redirected.c_str()), 0) << redirected;
+  EXPECT_CONTAINS(file_text(dir / "redirected" / "summary.json"),
                   fs::absolute(dir / "sub" / "one.xyz").lexically_normal().string());
   // The resolved run file holds the path made absolute: it runs from any folder.
   const Result printed = run("config " + file);
@@ -1390,6 +1400,19 @@ TEST(Cli, AResumeIntoAnotherFolderContinuesTheWholeSeries) {
   EXPECT_NOT_CONTAINS(rays_pvd, "rays_0001.vtp");
   for (const char* rays : {"rays_0000.vtp", "rays_0002.vtp", "rays_0004.vtp"})
     EXPECT_CONTAINS(rays_pvd, rays);
+  // Resumed in its own folder (no summary.json: not finished), the same, said as rays.pvd's.
+  const fs::path own = fresh_dir("series_own");
+  for (const fs::directory_entry& e : fs::directory_iterator(whole))
+    fs::copy_file(e.path(), own / e.path().filename());
+  fs::remove(own / "summary.json");
+  fs::remove(own / "rays_0001.vtp");
+  const Result in_place = run("run --resume " + own.string());
+  ASSERT_EQ(in_place.code, 0) << in_place.output;
+  EXPECT_CONTAINS(in_place.output,
+                  "1 ray path file of the pulses before the checkpoint is not there "
+                  "(rays_0001.vtp); rays.pvd leaves it out");
+  EXPECT_NOT_CONTAINS(file_text(own / "rays.pvd"), "rays_0001.vtp");
+  EXPECT_CONTAINS(file_text(own / "rays.pvd"), "rays_0004.vtp");
   // Several of each are listed in one warning per kind.
   const fs::path sparse = fresh_dir("series_sparse"), refilled = fresh_dir("series_refilled");
   for (const fs::directory_entry& e : fs::directory_iterator(whole))
@@ -2212,6 +2235,9 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
       EXPECT_CONTAINS(threads.output, std::string("beampack: error: --threads: ") + said);
     }
   }
+  const Result plus = run("run --preset quick --quiet --set pulses.count=1 --threads +2 --out " +
+                          (out / "plus").string());
+  EXPECT_EQ(plus.code, 0) << plus.output;  // "+2" is a whole number, as CLI11 reads it
   const Result every = run("run --preset quick --checkpoint-every 1e3 --out " + out.string());
   EXPECT_EQ(every.code, 2) << every.output;
   EXPECT_CONTAINS(every.output, "--checkpoint-every: Value 1e3 is not a whole number >= 0");
@@ -2304,6 +2330,18 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   EXPECT_CONTAINS(after_kill.output,
                   "removed 1 file of an earlier run from " + killed.string() + ": history.csv");
   EXPECT_EQ(read_csv(killed / "history.csv").size(), 0u);  // the new run's, of no pulse
+  // One killed before its first pulse ended left only its start frame and its particles.pvd.
+  ASSERT_EQ(run("run --preset quick --quiet --set pulses.count=0 --set output.frames=true --out " +
+                killed.string())
+                .code,
+            0);
+  for (const char* name : {"summary.json", "particles.csv", "history.csv"})
+    fs::remove(killed / name);
+  const Result after_start =
+      run("run --preset quick --quiet --set pulses.count=0 --out " + killed.string());
+  ASSERT_EQ(after_start.code, 0) << after_start.output;
+  EXPECT_CONTAINS(after_start.output, "removed 2 files of an earlier run from " + killed.string() +
+                                          ": particles.pvd, particles_start.vtp");
 }
 
 namespace {

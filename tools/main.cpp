@@ -150,8 +150,9 @@ int main(int argc, char** argv) {
   // and said "not in range 0 to 4096" of it.
   const CLI::Validator kWhole(
       [](std::string& text) -> std::string {
+        const std::size_t first = text.starts_with('+') ? 1 : 0;  // "+2" is 2, as CLI11 reads it
         const bool digits =
-            !text.empty() && text.find_first_not_of("0123456789") == std::string::npos;
+            text.size() > first && text.find_first_not_of("0123456789", first) == std::string::npos;
         return digits ? "" : "Value " + text + " is not a whole number >= 0";
       },
       "WHOLE");

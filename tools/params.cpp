@@ -481,10 +481,14 @@ std::string Params::path(const std::string& key) {
   const KeyOrigin* o = origin(key);
   if (v.empty() || std::filesystem::path(v).is_absolute()) return v;
   // Absolute in the resolved run file: `config` output and a checkpoint work from anywhere. From
-  // the run file's folder, unless the run file is a pipe (`run <(...)`: its folder is /dev/fd),
-  // when it is read from the working directory, as a `--set` is.
+  // the run file's folder, unless the run file is a pipe or a descriptor (`run <(...)`, whose
+  // folder is /dev/fd; `run /dev/stdin < run.toml`), when it is read from the working directory,
+  // as a `--set` is.
   std::error_code ec;
-  const bool in_a_folder = o && !o->file.empty() && std::filesystem::is_regular_file(o->file, ec);
+  const std::string& file = o ? o->file : std::string();
+  const bool descriptor = file.starts_with("/dev/") || file.starts_with("/proc/");
+  const bool in_a_folder =
+      !file.empty() && !descriptor && std::filesystem::is_regular_file(file, ec);
   const std::filesystem::path folder =
       in_a_folder ? std::filesystem::path(o->file).parent_path() : std::filesystem::path();
   const std::string resolved = std::filesystem::absolute(folder / v).lexically_normal().string();
@@ -644,23 +648,29 @@ std::string leaf_of(const std::string& key) {
   return dot == std::string::npos ? key : key.substr(dot + 1);
 }
 
-// " (did you mean `material.conductivity`?)" for a key in the wrong table or none
-// (`thermal.conductivity`, `conductivity`, or a commented key uncommented under the last table
-// of a file, `thermal.beam.gaussian_width`): the known keys of the same last name; else for a
-// key cut short (`beam.diameter`), those it begins. did_you_mean's spelling is tried first.
+// " (did you mean `a`, `b` or `c`?)", or "" when `keys` is empty or too many to offer.
+std::string offered(const std::vector<std::string>& keys) {
+  if (keys.empty() || keys.size() > 4) return "";
+  std::string text = " (did you mean ";
+  for (std::size_t k = 0; k < keys.size(); ++k)
+    text += (k == 0 ? "" : k + 1 == keys.size() ? " or " : ", ") + ("`" + keys[k] + "`");
+  return text + "?)";
+}
+
+// What an unknown key may have meant. A key cut short that begins several (`beam.direction`):
+// all of them (spelling offered `beam.direction_x` alone). Else did_you_mean's spelling. Else a
+// key in the wrong table or none (`thermal.conductivity`, `conductivity`, or a commented key
+// uncommented under the last table of a file, `thermal.beam.gaussian_width`): the known keys of
+// the same last name; else the one key it begins (`beam.diameter`).
 std::string key_elsewhere(const std::string& typed, const std::set<std::string>& known) {
-  if (std::string near = did_you_mean(typed, known); !near.empty()) return near;
   std::vector<std::string> same_leaf, longer;
   for (const std::string& key : known) {
     if (leaf_of(key) == leaf_of(typed)) same_leaf.push_back(key);
     else if (typed.size() >= 4 && key.starts_with(typed)) longer.push_back(key);
   }
-  const std::vector<std::string>& found = same_leaf.empty() ? longer : same_leaf;
-  if (found.empty() || found.size() > 4) return "";
-  std::string text = " (did you mean ";
-  for (std::size_t k = 0; k < found.size(); ++k)
-    text += (k == 0 ? "" : k + 1 == found.size() ? " or " : ", ") + ("`" + found[k] + "`");
-  return text + "?)";
+  if (longer.size() >= 2) return offered(longer);
+  if (std::string near = did_you_mean(typed, known); !near.empty()) return near;
+  return offered(same_leaf.empty() ? longer : same_leaf);
 }
 
 }  // namespace

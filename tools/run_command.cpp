@@ -920,7 +920,9 @@ void check_checkpoint_stage_times(double setup_seconds, double output_seconds,
 bool holds_earlier_run(const fs::path& dir) {
   if (head_of(dir / "checkpoint.bin", 64).find("beampack-checkpoint") != std::string::npos)
     return true;
-  if (head_of(dir / "particles.pvd", 4096).find("file=\"particles_0") != std::string::npos)
+  // Any frame of ours: the start frame (a run killed before its first pulse ended leaves only it),
+  // particles_0NNN.vtp, or a later first one (a resume left out deleted frames; pulse 10000 on).
+  if (head_of(dir / "particles.pvd", 4096).find("file=\"particles_") != std::string::npos)
     return true;
   if (head_of(dir / "rays_0000.vtp", 256).find("<!-- written by beampack -->") != std::string::npos)
     return true;
@@ -1104,10 +1106,10 @@ void carry_earlier_files(const fs::path& from, const fs::path& to, const RunReco
 }
 
 // rays.pvd's series as a resume finds it: the ray path file of each pulse in the history rows
-// (`time_s,pulse,...`), at that pulse's end time, where the file is in `dir` (one deleted to save
-// space is left out, as its frame is from particles.pvd).
+// (`time_s,pulse,...`), at that pulse's end time, where the file is in `dir`. One deleted to save
+// space is left out, as its frame is from particles.pvd; `missing` names them.
 std::vector<std::pair<std::string, double>> ray_series(const std::string& history,
-                                                       const fs::path& dir) {
+                                                       const fs::path& dir, MissingFiles& missing) {
   std::vector<std::pair<std::string, double>> series;
   std::istringstream rows(history);
   std::string row;
@@ -1118,8 +1120,23 @@ std::vector<std::pair<std::string, double>> ray_series(const std::string& histor
     const std::string name = pulse_file("rays", pulse - 1);
     std::error_code ec;
     if (fs::is_regular_file(dir / name, ec)) series.emplace_back(name, std::stod(row));
+    else missing.add(name);
   }
   return series;
+}
+
+// A resume's rays.pvd: the series so far, in its own folder too (a killed later part's file
+// named pulses the results do not hold). None when no ray file is there yet. Missing files are
+// said for a resume in place; one into another folder said them as it carried the others.
+void rebuild_ray_series(const fs::path& dir, RunRecord& record, bool in_place) {
+  MissingFiles missing;
+  record.ray_files = ray_series(record.history, dir, missing);
+  std::error_code ec;
+  if (record.ray_files.empty()) fs::remove(dir / "rays.pvd", ec);
+  else write_pvd((dir / "rays.pvd").string(), record.ray_files);
+  if (in_place && missing.count > 0)
+    std::fprintf(stderr, "beampack: warning: --resume %s: %s; rays.pvd leaves %s out\n",
+                 dir.c_str(), missing.said("ray path file").c_str(), missing.them());
 }
 
 // The figures at the end of the run's last pulse: what a run that fails later still has, whole.
@@ -1358,11 +1375,9 @@ int run_command(const RunOptions& options) {
     if (!record.frames.empty())  // the series as it now stands, before any new frame
       write_pvd((fs::path(out_dir) / "particles.pvd").string(), record.frames);
   }
-  if (saved && config.output.rays) {  // the ray series so far, in its own folder too
+  if (saved && config.output.rays) {
     const StageTimer timer(record.stages.output);
-    record.ray_files = ray_series(record.history, out_dir);
-    if (!record.ray_files.empty())
-      write_pvd((fs::path(out_dir) / "rays.pvd").string(), record.ray_files);
+    rebuild_ray_series(out_dir, record, into_checkpoint_folder);
   }
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);

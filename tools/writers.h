@@ -27,7 +27,7 @@ void write_atomically(const std::string& path, const std::function<void(std::ost
 void write_atomically(const std::vector<OutputFile>& files);
 
 // A file that grows by whole lines while a run goes (history.csv: a row as each pulse ends, so a
-// killed run keeps its rows and `tail -f` follows a run). Its first `append` writes the text so
+// killed run keeps its rows and `tail -F` follows a run). Its first `append` writes the text so
 // far whole, atomically (an earlier run's or a killed one's file is replaced, not continued);
 // each later one appends its text with one write(), so the file never holds part of a line but
 // where the disk filled. RunError naming the file when a write fails. A run's end still replaces
