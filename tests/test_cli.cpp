@@ -758,21 +758,22 @@ TEST(Cli, RunFileLayersPathsAndArgumentsAreReadAsWritten) {
       run("run " + file + " --set pulses.count=1 --quiet --out " + (dir / "a").string());
   ASSERT_EQ(from_file.code, 0) << from_file.output;
   EXPECT_CONTAINS(file_text(dir / "a" / "summary.json"), "\"particles\": 1");
-  // A run file through a pipe (`run <(...)`, its folder /dev/fd) reads a relative packing.file
-  // from the working directory, as a --set does (it looked for /dev/fd/one.xyz).
-  const std::string piped = "cd '" + (dir / "sub").string() + "' && bash -c '" + BEAMPACK_CLI +
-                            " run <(cat bed.toml) --set pulses.count=1 --quiet --out " +
-                            (dir / "piped").string() + "' >/dev/null 2>&1";
-  ASSERT_EQ(std::system(piped.c_str()), 0) << piped;
-  EXPECT_CONTAINS(file_text(dir / "piped" / "summary.json"),
-                  fs::absolute(dir / "sub" / "one.xyz").lexically_normal().string());
-  // And through standard input (`run /dev/stdin < bed.toml`: a regular file in /dev).
-  const std::string redirected = "cd '" + (dir / "sub").string() + "' && " + BEAMPACK_CLI +
-                                 " run /dev/stdin --set pulses.count=1 --quiet --out " +
-                                 (dir / "redirected").string() + " < bed.toml >/dev/null 2>&1";
-  ASSERT_EQ(std::system(redirected.c_str()), 0) << redirected;
-  EXPECT_CONTAINS(file_text(dir / "redirected" / "summary.json"),
-                  fs::absolute(dir / "sub" / "one.xyz").lexically_normal().string());
+  // A run file through a pipe (`run <(...)`, its folder /dev/fd) or standard input (`run
+  // /dev/stdin < bed.toml`, a regular file in /dev) reads a relative packing.file from the working
+  // directory, as a --set does (it looked for /dev/fd/one.xyz, /dev/one.xyz).
+  const std::string args = " --set pulses.count=1 --quiet --out ";
+  for (const auto& [name, command] :
+       {std::pair<std::string, std::string>{"piped", "bash -c '" BEAMPACK_CLI
+                                                     " run <(cat bed.toml)" +
+                                                         args + (dir / "piped").string() + "'"},
+        {"redirected",
+         BEAMPACK_CLI " run /dev/stdin" + args + (dir / "redirected").string() + " < bed.toml"}}) {
+    const std::string line =
+        "cd '" + (dir / "sub").string() + "' && " + command + " >/dev/null 2>&1";
+    ASSERT_EQ(std::system(line.c_str()), 0) << line;
+    EXPECT_CONTAINS(file_text(dir / name / "summary.json"),
+                    fs::absolute(dir / "sub" / "one.xyz").lexically_normal().string());
+  }
   // The resolved run file holds the path made absolute: it runs from any folder.
   const Result printed = run("config " + file);
   ASSERT_EQ(printed.code, 0) << printed.output;
