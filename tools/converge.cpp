@@ -263,6 +263,12 @@ void tabulate_ladder(const Ladder& ladder, std::string& csv, std::vector<Chart>&
   if (absorbed) warn_if_no_rung_differs(ladder);
 }
 
+// convergence.csv's columns before each run's stage seconds (stage_columns).
+constexpr const char* kConvergenceColumns =
+    "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_error,"
+    "temperature_l2_error_K,temperature_max_error_K,temperature_particles,end_time_s,"
+    "peak_temperature_K,peak_temperature_error_K,";
+
 // Every rung that ran to its end, labelled as its lines are, for the stage table.
 std::vector<LabelledRun> labelled_runs(const std::vector<Ladder>& all) {
   std::vector<LabelledRun> runs;
@@ -293,13 +299,7 @@ int converge_command(const RunOptions& options) {
   for (const Ladder& ladder : all)
     for (const RunConfig& config : ladder.configs) rungs.push_back(&config);
   const std::set<std::string> said = warn_of_shared_specs(rungs);
-  std::string csv =
-      std::string(
-          "ladder,key,resolution,wall_seconds,steps,rays,vaporized_fraction,vaporized_fraction_"
-          "error,"
-          "temperature_l2_error_K,temperature_max_error_K,temperature_particles,end_time_s,"
-          "peak_temperature_K,peak_temperature_error_K,") +
-      stage_columns() + "\n";
+  std::string csv = std::string(kConvergenceColumns) + stage_columns() + "\n";
   int code = 0;
   for (Ladder& ladder : all) {
     code = std::max(code, run_ladder(ladder, options.quiet, said));

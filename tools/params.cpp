@@ -490,7 +490,7 @@ std::string Params::path(const std::string& key) {
   const bool in_a_folder =
       !file.empty() && !descriptor && std::filesystem::is_regular_file(file, ec);
   const std::filesystem::path folder =
-      in_a_folder ? std::filesystem::path(o->file).parent_path() : std::filesystem::path();
+      in_a_folder ? std::filesystem::path(file).parent_path() : std::filesystem::path();
   const std::string resolved = std::filesystem::absolute(folder / v).lexically_normal().string();
   // The run file's folder may be named in any bytes; config, checkpoints and summary.json hold
   // the path as UTF-8 text (a summary of such a path failed at the run's end, losing the run).

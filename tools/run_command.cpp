@@ -1055,6 +1055,13 @@ struct MissingFiles {
            names + ")";
   }
   const char* them() const { return count == 1 ? "it" : "them"; }
+  // "beampack: warning: --resume FROM: <said(kind)>; <consequence>" on stderr, if any is missing;
+  // `consequence` names them with them().
+  void warn(const fs::path& from, const char* kind, const std::string& consequence) const {
+    if (count > 0)
+      std::fprintf(stderr, "beampack: warning: --resume %s: %s; %s\n", from.c_str(),
+                   said(kind).c_str(), consequence.c_str());
+  }
 };
 
 }  // namespace
@@ -1069,9 +1076,7 @@ void drop_missing_frames(const fs::path& from, RunRecord& record) {
     missing.add(frame.first);
     return true;
   });
-  if (missing.count > 0)
-    std::fprintf(stderr, "beampack: warning: --resume %s: %s; particles.pvd leaves %s out\n",
-                 from.c_str(), missing.said("frame").c_str(), missing.them());
+  missing.warn(from, "frame", std::string("particles.pvd leaves ") + missing.them() + " out");
 }
 
 // A run resumed into another folder than its checkpoint's continues the frames and ray paths
@@ -1100,9 +1105,8 @@ void carry_earlier_files(const fs::path& from, const fs::path& to, const RunReco
   MissingFiles missing;
   for (int k = 0; output.rays && k < pulses_ended; ++k)
     if (const std::string name = pulse_file("rays", k); !carry(name)) missing.add(name);
-  if (missing.count > 0)  // deleted to save space, as frames may be: said, as they are
-    std::fprintf(stderr, "beampack: warning: --resume %s: %s; %s will not hold %s\n", from.c_str(),
-                 missing.said("ray path file").c_str(), to.c_str(), missing.them());
+  // Deleted to save space, as frames may be: said, as they are.
+  missing.warn(from, "ray path file", to.string() + " will not hold " + missing.them());
 }
 
 // rays.pvd's series as a resume finds it: the ray path file of each pulse in the history rows
@@ -1134,9 +1138,8 @@ void rebuild_ray_series(const fs::path& dir, RunRecord& record, bool in_place) {
   std::error_code ec;
   if (record.ray_files.empty()) fs::remove(dir / "rays.pvd", ec);
   else write_pvd((dir / "rays.pvd").string(), record.ray_files);
-  if (in_place && missing.count > 0)
-    std::fprintf(stderr, "beampack: warning: --resume %s: %s; rays.pvd leaves %s out\n",
-                 dir.c_str(), missing.said("ray path file").c_str(), missing.them());
+  if (in_place)
+    missing.warn(dir, "ray path file", std::string("rays.pvd leaves ") + missing.them() + " out");
 }
 
 // The figures at the end of the run's last pulse: what a run that fails later still has, whole.

@@ -131,8 +131,8 @@ struct RunResult {
   std::vector<double> temperature;
   std::vector<std::uint8_t> alive;  // per particle, 0 once vaporised
   bool interrupted = false;
-  StageTable
-      stages;  // `setup`, then the simulation's (a run of a sweep writes no files of its own)
+  // `setup`, then the simulation's stages (a run of a sweep writes no files of its own).
+  StageTable stages;
 };
 // A command's --out folder, made (with any missing parents) and checked writable at once, so an
 // unusable --out fails before any run. When the command leaves the folders it made empty (bad
