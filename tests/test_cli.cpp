@@ -1214,6 +1214,42 @@ TEST(CliLong, StabilityGridHasNoFailure) {
   EXPECT_EQ(std::count(r.output.begin(), r.output.end(), '\n'), 2) << r.output;
 }
 
+// The grid without its 3000-particle cells (they take 40 of its 45 s): every conductivity, step,
+// index and solver at N = 1 and 100, in a few seconds, so the default suite runs the stiff cases.
+TEST(Cli, StabilityGridSliceHasNoFailure) {
+  const Result r = run("validate --stiff --quiet --only N=1,100");
+  EXPECT_EQ(r.code, 0) << r.output;
+  EXPECT_CONTAINS(r.output, "stability: 608 of the grid's 896 cells");
+  EXPECT_CONTAINS(r.output, " 0 failed");
+  EXPECT_EQ(std::count(r.output.begin(), r.output.end(), '\n'), 3) << r.output;
+}
+
+// --only names its columns as the table heads them, takes a value as text or as the same number,
+// and refuses what is not in the grid, naming what is.
+TEST(Cli, StabilityGridSelectionIsCheckedAgainstTheGrid) {
+  const Result some =
+      run("validate --stiff --only K=1e6 --only dt=paper --only index=20 --only N=1");
+  EXPECT_EQ(some.code, 0) << some.output;
+  EXPECT_CONTAINS(some.output, "stability: 4 of the grid's 896 cells");  // the four solvers
+  EXPECT_CONTAINS(some.output, "1000000  \"paper\"   20     1      1.0  direct");
+  struct Case {
+    const char* args;
+    const char* message;
+  };
+  for (const Case& c : {Case{"--only K=5",
+                             "validate --only K = `5`: not in the grid; its values are 0, 100, "
+                             "10000, 1000000"},
+                        Case{"--only Q=5",
+                             "validate --only `Q=5`: must be COLUMN=VALUE[,VALUE...], COLUMN one "
+                             "of K, dt, index, N, phi, solver"},
+                        Case{"--only N=1 --only phi=0", "no cell of the grid has all of these"}}) {
+    const Result r = run(std::string("validate --stiff ") + c.args);
+    EXPECT_EQ(r.code, 2) << c.args;
+    EXPECT_CONTAINS(r.output, c.message);
+  }
+  EXPECT_CONTAINS(run("validate --only K=0").output, "--only requires --stiff");
+}
+
 namespace {
 
 const char* kCheckpointScene =

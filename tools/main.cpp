@@ -212,8 +212,16 @@ int main(int argc, char** argv) {
       app.add_subcommand("validate", "run the analytic cases and print a table");
   validate_cmd->add_flag("--quiet", quiet_validate, "print failures only");
   bool stiff = false;
-  validate_cmd->add_flag("--stiff", stiff,
-                         "run the stability grid (K, dt, index, N, solver) instead");
+  CLI::Option* stiff_flag = validate_cmd->add_flag(
+      "--stiff", stiff, "run the stability grid (K, dt, index, N, phi, solver) instead");
+  std::vector<std::string> only;
+  validate_cmd
+      ->add_option("--only", only,
+                   "with --stiff, the cells whose COLUMN has one of the values (repeatable: all "
+                   "at once)")
+      ->type_name("COLUMN=V[,V...]")
+      ->allow_extra_args(false)
+      ->needs(stiff_flag);
 
   app.add_subcommand("presets", "list the named presets");
   RunOptions config;
@@ -242,7 +250,7 @@ int main(int argc, char** argv) {
     if (sweep_cmd->parsed()) return exit_code(table_written(sweep_command(sweep)));
     if (converge_cmd->parsed()) return exit_code(table_written(converge_command(converge)));
     if (validate_cmd->parsed())
-      return output_written(stiff ? run_stability_report(quiet_validate)
+      return output_written(stiff ? run_stability_report(quiet_validate, only)
                                   : run_validate(quiet_validate));
     if (app.got_subcommand("presets")) return output_written(list_presets());
     if (config_cmd->parsed()) return output_written(print_config(config.sources));

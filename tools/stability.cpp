@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <limits>
 #include <string>
 #include <vector>
@@ -200,6 +201,106 @@ std::vector<std::vector<Cell>> grid() {
   return groups;
 }
 
+// The grid's columns, as the table heads them and `--only` names them.
+struct Column {
+  const char* name;
+  std::string Cell::*value;
+};
+constexpr Column kColumns[] = {{"K", &Cell::conductivity}, {"dt", &Cell::dt},
+                               {"index", &Cell::index},    {"N", &Cell::count},
+                               {"phi", &Cell::phi},        {"solver", &Cell::solver}};
+
+// A cell's value as a user writes it: "paper" for the table's "\"paper\"".
+std::string unquoted(std::string v) {
+  v.erase(std::remove(v.begin(), v.end(), '"'), v.end());
+  return v;
+}
+
+// Whether a user's value names a grid value: as text, or as the same number ("1e6" is 1000000).
+bool same_value(const std::string& wanted, const std::string& cell) {
+  if (wanted == unquoted(cell)) return true;
+  char *end_a = nullptr, *end_b = nullptr;
+  const double a = std::strtod(wanted.c_str(), &end_a), b = std::strtod(cell.c_str(), &end_b);
+  return !wanted.empty() && *end_a == '\0' && !cell.empty() && *end_b == '\0' && a == b;
+}
+
+// One `--only COLUMN=V1,V2`: the column and the values it keeps.
+struct Selection {
+  const Column* column;
+  std::vector<std::string> values;
+};
+
+std::string column_names() {
+  std::string names;
+  for (const Column& c : kColumns) names += std::string(names.empty() ? "" : ", ") + c.name;
+  return names;
+}
+
+// The grid's values of a column, in the grid's order, for a message.
+std::string grid_values(const std::vector<std::vector<Cell>>& groups, const Column& column) {
+  std::vector<std::string> seen;
+  for (const auto& group : groups)
+    for (const Cell& cell : group)
+      if (std::find(seen.begin(), seen.end(), unquoted(cell.*column.value)) == seen.end())
+        seen.push_back(unquoted(cell.*column.value));
+  std::string list;
+  for (const auto& v : seen) list += (list.empty() ? "" : ", ") + v;
+  return list;
+}
+
+Selection read_selection(const std::string& only, const std::vector<std::vector<Cell>>& groups) {
+  const std::size_t eq = only.find('=');
+  const std::string name = only.substr(0, eq);
+  const Column* column = nullptr;
+  for (const Column& c : kColumns)
+    if (name == c.name) column = &c;
+  if (eq == std::string::npos || column == nullptr)
+    throw InputError("validate --only `" + only +
+                     "`: must be COLUMN=VALUE[,VALUE...], COLUMN one of " + column_names());
+  Selection s{column, {}};
+  std::size_t from = eq + 1;
+  for (std::size_t comma; from <= only.size(); from = comma + 1) {
+    comma = std::min(only.find(',', from), only.size());
+    s.values.push_back(only.substr(from, comma - from));
+    bool in_grid = false;
+    for (const auto& group : groups)
+      for (const Cell& cell : group) in_grid |= same_value(s.values.back(), cell.*column->value);
+    if (!in_grid)
+      throw InputError("validate --only " + name + " = `" + s.values.back() +
+                       "`: not in the grid; its values are " + grid_values(groups, *column));
+  }
+  return s;
+}
+
+bool selected(const Cell& cell, const std::vector<Selection>& selections) {
+  for (const Selection& s : selections) {
+    const auto same = [&](const std::string& v) { return same_value(v, cell.*s.column->value); };
+    if (std::none_of(s.values.begin(), s.values.end(), same)) return false;
+  }
+  return true;
+}
+
+// The grid cut down to the cells every `--only` keeps (the whole grid without one); a group keeps
+// its selected solvers, still compared with each other.
+std::vector<std::vector<Cell>> selected_grid(const std::vector<std::string>& only) {
+  const std::vector<std::vector<Cell>> all = grid();
+  std::vector<Selection> selections;
+  for (const auto& o : only) selections.push_back(read_selection(o, all));
+  std::vector<std::vector<Cell>> groups;
+  for (const auto& group : all) {
+    std::vector<Cell> kept;
+    for (const Cell& cell : group)
+      if (selected(cell, selections)) kept.push_back(cell);
+    if (!kept.empty()) groups.push_back(kept);
+  }
+  if (groups.empty()) {
+    std::string asked;
+    for (const auto& o : only) asked += " --only " + o;
+    throw InputError("validate" + asked + ": no cell of the grid has all of these");
+  }
+  return groups;
+}
+
 }  // namespace
 
 // The refusals the grid expects, each a documented limit of what the cell asks: the fixed-point
@@ -239,9 +340,15 @@ std::string solver_disagreement(const FinalState& reference, const FinalState& o
   return why;
 }
 
-int run_stability_report(bool quiet) {
-  const std::vector<std::vector<Cell>> groups = grid();
-  const std::size_t cells = groups.size() * groups.front().size();
+int run_stability_report(bool quiet, const std::vector<std::string>& only) {
+  const std::vector<std::vector<Cell>> groups = selected_grid(only);
+  std::size_t cells = 0;
+  for (const auto& group : groups) cells += group.size();
+  if (!only.empty()) {
+    std::size_t all = 0;
+    for (const auto& group : grid()) all += group.size();
+    std::printf("stability: %zu of the grid's %zu cells\n", cells, all);
+  }
   int ok = 0, refused = 0, failed = 0;
   std::printf("%-8s %-9s %-6s %-6s %-4s %-12s %-8s %-8s %-10s %-10s %s\n", "K", "dt", "index", "N",
               "phi", "solver", "status", "bounded", "optics", "heat", "note");

@@ -7,8 +7,9 @@
 namespace beampack::tools {
 
 // The stability grid; prints a table and returns 0 unless a cell failed (refusals it expects are
-// fine).
-int run_stability_report(bool quiet);
+// fine). `only` ("K=1e6", "dt=paper,1e-9", ...) keeps the cells whose column has one of the
+// values, every entry at once; a column or value not in the grid is an InputError.
+int run_stability_report(bool quiet, const std::vector<std::string>& only = {});
 
 // Whether the grid expects a cell of this solver and thermal.phi to be refused with `message`
 // (solver_refusal: a SolverRefusal, else an InputError): the fixed-point iteration diverging, CG
