@@ -1,5 +1,7 @@
 // End to end: the `beampack` command as a user runs it, its files, its errors and exit codes.
+#include <fcntl.h>
 #include <gtest/gtest.h>
+#include <sys/file.h>
 
 #include <sys/wait.h>
 #include <unistd.h>
@@ -1267,6 +1269,42 @@ void checkpoint_into(const fs::path& whole, const fs::path& part, const std::str
 }
 
 }  // namespace
+
+// Two commands writing one --out remove each other's files (each takes the other's for an earlier
+// run's) and mix their results: while one holds the folder (here the test, as a running command
+// would), run, sweep and converge into it are refused before they touch it; once it is free,
+// they run.
+TEST(Cli, ACommandIntoAFolderAnotherIsWritingIsRefused) {
+  const fs::path out = fresh_dir("locked"), part = fresh_dir("locked_part");
+  ASSERT_EQ(run("run --preset quick --quiet --out " + out.string()).code, 0);
+  checkpoint_into(fresh_dir("locked_whole"), part);  // a checkpoint to resume in place
+  const std::string summary = file_text(out / "summary.json");
+  const auto hold = [](const fs::path& dir) {
+    const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY);
+    EXPECT_EQ(::flock(fd, LOCK_EX | LOCK_NB), 0);
+    return fd;
+  };
+  const int held[] = {hold(out), hold(part)};
+  const std::string into = " --quiet --out " + out.string();
+  for (const auto& [command, dir] :
+       {std::pair{"run --preset quick" + into, out},
+        {"run --quiet --resume " + part.string(), part},
+        {"sweep --preset quick --param beam.rays --values 50,60" + into, out},
+        {"converge --preset quick --set beam.rays=50 --set pulses.count=1" + into, out}}) {
+    const Result r = run(command);
+    EXPECT_EQ(r.code, 2) << command << "\n" << r.output;
+    EXPECT_CONTAINS(r.output, "--out " + dir.string() +
+                                  ": another beampack command is writing there (it holds the "
+                                  "folder's lock): wait for it to end, or choose another --out");
+  }
+  EXPECT_EQ(file_text(out / "summary.json"), summary);  // the earlier run's, as it was
+  EXPECT_FALSE(fs::exists(part / "history.csv"));
+  for (const int fd : held) ::close(fd);
+  const Result free = run("sweep --preset quick --param beam.rays --values 50,60" + into);
+  EXPECT_EQ(free.code, 0) << free.output;
+  const Result resumed = run("run --quiet --resume " + part.string());
+  EXPECT_EQ(resumed.code, 0) << resumed.output;
+}
 
 TEST(Cli, ResumeFromACheckpointEndsBitIdentical) {
   const fs::path whole = fresh_dir("ck_whole"), part = fresh_dir("ck_part");

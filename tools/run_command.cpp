@@ -25,6 +25,7 @@
 
 #include <fcntl.h>
 #include <signal.h>
+#include <sys/file.h>
 #include <unistd.h>
 
 #include "engine/build_info.h"
@@ -533,6 +534,7 @@ OutDir::OutDir(const std::string& dir) {
     remove_empty_made();
     throw InputError("--out " + dir + ": cannot create the output directory (" + why + ")");
   }
+  lock(dir);  // before the probe: two commands would race on its name
   const fs::path probe = fs::path(dir) / ".beampack-write-test";
   std::FILE* f = std::fopen(probe.c_str(), "w");
   if (!f) {
@@ -547,6 +549,23 @@ OutDir::OutDir(const std::string& dir) {
 OutDir::~OutDir() {
   quit_removes_folders({});
   remove_empty_made();
+  if (lock_fd_ >= 0) ::close(lock_fd_);
+}
+
+// Two commands writing one folder remove each other's files (each takes the other's for an
+// earlier run's, or a killed run's temporaries) and mix their results. A folder that cannot be
+// opened for reading (mode 300) or locked at all (some network file systems) is used unlocked,
+// as before there was a lock.
+void OutDir::lock(const std::string& dir) {
+  lock_fd_ = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (lock_fd_ < 0 || ::flock(lock_fd_, LOCK_EX | LOCK_NB) == 0) return;
+  const int why = errno;
+  ::close(lock_fd_);
+  lock_fd_ = -1;
+  if (why != EWOULDBLOCK) return;
+  throw InputError("--out " + dir +
+                   ": another beampack command is writing there (it holds the folder's lock): "
+                   "wait for it to end, or choose another --out");
 }
 
 // Innermost first, and only while they are empty: a folder with results in it stays, and so do

@@ -137,18 +137,22 @@ struct RunResult {
 // A command's --out folder, made (with any missing parents) and checked writable at once, so an
 // unusable --out fails before any run. When the command leaves the folders it made empty (bad
 // input found while the runs are set up, an interrupted set-up), they are removed again: no empty
-// folder is left behind.
+// folder is left behind. While it lives the folder is locked (flock on the folder itself, so no
+// lock file is left; the system drops the lock when the process ends, however it ends): a second
+// command with the same --out is refused before it removes or writes anything.
 class OutDir {
  public:
-  explicit OutDir(
-      const std::string& dir);  // InputError naming --out when not creatable or writable
+  explicit OutDir(const std::string& dir);  // InputError naming --out when not creatable or
+                                            // writable, or locked by another command
   ~OutDir();
   OutDir(const OutDir&) = delete;
   OutDir& operator=(const OutDir&) = delete;
 
  private:
   void remove_empty_made();
+  void lock(const std::string& dir);
   std::vector<std::filesystem::path> made_;  // every folder made here, in the order made
+  int lock_fd_ = -1;
 };
 // A run of a sweep or converge that threw: one line on stderr naming `label`, the error and
 // `consequence`; returns the exit code it calls for (2 bad input, 1 a failed run).
