@@ -730,8 +730,6 @@ void Simulation::write_state(StateWriter& out) const {
   out.vector(ray_paths_);
 }
 
-namespace {
-
 // What a checkpoint holds, read whole before the simulation changes.
 struct SavedRun {
   Particles particles;
@@ -745,6 +743,8 @@ struct SavedRun {
   ThermalModel::Snapshot heat;
   std::vector<RaySegment> ray_paths;
 };
+
+namespace {
 
 void require_in_state(bool ok, const std::string& what) {
   if (!ok) throw InputError("checkpoint: " + what);
@@ -879,8 +879,21 @@ void Simulation::read_state(StateReader& in) {
                      " steps: restore a state into a new Simulation built from the same spec");
   SavedRun s = read_saved_run(in, *tracer_, particles_);
   check_saved_values(s, spec_);
-  // The state arrays are copied into place: the tracer and the heat model keep their references
-  // to particles_.
+  tracer_->check_restorable(s.rays, "checkpoint");
+  // Every check is behind: what throws below (no memory for the ray scene's rebuild) leaves the
+  // simulation part restored, and step() refuses to go on from there.
+  try {
+    restore_saved_run(s);
+  } catch (const std::exception& e) {
+    failed_ = true;
+    failed_step_ = std::string("restoring a state: ") + e.what();
+    throw;
+  }
+}
+
+// The state arrays are copied into place: the tracer and the heat model keep their references to
+// particles_.
+void Simulation::restore_saved_run(SavedRun& s) {
   time_ = s.time, next_pulse_time_ = s.next_pulse_time, max_temperature_ = s.max_temperature;
   launched_ = s.launched, counts_ = s.counts;
   for (int k = 0; k < kStages; ++k)

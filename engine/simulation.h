@@ -166,6 +166,8 @@ std::vector<std::string> spec_warnings(const SimulationSpec& spec);
 std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e);
 std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f);
 
+struct SavedRun;  // a checkpoint read whole (simulation.cpp)
+
 class Simulation {
  public:
   // The stages the simulation times: those of its steps, and the contact graph's first build, at
@@ -247,6 +249,7 @@ class Simulation {
   static Particles saved_packing(StateReader in, const SimulationSpec& spec);
 
  private:
+  void restore_saved_run(SavedRun& s);  // read_state's writes, every check behind it
   // What one pass of trace, heat and phases leaves (the last pass, with a stagger's redos).
   struct StepOutcome {
     StepReport report;

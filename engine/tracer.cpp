@@ -134,7 +134,8 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
 // A hit as every search must report one (MODEL.md section 3): ahead of the ray's origin, on the
 // surface of a sphere in the scene other than the one the ray just left, entered from outside.
 // BEAMPACK_CHECKS builds only (geometry/check.h).
-void check_hit(const RayState& s, const Particles& p, const EmbreeScene& scene, std::uint32_t r) {
+[[maybe_unused]] void check_hit(const RayState& s, const Particles& p, const EmbreeScene& scene,
+                                std::uint32_t r) {
   const std::uint32_t i = s.next_particle[r];
   const double t = s.t_next[r];
   BEAMPACK_DCHECK(std::isfinite(t) && t >= 0.0, "ray %u: hit at t = %g m on particle %u", r, t, i);
@@ -535,17 +536,21 @@ void Tracer::compact() {
 // A state from elsewhere (a library caller's): checked as a checkpoint's rays are, against this
 // tracer's particles (one from a larger packing indexed past them).
 void Tracer::restore(const RayState& state) {
-  check_particle_count("restore");
-  if (state.polarised != state_.polarised)
-    throw InputError(std::string("restore: the state's rays are ") +
-                     (state.polarised ? "polarised" : "unpolarised") +
-                     " and this tracer's are not");
-  state.check_lengths("restore");
-  state.check_values(particles_.size(), "restore");
-  state.check_live_count("restore");
+  check_restorable(state, "restore");
   undo_.held = false;
   state_ = state;
   refresh_next_events(0);
+}
+
+void Tracer::check_restorable(const RayState& state, const char* when) const {
+  check_particle_count(when);
+  if (state.polarised != state_.polarised)
+    throw InputError(std::string(when) + ": the state's rays are " +
+                     (state.polarised ? "polarised" : "unpolarised") +
+                     " and this tracer's are not");
+  state.check_lengths(when);
+  state.check_values(particles_.size(), when);
+  state.check_live_count(when);
 }
 
 // The earliest event of the live rays [begin, end) on the path clock: -infinity when one is still

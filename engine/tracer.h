@@ -249,6 +249,9 @@ class Tracer {
 
   RayState save() const { return state_; }
   void restore(const RayState& state);
+  // restore()'s checks alone (InputError naming `when`), for a caller that must check every part
+  // of a state before it changes any.
+  void check_restorable(const RayState& state, const char* when) const;
   // The first hit of every ray of the last beam launched, by the ray's place k in the beam
   // (OpticsSpec::reuse_primaries): the beam's direction and start plane, ray k's point on the
   // beam's disk, and what its query found.

@@ -499,6 +499,31 @@ TEST(LibraryMisuse, AStateIsRestoredOnlyIntoAFreshSimulation) {
   EXPECT_TRUE(fresh.step());
 }
 
+// A state holds no spec: one of a polarised beam read into a simulation of an unpolarised one is
+// refused before it changes anything (it restored the clock, counts and particles, then threw at
+// the rays, and the simulation stepped on from that mixture), so the simulation runs as it would
+// have without the attempt.
+TEST(LibraryMisuse, AStateRefusedChangesNothing) {
+  SimulationSpec polarised = conducting_pulses(3);
+  polarised.optics.polarisation.linear = true;
+  const Particles p = random_overlap_packing(200, kD, 0.325, 7);
+  Simulation first(polarised, p);
+  first.step();
+  StateWriter written;
+  first.write_state(written);
+  const std::string bytes = written.finish();
+  const SimulationSpec spec = conducting_pulses(3);
+  Simulation tried(spec, p), untried(spec, p);
+  StateReader in(bytes, "state");
+  testing::expect_error<InputError>([&] { tried.read_state(in); }, "checkpoint: the state's rays",
+                                    "polarised and this tracer's are not");
+  tried.run();
+  untried.run();
+  EXPECT_EQ(tried.figures().time, untried.figures().time);
+  EXPECT_EQ(tried.particles().temperature, untried.particles().temperature);
+  EXPECT_EQ(tried.absorbed(), untried.absorbed());
+}
+
 // README: a particle passed in dead counts as vaporised. Its phase decided: left solid it counted
 // as nothing, left liquid as melted.
 TEST(LibraryMisuse, ParticlesPassedInDeadAreVaporised) {

@@ -390,6 +390,23 @@ TEST(ThermalGraph, UpdatingTheLiveSetInPlaceEqualsANewAssembly) {
   for (std::size_t i = 0; i < in_place.size(); ++i) ASSERT_EQ(in_place[i], anew[i]) << i;
 }
 
+// A snapshot with one array short is refused whole: it left the particles' arrays of different
+// lengths (only the temperatures' length was checked).
+TEST(ThermalGraph, ASnapshotWithAShortArrayChangesNothing) {
+  Particles p = random_overlap_packing(50, 1e-3, 0.325, 7);
+  ThermalModel model(p, {Material{}}, ThermalSpec{});
+  for (const int part : {0, 1, 2}) {
+    ThermalModel::Snapshot s = model.save();
+    if (part == 0) s.temperature.pop_back();
+    if (part == 1) s.phase.pop_back();
+    if (part == 2) s.alive.pop_back();
+    EXPECT_THROW(model.restore(s), RunError) << part;
+    EXPECT_EQ(p.temperature.size(), 50u);
+    EXPECT_EQ(p.phase.size(), 50u);
+    EXPECT_EQ(p.alive.size(), 50u);
+  }
+}
+
 // Vaporisations split components and a redo joins them back; the model follows both in place,
 // walking only the components concerned. Seeded: 40 random live sets in a row (a tenth of the
 // particles vaporised or brought back each time, above the percolation threshold so a giant

@@ -683,7 +683,7 @@ bool ThermalModel::solve_change(const SparseMatrix& a, const Eigen::VectorXd& c,
     stats = report.solver == "fixed-point"
                 ? fixed_point_solve(a, c, drive, change, spec_.tolerance, spec_.max_iterations, rho)
                 : cg_solve(a, drive, change, spec_.tolerance, spec_.max_iterations);
-  } catch (const RunError&) {
+  } catch (const SolverRefusal&) {  // a defect (non-finite inputs) is no case for the fallback
     if (spec_.solver != "auto") throw;
     report.solver = "direct";
     return false;
@@ -1037,9 +1037,11 @@ ThermalModel::Snapshot ThermalModel::save() const {
 }
 
 void ThermalModel::restore(const Snapshot& s) {
-  if (s.temperature.size() != p_.size())
-    throw RunError("thermal restore: snapshot of " + std::to_string(s.temperature.size()) +
-                   " particles, model has " + std::to_string(p_.size()));
+  // Every array, or a short one would leave the particles' arrays of different lengths.
+  for (const std::size_t n : {s.temperature.size(), s.phase.size(), s.alive.size()})
+    if (n != p_.size())
+      throw RunError("thermal restore: snapshot of " + std::to_string(n) +
+                     " particles, model has " + std::to_string(p_.size()));
   // Reassemble only if the live set differs from the matrix's: a redo without vaporisation keeps
   // it (compared with the assembled set, not p_.alive, which a checkpoint may have set already).
   if (all_.live != s.alive) dirty_ = true;
