@@ -112,6 +112,25 @@ void warn_of_capped_phase_steps(const SimulationSpec& spec, const Counts& counts
   out.emplace_back(text);
 }
 
+// Section 4 charges a latent band on the predictor's crossing; where the band then stops the step
+// short of theta_m (or theta_v), it was charged for no phase change, and a stiff step (a wall, a
+// high K) can charge it step after step: a liquid bed cooled by a wall released many times its
+// heat while it stayed liquid. Past the heat absorbed, the latent heat is the run's main heat.
+void warn_of_bands_short(const Counts& counts, const EnergyLedger& e,
+                         std::vector<std::string>& out) {
+  if (!(counts.band_heat_short > e.absorbed)) return;
+  char text[640];
+  std::snprintf(
+      text, sizeof text,
+      "%.3g J of latent heat was charged in %llu particle steps whose crossing of theta_m or "
+      "theta_v the band then stopped short of, more than the %.3g J absorbed: the paper's "
+      "predictor-corrector (section 4) charges a band for the predicted crossing, so a particle "
+      "a stiff step cools (walls, high conductivity) can give up its solidification band step "
+      "after step and stay liquid; a shorter `thermal.dt` charges it for less",
+      counts.band_heat_short, static_cast<unsigned long long>(counts.bands_short), e.absorbed);
+  out.emplace_back(text);
+}
+
 // The stagger redoes a step while a phase change alters the optics of a particle the rays met; in
 // some steps the phases never settle (MODEL.md section 5, step 4).
 void warn_of_unsettled_staggers(const SimulationSpec& spec, const Counts& counts,
@@ -249,6 +268,7 @@ std::vector<std::string> Simulation::run_warnings() const {
   warn_of_late_pulses(spec_, c, out);
   warn_of_flashed_pulses(spec_, f, done(), out);
   warn_of_capped_phase_steps(spec_, c, out);
+  warn_of_bands_short(c, f.energy, out);
   warn_of_unsettled_staggers(spec_, c, out);
   for (std::string& warning : open_ledger_warnings(spec_, f.energy))
     out.push_back(std::move(warning));

@@ -531,6 +531,8 @@ void Simulation::book_step(const StepOutcome& step) {
   time_ = spec_.dt > 0 ? static_cast<double>(counts_.steps) * spec_.dt : time_ + step.dt;
   counts_.heat_rows_solved += step.report.solved_rows;
   counts_.capped_phase_steps += step.report.phase_passes_capped;
+  counts_.bands_short += step.report.bands_short;
+  counts_.band_heat_short += step.report.band_heat_short;
   counts_.heat_rows_live += step.report.live_rows;
   counts_.ray_chunks_run += step.chunks_run;
   counts_.ray_chunks_live += step.chunks_live;
@@ -710,7 +712,7 @@ Figures Simulation::figures() const {
 namespace {
 // 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks; 7: reused first
 // hits; 8: the ray paths recorded since the last pulse ended (output.rays); 9: the stagger's counts
-constexpr std::uint32_t kStateVersion = 9;
+constexpr std::uint32_t kStateVersion = 10;
 }  // namespace
 
 void Simulation::write_state(StateWriter& out) const {
@@ -792,6 +794,9 @@ void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
                        shown_number(spec.pulses.period) + " s");
   require_in_state(std::isfinite(s.counts.max_pulse_delay) && s.counts.max_pulse_delay >= 0,
                    "its longest pulse delay is " + shown_number(s.counts.max_pulse_delay) + " s");
+  require_in_state(std::isfinite(s.counts.band_heat_short) && s.counts.band_heat_short >= 0,
+                   "its latent heat charged short of a crossing is " +
+                       shown_number(s.counts.band_heat_short) + " J");
   // Rays come only from a launch: live rays before any would be traced, and heated without the
   // contact graph a spec without pulses does not build.
   require_in_state(s.launched > 0 || s.rays.live_count == 0,

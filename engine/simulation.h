@@ -142,6 +142,10 @@ struct Counts {
   std::uint64_t ray_chunks_run = 0, ray_chunks_live = 0;
   // Heat steps whose latent-heat corrector stopped at its pass cap with a band still newly crossed.
   std::uint64_t capped_phase_steps = 0;
+  // Particle steps charged a latent band for a crossing their corrected step fell short of, and
+  // the latent heat so charged (J; StepReport::bands_short).
+  std::uint64_t bands_short = 0;
+  double band_heat_short = 0;
   // Steps whose stagger found no phases consistent with the rays: ones that stopped at
   // thermal.max_staggers with the optics still changing, and ones whose redos alternated between
   // two sets of phases (a 2-cycle, stopped at its second pass).

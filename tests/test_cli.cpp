@@ -1216,6 +1216,36 @@ TEST(CliLong, StabilityGridHasNoFailure) {
   EXPECT_EQ(std::count(r.output.begin(), r.output.end(), '\n'), 2) << r.output;
 }
 
+// A liquid bed cooled by walls at a long step: every step's predictor crosses theta_m downward and
+// the solidification band (1e12 J/(kg K)) holds the corrected step above it, so the band is
+// charged again each step while the bed stays liquid. The walls took ~3e-5 J from a bed that holds
+// ~1e-7 J above them; all of it was that band's, and the run says so.
+TEST(Cli, LatentHeatChargedWithoutACrossingIsCountedAndWarnedOf) {
+  const fs::path out = fresh_dir("bands_short");
+  const Result r =
+      run("run --preset quick --set material.initial_temperature=650 --set "
+          "material.latent_solidify=1e12 "
+          "--set thermal.walls='\"x-,x+,y-,y+,z-,z+\"' --set thermal.wall_reach=1e-3 "
+          "--set material.conductivity=100 --set pulses.period=1e-9 --set thermal.dt=1e-10 --out " +
+          out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  const nlohmann::json j = nlohmann::json::parse(file_text(out / "summary.json"));
+  EXPECT_EQ(j["melted_fraction"], 1.0);  // it never solidified
+  const double walls = j["energy_J"]["walls"], charged = j["counts"]["band_heat_short_J"];
+  EXPECT_GT(walls, 100 * j["energy_J"]["absorbed"].get<double>());
+  EXPECT_NEAR(charged, walls, 1e-3 * walls);
+  EXPECT_GT(j["counts"]["bands_short"].get<std::uint64_t>(), 0u);
+  EXPECT_CONTAINS(r.output, "latent, crossing not made");
+  EXPECT_CONTAINS(r.output, "J of latent heat was charged in");
+  EXPECT_CONTAINS(r.output, "can give up its solidification band step after step and stay liquid");
+  // The paper's example charges some too (9% of its absorbed heat at one step per pulse flight),
+  // which its table shows, and no warning.
+  const Result paper =
+      run("run --preset zohdi2013 --quiet --out " + fresh_dir("bands_paper").string());
+  EXPECT_CONTAINS(paper.output, "latent, crossing not made");
+  EXPECT_EQ(paper.output.find("J of latent heat was charged in"), std::string::npos);
+}
+
 // The grid without its 3000-particle cells (they take 40 of its 45 s): every conductivity, step,
 // index and solver at N = 1 and 100, in a few seconds, so the default suite runs the stiff cases.
 TEST(Cli, StabilityGridSliceHasNoFailure) {

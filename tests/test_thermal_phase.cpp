@@ -63,6 +63,8 @@ TEST(ThermalPhase, ThroughMeltAndVaporInOneStepVaporisesWithBothBands) {
   EXPECT_NEAR(s.model.ledger().vaporized, dh, 1e-12 * dh);
   EXPECT_NEAR(s.model.ledger().stored, 0.0, 1e-12 * dh);
   EXPECT_NEAR(s.model.ledger().imbalance(), 0.0, 1e-12 * dh);
+  EXPECT_EQ(r.bands_short, 0u);  // both crossings made
+  EXPECT_EQ(r.band_heat_short, 0.0);
 }
 
 TEST(ThermalPhase, BandsHoldBackVaporisation) {
@@ -77,6 +79,10 @@ TEST(ThermalPhase, BandsHoldBackVaporisation) {
   EXPECT_EQ(s.p.phase[0], Phase::liquid);
   EXPECT_NEAR(s.p.temperature[0], 650.0, 1e-9);
   EXPECT_NEAR(s.model.ledger().stored, dh, 1e-12 * dh);
+  // The vapour band was charged for a crossing of theta_v the step no longer makes: 5000 J/(kg K)
+  // over its 350 K.
+  EXPECT_EQ(r.bands_short, 1u);
+  EXPECT_NEAR(r.band_heat_short, mass_over_m(m) * 5000.0 * 350.0, 1e-12 * dh);
 }
 
 TEST(ThermalPhase, MeltingUsesSolidPlusMeltBand) {
@@ -144,6 +150,9 @@ TEST(ThermalPhase, BandOfAPredictedCrossingStaysEvenIfTheCorrectorFallsShort) {
   EXPECT_EQ(s.p.phase[0], Phase::solid);
   EXPECT_NEAR(s.p.temperature[0], 590.0, 1e-9);
   EXPECT_NEAR(s.model.ledger().stored, dh, 1e-12 * dh);
+  // Counted as a band charged for a melting that did not happen: dP_SL over the step's 40 K.
+  EXPECT_EQ(r.bands_short, 1u);
+  EXPECT_NEAR(r.band_heat_short, mass_over_m(m) * m.latent_melt * 40.0, 1e-12 * dh);
 }
 
 TEST(ThermalPhase, LiquidHeatsWithLiquidCapacity) {

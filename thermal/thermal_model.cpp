@@ -782,6 +782,24 @@ void ThermalModel::correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::V
     report.phase_corrected = true;
     ++passes;
   }
+  if (passes > 0) count_bands_short(theta0, theta1, bands, report);
+}
+
+void ThermalModel::count_bands_short(const Eigen::VectorXd& theta0, const Eigen::VectorXd& theta1,
+                                     const std::vector<std::uint8_t>& bands,
+                                     StepReport& report) const {
+  for (Eigen::Index k = 0; k < rows(); ++k) {
+    const std::size_t i = particle_of(k);
+    if (!bands[k] || !p_.alive[i]) continue;
+    const Material& m = materials_[p_.material[i]];
+    const std::uint8_t short_of = bands[k] & ~crossed_bands(m, theta0[k], theta1[k]);
+    if (!short_of) continue;
+    const double band =
+        effective_heat_capacity(m, theta0[k], short_of) - effective_heat_capacity(m, theta0[k], 0);
+    ++report.bands_short;
+    report.band_heat_short +=
+        m.density * p_.volume(i) * band / spec_.time_scaling * std::abs(theta1[k] - theta0[k]);
+  }
 }
 
 // The ledger: stored gains the M-scaled (m C_eff / M) dtheta actually used in the solve, so
@@ -996,6 +1014,8 @@ void ThermalModel::add_substep(StepReport& report, const StepReport& sub) {
   report.phases_seconds += sub.phases_seconds;
   report.phase_corrected |= sub.phase_corrected;
   report.phase_passes_capped |= sub.phase_passes_capped;
+  report.bands_short += sub.bands_short;
+  report.band_heat_short += sub.band_heat_short;
   report.symbolic_reused = sub.symbolic_reused;
   report.factors_reused = sub.factors_reused;
 }

@@ -80,6 +80,13 @@ struct StepReport {
   // The corrector stopped at max_phase_corrections while its last solve still crossed a new band:
   // that band's latent heat is missing from the step.
   bool phase_passes_capped = false;
+  // Particles charged a latent band (C + dP/dtheta) for a crossing that their corrected step then
+  // fell short of (the band slowed them before theta_m or theta_v), and the latent heat so
+  // charged, sum of m dP/dtheta |theta1 - theta0| / M (J): the paper's section 4 charges the band
+  // on the predictor's crossing, so a stiff step can take it again and again without a phase
+  // change.
+  std::size_t bands_short = 0;
+  double band_heat_short = 0;
   bool symbolic_reused = false;  // direct: analysis kept from an earlier step
   bool factors_reused = false;   // direct: numeric factors kept too
 };
@@ -235,6 +242,8 @@ class ThermalModel {
                                                   const Heat& heat);
   void build_busy_system(std::vector<Eigen::Index> rows);
   Eigen::VectorXd thermal_masses() const;
+  void count_bands_short(const Eigen::VectorXd& theta0, const Eigen::VectorXd& theta1,
+                         const std::vector<std::uint8_t>& bands, StepReport& report) const;
   Eigen::VectorXd thermal_masses_with_bands(const Eigen::VectorXd& theta0,
                                             const std::vector<std::uint8_t>& bands) const;
   void solve(double dt, const Eigen::VectorXd& c, const Eigen::VectorXd& dh, StepTemperatures& t,

@@ -453,6 +453,8 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
                  {"ray_chunks_run", r.counts.ray_chunks_run},
                  {"ray_chunks_live", r.counts.ray_chunks_live},
                  {"capped_phase_steps", r.counts.capped_phase_steps},
+                 {"bands_short", r.counts.bands_short},
+                 {"band_heat_short_J", r.counts.band_heat_short},
                  {"capped_stagger_steps", r.counts.capped_stagger_steps},
                  {"stagger_cycles", r.counts.stagger_cycles}};
   j["max_pulse_delay_s"] = r.counts.max_pulse_delay;
@@ -487,6 +489,9 @@ void print_table(const Simulation& sim, const RunResult& r, const CommandStages&
   std::printf("  %-26s %14.6e\n", "stored as heat", e.stored);
   std::printf("  %-26s %14.6e\n", "carried off by vapour", e.vaporized);
   std::printf("  %-26s %14.6e\n", "lost to walls", e.walls);
+  if (r.counts.bands_short > 0)  // part of the heat stored and carried off
+    std::printf("  %-26s %14.6e (in %llu particle steps)\n", "latent, crossing not made",
+                r.counts.band_heat_short, static_cast<unsigned long long>(r.counts.bands_short));
   std::printf("  %-26s %14.3e (optics) %10.3e (heat)\n", "imbalance, relative",
               e.optics_imbalance() / std::max(e.injected, 1e-300),
               e.heat_imbalance() / std::max(e.heat_scale(), 1e-300));
@@ -555,11 +560,19 @@ OutDir::~OutDir() {
 // Two commands writing one folder remove each other's files (each takes the other's for an
 // earlier run's, or a killed run's temporaries) and mix their results. A folder that cannot be
 // opened for reading (mode 300) or locked at all (some network file systems) is used unlocked,
-// as before there was a lock.
+// as before there was a lock. A holder is given a second to let go: a run killed outright keeps
+// the lock until the system has torn it down, and `timeout -s KILL` returns before that (it kills
+// its own process group, itself too), so a resume straight after found the folder held.
 void OutDir::lock(const std::string& dir) {
   lock_fd_ = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
-  if (lock_fd_ < 0 || ::flock(lock_fd_, LOCK_EX | LOCK_NB) == 0) return;
-  const int why = errno;
+  if (lock_fd_ < 0) return;
+  int why = 0;
+  for (int tries = 0; tries < 20; ++tries) {
+    if (::flock(lock_fd_, LOCK_EX | LOCK_NB) == 0) return;
+    why = errno;
+    if (why != EWOULDBLOCK) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
   ::close(lock_fd_);
   lock_fd_ = -1;
   if (why != EWOULDBLOCK) return;
