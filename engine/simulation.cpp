@@ -66,7 +66,7 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
       packing_from_spec_(packing_from_spec) {
   // A caller's particles; the spec's were made or read with these checks, and the thermal-mass
   // check below names the key behind a radius that fails them.
-  if (!packing_from_spec_) check_particles(particles_);
+  if (!packing_from_spec_ || spec_.packing.source == "file") check_particles(particles_);
   mark_dead_as_vapour();
   check_run_numbers();
   check_thermal_masses(set_up_beam() * std::max(spec_.pulses.count, 1));
@@ -154,8 +154,10 @@ void Simulation::check_run_numbers() const {
   };
   const PulseSpec& p = spec_.pulses;
   if (p.count < 0) refuse("pulses.count", p.count, "must be >= 0");
-  if (!(p.duration > 0) || !std::isfinite(p.duration))
-    refuse("pulses.duration", p.duration, "must be > 0 and finite");
+  if (!(p.duration > 0) || !std::isfinite(p.duration))  // a default spec's 0 says what "auto" is
+    refuse("pulses.duration", p.duration,
+           "must be > 0 and finite (the run file's \"auto\" is paper_time_step(xi, R), xi R / c: "
+           "5.42e-15 s for the paper's scene)");
   if (p.duration > kDurationCap.limit)
     refuse("pulses.duration", p.duration, cap_limit(kDurationCap));
   if (!(p.period >= 0) || !std::isfinite(p.period))
@@ -324,11 +326,12 @@ void warn_if_beam_meets_nothing(const SimulationSpec& spec, const Particles& p, 
 
 // The beam is sized by sample.size (a disk of diameter_fraction D): on a packing file's particles
 // it may be narrower than they are, and meet one or a few (a bed of 1 cm spheres with sample.size
-// left at its 1 mm default). Generated packings scale their radius with D: with ten particles or
-// fewer they are wider than the beam by design, and nothing is said of them.
+// left at its 1 mm default), and so may a library caller's (whatever spec.packing.source says).
+// Generated packings scale their radius with D: with ten particles or fewer they are wider than the
+// beam by design, and nothing is said of them.
 void warn_if_beam_narrower_than_particles(const SimulationSpec& spec, const Particles& p,
-                                          std::vector<std::string>& warnings) {
-  if (spec.pulses.count == 0 || spec.packing.source != "file") return;
+                                          bool generated, std::vector<std::string>& warnings) {
+  if (spec.pulses.count == 0 || generated) return;
   std::vector<double> radii;
   for (std::size_t i = 0; i < p.size(); ++i)
     if (p.alive[i]) radii.push_back(p.radius[i]);
@@ -362,7 +365,8 @@ void warn_if_time_stands_still(const SimulationSpec& spec, const Particles& p,
 std::vector<std::string> Simulation::scene_warnings() const {
   std::vector<std::string> warnings;
   warn_if_beam_meets_nothing(spec_, particles_, beam_, warnings);
-  warn_if_beam_narrower_than_particles(spec_, particles_, warnings);
+  warn_if_beam_narrower_than_particles(
+      spec_, particles_, packing_from_spec_ && spec_.packing.source != "file", warnings);
   warn_of_walls_touching_nothing(spec_, particles_, warnings);
   warn_if_time_stands_still(spec_, particles_, warnings);
   return warnings;

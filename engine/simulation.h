@@ -181,8 +181,13 @@ class Simulation {
   static constexpr const char* kStageNames[] = {"trace", "heat", "phases", "stagger", "rebuild"};
   static constexpr int kStages = 5;
 
-  explicit Simulation(SimulationSpec spec);              // packing from spec.packing
-  Simulation(SimulationSpec spec, Particles particles);  // packing given (spec.packing unused)
+  explicit Simulation(SimulationSpec spec);  // packing from spec.packing
+  // Packing given, and checked as a packing's particles are. Of spec.packing: sample_size sizes
+  // the cube [0, D]^3 and the beam (diameter_fraction D); initial_temperature is where
+  // saved_packing starts particles and what spec_warnings and run_warnings measure rises from
+  // (each particle starts at its own temperature); seed is named in failure messages; source =
+  // "file" marks particles read from packing.file (messages then name file_radius).
+  Simulation(SimulationSpec spec, Particles particles);
   // Neither copied nor moved: the tracer and the heat model hold references to its particles.
   // Keep several through std::unique_ptr.
   Simulation(const Simulation&) = delete;

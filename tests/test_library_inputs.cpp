@@ -65,6 +65,9 @@ TEST(LibraryInputs, ParticlesThatCannotBeSimulatedAreRefusedByName) {
     Particles p = three_spheres();
     c.spoil(p);
     testing::expect_error<InputError>([&] { Simulation sim(one_pulse(), p); }, c.message);
+    SimulationSpec from_file = one_pulse();  // particles a caller read from a file: checked too
+    from_file.packing.source = "file";
+    testing::expect_error<InputError>([&] { Simulation sim(from_file, p); }, c.message);
     testing::expect_error<InputError>([&] { Tracer tracer(p, OpticsSpec{}); }, c.message);
     testing::expect_error<InputError>([&] { ThermalModel model(p, {Material{}}, ThermalSpec{}); },
                                       c.message);
@@ -89,6 +92,10 @@ TEST(LibraryInputs, ASimulationSpecOutsideItsRangesIsRefusedByName) {
       {[](SimulationSpec& s) { s.pulses.duration = -1e-13; },
        "`pulses.duration` = -1e-13: must be > 0"},
       {[](SimulationSpec& s) { s.pulses.count = -2; }, "`pulses.count` = -2: must be >= 0"},
+      // A default spec: the library has no "auto"; the refusal names what the run file's is.
+      {[](SimulationSpec& s) { s.pulses = PulseSpec{}; },
+       "`pulses.duration` = 0: must be > 0 and finite (the run file's \"auto\" is "
+       "paper_time_step(xi, R), xi R / c: 5.42e-15 s for the paper's scene)"},
   };
   for (const Case& c : cases) {
     SimulationSpec s = one_pulse();
@@ -229,12 +236,16 @@ TEST(LibraryInputs, AMisplacedSceneIsSaidToTheCaller) {
   Particles large;
   large.add(Vec3(5e-4, 5e-4, 5e-4), 1e-2);
   large.add(Vec3(2.5e-2, 5e-4, 5e-4), 1e-2);
-  spec.packing.source = "file";  // as read from a file (generated packings are not judged)
-  const std::vector<std::string> outgrown = Simulation(spec, large).scene_warnings();
-  ASSERT_EQ(outgrown.size(), 1u);
-  EXPECT_CONTAINS(outgrown[0],
-                  "the beam is 0.0003 m wide (`beam.diameter_fraction` = 0.3 x `sample.size` = "
-                  "0.001 m), narrower than the particles (median diameter 0.02 m)");
+  // The caller's particles are judged whatever packing.source says (a library review read a DEM
+  // file in code, left the source at its default, and heard nothing); generated ones are not.
+  for (const char* source : {"random-overlap", "file"}) {
+    spec.packing.source = source;
+    const std::vector<std::string> outgrown = Simulation(spec, large).scene_warnings();
+    ASSERT_EQ(outgrown.size(), 1u) << source;
+    EXPECT_CONTAINS(outgrown[0],
+                    "the beam is 0.0003 m wide (`beam.diameter_fraction` = 0.3 x `sample.size` = "
+                    "0.001 m), narrower than the particles (median diameter 0.02 m)");
+  }
   // Eight generated spheres are wider than the beam by design (R = 0.325 D / 2): not judged.
   SimulationSpec few = spec;
   few.packing.source = "random-overlap";
