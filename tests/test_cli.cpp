@@ -1907,6 +1907,10 @@ TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
   const auto summary = read_json(dir / "summary.json");
   EXPECT_TRUE(bool(summary["interrupted"]));
   EXPECT_EQ(read_csv(dir / "particles.csv").size(), std::size_t(summary["counts"]["particles"]));
+  // `pulses` counts the launched, one perhaps still in flight; `pulses_ended` the history's rows.
+  const int launched = summary["pulses"], ended = summary["pulses_ended"];
+  EXPECT_EQ(std::size_t(ended), read_csv(dir / "history.csv").size());
+  EXPECT_EQ(launched - ended, double(summary["energy_J"]["in_flight"]) > 0 ? 1 : 0);
   // Its ledger closes with the energy of the rays it stopped in flight.
   const auto e = summary["energy_J"];
   const double injected = e["injected"];

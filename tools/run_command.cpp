@@ -437,6 +437,7 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
       f.max_temperature ? nlohmann::json(*f.max_temperature) : nlohmann::json(nullptr);
   j["time_s"] = f.time;
   j["pulses"] = f.pulse;
+  j["pulses_ended"] = r.pulses_ended;
   j["energy_J"] = {{"injected", e.injected},   {"absorbed", e.absorbed}, {"escaped", e.escaped},
                    {"in_flight", e.in_flight}, {"cutoff", e.cutoff},     {"stored", e.stored},
                    {"vaporized", e.vaporized}, {"walls", e.walls}};
@@ -1189,6 +1190,11 @@ struct PulsesEnded {
 // sub-steps than allowed). `no_particles_because`: why particles.csv is not among them; one
 // already in the folder (an interrupt's, which a resume into its folder runs on from) is of an
 // earlier time than the summary: it goes.
+// The pulses that ended, a history row each (the header is the first line).
+int history_rows(const RunRecord& record) {
+  return static_cast<int>(std::count(record.history.begin(), record.history.end(), '\n')) - 1;
+}
+
 void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, const RunRecord& record,
                                 const PulsesEnded& ended, const RunConfig& config,
                                 const char* failure, double wall_seconds,
@@ -1198,6 +1204,7 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
   r.figures = ended.figures;
   r.counts = ended.counts;
   r.wall_seconds = wall_seconds;
+  r.pulses_ended = history_rows(record);
   const double failed_at = sim.figures().time;
   nlohmann::json j = summary_json(sim, r, config, record.earlier_parts, record.stages);
   j["failed"] = {{"message", failure}, {"time_s", failed_at}};
@@ -1320,6 +1327,7 @@ int finish_run(const Simulation& sim, const RunConfig& config, RunRecord& record
   r.figures = sim.figures();
   r.counts = sim.counts();
   r.interrupted = !sim.done();
+  r.pulses_ended = history_rows(record);
   r.wall_seconds = record.earlier_seconds + seconds_since(start);  // like the stage times
   // One set: a full disk leaves the folder as it was, not particles.csv without its summary.
   std::vector<OutputFile> files;

@@ -131,6 +131,7 @@ struct RunResult {
   std::vector<double> temperature;
   std::vector<std::uint8_t> alive;  // per particle, 0 once vaporised
   bool interrupted = false;
+  int pulses_ended = 0;  // the rows of history.csv; `figures.pulse` counts one still in flight
   // `setup`, then the simulation's stages (a run of a sweep writes no files of its own).
   StageTable stages;
 };
