@@ -761,15 +761,19 @@ TEST(Cli, RunFileLayersPathsAndArgumentsAreReadAsWritten) {
   ASSERT_EQ(from_file.code, 0) << from_file.output;
   EXPECT_CONTAINS(file_text(dir / "a" / "summary.json"), "\"particles\": 1");
   // A run file through a pipe (`run <(...)`, its folder /dev/fd) or standard input (`run
-  // /dev/stdin < bed.toml`, a regular file in /dev) reads a relative packing.file from the working
-  // directory, as a --set does (it looked for /dev/fd/one.xyz, /dev/one.xyz).
+  // /dev/stdin < bed.toml`, a regular file in /dev, or a pipe into it) reads a relative
+  // packing.file from the working directory, as a --set does (it looked for /dev/fd/one.xyz,
+  // /dev/one.xyz).
   const std::string args = " --set pulses.count=1 --quiet --out ";
   for (const auto& [name, command] :
        {std::pair<std::string, std::string>{"piped", "bash -c '" BEAMPACK_CLI
                                                      " run <(cat bed.toml)" +
                                                          args + (dir / "piped").string() + "'"},
         {"redirected",
-         BEAMPACK_CLI " run /dev/stdin" + args + (dir / "redirected").string() + " < bed.toml"}}) {
+         BEAMPACK_CLI " run /dev/stdin" + args + (dir / "redirected").string() + " < bed.toml"},
+        // standard input a pipe: refused as "not a regular file" before
+        {"stdin_pipe", "cat bed.toml | " BEAMPACK_CLI " run /dev/stdin" + args +
+                           (dir / "stdin_pipe").string()}}) {
     const std::string line =
         "cd '" + (dir / "sub").string() + "' && " + command + " >/dev/null 2>&1";
     ASSERT_EQ(std::system(line.c_str()), 0) << line;
