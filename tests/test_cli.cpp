@@ -2928,6 +2928,12 @@ TEST(Cli, SweepAndConvergeSayEachRunsWarningsAfterItsValue) {
                   "beampack: sweep thermal.dt = 3e-12: warning: 3 of 5 pulses started more than 1% "
                   "of `pulses.period` = 1e-11 s");
   EXPECT_NOT_CONTAINS(sweep.output, "thermal.dt = 1e-12: warning");
+  // After the value's own line and before the next's (they came before it).
+  const std::size_t late = sweep.output.find("thermal.dt = 3e-12: warning: 3 of 5");
+  EXPECT_LT(sweep.output.find("sweep                    thermal.dt = 3e-12 "), late)
+      << sweep.output;
+  EXPECT_GT(sweep.output.find("sweep                    thermal.dt = 1e-12 "), late)
+      << sweep.output;
   EXPECT_CONTAINS(sweep.output, no_heat);
   EXPECT_EQ(sweep.output.find("the walls take no heat"),
             sweep.output.rfind("the walls take no heat"))

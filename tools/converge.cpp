@@ -80,6 +80,7 @@ int run_ladder(Ladder& ladder, bool quiet, const std::set<std::string>& said) {
     const std::string rung = ladder.name + " " + ladder.values[k], label = rung + ": ";
     try {
       RunResult r = run_scene(ladder.configs[k], quiet, label, said);
+      say_warnings(label, r.run_warnings);  // its line comes with the table, after every rung
       if (r.interrupted) {
         std::fprintf(stderr,
                      "beampack: converge interrupted during %s; that rung and the rest "

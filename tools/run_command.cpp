@@ -596,17 +596,13 @@ std::unique_ptr<tbb::global_control> limit_threads(int threads) {
                                                std::size_t(threads));
 }
 
-namespace {
+namespace {}  // namespace
 
-// Warnings on stderr, each after `label`, the value or rung of a sweep or converge they belong to
-// (as its failures are): "beampack: sweep K = 400: warning: ...".
 void say_warnings(const std::string& label, const std::vector<std::string>& warnings) {
   if (!warnings.empty()) std::fflush(stdout);  // after what stdout printed, when both are piped
   for (const std::string& warning : warnings)
     std::fprintf(stderr, "beampack: %swarning: %s\n", label.c_str(), warning.c_str());
 }
-
-}  // namespace
 
 StageTimer::~StageTimer() {
   stage_.seconds += seconds_since(start_);
@@ -665,7 +661,7 @@ RunResult run_scene(const RunConfig& config, bool quiet, const std::string& labe
   r.alive = sim.particles().alive;
   r.interrupted = !sim.done();
   r.wall_seconds = seconds_since(start);
-  if (!r.interrupted) say_warnings(label, sim.run_warnings());  // a part of a run says nothing
+  if (!r.interrupted) r.run_warnings = sim.run_warnings();  // a part of a run says nothing
   return r;
 }
 
@@ -1691,6 +1687,7 @@ int sweep_command(const SweepOptions& options) {
                 param.c_str(), values[k].c_str(), f.vaporized_fraction, f.melted_fraction,
                 peak_text(f, "%.0f K").c_str(), r.wall_seconds);
     std::fflush(stdout);
+    say_warnings(label, r.run_warnings);  // after its line, as `run` says them after its table
   }
   if (vv.x.empty()) {  // a table of only failed values' empty rows is no result
     if (!cut) say_nothing_written("sweep: every value failed", out, tables);

@@ -132,6 +132,7 @@ struct RunResult {
   std::vector<std::uint8_t> alive;  // per particle, 0 once vaporised
   bool interrupted = false;
   int pulses_ended = 0;  // the rows of history.csv; `figures.pulse` counts one still in flight
+  std::vector<std::string> run_warnings;  // of a run that ended, for its caller to say after it
   // `setup`, then the simulation's stages (a run of a sweep writes no files of its own).
   StageTable stages;
 };
@@ -182,8 +183,12 @@ std::unique_ptr<tbb::global_control> limit_threads(int threads);
 // The spec warnings of a sweep's or converge's runs, before the first run: those every run gives
 // are said once, as `run` says them, and returned, for run_scene to leave out.
 std::set<std::string> warn_of_shared_specs(const std::vector<const RunConfig*>& configs);
+// Warnings on stderr, each after `label`, the value or rung of a sweep or converge they belong to
+// (as its failures are): "beampack: sweep K = 400: warning: ...".
+void say_warnings(const std::string& label, const std::vector<std::string>& warnings);
 // One run of a sweep or converge, its warnings on stderr after `label` (the value or rung): its
-// spec's but those `said` before, its scene's once set up, its run's once ended.
+// spec's but those `said` before, and its scene's once set up; its run's, once it ended, are
+// returned (`run_warnings`), for the caller to say after the run's own line.
 RunResult run_scene(const RunConfig& config, bool quiet, const std::string& label = "",
                     const std::set<std::string>& said = {});
 
