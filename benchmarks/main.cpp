@@ -2,20 +2,16 @@
 // tracer's packet rate depends on the rays per packet Embree traverses natively (16 with
 // AVX-512, 8 with AVX2: BENCHMARKS.md), so a figure is read with that width beside it.
 #include <benchmark/benchmark.h>
-#include <embree3/rtcore.h>
 
 #include <string>
+
+#include "engine/embree_scene.h"
 
 namespace {
 
 std::string embree_native_packet() {
-  RTCDevice device = rtcNewDevice(nullptr);
-  if (!device) return "unknown (rtcNewDevice failed)";
-  const int rays = rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED)  ? 16
-                   : rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED) ? 8
-                                                                                             : 4;
-  rtcReleaseDevice(device);
-  return std::to_string(rays) + " rays";
+  const int rays = beampack::embree_native_packet_width();
+  return rays > 0 ? std::to_string(rays) + " rays" : "unknown (rtcNewDevice failed)";
 }
 
 std::string host_simd() {

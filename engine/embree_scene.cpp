@@ -927,4 +927,14 @@ bool EmbreeScene::occluded1(const RayQuery& query, std::uint32_t id) const {
   return ray.tfar < 0.0f;
 }
 
+int embree_native_packet_width() {
+  RTCDevice device = rtcNewDevice(nullptr);
+  if (!device) return 0;
+  const int rays = rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED)  ? 16
+                   : rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED) ? 8
+                                                                                             : 4;
+  rtcReleaseDevice(device);
+  return rays;
+}
+
 }  // namespace beampack

@@ -1,7 +1,7 @@
 #pragma once
 // The ray-tracing scene: the particles as Embree user-geometry spheres, behind a small interface.
 // This header does not include Embree (pimpl); engine/embree_scene.cpp is the only file of the
-// library that does. The benchmarks are the exception: bench_trace.cpp's baselines (Embree's
+// library that does. One benchmark file is the exception: bench_trace.cpp's baselines (Embree's
 // built-in spheres) must call Embree directly.
 //
 // Layout: the user data of each geometry points at a packed copy of the particles' centres and
@@ -117,5 +117,9 @@ class EmbreeScene {
   std::vector<std::uint8_t> removed_;
   std::unique_ptr<Impl> impl_;
 };
+
+// The rays per packet Embree traverses natively on this host (16 with AVX-512, 8 with AVX2, else
+// 4), which the packets' speed depends on; 0 when no Embree device could be made.
+int embree_native_packet_width();
 
 }  // namespace beampack
