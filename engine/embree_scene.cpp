@@ -18,7 +18,6 @@
 #include <exception>
 #include <future>
 #include <mutex>
-#include <numeric>
 #include <string>
 #include <system_error>
 #include <thread>
@@ -482,7 +481,7 @@ struct EmbreeScene::Impl {
 
   // A device, a scene and its geometries over `records`, committed. Embree's errors are left in
   // the structure's report for the caller to check (Structure::check); a device Embree refuses
-  // is a RunError at once. With `cancel`, the build stops when it turns true.
+  // is a RunError at once. With `stop`, the build stops when it turns true.
   std::unique_ptr<Structure> build(std::vector<SphereRecord> records,
                                    const std::atomic<bool>* stop) const;
 
@@ -673,10 +672,6 @@ void EmbreeScene::limit_memory(std::size_t bytes) {
       std::min<std::size_t>(bytes, std::numeric_limits<std::int64_t>::max()));
   impl_->byte_limit.store(limit, std::memory_order_relaxed);
   impl_->live->report.byte_limit.store(limit, std::memory_order_relaxed);
-}
-
-SceneUpdate EmbreeScene::update_mode() const {
-  return impl_->update;
 }
 
 bool EmbreeScene::rebuilding() const {

@@ -47,7 +47,7 @@ enum class SceneUpdate {
                // against 211 MB at 1e6; limit_memory caps each); the build shares the cores with
                // whatever runs meanwhile. The tracer's default.
   mask_only,   // keep the structure; removed spheres are culled in the callback only
-  rebuild,     // one geometry, static high-quality build, rebuilt on every update
+  rebuild,     // one geometry, static medium-quality build, rebuilt on every update
   refit,       // one geometry, refit with empty bounds for removed spheres
   bricks,      // spatial bricks, one user geometry each, dynamic scene: rebuild touched bricks
 };
@@ -65,7 +65,6 @@ class EmbreeScene {
   // Not concurrent with queries (nor are poll_rebuild and finish_rebuild).
   void remove(std::span<const std::uint32_t> ids);
   bool removed(std::uint32_t id) const { return removed_[id] != 0; }
-  SceneUpdate update_mode() const;
   // Structure updates after construction (background: builds started, adopted or not).
   std::size_t rebuilds() const { return rebuilds_; }
   // Background mode: a build is in flight, or finished and not yet adopted.

@@ -566,7 +566,8 @@ void Simulation::name_step_for_checks() const {
 }
 
 // After every step, in BEAMPACK_CHECKS builds: the optics ledger closes to round-off (it does by
-// construction), the heat ledger to the solver's tolerance, as the end of a run demands.
+// construction), the heat ledger to the solver's tolerance over every joule it books (a sum of
+// magnitudes, looser than the end of a run's heat_error(), which warns instead of stopping).
 void Simulation::check_ledgers_close() const {
   const EnergyLedger e = figures().energy;
   BEAMPACK_DCHECK(std::abs(e.optics_imbalance()) <= EnergyLedger::kOpticsTolerance * e.injected,

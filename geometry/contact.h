@@ -34,7 +34,8 @@ struct Contact {
 };
 
 // Every overlapping pair of live particles, found with a uniform cell list (O(N) for bounded
-// radius spread). Sorted by (i, j); identical for any thread count. Call again after removals.
+// radius spread). Sorted by (i, j); identical for any thread count. After removals the list of the
+// live particles is this one without theirs (ThermalModel::drop_removed_contacts): no new search.
 std::vector<Contact> find_contacts(const Particles& particles);
 
 }  // namespace beampack

@@ -108,8 +108,8 @@ class ThermalModel {
   // (InputError for one at or above theta_v or with an unknown material id).
   ThermalModel(Particles& particles, std::vector<Material> materials, ThermalSpec spec);
 
-  // The contact graph to conduct over (find_contacts); call again after vaporisations when
-  // convenient: removed particles already conduct nothing, but their zeroed entries cost time.
+  // The contact graph to conduct over (find_contacts). Removed particles conduct nothing from
+  // their removal on; drop_removed_contacts trims their entries, without a new search.
   void set_contacts(const std::vector<Contact>& contacts);
   // After vaporisations: drops the contacts of removed particles once they are more than
   // `min_fraction` of the list (until then the matrix holds them as zeros and keeps its pattern,
