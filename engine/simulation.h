@@ -95,9 +95,15 @@ struct EnergyLedger {
     return std::max(absorbed + std::max(-walls, 0.0),
                     std::abs(stored) + vaporized + std::max(walls, 0.0));
   }
-  double heat_error() const {
+  double heat_error() const { return std::abs(relative_heat_imbalance()); }
+  // Signed, as the run's table prints them; over no energy at all, the imbalance itself (a floor
+  // of 1e-300 made 5e-309 J open of 5.6e-309 J read as 5e-9).
+  double relative_heat_imbalance() const {
     const double scale = heat_scale();
-    return scale > 0 ? std::abs(heat_imbalance()) / scale : std::abs(heat_imbalance());
+    return scale > 0 ? heat_imbalance() / scale : heat_imbalance();
+  }
+  double relative_optics_imbalance() const {
+    return injected > 0 ? optics_imbalance() / injected : optics_imbalance();
   }
   // How far a ledger may be open, relative: the optics one to round-off (it closes by
   // construction), the heat one to the solver's tolerance, max(1e-6, 1e4 thermal.tolerance).

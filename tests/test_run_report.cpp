@@ -24,6 +24,22 @@
 namespace beampack::tools {
 namespace {
 
+// The relative imbalances the table prints: over the energy moved, whatever its size. A floor of
+// 1e-300 J under it made a subnormal run's open ledger (5.06e-309 J absorbed, none stored) read
+// as 5e-9 while the warning said 1.
+TEST(RunReport, RelativeImbalancesHoldForSubnormalEnergies) {
+  EnergyLedger e;
+  e.injected = 5.561269e-309;
+  e.absorbed = 5.055281e-309;
+  e.escaped = e.injected - e.absorbed;
+  EXPECT_EQ(e.relative_heat_imbalance(), 1.0);
+  EXPECT_EQ(e.heat_error(), 1.0);
+  EXPECT_EQ(e.relative_optics_imbalance(), 0.0);
+  e.stored = 2 * e.absorbed;  // more out than in: -a over the larger side, 2a
+  EXPECT_EQ(e.relative_heat_imbalance(), -0.5);
+  EXPECT_EQ(EnergyLedger{}.relative_heat_imbalance(), 0.0);  // nothing moved, nothing open
+}
+
 EnergyLedger closed_ledger() {
   EnergyLedger e;
   e.injected = 1.0, e.absorbed = 0.6, e.escaped = 0.3, e.cutoff = 0.1;

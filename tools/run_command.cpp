@@ -494,8 +494,7 @@ void print_table(const Simulation& sim, const RunResult& r, const CommandStages&
     std::printf("  %-26s %14.6e (in %llu particle steps)\n", "latent, crossing not made",
                 r.counts.band_heat_short, static_cast<unsigned long long>(r.counts.bands_short));
   std::printf("  %-26s %14.3e (optics) %10.3e (heat)\n", "imbalance, relative",
-              e.optics_imbalance() / std::max(e.injected, 1e-300),
-              e.heat_imbalance() / std::max(e.heat_scale(), 1e-300));
+              e.relative_optics_imbalance(), e.relative_heat_imbalance());
   std::printf("stages, s\n");
   for (const auto& [name, s] : run_stages(sim, own))
     std::printf("%s\n", stage_line(name, s, stage_note(name, r.counts)).c_str());
