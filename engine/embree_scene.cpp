@@ -23,7 +23,9 @@
 #include <thread>
 #include <utility>
 
+#include "geometry/compensated_sum.h"
 #include "geometry/error.h"
+#include "geometry/morton.h"
 #include "geometry/ray_sphere.h"
 
 namespace beampack {
@@ -510,17 +512,6 @@ struct EmbreeScene::Impl {
 
 namespace {
 
-// Spreads the low 21 bits of v to every third bit (3D Morton code).
-std::uint64_t spread3(std::uint64_t v) {
-  v &= 0x1FFFFF;
-  v = (v | (v << 32)) & 0x1F00000000FFFFull;
-  v = (v | (v << 16)) & 0x1F0000FF0000FFull;
-  v = (v | (v << 8)) & 0x100F00F00F00F00Full;
-  v = (v | (v << 4)) & 0x10C30C30C30C30C3ull;
-  v = (v | (v << 2)) & 0x1249249249249249ull;
-  return v;
-}
-
 // Particle ids sorted along a Morton curve over the particles' box: nearby spheres end up
 // nearby in memory, and any contiguous run of them is a compact spatial brick.
 std::vector<std::uint32_t> morton_order(const Particles& particles) {
@@ -531,12 +522,12 @@ std::vector<std::uint32_t> morton_order(const Particles& particles) {
                                   : Vec3((box.upper - box.lower).cwiseMax(Vec3::Constant(1e-300)));
   std::vector<std::pair<std::uint64_t, std::uint32_t>> keyed(n);
   for (std::size_t i = 0; i < n; ++i) {
-    std::uint64_t code = 0;
+    std::uint64_t q[3];
     for (int a = 0; a < 3; ++a) {
       const double u = (particles.centre[i][a] - box.lower[a]) / extent[a];
-      code |= spread3(static_cast<std::uint64_t>(std::clamp(u, 0.0, 1.0) * 2097151.0)) << a;
+      q[a] = static_cast<std::uint64_t>(std::clamp(u, 0.0, 1.0) * kMortonMax);
     }
-    keyed[i] = {code, static_cast<std::uint32_t>(i)};
+    keyed[i] = {morton_code(q[0], q[1], q[2]), static_cast<std::uint32_t>(i)};
   }
   std::sort(keyed.begin(), keyed.end());
   std::vector<std::uint32_t> order(n);
@@ -797,13 +788,6 @@ double clip_to_scene(const Box& reach, const Vec3& o, const Vec3& d, double t_hi
   }
   // Backed off by far more than the round-off of t0 (a few ulps of a ray's distance from the box).
   return t0 <= t1 ? t0 * (1.0 - 1e-12) : -1.0;
-}
-
-// a + b rounded, and the exact error of that rounding (Knuth's TwoSum).
-double two_sum(double a, double b, double& error) {
-  const double sum = a + b, b_part = sum - a;
-  error = (a - (sum - b_part)) + (b - b_part);
-  return sum;
 }
 
 // o + t0 d - frame, rounded once at its own size. o and frame are world coordinates: summed in

@@ -9,11 +9,18 @@
 
 namespace beampack {
 
+// a + b rounded, and the exact error of that rounding: sum + error = a + b (Knuth's TwoSum).
+inline double two_sum(double a, double b, double& error) {
+  const double sum = a + b, b_part = sum - a;
+  error = (a - (sum - b_part)) + (b - b_part);
+  return sum;
+}
+
 // value + low += x. value stays the rounded total, so readers of value alone see the best double.
 inline void add_compensated(double& value, double& low, double x) {
-  const double s = value + x;
-  const double b = s - value;
-  low += (value - (s - b)) + (x - b);  // what s rounded away: s + that = value + x exactly
+  double rounded_away;
+  const double s = two_sum(value, x, rounded_away);
+  low += rounded_away;
   const double total = s + low;
   low -= total - s;
   value = total;

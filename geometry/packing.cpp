@@ -15,6 +15,7 @@
 #include "geometry/cell_grid.h"
 #include "geometry/error.h"
 #include "geometry/input_file.h"
+#include "geometry/morton.h"
 #include "geometry/random.h"
 
 namespace beampack {
@@ -36,30 +37,16 @@ void check_common(std::size_t count, double size) {
   require(std::isfinite(size) && size > 0, "sample.size = " + shown_number(size) + ": must be > 0");
 }
 
-// Interleaves the low 21 bits of x, y, z (a Morton code).
-std::uint64_t morton(std::uint64_t x, std::uint64_t y, std::uint64_t z) {
-  auto spread = [](std::uint64_t v) {
-    v &= 0x1fffff;
-    v = (v | v << 32) & 0x1f00000000ffffull;
-    v = (v | v << 16) & 0x1f0000ff0000ffull;
-    v = (v | v << 8) & 0x100f00f00f00f00full;
-    v = (v | v << 4) & 0x10c30c30c30c30c3ull;
-    v = (v | v << 2) & 0x1249249249249249ull;
-    return v;
-  };
-  return spread(x) | spread(y) << 1 | spread(z) << 2;
-}
-
 // Numbers generated particles along a Morton curve: neighbours in space become neighbours in
 // memory, which is what the contact search, the conduction matrix and the scene read together.
 // A deterministic function of the centres, so a seed still gives one packing everywhere.
 void sort_spatially(Particles& p, double size) {
   const std::size_t n = p.size();
   std::vector<std::pair<std::uint64_t, std::uint32_t>> keys(n);
-  const double scale = double((1u << 21) - 1) / size;
+  const double scale = kMortonMax / size;
   for (std::size_t i = 0; i < n; ++i) {
-    const Vec3 q = (p.centre[i] * scale).cwiseMax(0.0).cwiseMin(double((1u << 21) - 1));
-    keys[i] = {morton(std::uint64_t(q.x()), std::uint64_t(q.y()), std::uint64_t(q.z())),
+    const Vec3 q = (p.centre[i] * scale).cwiseMax(0.0).cwiseMin(kMortonMax);
+    keys[i] = {morton_code(std::uint64_t(q.x()), std::uint64_t(q.y()), std::uint64_t(q.z())),
                static_cast<std::uint32_t>(i)};
   }
   std::sort(keys.begin(), keys.end());
