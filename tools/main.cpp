@@ -26,6 +26,17 @@ const CLI::Validator kNamed(
     },
     "NAME");
 
+// A count is checked as a whole number before its range: CLI11's Range reads 2.5 as a number and
+// said "not in range 0 to 4096" of it.
+const CLI::Validator kWhole(
+    [](std::string& text) -> std::string {
+      const std::size_t first = text.starts_with('+') ? 1 : 0;  // "+2" is 2, as CLI11 reads it
+      const bool digits =
+          text.size() > first && text.find_first_not_of("0123456789", first) == std::string::npos;
+      return digits ? "" : "Value " + text + " is not a whole number >= 0";
+    },
+    "WHOLE");
+
 void add_run_sources(CLI::App* cmd, RunOptions& o) {
   cmd->add_option("run_file", o.sources.file, "run file (TOML)")->check(CLI::ExistingFile);
   cmd->add_option("--preset", o.sources.preset, "start from a named preset (beampack presets)")
@@ -33,6 +44,16 @@ void add_run_sources(CLI::App* cmd, RunOptions& o) {
   // One value per --set: a run file after it is not taken as a second assignment.
   cmd->add_option("--set", o.sources.sets, "override one key: --set material.conductivity=100")
       ->allow_extra_args(false);
+}
+
+// What run, sweep and converge share: the scene's sources, then --out, --threads and --quiet.
+void add_run_options(CLI::App* cmd, RunOptions& o) {
+  add_run_sources(cmd, o);
+  cmd->add_option("--out", o.out_dir, "output directory")->capture_default_str();
+  cmd->add_option("--threads", o.threads, "worker threads (0: all cores)")
+      ->check(kWhole)
+      ->check(CLI::Range(0, 4096));
+  cmd->add_flag("--quiet", o.quiet, "no progress line");
 }
 
 // The command named by the first argument, if there is one.
@@ -146,17 +167,6 @@ int table_written(int code) {
 int main(int argc, char** argv) {
   stdout_closed = keep_standard_streams_open();
   install_interrupt_handler();
-  // A count is checked as a whole number before its range: CLI11's Range reads 2.5 as a number
-  // and said "not in range 0 to 4096" of it.
-  const CLI::Validator kWhole(
-      [](std::string& text) -> std::string {
-        const std::size_t first = text.starts_with('+') ? 1 : 0;  // "+2" is 2, as CLI11 reads it
-        const bool digits =
-            text.size() > first && text.find_first_not_of("0123456789", first) == std::string::npos;
-        return digits ? "" : "Value " + text + " is not a whole number >= 0";
-      },
-      "WHOLE");
-  const CLI::Range kThreads(0, 4096);
   CLI::App app{"beampack: laser processing of packed powders (Zohdi 2013)", "beampack"};
   app.require_subcommand(1);
   const beampack::BuildInfo built = beampack::build_info();
@@ -168,12 +178,7 @@ int main(int argc, char** argv) {
   bool quiet_validate = false;
 
   CLI::App* run_cmd = app.add_subcommand("run", "run one scene and write its outputs");
-  add_run_sources(run_cmd, run);
-  run_cmd->add_option("--out", run.out_dir, "output directory")->capture_default_str();
-  run_cmd->add_option("--threads", run.threads, "worker threads (0: all cores)")
-      ->check(kWhole)
-      ->check(kThreads);
-  run_cmd->add_flag("--quiet", run.quiet, "no progress line");
+  add_run_options(run_cmd, run);
   run_cmd
       ->add_option("--checkpoint-every", run.checkpoint_every,
                    "write DIR/checkpoint.bin every N pulses (atomically)")
@@ -183,7 +188,7 @@ int main(int argc, char** argv) {
       ->check(CLI::ExistingDirectory);
 
   CLI::App* sweep_cmd = app.add_subcommand("sweep", "one run per value of a parameter");
-  add_run_sources(sweep_cmd, sweep.run);
+  add_run_options(sweep_cmd, sweep.run);
   sweep_cmd->add_option("--param", sweep.param, "key to vary")->required();
   // Split by sweep_command itself, which refuses an empty value instead of dropping it.
   sweep_cmd
@@ -192,21 +197,11 @@ int main(int argc, char** argv) {
       ->required()
       ->allow_extra_args(false)
       ->type_name("V1,V2,...");
-  sweep_cmd->add_option("--out", sweep.run.out_dir, "output directory")->capture_default_str();
-  sweep_cmd->add_option("--threads", sweep.run.threads, "worker threads (0: all cores)")
-      ->check(kWhole)
-      ->check(kThreads);
-  sweep_cmd->add_flag("--quiet", sweep.run.quiet, "no progress line");
 
   RunOptions converge;
   CLI::App* converge_cmd =
       app.add_subcommand("converge", "error against run time over resolution ladders");
-  add_run_sources(converge_cmd, converge);
-  converge_cmd->add_option("--out", converge.out_dir, "output directory")->capture_default_str();
-  converge_cmd->add_option("--threads", converge.threads, "worker threads (0: all cores)")
-      ->check(kWhole)
-      ->check(kThreads);
-  converge_cmd->add_flag("--quiet", converge.quiet, "no progress line");
+  add_run_options(converge_cmd, converge);
 
   CLI::App* validate_cmd =
       app.add_subcommand("validate", "run the analytic cases and print a table");
