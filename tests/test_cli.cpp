@@ -1308,6 +1308,23 @@ void checkpoint_into(const fs::path& whole, const fs::path& part, const std::str
 // run's) and mix their results: while one holds the folder (here the test, as a running command
 // would), run, sweep and converge into it are refused before they touch it; once it is free,
 // they run.
+// A resume from a folder without a checkpoint says why there is none: not a run's folder, or a
+// run killed outright before it wrote one (its history.csv rows are there). It said only that
+// DIR/checkpoint.bin could not be read.
+TEST(Cli, AResumeWithoutACheckpointSaysWhyThereIsNone) {
+  const fs::path empty = fresh_dir("no_checkpoint"), killed = fresh_dir("killed_early");
+  const Result none = run("run --resume " + empty.string());
+  EXPECT_EQ(none.code, 2);
+  EXPECT_CONTAINS(none.output, "cannot read " + (empty / "checkpoint.bin").string() +
+                                   " (no checkpoint there: --resume takes the --out folder of an "
+                                   "interrupted run)");
+  ASSERT_EQ(run("run --preset quick --quiet --out " + killed.string()).code, 0);
+  fs::remove(killed / "summary.json");  // what a SIGKILL after the first pulse leaves, and more
+  const Result early = run("run --resume " + killed.string());
+  EXPECT_EQ(early.code, 2);
+  EXPECT_CONTAINS(early.output, "(its run wrote none yet: a checkpoint is written at an interrupt");
+}
+
 TEST(Cli, ACommandIntoAFolderAnotherIsWritingIsRefused) {
   const fs::path out = fresh_dir("locked"), part = fresh_dir("locked_part");
   ASSERT_EQ(run("run --preset quick --quiet --out " + out.string()).code, 0);

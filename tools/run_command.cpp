@@ -816,8 +816,23 @@ OutputFile checkpoint_file(const fs::path& path, const Simulation& sim, const Ru
           [bytes](std::ostream& o) { o.write(bytes->data(), std::streamsize(bytes->size())); }};
 }
 
+// "no checkpoint.bin in DIR": none written yet (a run killed before its first pulse ended or its
+// first --checkpoint-every), or not a run's folder; its history.csv says which.
+std::string no_checkpoint_why(const fs::path& path) {
+  std::error_code ec;
+  const fs::path dir = path.parent_path();
+  if (!fs::exists(path, ec) && fs::is_regular_file(dir / "history.csv", ec))
+    return " (its run wrote none yet: a checkpoint is written at an interrupt, and with "
+           "--checkpoint-every N after every N pulses; a run killed outright before that leaves "
+           "history.csv alone, and starts again without --resume)";
+  if (!fs::exists(path, ec))
+    return " (no checkpoint there: --resume takes the --out folder of an interrupted run)";
+  return "";
+}
+
 StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
-  if (!fs::is_regular_file(path)) throw InputError("--resume: cannot read " + path.string());
+  if (!fs::is_regular_file(path))
+    throw InputError("--resume: cannot read " + path.string() + no_checkpoint_why(path));
   // Read whole into memory: a file larger than the machine's memory is not one this machine
   // wrote (a 5 GB file of zeros took 60 s and 7.8 GB before it was found damaged).
   std::error_code size_ec;
