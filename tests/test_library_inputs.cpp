@@ -495,17 +495,22 @@ SimulationSpec conducting_pulses(int pulses) {
   return s;
 }
 
+// The state of a simulation of `spec` over `p` after one step.
+std::string state_after_one_step(const SimulationSpec& spec, const Particles& p) {
+  Simulation first(spec, p);
+  first.step();
+  StateWriter written;
+  first.write_state(written);
+  return written.finish();
+}
+
 // Particles a run removed stay out of its ray scene: a state restored into a simulation that has
 // stepped brought them back to life for the heat and not for the rays (absorbed 4.5e-9 J where
 // the run absorbs 1.6e-8 J, the ledger closed).
 TEST(LibraryMisuse, AStateIsRestoredOnlyIntoAFreshSimulation) {
   const SimulationSpec spec = conducting_pulses(3);
   const Particles p = random_overlap_packing(200, kD, 0.325, 7);
-  Simulation first(spec, p);
-  first.step();
-  StateWriter written;
-  first.write_state(written);
-  const std::string bytes = written.finish();
+  const std::string bytes = state_after_one_step(spec, p);
   Simulation stepped(spec, p);
   stepped.step();
   StateReader in(bytes, "state");
@@ -525,11 +530,7 @@ TEST(LibraryMisuse, AStateRefusedChangesNothing) {
   SimulationSpec polarised = conducting_pulses(3);
   polarised.optics.polarisation.linear = true;
   const Particles p = random_overlap_packing(200, kD, 0.325, 7);
-  Simulation first(polarised, p);
-  first.step();
-  StateWriter written;
-  first.write_state(written);
-  const std::string bytes = written.finish();
+  const std::string bytes = state_after_one_step(polarised, p);
   const SimulationSpec spec = conducting_pulses(3);
   Simulation tried(spec, p), untried(spec, p);
   StateReader in(bytes, "state");
