@@ -2846,6 +2846,10 @@ TEST(Cli, StabilityGridStopsAtCtrlC) {
   const auto [code, text] = run("validate --stiff --quiet", "timeout --preserve-status -s INT 1");
   EXPECT_EQ(code, 1) << text;
   EXPECT_CONTAINS(text, "stability: interrupted after");
+  // The interrupt's note on a line of its own, with no empty line before it (no progress line
+  // here to end).
+  EXPECT_CONTAINS(text, "beampack: stopping after the current step");
+  EXPECT_NOT_CONTAINS(text, "\n\nbeampack: stopping");
   EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(), 30.0);
 }
 

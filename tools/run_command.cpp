@@ -61,6 +61,11 @@ std::atomic<std::int64_t> first_interrupt_ns{0};
 // interrupt then ends the command at once, and the main thread says so.
 std::atomic<bool> setting_up{false};
 
+// Set while a progress line is rewritten in place on a terminal, with no newline after it yet: an
+// interrupt's note starts a line of its own then, and only then (under --quiet it began with an
+// empty line).
+std::atomic<bool> progress_line_open{false};
+
 // Set while a command reads its input before its first set-up (a packing file for xi R / c, say):
 // that read is not cut short, and no step is there to stop after.
 std::atomic<bool> reading_input{false};
@@ -95,9 +100,10 @@ void on_interrupt(int signal) {
       "\nbeampack: interrupted while the input is read: the run ends when the read does, before "
       "its "
       "set-up; interrupt again to quit at once\n";
-  [[maybe_unused]] const auto written = reading_input.load()
-                                            ? ::write(STDERR_FILENO, kReading, sizeof kReading - 1)
-                                            : ::write(STDERR_FILENO, kNote, sizeof kNote - 1);
+  const std::size_t skip = progress_line_open.load() ? 0 : 1;  // the newline that ends it
+  [[maybe_unused]] const auto written =
+      reading_input.load() ? ::write(STDERR_FILENO, kReading + skip, sizeof kReading - 1 - skip)
+                           : ::write(STDERR_FILENO, kNote + skip, sizeof kNote - 1 - skip);
 }
 
 // A set-up of seconds (the packing, its contacts, the ray scene: ~11 s at 3e6 particles) passes
@@ -311,9 +317,11 @@ class Progress {
                   f.pulse, count, f.time, f.vaporized_fraction, peak_text(f, "%.0f K").c_str(),
                   elapsed, left.empty() ? "" : "  ", left.c_str());
     std::fputs(progress_text(label_ + line, terminal_).c_str(), stderr);
+    progress_line_open.store(terminal_);
   }
   ~Progress() {
     if (last_shown_ && terminal_) std::fprintf(stderr, "\n");
+    progress_line_open.store(false);
   }
 
  private:
