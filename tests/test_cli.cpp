@@ -20,6 +20,7 @@
 #include <optional>
 #include <regex>
 #include <sstream>
+#include <tuple>
 
 #include "engine/state_io.h"
 #include "tests/cli_runner.h"
@@ -1308,6 +1309,34 @@ void checkpoint_into(const fs::path& whole, const fs::path& part, const std::str
 // run's) and mix their results: while one holds the folder (here the test, as a running command
 // would), run, sweep and converge into it are refused before they touch it; once it is free,
 // they run.
+// sweep and converge resolve the run file for every value and rung: one that comes through a
+// pipe is read once, and every value and rung runs what it says (after the first, they ran the
+// defaults: the pipe was empty).
+TEST(Cli, SweepAndConvergeReadAPipedRunFileOnce) {
+  const fs::path dir = fresh_dir("piped_sweep");
+  const std::string file = write(dir / "run.toml", run("config --preset quick").output);
+  const auto figures = [](const fs::path& csv, const char* key, const char* peak) {
+    std::vector<std::string> rows;
+    for (const auto& row : read_csv(csv))
+      rows.push_back(row.at(key) + " " + row.at("vaporized_fraction") + " " + row.at(peak) + " " +
+                     row.at("steps"));
+    return rows;
+  };
+  const std::string sweep = " --param beam.rays --values 50,60 --quiet --out ";
+  const std::string converge = " --set beam.rays=50 --set pulses.count=1 --quiet --out ";
+  for (const auto& [command, args, table, key, peak] :
+       {std::tuple{"sweep", sweep, "sweep.csv", "beam.rays", "max_temperature_K"},
+        std::tuple{"converge", converge, "convergence.csv", "resolution", "peak_temperature_K"}}) {
+    const fs::path named = dir / (std::string(command) + "_named"),
+                   piped = dir / (std::string(command) + "_piped");
+    ASSERT_EQ(run(std::string(command) + " " + file + args + named.string()).code, 0);
+    const std::string line = "cat '" + file + "' | " + BEAMPACK_CLI + " " + command +
+                             " /dev/stdin" + args + piped.string() + " >/dev/null 2>&1";
+    ASSERT_EQ(std::system(line.c_str()), 0) << line;
+    EXPECT_EQ(figures(piped / table, key, peak), figures(named / table, key, peak)) << command;
+  }
+}
+
 // A resume from a folder without a checkpoint says why there is none: not a run's folder, or a
 // run killed outright before it wrote one (its history.csv rows are there). It said only that
 // DIR/checkpoint.bin could not be read.

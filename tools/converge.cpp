@@ -285,6 +285,7 @@ int converge_command(const RunOptions& options) {
   note_reading_input();
   RunSources read_xi = options.sources;
   read_xi.xi_always_read = true;  // the time-step ladder is made of xi R / c
+  read_xi.read_once();            // and every rung reads it again: a pipe's bytes come only once
   RunConfig base = load_run_config(read_xi);
   warn_of_input({&base});  // the rungs' runs read the same keys
   const auto threads = limit_threads(options.threads);

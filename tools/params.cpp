@@ -335,7 +335,7 @@ void Params::merge_toml_text(const std::string& text, const std::string& source)
   }
 }
 
-void Params::merge_toml_file(const std::string& path) {
+std::string read_run_file(const std::string& path) {
   if (unsafe_input_file(path))
     throw InputError(path + ": the run file is not a regular file (a directory, FIFO or device)");
   std::ifstream in(path, std::ios::binary);
@@ -353,6 +353,11 @@ void Params::merge_toml_file(const std::string& path) {
   }
   if (in.bad()) throw InputError(path + ": read error");
   if (text.starts_with("\xEF\xBB\xBF")) text.erase(0, 3);  // a UTF-8 byte-order mark (some editors)
+  return text;
+}
+
+void Params::merge_toml_file(const std::string& path, const std::string* bytes) {
+  const std::string text = bytes ? *bytes : read_run_file(path);
   toml::table layer;
   try {
     layer = parse_checked(text, path);

@@ -24,12 +24,18 @@ struct KeyOrigin {
   bool swept = false;         // a value of sweep's --param or of a converge ladder
 };
 
+// A run file's bytes, checked as merge_toml_file checks them (not a FIFO or device, at most 16 MiB,
+// without a UTF-8 byte-order mark).
+std::string read_run_file(const std::string& path);
+
 class Params {
  public:
   Params() = default;
   // Layers apply in order: later ones override earlier ones key by key.
   void merge_toml_text(const std::string& text, const std::string& source);  // preset
-  void merge_toml_file(const std::string& path);
+  // The run file at `path`; with `bytes`, those read from it before (read_run_file), so that a
+  // command that resolves it several times reads a pipe, or a file being edited, once.
+  void merge_toml_file(const std::string& path, const std::string* bytes = nullptr);
   // A run file merged that set no key (empty, or comments only): "" when there is none.
   const std::string& empty_file() const { return empty_file_; }
   // --set KEY=VALUE; `origin` names it in messages (default "--set KEY=VALUE"); `swept` for a

@@ -1651,8 +1651,10 @@ int sweep_command(const SweepOptions& options) {
   const auto threads = limit_threads(options.run.threads);
   // Resolve every configuration first: a bad value fails before any run starts.
   std::vector<RunConfig> configs;
+  RunSources once = options.run.sources;
+  once.read_once();  // every value reads the same run file: a pipe's bytes come only once
   for (const std::string& value : values) {
-    RunSources sources = options.run.sources;
+    RunSources sources = once;
     sources.swept = param + "=" + value;
     sources.swept_origin = "--param " + param + " --values " + value;
     configs.push_back(load_run_config(sources));

@@ -424,7 +424,7 @@ RunConfig load_run_config(const RunSources& sources) {
     p.merge_toml_text(found->toml, std::string("preset ") + found->name);
   }
   if (!sources.text.empty()) p.merge_toml_text(sources.text, "checkpoint");
-  if (!sources.file.empty()) p.merge_toml_file(sources.file);
+  if (!sources.file.empty()) p.merge_toml_file(sources.file, sources.file_bytes.get());
   for (const std::string& s : sources.sets) p.merge_assignment(s);
   if (!sources.swept.empty()) p.merge_assignment(sources.swept, sources.swept_origin, true);
   try {

@@ -44,6 +44,13 @@ struct RunSources {
   std::string preset;             // --preset NAME ("" for none)
   std::vector<std::string> sets;  // --set KEY=VALUE, in order
   std::string text;               // a complete run file held in a checkpoint ("" for none)
+  // `file`'s bytes once read (read_once): sweep and converge resolve it for every value and rung,
+  // and a pipe (`run <(...)`, `... | sweep /dev/stdin`) can be read only once.
+  std::shared_ptr<const std::string> file_bytes;
+  void read_once() {
+    if (!file.empty() && !file_bytes)
+      file_bytes = std::make_shared<std::string>(read_run_file(file));
+  }
   // KEY=VALUE applied after the --set list by sweep and converge, and named in messages as
   // `swept_origin` ("--param K --values V") rather than as a --set the user never typed.
   std::string swept, swept_origin;
