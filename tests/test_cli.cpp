@@ -1305,10 +1305,6 @@ void checkpoint_into(const fs::path& whole, const fs::path& part, const std::str
 
 }  // namespace
 
-// Two commands writing one --out remove each other's files (each takes the other's for an earlier
-// run's) and mix their results: while one holds the folder (here the test, as a running command
-// would), run, sweep and converge into it are refused before they touch it; once it is free,
-// they run.
 // sweep and converge resolve the run file for every value and rung: one that comes through a
 // pipe is read once, and every value and rung runs what it says (after the first, they ran the
 // defaults: the pipe was empty).
@@ -1354,31 +1350,45 @@ TEST(Cli, AResumeWithoutACheckpointSaysWhyThereIsNone) {
   EXPECT_CONTAINS(early.output, "(its run wrote none yet: a checkpoint is written at an interrupt");
 }
 
+// Two commands writing one --out remove each other's files (each takes the other's for an earlier
+// run's) and mix their results: while one holds the folder (here the test, as a running command
+// would), run, sweep and converge into it are refused before they touch it, and so is a resume
+// in place before it reads the checkpoint (a damaged one is not even read) or a resume from it
+// into another folder; once it is free, they run.
 TEST(Cli, ACommandIntoAFolderAnotherIsWritingIsRefused) {
-  const fs::path out = fresh_dir("locked"), part = fresh_dir("locked_part");
+  const fs::path out = fresh_dir("locked"), part = fresh_dir("locked_part"),
+                 damaged = fresh_dir("locked_damaged"), other = fresh_dir("locked_other");
   ASSERT_EQ(run("run --preset quick --quiet --out " + out.string()).code, 0);
   checkpoint_into(fresh_dir("locked_whole"), part);  // a checkpoint to resume in place
+  write(damaged / "checkpoint.bin", "not a checkpoint");
   const std::string summary = file_text(out / "summary.json");
   const auto hold = [](const fs::path& dir) {
     const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY);
     EXPECT_EQ(::flock(fd, LOCK_EX | LOCK_NB), 0);
     return fd;
   };
-  const int held[] = {hold(out), hold(part)};
+  const int held[] = {hold(out), hold(part), hold(damaged)};
   const std::string into = " --quiet --out " + out.string();
-  for (const auto& [command, dir] :
-       {std::pair{"run --preset quick" + into, out},
-        {"run --quiet --resume " + part.string(), part},
-        {"sweep --preset quick --param beam.rays --values 50,60" + into, out},
-        {"converge --preset quick --set beam.rays=50 --set pulses.count=1" + into, out}}) {
+  const std::string busy =
+      ": another beampack command is writing there (it holds the folder's lock): wait for it to "
+      "end";
+  for (const auto& [command, refusal] :
+       {std::pair{"run --preset quick" + into, "--out " + out.string() + busy},
+        {"run --quiet --resume " + part.string(), "--out " + part.string() + busy},
+        {"run --quiet --resume " + damaged.string(), "--out " + damaged.string() + busy},
+        {"run --quiet --resume " + part.string() + " --out " + other.string(),
+         "--resume " + part.string() + busy},
+        {"sweep --preset quick --param beam.rays --values 50,60" + into,
+         "--out " + out.string() + busy},
+        {"converge --preset quick --set beam.rays=50 --set pulses.count=1" + into,
+         "--out " + out.string() + busy + ", or choose another --out"}}) {
     const Result r = run(command);
     EXPECT_EQ(r.code, 2) << command << "\n" << r.output;
-    EXPECT_CONTAINS(r.output, "--out " + dir.string() +
-                                  ": another beampack command is writing there (it holds the "
-                                  "folder's lock): wait for it to end, or choose another --out");
+    EXPECT_CONTAINS(r.output, refusal);
   }
   EXPECT_EQ(file_text(out / "summary.json"), summary);  // the earlier run's, as it was
   EXPECT_FALSE(fs::exists(part / "history.csv"));
+  EXPECT_TRUE(fs::is_empty(other));
   for (const int fd : held) ::close(fd);
   const Result free = run("sweep --preset quick --param beam.rays --values 50,60" + into);
   EXPECT_EQ(free.code, 0) << free.output;

@@ -26,6 +26,7 @@
 #include <fcntl.h>
 #include <signal.h>
 #include <sys/file.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include "engine/build_info.h"
@@ -547,7 +548,11 @@ OutDir::OutDir(const std::string& dir) {
     remove_empty_made();
     throw InputError("--out " + dir + ": cannot create the output directory (" + why + ")");
   }
-  lock(dir);  // before the probe: two commands would race on its name
+  lock_.emplace(dir, FolderLock::Mode::exclusive, "--out");  // before the probe: a race on its name
+  if (!fs::is_directory(dir))  // removed by the command that held it (an empty folder it made)
+    throw InputError("--out " + dir +
+                     ": the folder was removed while this command waited for another to let go "
+                     "of it; run again");
   const fs::path probe = fs::path(dir) / ".beampack-write-test";
   std::FILE* f = std::fopen(probe.c_str(), "w");
   if (!f) {
@@ -561,32 +566,56 @@ OutDir::OutDir(const std::string& dir) {
 
 OutDir::~OutDir() {
   quit_removes_folders({});
-  remove_empty_made();
-  if (lock_fd_ >= 0) ::close(lock_fd_);
+  remove_empty_made();  // still locked: a command waiting for the folder sees it go (FolderLock)
 }
 
+namespace {
+
+// Whether the open folder `fd` is still the one at `dir`: a holder may have removed it (an empty
+// folder it made), and another command made it again, while this one waited for its lock.
+bool still_there(int fd, const std::string& dir) {
+  struct stat open_one {
+  }, named{};
+  return ::fstat(fd, &open_one) == 0 && ::stat(dir.c_str(), &named) == 0 &&
+         open_one.st_dev == named.st_dev && open_one.st_ino == named.st_ino;
+}
+
+}  // namespace
+
 // Two commands writing one folder remove each other's files (each takes the other's for an
-// earlier run's, or a killed run's temporaries) and mix their results. A folder that cannot be
-// opened for reading (mode 300) or locked at all (some network file systems) is used unlocked,
-// as before there was a lock. A holder is given a second to let go: a run killed outright keeps
-// the lock until the system has torn it down, and `timeout -s KILL` returns before that (it kills
-// its own process group, itself too), so a resume straight after found the folder held.
-void OutDir::lock(const std::string& dir) {
-  lock_fd_ = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
-  if (lock_fd_ < 0) return;
-  int why = 0;
-  for (int tries = 0; tries < 20; ++tries) {
-    if (::flock(lock_fd_, LOCK_EX | LOCK_NB) == 0) return;
-    why = errno;
-    if (why != EWOULDBLOCK) break;
+// earlier run's, or a killed run's temporaries) and mix their results; a resume that reads a
+// folder while a run writes it reads a checkpoint about to be replaced. A holder is given a
+// second to let go: a run killed outright keeps the lock until the system has torn it down, and
+// `timeout -s KILL` returns before that (it kills its own process group, itself too), so a
+// resume straight after found the folder held.
+FolderLock::FolderLock(const std::string& dir, Mode mode, const std::string& option) {
+  const int operation = (mode == Mode::exclusive ? LOCK_EX : LOCK_SH) | LOCK_NB;
+  for (int tries = 0; tries < 20;) {
+    const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+    if (fd < 0) return;  // unreadable or gone: unlocked, and the caller's checks say why
+    if (::flock(fd, operation) == 0) {
+      if (still_there(fd, dir)) {
+        fd_ = fd;
+        return;
+      }
+      ::close(fd);  // a folder removed while this command waited: lock the one there now
+      ++tries;
+      continue;
+    }
+    const int why = errno;
+    ::close(fd);
+    if (why != EWOULDBLOCK) return;
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    ++tries;
   }
-  ::close(lock_fd_);
-  lock_fd_ = -1;
-  if (why != EWOULDBLOCK) return;
-  throw InputError("--out " + dir +
+  throw InputError(option + " " + dir +
                    ": another beampack command is writing there (it holds the folder's lock): "
-                   "wait for it to end, or choose another --out");
+                   "wait for it to end" +
+                   (mode == Mode::exclusive ? ", or choose another " + option : std::string()));
+}
+
+FolderLock::~FolderLock() {
+  if (fd_ >= 0) ::close(fd_);
 }
 
 // Innermost first, and only while they are empty: a folder with results in it stays, and so do
@@ -1400,6 +1429,13 @@ int run_command(const RunOptions& options) {
   std::error_code same_ec;
   const bool into_checkpoint_folder =
       !options.resume.empty() && fs::equivalent(out_dir, options.resume, same_ec);
+  // Locked before anything there is read: a resume in place waited for the run it resumes and
+  // then read the checkpoint that run had replaced, or removed. A folder resumed into another is
+  // read under a shared lock until its files are copied.
+  const OutDir out_folder(out_dir);
+  std::optional<FolderLock> reading;
+  if (!options.resume.empty() && !into_checkpoint_folder)
+    reading.emplace(options.resume, FolderLock::Mode::shared, "--resume");
   if (!options.resume.empty())
     resume_from_checkpoint(options, into_checkpoint_folder, record, saved, sources);
   RunConfig config = load_run_config(sources);
@@ -1409,7 +1445,6 @@ int run_command(const RunOptions& options) {
   if (options.resume.empty() || options.checkpoint_set)
     record.checkpoint_every = options.checkpoint_every;
   record.resumed_in_place = into_checkpoint_folder;
-  const OutDir out_folder(out_dir);
   refuse_outputs_over_inputs(
       out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});
   refuse_non_files_at_outputs(out_dir, is_output_name);
@@ -1440,6 +1475,7 @@ int run_command(const RunOptions& options) {
     const StageTimer timer(record.stages.output);
     rebuild_ray_series(out_dir, record, into_checkpoint_folder);
   }
+  reading.reset();  // the folder resumed from is read, and free for others
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);
   if (!saved && config.output.frames) write_start_frame(sim, out, record);

@@ -136,11 +136,27 @@ struct RunResult {
   // `setup`, then the simulation's stages (a run of a sweep writes no files of its own).
   StageTable stages;
 };
+// A lock on a folder (flock on the folder itself, so no lock file is left; the system drops it when
+// the process ends, however it ends), exclusive for a command's --out, shared for a folder a
+// resume reads from. A holder of the other kind is given a second to let go; then InputError
+// naming `option` (--out, --resume) and the folder. A folder that cannot be opened for reading
+// (mode 300) or locked at all (some network file systems) is used unlocked.
+class FolderLock {
+ public:
+  enum class Mode { exclusive, shared };
+  FolderLock(const std::string& dir, Mode mode, const std::string& option);
+  ~FolderLock();
+  FolderLock(const FolderLock&) = delete;
+  FolderLock& operator=(const FolderLock&) = delete;
+
+ private:
+  int fd_ = -1;
+};
+
 // A command's --out folder, made (with any missing parents) and checked writable at once, so an
 // unusable --out fails before any run. When the command leaves the folders it made empty (bad
 // input found while the runs are set up, an interrupted set-up), they are removed again: no empty
-// folder is left behind. While it lives the folder is locked (flock on the folder itself, so no
-// lock file is left; the system drops the lock when the process ends, however it ends): a second
+// folder is left behind. While it lives the folder is locked (FolderLock, exclusive): a second
 // command with the same --out is refused before it removes or writes anything.
 class OutDir {
  public:
@@ -152,9 +168,8 @@ class OutDir {
 
  private:
   void remove_empty_made();
-  void lock(const std::string& dir);
   std::vector<std::filesystem::path> made_;  // every folder made here, in the order made
-  int lock_fd_ = -1;
+  std::optional<FolderLock> lock_;
 };
 // A run of a sweep or converge that threw: one line on stderr naming `label`, the error and
 // `consequence`; returns the exit code it calls for (2 bad input, 1 a failed run).
