@@ -6,6 +6,7 @@
 #include <Eigen/Dense>
 
 #include <algorithm>
+#include <functional>
 #include <numbers>
 #include <random>
 
@@ -14,6 +15,7 @@
 #include "geometry/packing.h"
 #include "tests/expect_error.h"
 #include "tests/thermal_test_util.h"
+#include "thermal/solvers.h"
 #include "thermal/thermal_model.h"
 
 namespace beampack {
@@ -607,6 +609,44 @@ TEST(ThermalStiff, ConjugateGradientsRefuseAMatrixSingularToDoubles) {
     }
     testing::expect_error<SolverRefusal>(five_steps, "use thermal.solver = \"direct\"");
   }
+}
+
+}  // namespace
+}  // namespace beampack
+
+namespace beampack {
+namespace {
+
+// A non-finite result from non-finite inputs is a defect upstream, a RunError that is no
+// SolverRefusal, so "auto" does not fall back to the factorisation on it and hide it; from finite
+// inputs it is the solver's own breakdown, a refusal. The fixed-point iteration called both a
+// refusal.
+TEST(ThermalStiff, NonFiniteInputsAreADefectNotARefusal) {
+  SparseMatrix a(2, 2);
+  a.insert(0, 0) = 2.0, a.insert(1, 1) = 2.0, a.insert(0, 1) = -1.0, a.insert(1, 0) = -1.0;
+  const Eigen::VectorXd c = Eigen::VectorXd::Constant(2, 2.0);
+  const Eigen::VectorXd bad = Eigen::Vector2d(1.0, std::nan(""));
+  const auto kind = [](const std::function<void()>& solve) {
+    try {
+      solve();
+    } catch (const SolverRefusal&) {
+      return "refusal";
+    } catch (const RunError&) {
+      return "defect";
+    }
+    return "none";
+  };
+  Eigen::VectorXd theta = Eigen::VectorXd::Zero(2);
+  EXPECT_STREQ(kind([&] { fixed_point_solve(a, c, bad, theta, 1e-10, 100, 0.5); }), "defect");
+  theta.setZero();
+  EXPECT_STREQ(kind([&] { cg_solve(a, bad, theta, 1e-10, 100); }), "defect");
+  // Finite inputs past the iteration's limit: a refusal (c far below the coupling diverges).
+  theta.setZero();
+  const Eigen::VectorXd small_c = Eigen::VectorXd::Constant(2, 0.1);
+  EXPECT_STREQ(kind([&] {
+                 fixed_point_solve(a, small_c, Eigen::Vector2d(1.0, 0.0), theta, 1e-10, 1000, 20);
+               }),
+               "refusal");
 }
 
 }  // namespace
