@@ -122,7 +122,7 @@ void warn_of_bands_short(const Counts& counts, const EnergyLedger& e,
   char text[640];
   std::snprintf(
       text, sizeof text,
-      "%.3g J of latent heat was charged in %llu particle steps whose crossing of theta_m or "
+      "%.3g J of latent heat was charged in %llu particle (sub-)steps whose crossing of theta_m or "
       "theta_v the band then stopped short of, more than the %.3g J absorbed: the paper's "
       "predictor-corrector (section 4) charges a band for the predicted crossing, so a particle "
       "a stiff step cools (walls, high conductivity) can give up its solidification band step "

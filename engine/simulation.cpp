@@ -721,6 +721,9 @@ constexpr std::uint32_t kStateVersion = 10;
 }  // namespace
 
 void Simulation::write_state(StateWriter& out) const {
+  if (failed_)  // half-stepped or half-restored: no state to go on from
+    throw RunError("write_state: this simulation failed (" + failed_step_ +
+                   "): it holds no state to save; save one before the failure");
   out.value(kStateVersion);
   const Particles& p = particles_;
   out.vector(p.centre), out.vector(p.radius), out.vector(p.material);

@@ -1269,6 +1269,14 @@ TEST(Cli, StabilityGridSelectionIsCheckedAgainstTheGrid) {
   EXPECT_EQ(some.code, 0) << some.output;
   EXPECT_CONTAINS(some.output, "stability: 4 of the grid's 896 cells");  // the four solvers
   EXPECT_CONTAINS(some.output, "1000000  \"paper\"   20     1      1.0  direct");
+  EXPECT_NOT_CONTAINS(some.output, "not compared with another solver");
+  const Result one_solver =
+      run("validate --stiff --only K=1e6 --only dt=paper --only index=20 "
+          "--only N=1 --only solver=cg");
+  EXPECT_EQ(one_solver.code, 0) << one_solver.output;
+  EXPECT_CONTAINS(one_solver.output,
+                  "some cells are the only solver of their group selected: "
+                  "they are not compared with another solver");
   struct Case {
     const char* args;
     const char* message;
@@ -1348,6 +1356,11 @@ TEST(Cli, AResumeWithoutACheckpointSaysWhyThereIsNone) {
   const Result early = run("run --resume " + killed.string());
   EXPECT_EQ(early.code, 2);
   EXPECT_CONTAINS(early.output, "(its run wrote none yet: a checkpoint is written at an interrupt");
+  // A failed run's folder (summary.json with `failed`) is said to be one.
+  write(killed / "summary.json", R"({"failed": {"message": "x", "time_s": 0}})");
+  const Result failed = run("run --resume " + killed.string());
+  EXPECT_EQ(failed.code, 2);
+  EXPECT_CONTAINS(failed.output, "(its run failed, and a failed run keeps no checkpoint");
 }
 
 // Two commands writing one --out remove each other's files (each takes the other's for an earlier
@@ -1968,6 +1981,8 @@ TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
   EXPECT_TRUE(bool(summary["interrupted"]));
   EXPECT_EQ(read_csv(dir / "particles.csv").size(), std::size_t(summary["counts"]["particles"]));
   // `pulses` counts the launched, one perhaps still in flight; `pulses_ended` the history's rows.
+  // (With pulses.period a pulse's row waits for the next launch: then one fewer with no ray in
+  // flight too. This scene's period is "auto": the next pulse starts when the last ray ends.)
   const int launched = summary["pulses"], ended = summary["pulses_ended"];
   EXPECT_EQ(std::size_t(ended), read_csv(dir / "history.csv").size());
   EXPECT_EQ(launched - ended, double(summary["energy_J"]["in_flight"]) > 0 ? 1 : 0);

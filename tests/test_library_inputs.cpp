@@ -388,7 +388,7 @@ TEST(LibraryInputs, ALatentHeatCorrectionCutShortIsSaidToTheCaller) {
     // heat than the faint pulse brought
     // (Cli.LatentHeatChargedWithoutACrossingIsCountedAndWarnedOf).
     ASSERT_FALSE(said.empty());
-    EXPECT_TRUE(said.back().find("J of latent heat was charged in 1 particle steps") !=
+    EXPECT_TRUE(said.back().find("J of latent heat was charged in 1 particle (sub-)steps") !=
                 std::string::npos)
         << said.back();
     if (cap == 4) {
@@ -685,6 +685,11 @@ TEST(LibraryMisuse, AfterAFailedStepTheSimulationRefusesToGoOn) {
   testing::expect_error<RunError>([&] { sim.step(); }, "an earlier step failed (", first,
                                   "cannot go on");
   EXPECT_EQ(sim.pulses_launched(), 1);  // no pulse launched on top of the failed step
+  StateWriter out;  // nor is its half-stepped state saved, to be resumed as if whole
+  testing::expect_error<RunError>([&] { sim.write_state(out); },
+                                  "write_state: this simulation "
+                                  "failed (",
+                                  first);
 }
 
 // on_pulse_end runs inside a step: a step() from it launched the same pulse again and called it

@@ -796,6 +796,7 @@ void ThermalModel::count_bands_short(const Eigen::VectorXd& theta0, const Eigen:
     if (!short_of) continue;
     const double band =
         effective_heat_capacity(m, theta0[k], short_of) - effective_heat_capacity(m, theta0[k], 0);
+    if (band == 0) continue;  // a band of no latent heat charged nothing
     ++report.bands_short;
     report.band_heat_short +=
         m.density * p_.volume(i) * band / spec_.time_scaling * std::abs(theta1[k] - theta0[k]);

@@ -499,8 +499,8 @@ void print_table(const Simulation& sim, const RunResult& r, const CommandStages&
   std::printf("  %-26s %14.6e\n", "stored as heat", e.stored);
   std::printf("  %-26s %14.6e\n", "carried off by vapour", e.vaporized);
   std::printf("  %-26s %14.6e\n", "lost to walls", e.walls);
-  if (r.counts.bands_short > 0)  // part of the heat stored and carried off
-    std::printf("  %-26s %14.6e (in %llu particle steps)\n", "latent, crossing not made",
+  if (r.counts.bands_short > 0)  // within the heat the particles took or gave
+    std::printf("  %-26s %14.6e (in %llu particle (sub-)steps)\n", "latent, crossing not made",
                 r.counts.band_heat_short, static_cast<unsigned long long>(r.counts.bands_short));
   std::printf("  %-26s %14.3e (optics) %10.3e (heat)\n", "imbalance, relative",
               e.relative_optics_imbalance(), e.relative_heat_imbalance());
@@ -631,8 +631,6 @@ std::unique_ptr<tbb::global_control> limit_threads(int threads) {
   return std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
                                                std::size_t(threads));
 }
-
-namespace {}  // namespace
 
 void say_warnings(const std::string& label, const std::vector<std::string>& warnings) {
   if (!warnings.empty()) std::fflush(stdout);  // after what stdout printed, when both are piped
@@ -858,6 +856,11 @@ OutputFile checkpoint_file(const fs::path& path, const Simulation& sim, const Ru
 std::string no_checkpoint_why(const fs::path& path) {
   std::error_code ec;
   const fs::path dir = path.parent_path();
+  std::ifstream summary_file(dir / "summary.json");
+  const nlohmann::json summary = nlohmann::json::parse(summary_file, nullptr, false);
+  if (!fs::exists(path, ec) && summary.is_object() && summary.contains("failed"))
+    return " (its run failed, and a failed run keeps no checkpoint but a periodic one "
+           "(--checkpoint-every): run it again without --resume)";
   if (!fs::exists(path, ec) && fs::is_regular_file(dir / "history.csv", ec))
     return " (its run wrote none yet: a checkpoint is written at an interrupt, and with "
            "--checkpoint-every N after every N pulses; a run killed outright before that leaves "

@@ -348,6 +348,12 @@ int run_stability_report(bool quiet, const std::vector<std::string>& only) {
     std::size_t all = 0;
     for (const auto& group : grid()) all += group.size();
     std::printf("stability: %zu of the grid's %zu cells\n", cells, all);
+    const bool alone = std::any_of(groups.begin(), groups.end(),
+                                   [](const std::vector<Cell>& g) { return g.size() == 1; });
+    if (alone)  // the check a cell passes alone is weaker: say so rather than pass it quietly
+      std::printf(
+          "stability: some cells are the only solver of their group selected: they are not "
+          "compared with another solver (the direct one is every group's reference)\n");
   }
   int ok = 0, refused = 0, failed = 0;
   std::printf("%-8s %-9s %-6s %-6s %-4s %-12s %-8s %-8s %-10s %-10s %s\n", "K", "dt", "index", "N",
