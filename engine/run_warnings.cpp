@@ -207,7 +207,7 @@ std::vector<std::string> spec_warnings(const SimulationSpec& spec) {
 }
 
 std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e) {
-  const double optics = e.injected > 0 ? std::abs(e.optics_imbalance()) / e.injected : 0.0;
+  const double optics = std::abs(e.relative_optics_imbalance());
   const double heat = e.heat_error();
   const double heat_limit = EnergyLedger::heat_tolerance(spec.thermal.tolerance);
   std::vector<std::string> out;

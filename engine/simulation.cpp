@@ -64,9 +64,10 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
     : spec_(std::move(spec)),
       particles_(std::move(particles)),
       packing_from_spec_(packing_from_spec) {
-  // A caller's particles; the spec's were made or read with these checks, and the thermal-mass
-  // check below names the key behind a radius that fails them.
-  if (!packing_from_spec_ || spec_.packing.source == "file") check_particles(particles_);
+  // A caller's particles, or a file's (a library caller may have read them without the reader's
+  // checks); generated ones were made with these checks, and the thermal-mass check below names
+  // the key behind a radius that fails them.
+  if (!generated_packing()) check_particles(particles_);
   mark_dead_as_vapour();
   check_run_numbers();
   check_thermal_masses(set_up_beam() * std::max(spec_.pulses.count, 1));
@@ -365,8 +366,7 @@ void warn_if_time_stands_still(const SimulationSpec& spec, const Particles& p,
 std::vector<std::string> Simulation::scene_warnings() const {
   std::vector<std::string> warnings;
   warn_if_beam_meets_nothing(spec_, particles_, beam_, warnings);
-  warn_if_beam_narrower_than_particles(
-      spec_, particles_, packing_from_spec_ && spec_.packing.source != "file", warnings);
+  warn_if_beam_narrower_than_particles(spec_, particles_, generated_packing(), warnings);
   warn_of_walls_touching_nothing(spec_, particles_, warnings);
   warn_if_time_stands_still(spec_, particles_, warnings);
   return warnings;

@@ -265,6 +265,9 @@ class Simulation {
 
  private:
   void restore_saved_run(SavedRun& s);  // read_state's writes, every check behind it
+  // The particles are spec_.packing's generated ones (random-overlap, rsa, lattice), made here
+  // with its checks; a file's, or a caller's, are checked and judged as given.
+  bool generated_packing() const { return packing_from_spec_ && spec_.packing.source != "file"; }
   // What one pass of trace, heat and phases leaves (the last pass, with a stagger's redos).
   struct StepOutcome {
     StepReport report;

@@ -23,11 +23,11 @@ namespace {
   throw SolverRefusal(msg.str());
 }
 
-// Whether a solve's inputs are finite: a non-finite result from finite ones is the solver's
-// breakdown (a refusal), from non-finite ones a defect upstream (never a case for a fallback).
-bool finite_inputs(const SparseMatrix& a, const Eigen::VectorXd& c, const Eigen::VectorXd& rhs,
-                   const Eigen::VectorXd& guess) {
-  bool finite = c.allFinite() && rhs.allFinite() && guess.allFinite();
+// Whether a system's matrix and right-hand side are finite: a non-finite result from finite
+// inputs is the solver's breakdown (a refusal), from non-finite ones a defect upstream (never a
+// case for a fallback). Looked at only once a result is not finite.
+bool finite_system(const SparseMatrix& a, const Eigen::VectorXd& rhs) {
+  bool finite = rhs.allFinite();
   for (int k = 0; k < a.outerSize(); ++k)
     for (SparseMatrix::InnerIterator it(a, k); it; ++it) finite &= std::isfinite(it.value());
   return finite;
@@ -50,7 +50,7 @@ SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
   double previous = 0, previous_size = 0;
   int growing = 0;
   std::vector<double> history;
-  const Eigen::VectorXd start = theta;
+  const bool finite_guess = theta.allFinite();  // before theta moves on
   for (int k = 1; k <= max_iterations; ++k) {
     const Eigen::VectorXd update = (rhs - a * theta).cwiseQuotient(c);
     theta += update;
@@ -60,7 +60,7 @@ SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
                                                    std::numeric_limits<double>::min());
     const double size = update.cwiseProduct(root_c).stableNorm();  // no overflow at extreme c
     const double ratio = k > 1 && previous_size > 0 ? size / previous_size : 0.0;
-    if (!std::isfinite(u) && !finite_inputs(a, c, rhs, start))  // a defect, not a refusal
+    if (!std::isfinite(u) && !(finite_guess && c.allFinite() && finite_system(a, rhs)))
       throw RunError("thermal fixed-point iteration (3.11) met non-finite inputs at iteration " +
                      std::to_string(k));
     if (!std::isfinite(u))
@@ -96,7 +96,7 @@ SolveStats cg_solve(const SparseMatrix& a, const Eigen::VectorXd& rhs, Eigen::Ve
     // From finite inputs: CG broke down (a search direction of zero energy p^T A p), as it does
     // on a step matrix singular to doubles (two spheres at K = 1e20, dt G / c ~ 1e25), which the
     // factorisation grounds. From non-finite ones: a defect upstream.
-    if (!finite_inputs(a, Eigen::VectorXd::Ones(1), rhs, guess))
+    if (!(guess.allFinite() && finite_system(a, rhs)))
       throw RunError("thermal conjugate gradients returned a non-finite temperature change after " +
                      std::to_string(cg.iterations()) + " iterations");
     throw SolverRefusal(

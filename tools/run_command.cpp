@@ -793,6 +793,22 @@ std::vector<std::string> stage_total_lines(const std::vector<LabelledRun>& runs,
   return lines;
 }
 
+// The first `bytes` of a regular file; "" for anything else (a FIFO would block the open).
+std::string head_of(const fs::path& file, std::size_t bytes) {
+  std::error_code ec;
+  if (!fs::is_regular_file(file, ec)) return "";
+  std::ifstream in(file, std::ios::binary);
+  std::string head(bytes, '\0');
+  in.read(head.data(), static_cast<std::streamsize>(bytes));
+  head.resize(static_cast<std::size_t>(in.gcount()));
+  return head;
+}
+
+// dir's summary.json, parsed; not an object if there is none (or it is not JSON).
+nlohmann::json summary_in(const fs::path& dir) {
+  return nlohmann::json::parse(head_of(dir / "summary.json", 1 << 24), nullptr, false);
+}
+
 namespace {
 
 // Format 2 added the wall time before the checkpoint, format 3 the pulses between checkpoints,
@@ -851,23 +867,22 @@ OutputFile checkpoint_file(const fs::path& path, const Simulation& sim, const Ru
           [bytes](std::ostream& o) { o.write(bytes->data(), std::streamsize(bytes->size())); }};
 }
 
-// "no checkpoint.bin in DIR": none written yet (a run killed before its first pulse ended or its
-// first --checkpoint-every), or not a run's folder; its history.csv says which.
+// Why DIR holds no checkpoint.bin: its run failed, or wrote none yet (killed before its first
+// pulse ended or its first --checkpoint-every), or DIR holds no run; "" when one is there (and
+// is not a regular file).
 std::string no_checkpoint_why(const fs::path& path) {
   std::error_code ec;
+  if (fs::exists(path, ec)) return "";
   const fs::path dir = path.parent_path();
-  std::ifstream summary_file(dir / "summary.json");
-  const nlohmann::json summary = nlohmann::json::parse(summary_file, nullptr, false);
-  if (!fs::exists(path, ec) && summary.is_object() && summary.contains("failed"))
+  const nlohmann::json summary = summary_in(dir);
+  if (summary.is_object() && summary.contains("failed"))
     return " (its run failed, and a failed run keeps no checkpoint but a periodic one "
            "(--checkpoint-every): run it again without --resume)";
-  if (!fs::exists(path, ec) && fs::is_regular_file(dir / "history.csv", ec))
+  if (fs::is_regular_file(dir / "history.csv", ec))
     return " (its run wrote none yet: a checkpoint is written at an interrupt, and with "
            "--checkpoint-every N after every N pulses; a run killed outright before that leaves "
            "history.csv alone, and starts again without --resume)";
-  if (!fs::exists(path, ec))
-    return " (no checkpoint there: --resume takes the --out folder of an interrupted run)";
-  return "";
+  return " (no checkpoint there: --resume takes the --out folder of an interrupted run)";
 }
 
 StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
@@ -923,22 +938,6 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
 }
 
 }  // namespace
-
-// The first `bytes` of a regular file; "" for anything else (a FIFO would block the open).
-std::string head_of(const fs::path& file, std::size_t bytes) {
-  std::error_code ec;
-  if (!fs::is_regular_file(file, ec)) return "";
-  std::ifstream in(file, std::ios::binary);
-  std::string head(bytes, '\0');
-  in.read(head.data(), static_cast<std::streamsize>(bytes));
-  head.resize(static_cast<std::size_t>(in.gcount()));
-  return head;
-}
-
-// dir's summary.json, parsed; not an object if there is none (or it is not JSON).
-nlohmann::json summary_in(const fs::path& dir) {
-  return nlohmann::json::parse(head_of(dir / "summary.json", 1 << 24), nullptr, false);
-}
 
 // A pulse's file of a run: particles_0003.vtp, rays_0003.vtp (particles_10000.vtp from the
 // ten-thousandth pulse on).
@@ -1233,6 +1232,11 @@ struct PulsesEnded {
   void note(const Figures& f, const Counts& c) { ++count, figures = f, counts = c; }
 };
 
+// The pulses that ended, a history row each (the header is the first line).
+int history_rows(const RunRecord& record) {
+  return static_cast<int>(std::count(record.history.begin(), record.history.end(), '\n')) - 1;
+}
+
 // A step that throws leaves the particles part way through it, and a run's end may fail to write
 // them (a full disk): they are not written (nor a checkpoint), but the pulses the run ended are,
 // as history.csv and a summary.json of the last one's end that says what failed. Hours of pulses
@@ -1240,11 +1244,6 @@ struct PulsesEnded {
 // sub-steps than allowed). `no_particles_because`: why particles.csv is not among them; one
 // already in the folder (an interrupt's, which a resume into its folder runs on from) is of an
 // earlier time than the summary: it goes.
-// The pulses that ended, a history row each (the header is the first line).
-int history_rows(const RunRecord& record) {
-  return static_cast<int>(std::count(record.history.begin(), record.history.end(), '\n')) - 1;
-}
-
 void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, const RunRecord& record,
                                 const PulsesEnded& ended, const RunConfig& config,
                                 const char* failure, double wall_seconds,

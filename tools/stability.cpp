@@ -280,10 +280,10 @@ bool selected(const Cell& cell, const std::vector<Selection>& selections) {
   return true;
 }
 
-// The grid cut down to the cells every `--only` keeps (the whole grid without one); a group keeps
+// The grid `all` cut down to the cells every `--only` keeps (all of it without one); a group keeps
 // its selected solvers, still compared with each other.
-std::vector<std::vector<Cell>> selected_grid(const std::vector<std::string>& only) {
-  const std::vector<std::vector<Cell>> all = grid();
+std::vector<std::vector<Cell>> selected_grid(const std::vector<std::vector<Cell>>& all,
+                                             const std::vector<std::string>& only) {
   std::vector<Selection> selections;
   for (const auto& o : only) selections.push_back(read_selection(o, all));
   std::vector<std::vector<Cell>> groups;
@@ -341,13 +341,16 @@ std::string solver_disagreement(const FinalState& reference, const FinalState& o
 }
 
 int run_stability_report(bool quiet, const std::vector<std::string>& only) {
-  const std::vector<std::vector<Cell>> groups = selected_grid(only);
-  std::size_t cells = 0;
-  for (const auto& group : groups) cells += group.size();
+  const std::vector<std::vector<Cell>> all = grid();
+  const std::vector<std::vector<Cell>> groups = selected_grid(all, only);
+  const auto count = [](const std::vector<std::vector<Cell>>& grid_part) {
+    std::size_t cells = 0;
+    for (const auto& group : grid_part) cells += group.size();
+    return cells;
+  };
+  const std::size_t cells = count(groups);
   if (!only.empty()) {
-    std::size_t all = 0;
-    for (const auto& group : grid()) all += group.size();
-    std::printf("stability: %zu of the grid's %zu cells\n", cells, all);
+    std::printf("stability: %zu of the grid's %zu cells\n", cells, count(all));
     const bool alone = std::any_of(groups.begin(), groups.end(),
                                    [](const std::vector<Cell>& g) { return g.size() == 1; });
     if (alone)  // the check a cell passes alone is weaker: say so rather than pass it quietly
