@@ -2489,14 +2489,21 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   EXPECT_CONTAINS(refused.output, "flawed.xyz:2: radius r = -1: must be > 0");
   EXPECT_EQ(int(read_json(out / "summary.json")["pulses"]), 2) << refused.output;
   EXPECT_TRUE(fs::exists(out / "particles.csv"));
-  // A run that fails leaves no results, rather than the earlier run's as if they were its own.
+  // A run that fails leaves its own summary, not the earlier run's as if they were its own: one
+  // failing before its first pulse ends, a summary as at its start that names the failure (it
+  // used to leave nothing, and a script found no summary.json to read it in).
   const Result failed =
       run("run --preset zohdi2013 --quiet --set thermal.solver=fixed-point "
           "--set material.conductivity=1e6 --out " +
           out.string());
   ASSERT_EQ(failed.code, 1) << failed.output;
-  EXPECT_FALSE(fs::exists(out / "summary.json")) << failed.output;
-  EXPECT_FALSE(fs::exists(out / "history.csv"));
+  EXPECT_CONTAINS(failed.output, "before a pulse of its own ended");
+  const nlohmann::json summary = read_json(out / "summary.json");
+  EXPECT_CONTAINS(summary["failed"]["message"].get<std::string>(), "fixed-point iteration (3.11)");
+  EXPECT_EQ(summary["pulses_ended"], 0);
+  EXPECT_EQ(summary["max_temperature_K"].get<double>(), 300.0);
+  EXPECT_EQ(summary["config"]["material"]["conductivity"].get<double>(), 1e6);
+  EXPECT_TRUE(read_csv(out / "history.csv").empty());
   EXPECT_FALSE(fs::exists(out / "particles.csv"));
   EXPECT_TRUE(fs::exists(mine));
   // A run killed before it wrote anything but its history.csv (a row as each pulse ends) left an

@@ -1224,11 +1224,13 @@ void rebuild_ray_series(const fs::path& dir, RunRecord& record, bool in_place) {
     missing.warn(dir, "ray path file", std::string("rays.pvd leaves ") + missing.them() + " out");
 }
 
-// The figures at the end of the run's last pulse: what a run that fails later still has, whole.
+// The figures at the end of the run's last pulse, or at its start before one ends: what a run that
+// fails later still has, whole.
 struct PulsesEnded {
   int count = 0;  // in this run (a resumed one: since the checkpoint)
   Figures figures;
   Counts counts;
+  PulsesEnded(const Figures& start, const Counts& c) : figures(start), counts(c) {}
   void note(const Figures& f, const Counts& c) { ++count, figures = f, counts = c; }
 };
 
@@ -1241,14 +1243,14 @@ int history_rows(const RunRecord& record) {
 // them (a full disk): they are not written (nor a checkpoint), but the pulses the run ended are,
 // as history.csv and a summary.json of the last one's end that says what failed. Hours of pulses
 // are not lost to one that fails (a beam drawn too narrow in pulse 1361, a step needing more
-// sub-steps than allowed). `no_particles_because`: why particles.csv is not among them; one
-// already in the folder (an interrupt's, which a resume into its folder runs on from) is of an
-// earlier time than the summary: it goes.
+// sub-steps than allowed). Before any pulse ends the summary is of the run's start: a script
+// finds the failure in summary.json either way. `no_particles_because`: why particles.csv is not
+// among them; one already in the folder (an interrupt's, which a resume into its folder runs on
+// from) is of an earlier time than the failure: it goes.
 void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, const RunRecord& record,
                                 const PulsesEnded& ended, const RunConfig& config,
                                 const char* failure, double wall_seconds,
                                 const char* no_particles_because) {
-  if (ended.count == 0) return;
   RunResult r;
   r.figures = ended.figures;
   r.counts = ended.counts;
@@ -1262,11 +1264,23 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
        {(out / "summary.json").string(), [&](std::ostream& o) { o << json_text(j) << '\n'; }}});
   std::error_code ec;
   fs::remove(out / "particles.csv", ec);
+  if (ended.count == 0) {  // a resumed run's history holds the pulses before its checkpoint
+    const std::string rows = r.pulses_ended == 0
+                                 ? std::string("its header only")
+                                 : "the " + std::to_string(r.pulses_ended) + " pulse" +
+                                       plural(r.pulses_ended) + " ended before it";
+    std::fprintf(stderr,
+                 "beampack: the run failed at t = %.6g s, before a pulse of its own ended; %s "
+                 "holds summary.json as at its start (t = %.6g s), with the failure, and "
+                 "history.csv (%s; no particles.csv: %s)\n",
+                 failed_at, out.c_str(), ended.figures.time, rows.c_str(), no_particles_because);
+    return;
+  }
   std::fprintf(stderr,
                "beampack: the run failed at t = %.6g s, after %d pulse%s had ended; %s holds them "
                "(history.csv, and summary.json as at the last one's end, with the failure; no "
                "particles.csv: %s)\n",
-               failed_at, ended.figures.pulse, plural(ended.figures.pulse), out.c_str(),
+               failed_at, r.pulses_ended, plural(r.pulses_ended), out.c_str(),
                no_particles_because);
 }
 
@@ -1482,7 +1496,7 @@ int run_command(const RunOptions& options) {
   const fs::path out(out_dir);
   if (!saved && config.output.frames) write_start_frame(sim, out, record);
   bool checkpoint_due = false;
-  PulsesEnded ended;
+  PulsesEnded ended(sim.figures(), sim.counts());
   GrowingFile history((out / "history.csv").string());  // a row as each pulse ends
   record_pulse_ends(sim, config.output, out, record, history, ended, checkpoint_due);
   count_set_up(record.stages.setup, sim, saved.has_value(),
