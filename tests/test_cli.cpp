@@ -118,6 +118,9 @@ TEST(Cli, SameInputsSameNumbersOnAnyThreadCount) {
   sa << pa.rdbuf();
   sb << pb.rdbuf();
   EXPECT_EQ(sa.str(), sb.str());
+  // summary.json says what the run's times were taken with.
+  EXPECT_EQ(read_json(a / "summary.json")["threads"], 1);
+  EXPECT_EQ(read_json(b / "summary.json")["threads"], 2);
 }
 
 TEST(Cli, OneAndTenStepsPerPulseAgree) {

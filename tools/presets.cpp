@@ -7,7 +7,9 @@ const std::vector<Preset>& presets() {
   static const std::vector<Preset> all = {
       {"zohdi2013",
        "the paper's section 5: 1000 random-overlap spheres (L = 0.325) in a 1 mm cube, 1000 rays "
-       "of a 6 kW beam, exponential profile a = 2, 20 pulses",
+       "of a 6 kW beam, exponential profile a = 2, 20 pulses; chosen where the paper is silent: "
+       "pulses of 1e-13 s (MODEL.md's xi R / c vaporises nothing here) and one step per pulse "
+       "flight (thermal.dt = \"paper\" takes the paper's step)",
        R"(# Zohdi (2013), section 5, with MODEL.md's choices.
 [sample]
 size = 1e-3

@@ -476,6 +476,8 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
                     {"skipped_because", s.skipped_because}};
   j["stages"] = stages;
   j["wall_seconds"] = r.wall_seconds;
+  // What the times were taken with (--threads, or all cores); the figures are the same on any.
+  j["threads"] = tbb::global_control::active_value(tbb::global_control::max_allowed_parallelism);
   j["interrupted"] = r.interrupted;
   j["config"] = toml_to_json(config.resolved);
   j["beampack"] = part_build_json(this_build());
