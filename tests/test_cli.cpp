@@ -1245,7 +1245,25 @@ TEST(Cli, LatentHeatChargedWithoutACrossingIsCountedAndWarnedOf) {
   EXPECT_GT(j["counts"]["bands_short"].get<std::uint64_t>(), 0u);
   EXPECT_CONTAINS(r.output, "latent, crossing not made");
   EXPECT_CONTAINS(r.output, "J of latent heat was charged in");
-  EXPECT_CONTAINS(r.output, "can give up its solidification band step after step and stay liquid");
+  EXPECT_CONTAINS(r.output, "and one it cools (walls, high conductivity) above it");
+  // Heated: one sphere with no melting band (latent_melt = 0) under a vaporisation band of 1e6 is
+  // charged that band from 99.9% of what it absorbs, and stays solid at 308 K though the heat
+  // would take it past theta_v 15 times over. The warning's old threshold, the heat absorbed,
+  // could not be passed here (physics review).
+  const std::string one =
+      write(fresh_dir("bands_short_one") / "one.xyz", "0.0005 0.0005 0.0005 0.0003\n");
+  const fs::path hot = fresh_dir("bands_short_hot");
+  const Result heated =
+      run("run --preset quick --set packing.source=file --set packing.file=" + one +
+          " --set beam.power=600000 --set material.latent_melt=0 --set material.latent_vapor=1e6 "
+          "--out " +
+          hot.string());
+  ASSERT_EQ(heated.code, 0) << heated.output;
+  const nlohmann::json h = read_json(hot / "summary.json");
+  EXPECT_EQ(h["melted_fraction"], 0.0);
+  EXPECT_GT(h["counts"]["band_heat_short_J"].get<double>(),
+            0.99 * h["energy_J"]["absorbed"].get<double>());
+  EXPECT_CONTAINS(heated.output, "a particle a stiff step heats can be held below the crossing");
   // The paper's example charges some too (9% of its absorbed heat at one step per pulse flight),
   // which its table shows, and no warning.
   const Result paper =
