@@ -242,16 +242,18 @@ std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const 
   return out;
 }
 
-std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f) {
+std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f,
+                                                    const Counts& counts) {
   // Without a solve there is no tolerance to blame: no conduction, or explicit steps (phi = 0).
   if (spec.materials.empty() || !needs_conduction(spec) || spec.thermal.phi == 0)
     return std::nullopt;
   double gap = std::numeric_limits<double>::infinity();
   for (const Material& m : spec.materials)
     gap = std::min(gap, m.vapor_temperature - m.melt_temperature);
-  // Relative accuracy of a step's solve: the tolerance, or round-off for the direct solver.
+  // Relative accuracy of a step's solve: the tolerance where an iteration solved one, else
+  // round-off ("auto" that factorised every step warned as if it had iterated: a false alarm).
   const double accuracy =
-      spec.thermal.solver == "direct" ? 1e-15 : std::max(spec.thermal.tolerance, 1e-15);
+      counts.iterative_heat_steps > 0 ? std::max(spec.thermal.tolerance, 1e-15) : 1e-15;
   if (!f.max_temperature) return std::nullopt;  // no particles
   const double rise = *f.max_temperature - spec.packing.initial_temperature;
   const double misplaced = accuracy * rise;
@@ -279,7 +281,7 @@ std::vector<std::string> Simulation::run_warnings() const {
   warn_of_unsettled_staggers(spec_, c, out);
   for (std::string& warning : open_ledger_warnings(spec_, f.energy))
     out.push_back(std::move(warning));
-  if (std::optional<std::string> warning = phase_resolution_warning(spec_, f))
+  if (std::optional<std::string> warning = phase_resolution_warning(spec_, f, c))
     out.push_back(std::move(*warning));
   if (const std::size_t failed = tracer_->failed_scene_rebuilds(); failed > 0)
     out.push_back("the ray scene's background rebuild failed " + std::to_string(failed) + " time" +

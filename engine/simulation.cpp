@@ -537,6 +537,7 @@ void Simulation::book_step(const StepOutcome& step) {
   counts_.capped_phase_steps += step.report.phase_passes_capped;
   counts_.bands_short += step.report.bands_short;
   counts_.band_heat_short += step.report.band_heat_short;
+  counts_.iterative_heat_steps += step.report.iterations > 0;
   counts_.heat_rows_live += step.report.live_rows;
   counts_.ray_chunks_run += step.chunks_run;
   counts_.ray_chunks_live += step.chunks_live;
@@ -717,7 +718,8 @@ Figures Simulation::figures() const {
 namespace {
 // 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks; 7: reused first
 // hits; 8: the ray paths recorded since the last pulse ended (output.rays); 9: the stagger's counts
-constexpr std::uint32_t kStateVersion = 10;
+// 10: the bands charged short; 11: the iterative heat steps
+constexpr std::uint32_t kStateVersion = 11;
 }  // namespace
 
 void Simulation::write_state(StateWriter& out) const {

@@ -156,6 +156,9 @@ struct Counts {
   // thermal.max_staggers with the optics still changing, and ones whose redos alternated between
   // two sets of phases (a 2-cycle, stopped at its second pass).
   std::uint64_t capped_stagger_steps = 0, stagger_cycles = 0;
+  // Heat steps solved by an iteration (fixed-point or CG, chosen or picked by "auto"): only their
+  // temperatures carry thermal.tolerance's error; the factorisation's carry round-off.
+  std::uint64_t iterative_heat_steps = 0;
 };
 
 // Steps of thermal.dt per light crossing of the sample (sample.size / c / dt); 0 for one step
@@ -174,7 +177,8 @@ std::vector<std::string> spec_warnings(const SimulationSpec& spec);
 // heat moved, one line per open one; and temperatures risen so far that the heat solves' relative
 // accuracy, in kelvin, nears the gap between melting and vaporising, one line saying so.
 std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e);
-std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f);
+std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f,
+                                                    const Counts& counts);
 
 struct SavedRun;  // a checkpoint read whole (simulation.cpp)
 
