@@ -13,9 +13,12 @@ namespace beampack {
 // 1e-6 from ~1e14 (latent or specific heats alike: C + L is one capacity); a wall at 1e300 K
 // booked -7.5e273 J, and conjugate gradients' residual turned NaN at 1e200 K. Density multiplies
 // the thermal mass rho V C as the heat capacities do: the ledger closed to 7e-8 at rho = 1e12,
-// 7e-7 at 1e13, and was open by 1.6e-4 at 1e15. At all these limits together the direct solver
-// closes the ledger and the iterative ones stop with their own message; the stiff scenes the
-// project validates (K up to 1e6 in `beampack validate --stiff`, 1e9 in
+// 7e-7 at 1e13, and was open by 1.6e-4 at 1e15. At all these upper limits together the direct
+// solver closes the ledger and the iterative ones stop with their own message. Not where a heat
+// capacity at its lower cap meets bands or temperatures near their upper ones: C = 1e-12 with
+// latent bands of 1e12 and K = 1e20 opened it by 3.4e-6, and with theta_m = 1e11, theta_v = 1e12
+// as well stored 116 times the heat absorbed (phase review); the run's open-ledger warning says
+// so. The stiff scenes the project validates (K up to 1e6 in `beampack validate --stiff`, 1e9 in
 // tests/test_thermal_stiff.cpp) are far inside.
 inline constexpr Cap kConductivityCap{
     1e20,
