@@ -2007,39 +2007,45 @@ TEST(Cli, WallsTakeHeatAndTheLedgerStillCloses) {
 }
 
 TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
-  const fs::path whole = fresh_dir("int_whole"), dir = fresh_dir("int_part");
+  const fs::path whole = fresh_dir("int_whole");
   ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --out " + whole.string()).code,
             0);
-  const std::string cmd = "timeout --preserve-status -s INT 0.8 " + std::string(BEAMPACK_CLI) +
-                          " run " + kCheckpointScene + " --quiet --out " + dir.string() +
-                          " >/dev/null 2>&1";
-  const int status = std::system(cmd.c_str());
-  ASSERT_TRUE(WIFEXITED(status));
-  if (WEXITSTATUS(status) == 0) GTEST_SKIP() << "the run finished before the interrupt";
-  EXPECT_EQ(WEXITSTATUS(status), 1);
-  // What the run had: complete, parseable files, and a checkpoint that continues it.
-  const auto summary = read_json(dir / "summary.json");
-  EXPECT_TRUE(bool(summary["interrupted"]));
-  EXPECT_EQ(read_csv(dir / "particles.csv").size(), std::size_t(summary["counts"]["particles"]));
-  // `pulses` counts the launched, one perhaps still in flight; `pulses_ended` the history's rows.
-  // (With pulses.period a pulse's row waits for the next launch: then one fewer with no ray in
-  // flight too. This scene's period is "auto": the next pulse starts when the last ray ends.)
-  const int launched = summary["pulses"], ended = summary["pulses_ended"];
-  EXPECT_EQ(std::size_t(ended), read_csv(dir / "history.csv").size());
-  EXPECT_EQ(launched - ended, double(summary["energy_J"]["in_flight"]) > 0 ? 1 : 0);
-  // Its ledger closes with the energy of the rays it stopped in flight.
-  const auto e = summary["energy_J"];
-  const double injected = e["injected"];
-  EXPECT_NEAR(
-      injected,
-      double(e["absorbed"]) + double(e["escaped"]) + double(e["cutoff"]) + double(e["in_flight"]),
-      1e-12 * injected);
-  const Result r = run("run --resume " + dir.string() + " --quiet");
-  ASSERT_EQ(r.code, 0) << r.output;
-  EXPECT_EQ(file_text(dir / "particles.csv"), file_text(whole / "particles.csv"));
-  // The interrupt's checkpoint is spent once the resumed run has finished: none is left over to
-  // be offered as a periodic checkpoint to run again from.
-  EXPECT_FALSE(fs::exists(dir / "checkpoint.bin"));
+  // Without periodic checkpoints, and with them too rare to come (the interrupt's checkpoint
+  // replaces the last periodic one, and was left behind as if periodic).
+  for (const std::string periodic : {"", " --checkpoint-every 1000"}) {
+    const fs::path dir = fresh_dir("int_part" + std::to_string(periodic.size()));
+    const std::string cmd = "timeout --preserve-status -s INT 0.8 " + std::string(BEAMPACK_CLI) +
+                            " run " + kCheckpointScene + periodic + " --quiet --out " +
+                            dir.string() + " >/dev/null 2>&1";
+    const int status = std::system(cmd.c_str());
+    ASSERT_TRUE(WIFEXITED(status));
+    if (WEXITSTATUS(status) == 0) GTEST_SKIP() << "the run finished before the interrupt";
+    EXPECT_EQ(WEXITSTATUS(status), 1);
+    // What the run had: complete, parseable files, and a checkpoint that continues it.
+    const auto summary = read_json(dir / "summary.json");
+    EXPECT_TRUE(bool(summary["interrupted"]));
+    EXPECT_EQ(read_csv(dir / "particles.csv").size(), std::size_t(summary["counts"]["particles"]));
+    // `pulses` counts the launched, one perhaps still in flight; `pulses_ended` the history's
+    // rows. (With pulses.period a pulse's row waits for the next launch: then one fewer with no
+    // ray in flight too. This scene's period is "auto": the next pulse starts when the last ray
+    // ends.)
+    const int launched = summary["pulses"], ended = summary["pulses_ended"];
+    EXPECT_EQ(std::size_t(ended), read_csv(dir / "history.csv").size());
+    EXPECT_EQ(launched - ended, double(summary["energy_J"]["in_flight"]) > 0 ? 1 : 0);
+    // Its ledger closes with the energy of the rays it stopped in flight.
+    const auto e = summary["energy_J"];
+    const double injected = e["injected"];
+    EXPECT_NEAR(
+        injected,
+        double(e["absorbed"]) + double(e["escaped"]) + double(e["cutoff"]) + double(e["in_flight"]),
+        1e-12 * injected);
+    const Result r = run("run --resume " + dir.string() + " --quiet");
+    ASSERT_EQ(r.code, 0) << r.output;
+    EXPECT_EQ(file_text(dir / "particles.csv"), file_text(whole / "particles.csv"));
+    // The interrupt's checkpoint is spent once the resumed run has finished: none is left over to
+    // be offered as a periodic checkpoint to run again from.
+    EXPECT_FALSE(fs::exists(dir / "checkpoint.bin")) << periodic;
+  }
 }
 
 namespace {

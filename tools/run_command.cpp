@@ -832,9 +832,11 @@ struct RunRecord {
   // rays.pvd's series: each pulse's ray path file and end time (not in the checkpoint: a resume
   // rebuilds it from the history rows, ray_series).
   std::vector<std::pair<std::string, double>> ray_files;
-  double earlier_seconds = 0;     // wall time of the runs this one resumes
-  int checkpoint_every = 0;       // --checkpoint-every of the run: a resume keeps it
-  bool resumed_in_place = false;  // --resume into the checkpoint's own folder
+  double earlier_seconds = 0;  // wall time of the runs this one resumes
+  int checkpoint_every = 0;    // --checkpoint-every of the run: a resume keeps it
+  // The folder's checkpoint is the interrupt's this run resumed in place from: spent once the
+  // run finishes, unless a periodic one (--checkpoint-every) has replaced it meanwhile.
+  bool spent_checkpoint_here = false;
   // The builds that ran the parts before this one, in order, one entry per resume; empty for a
   // run that did not resume.
   std::vector<PartBuild> earlier_parts;
@@ -1300,6 +1302,18 @@ void try_to_keep_pulses(const fs::path& out, const Simulation& sim, const RunRec
   }
 }
 
+// Whether the checkpoint in `dir`, which `sim` was read from, is an interrupt's rather than a
+// periodic one: written by a run without periodic ones, or beside the summary.json of an
+// interrupt at its time (the two are written as one set). A periodic one that a run resumed in
+// place then wrote, before it was killed, is of a later time than that summary.
+bool is_interrupts_checkpoint(const fs::path& dir, int checkpointed_every, const Simulation& sim) {
+  if (checkpointed_every == 0) return true;
+  const nlohmann::json j = summary_in(dir);
+  return j.is_object() && j.value("interrupted", false) && !j.contains("failed") &&
+         j.contains("time_s") && j["time_s"].is_number() &&
+         j["time_s"].get<double>() == sim.figures().time;
+}
+
 // --resume: the checkpoint's run file and particles stand in for the run's sources.
 void resume_from_checkpoint(const RunOptions& options, bool into_checkpoint_folder,
                             RunRecord& record, std::optional<StateReader>& saved,
@@ -1370,6 +1384,7 @@ void run_steps(Simulation& sim, const RunConfig& config, const fs::path& out, Ru
         const StageTimer timer(record.stages.output);  // the checkpoint holds the time before it
         write_atomically({checkpoint_file(out / "checkpoint.bin", sim, record,
                                           record.earlier_seconds + seconds_since(start))});
+        record.spent_checkpoint_here = false;
       }
       checkpoint_due = false;
       progress.update(sim);
@@ -1420,10 +1435,9 @@ int finish_run(const Simulation& sim, const RunConfig& config, RunRecord& record
   }
   // A run resumed into its folder from an interrupt's checkpoint, and now finished: that
   // checkpoint is spent (a later --resume would offer it as a periodic one to run again from).
-  // Periodic checkpoints (--checkpoint-every) are kept.
+  // Periodic checkpoints (--checkpoint-every) are kept; an interrupt's replaced the last one.
   std::error_code ec;
-  if (!r.interrupted && record.resumed_in_place && record.checkpoint_every == 0)
-    fs::remove(out / "checkpoint.bin", ec);
+  if (!r.interrupted && record.spent_checkpoint_here) fs::remove(out / "checkpoint.bin", ec);
   print_table(sim, r, record.stages);
   say_warnings("", sim.run_warnings());
   if (!r.interrupted) return 0;
@@ -1461,9 +1475,9 @@ int run_command(const RunOptions& options) {
   warn_of_input({&config});
   say_warnings("", spec_warnings(config.sim));
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
+  const int checkpointed_every = record.checkpoint_every;  // by the run that wrote the checkpoint
   if (options.resume.empty() || options.checkpoint_set)
     record.checkpoint_every = options.checkpoint_every;
-  record.resumed_in_place = into_checkpoint_folder;
   refuse_outputs_over_inputs(
       out_dir, {{"the run file", sources.file}, {"packing.file", config.sim.packing.file}});
   refuse_non_files_at_outputs(out_dir, is_output_name);
@@ -1478,6 +1492,8 @@ int run_command(const RunOptions& options) {
   Simulation& sim = *owned;
   say_warnings("", sim.scene_warnings());
   if (saved) sim.read_state(*saved);
+  record.spent_checkpoint_here =
+      into_checkpoint_folder && is_interrupts_checkpoint(out_dir, checkpointed_every, sim);
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
   remove_earlier_run(out_dir, into_checkpoint_folder);
   if (saved) drop_missing_frames(options.resume, record);
