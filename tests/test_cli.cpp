@@ -258,8 +258,17 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
       {"--set material.initial_temperature=660: `material.initial_temperature` = 660",
        "must be < material.vapor_temperature = 650 (",
        "run.toml:2) (every particle would start as vapour)"});
-  expect_input_error("table_for_number", "[material]\nconductivity = {a = 1}\n", "",
-                     {"run.toml:2", "`material.conductivity` = { a = 1 }", "must be a number"});
+  expect_input_error(
+      "table_for_number", "[material]\nconductivity = {a = 1}\n", "",
+      {"run.toml:2", "`material.conductivity` = { a = 1 }", "must be a number >= 0 and <= 1e+20"});
+  // A value that is no number, or not a finite one, is told the range too, and a word-or-number
+  // key its words.
+  expect_input_error("nan_for_number", "[thermal]\nphi = nan\n", "",
+                     {"run.toml:2", "`thermal.phi` = nan: must be a finite number >= 0 and <= 1"});
+  expect_input_error("flag_for_duration", "[pulses]\nduration = true\n", "",
+                     {"run.toml:2",
+                      "`pulses.duration` = true: must be a number in seconds or "
+                      "\"auto\" or \"energy\""});
   expect_input_error("blank_key", "", "--preset quick --set ' =5'",
                      {"--set  =5", "expected KEY=VALUE"});
   // Two --set that contradict each other are refused in either order.

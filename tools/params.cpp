@@ -525,25 +525,26 @@ void Params::fail(const std::string& key, const std::string& value,
 
 double Params::number(const std::string& key, double fallback, double lo, double hi, bool lo_open,
                       bool hi_open, double stated_hi) {
+  // ">= 0 and <= 1e+20": every refusal names the range (a NaN or a word was told only "must be
+  // finite" or "must be a number", contract review).
+  std::string range = std::string(lo_open ? "> " : ">= ") + shown_number(lo);
+  if (hi < std::numeric_limits<double>::max())
+    range += (hi_open ? " and < " : " and <= ") + shown_number(hi);
+  else if (stated_hi < std::numeric_limits<double>::max())
+    range += " and <= " + shown_number(stated_hi);
   double v = fallback;
   if (const toml::node* node = find(key)) {
     if (node->is_integer()) v = double(node->as_integer()->get());
     else if (node->is_floating_point()) v = node->as_floating_point()->get();
     else if (node->is_string() && beyond_doubles(node->as_string()->get()) > 0)
-      fail(key, repr(*node), "must be a finite number (|x| <= 1.8e308, the range of a double)");
-    else fail(key, repr(*node), "must be a number");
-    if (!std::isfinite(v)) fail(key, repr(*node), "must be finite");
+      fail(key, repr(*node),
+           "must be a finite number " + range + " (|x| <= 1.8e308, the range of a double)");
+    else fail(key, repr(*node), "must be a number " + range);
+    if (!std::isfinite(v)) fail(key, repr(*node), "must be a finite number " + range);
   }
   const bool below = lo_open ? !(v > lo) : !(v >= lo);
   const bool above = hi_open ? !(v < hi) : !(v <= hi);
-  if (below || above) {
-    std::string range = std::string(lo_open ? "must be > " : "must be >= ") + shown_number(lo);
-    if (hi < std::numeric_limits<double>::max())
-      range += (hi_open ? " and < " : " and <= ") + shown_number(hi);
-    else if (stated_hi < std::numeric_limits<double>::max())
-      range += " and <= " + shown_number(stated_hi);
-    fail(key, shown_number(v), range);
-  }
+  if (below || above) fail(key, shown_number(v), "must be " + range);
   record(key, toml::value<double>(v));
   number_defaults_[key] = fallback;
   return v;
@@ -614,6 +615,8 @@ std::string Params::number_or_word(const std::string& key, double& value, double
                                    const std::string& fallback_word, const std::string& unit,
                                    bool lo_open, double stated_hi) {
   const toml::node* node = find(key);
+  std::string list;
+  for (const char* a : words) list += std::string(" or \"") + a + "\"";
   if (!node || node->is_string()) {
     const std::string w = node ? std::string(node->as_string()->get()) : fallback_word;
     for (const char* a : words)
@@ -621,10 +624,10 @@ std::string Params::number_or_word(const std::string& key, double& value, double
         record(key, toml::value<std::string>(w));
         return w;
       }
-    std::string list;
-    for (const char* a : words) list += std::string(" or \"") + a + "\"";
     fail(key, "\"" + w + "\"", "must be a number in " + unit + list);
   }
+  if (!node->is_integer() && !node->is_floating_point())  // true, a table: name the words too
+    fail(key, repr(*node), "must be a number in " + unit + list);
   value = number(key, 0.0, lo, hi, lo_open, false, stated_hi);
   number_defaults_.erase(key);  // its default is the word: any number differs from it
   return "";
