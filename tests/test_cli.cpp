@@ -1310,7 +1310,7 @@ TEST(Cli, TheSolvesResolutionWarningBlamesOnlyIterativeSolves) {
 TEST(Cli, StabilityGridSliceHasNoFailure) {
   const Result r = run("validate --stiff --quiet --only N=1,100");
   EXPECT_EQ(r.code, 0) << r.output;
-  EXPECT_CONTAINS(r.output, "stability: 608 of the grid's 896 cells");
+  EXPECT_CONTAINS(r.output, "stability: 704 of the grid's 1040 cells");
   EXPECT_CONTAINS(r.output, " 0 failed");
   EXPECT_EQ(std::count(r.output.begin(), r.output.end(), '\n'), 3) << r.output;
 }
@@ -1322,7 +1322,7 @@ TEST(Cli, StabilityGridSelectionIsCheckedAgainstTheGrid) {
       "validate --stiff --only K=1e6 --only dt=paper --only index=20 --only N=1";
   const Result some = run(group), one_solver = run(group + " --only solver=cg");
   EXPECT_EQ(some.code + one_solver.code, 0) << some.output << one_solver.output;
-  EXPECT_CONTAINS(some.output, "stability: 4 of the grid's 896 cells");  // the four solvers
+  EXPECT_CONTAINS(some.output, "stability: 4 of the grid's 1040 cells");  // the four solvers
   EXPECT_CONTAINS(some.output, "1000000  \"paper\"   20     1      1.0  direct");
   // A solver alone in its group is compared with none, and the run says so.
   EXPECT_NOT_CONTAINS(some.output, "not compared with another solver");
@@ -1336,7 +1336,7 @@ TEST(Cli, StabilityGridSelectionIsCheckedAgainstTheGrid) {
                              "10000, 1000000"},
                         Case{"--only Q=5",
                              "validate --only `Q=5`: must be COLUMN=VALUE[,VALUE...], COLUMN one "
-                             "of K, dt, index, N, phi, solver"},
+                             "of K, dt, index, N, phi, solver, scene"},
                         Case{"--only N=1 --only phi=0", "no cell of the grid has all of these"}}) {
     const Result r = run(std::string("validate --stiff ") + c.args);
     EXPECT_EQ(r.code, 2) << c.args;

@@ -208,7 +208,7 @@ int main(int argc, char** argv) {
   validate_cmd->add_flag("--quiet", quiet_validate, "print failures only");
   bool stiff = false;
   CLI::Option* stiff_flag = validate_cmd->add_flag(
-      "--stiff", stiff, "run the stability grid (K, dt, index, N, phi, solver) instead");
+      "--stiff", stiff, "run the stability grid (K, dt, index, N, phi, solver, scene) instead");
   std::vector<std::string> only;
   validate_cmd
       ->add_option("--only", only,
