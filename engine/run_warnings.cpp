@@ -270,6 +270,26 @@ std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, 
   return std::string(text);
 }
 
+std::optional<std::string> below_floor_warning(const SimulationSpec& spec, const Particles& p) {
+  double floor = spec.packing.initial_temperature;
+  for (const Wall& w : spec.thermal.walls) floor = std::min(floor, w.temperature);
+  std::size_t below = 0, coldest = 0;
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    if (!(p.temperature[i] < floor * (1 - 1e-12))) continue;  // the direct solver: 1e-15 of it
+    if (below++ == 0 || p.temperature[i] < p.temperature[coldest]) coldest = i;
+  }
+  if (below == 0) return std::nullopt;
+  char text[640];
+  std::snprintf(
+      text, sizeof text,
+      "%zu particle%s ended below %.6g K, the least of the initial and wall temperatures, which "
+      "heating, conduction, walls and latent bands cannot go below (particle %zu: %.6g K): the "
+      "heat solves' error did it; lower `thermal.tolerance` (%g) or use thermal.solver = "
+      "\"direct\"",
+      below, plural(below), floor, coldest, p.temperature[coldest], spec.thermal.tolerance);
+  return text;
+}
+
 std::vector<std::string> Simulation::run_warnings() const {
   const Counts c = counts();
   const Figures f = figures();
@@ -282,6 +302,8 @@ std::vector<std::string> Simulation::run_warnings() const {
   for (std::string& warning : open_ledger_warnings(spec_, f.energy))
     out.push_back(std::move(warning));
   if (std::optional<std::string> warning = phase_resolution_warning(spec_, f, c))
+    out.push_back(std::move(*warning));
+  if (std::optional<std::string> warning = below_floor_warning(spec_, particles_))
     out.push_back(std::move(*warning));
   if (const std::size_t failed = tracer_->failed_scene_rebuilds(); failed > 0)
     out.push_back("the ray scene's background rebuild failed " + std::to_string(failed) + " time" +

@@ -179,6 +179,11 @@ std::vector<std::string> spec_warnings(const SimulationSpec& spec);
 std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e);
 std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f,
                                                     const Counts& counts);
+// Particles colder than the run's floor, the lesser of the initial and the walls' temperatures,
+// by more than round-off: heating, conduction, walls and latent bands cannot take one there (the
+// maximum principle of (3.10) at phi = 1, and of the steps phi < 1 takes within its monotone
+// limit), so a solve's error did; one line naming the coldest.
+std::optional<std::string> below_floor_warning(const SimulationSpec& spec, const Particles& p);
 
 struct SavedRun;  // a checkpoint read whole (simulation.cpp)
 

@@ -327,6 +327,15 @@ TEST(LibraryInputs, ARunSaysWhereItsResultsAreInDoubt) {
   const std::vector<std::string> hot = warnings_of_run(spec);
   ASSERT_EQ(hot.size(), 1u);
   EXPECT_CONTAINS(hot[0], "may misplace a particle beside the hottest by ~");
+  // A fixed-point iteration held to 0.1 leaves particles below the 300 K they started at, in a
+  // run that only heats.
+  spec = quick_scene();
+  spec.materials[0].conductivity = 100;
+  spec.thermal.solver = "fixed-point";
+  spec.thermal.tolerance = 0.1;
+  const std::vector<std::string> loose = warnings_of_run(spec);
+  ASSERT_FALSE(loose.empty());
+  EXPECT_CONTAINS(loose.back(), "ended below 300 K, the least of the initial and wall");
 }
 
 // pulses.duration sets a pulse's energy, delivered within the rays' flight (MODEL.md section 5):

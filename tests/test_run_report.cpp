@@ -354,6 +354,27 @@ TEST(RunReport, TemperaturesBeyondTheSolvesResolutionOfThePhasesAreSaid) {
   EXPECT_FALSE(phase_resolution_warning(spec, f));
 }
 
+// Particles colder than the least of the initial and wall temperatures are the solves' error
+// (fixed-point at thermal.tolerance = 0.1 left one at 296.98 K in a run that only heats, with
+// no word but the generic resolution warning); round-off below it is not.
+TEST(RunReport, AParticleBelowTheRunsFloorIsSaid) {
+  SimulationSpec spec;  // from 300 K, no walls
+  Particles p;
+  p.radius = {1e-5, 1e-5, 1e-5};
+  p.temperature = {300.0, 299.99999999999966, 650.0};  // the direct solver's worst at K = 1e6
+  EXPECT_FALSE(below_floor_warning(spec, p));
+  p.temperature = {296.975, 299.9, 650.0};
+  const auto said = below_floor_warning(spec, p);
+  ASSERT_TRUE(said);
+  EXPECT_CONTAINS(*said, "2 particles ended below 300 K");
+  EXPECT_CONTAINS(*said, "(particle 0: 296.975 K)");
+  spec.thermal.walls = {Wall{0, 0.0, 1e-4, 250.0, -1}};  // walls at 250 K may cool them so far
+  EXPECT_FALSE(below_floor_warning(spec, p));
+  spec.packing.initial_temperature = 200;  // a bed warmed by walls at 250 K: the floor is 200 K
+  p.temperature = {199.0, 260.0, 650.0};
+  EXPECT_TRUE(below_floor_warning(spec, p));
+}
+
 TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
   constexpr double k24GiB = 24.0 * (1 << 30);
   SimulationSpec paper;  // 1000 rays on 1000 particles
