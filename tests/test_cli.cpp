@@ -785,8 +785,10 @@ TEST(Cli, RunFileLayersPathsAndArgumentsAreReadAsWritten) {
         {"redirected",
          BEAMPACK_CLI " run /dev/stdin" + args + (dir / "redirected").string() + " < bed.toml"},
         // standard input a pipe: refused as "not a regular file" before
-        {"stdin_pipe", "cat bed.toml | " BEAMPACK_CLI " run /dev/stdin" + args +
-                           (dir / "stdin_pipe").string()}}) {
+        {"stdin_pipe",
+         "cat bed.toml | " BEAMPACK_CLI " run /dev/stdin" + args + (dir / "stdin_pipe").string()},
+        // `-` is standard input too (it was "run_file: File does not exist: -")
+        {"dash", "cat bed.toml | " BEAMPACK_CLI " run -" + args + (dir / "dash").string()}}) {
     const std::string line =
         "cd '" + (dir / "sub").string() + "' && " + command + " >/dev/null 2>&1";
     ASSERT_EQ(std::system(line.c_str()), 0) << line;

@@ -37,8 +37,18 @@ const CLI::Validator kWhole(
     },
     "WHOLE");
 
+// A run file named `-` is standard input (`beampack config | beampack run -`), as /dev/stdin is.
+const CLI::Validator kDashIsStdin(
+    [](std::string& name) {
+  if (name == "-") name = "/dev/stdin";
+  return std::string();
+    },
+    "", "-");
+
 void add_run_sources(CLI::App* cmd, RunOptions& o) {
-  cmd->add_option("run_file", o.sources.file, "run file (TOML)")->check(CLI::ExistingFile);
+  cmd->add_option("run_file", o.sources.file, "run file (TOML; - reads standard input)")
+      ->transform(kDashIsStdin)
+      ->check(CLI::ExistingFile);
   cmd->add_option("--preset", o.sources.preset, "start from a named preset (beampack presets)")
       ->check(kNamed);
   // One value per --set: a run file after it is not taken as a second assignment.
@@ -222,7 +232,8 @@ int main(int argc, char** argv) {
   RunOptions config;
   CLI::App* config_cmd = app.add_subcommand("config", "print a complete run file");
   config_cmd->add_option("--preset", config.sources.preset, "preset to print")->check(kNamed);
-  config_cmd->add_option("run_file", config.sources.file, "run file to resolve")
+  config_cmd->add_option("run_file", config.sources.file, "run file to resolve (- reads stdin)")
+      ->transform(kDashIsStdin)
       ->check(CLI::ExistingFile);
   config_cmd->add_option("--set", config.sources.sets, "override one key")->allow_extra_args(false);
 
