@@ -270,23 +270,29 @@ std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, 
   return std::string(text);
 }
 
-std::optional<std::string> below_floor_warning(const SimulationSpec& spec, const Particles& p) {
-  double floor = spec.packing.initial_temperature;
-  for (const Wall& w : spec.thermal.walls) floor = std::min(floor, w.temperature);
+std::optional<std::string> below_floor_warning(const SimulationSpec& spec, double floor,
+                                               const Particles& p, const Counts& counts) {
   std::size_t below = 0, coldest = 0;
   for (std::size_t i = 0; i < p.size(); ++i) {
-    if (!(p.temperature[i] < floor * (1 - 1e-12))) continue;  // the direct solver: 1e-15 of it
+    if (!below_floor(p.temperature[i], floor)) continue;
     if (below++ == 0 || p.temperature[i] < p.temperature[coldest]) coldest = i;
   }
   if (below == 0) return std::nullopt;
+  char cause[200];
+  if (counts.iterative_heat_steps > 0)
+    std::snprintf(cause, sizeof cause,
+                  "the heat solves' error did it; lower `thermal.tolerance` (%g) or use "
+                  "thermal.solver = \"direct\"",
+                  spec.thermal.tolerance);
+  else  // the factorisation, explicit or diagonal steps: round-off cannot go so far
+    std::snprintf(cause, sizeof cause,
+                  "no iterative solve ran, whose error could do it: please report this run file");
   char text[640];
-  std::snprintf(
-      text, sizeof text,
-      "%zu particle%s ended below %.6g K, the least of the initial and wall temperatures, which "
-      "heating, conduction, walls and latent bands cannot go below (particle %zu: %.6g K): the "
-      "heat solves' error did it; lower `thermal.tolerance` (%g) or use thermal.solver = "
-      "\"direct\"",
-      below, plural(below), floor, coldest, p.temperature[coldest], spec.thermal.tolerance);
+  std::snprintf(text, sizeof text,
+                "%zu particle%s ended below %.6g K, the least of the starting and wall "
+                "temperatures, which heating, conduction, walls and latent bands cannot go below "
+                "(particle %zu: %.3g K below it): %s",
+                below, plural(below), floor, coldest, floor - p.temperature[coldest], cause);
   return text;
 }
 
@@ -303,7 +309,8 @@ std::vector<std::string> Simulation::run_warnings() const {
     out.push_back(std::move(warning));
   if (std::optional<std::string> warning = phase_resolution_warning(spec_, f, c))
     out.push_back(std::move(*warning));
-  if (std::optional<std::string> warning = below_floor_warning(spec_, particles_))
+  if (std::optional<std::string> warning =
+          below_floor_warning(spec_, temperature_floor_, particles_, c))
     out.push_back(std::move(*warning));
   if (const std::size_t failed = tracer_->failed_scene_rebuilds(); failed > 0)
     out.push_back("the ray scene's background rebuild failed " + std::to_string(failed) + " time" +

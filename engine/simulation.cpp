@@ -82,6 +82,12 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
     if (particles_.alive[i])
       max_temperature_ = std::max(max_temperature_, particles_.temperature[i]);
   }
+  // A caller's particles start at their own temperatures (not packing.initial_temperature).
+  temperature_floor_ = std::numeric_limits<double>::infinity();
+  for (const double t : particles_.temperature)
+    temperature_floor_ = std::min(temperature_floor_, t);
+  for (const Wall& w : spec_.thermal.walls)
+    temperature_floor_ = std::min(temperature_floor_, w.temperature);
   counts_.particles = particles_.size();
 }
 

@@ -87,13 +87,14 @@ struct EnergyLedger {
   double stored = 0, vaporized = 0, walls = 0;  // heat
   double optics_imbalance() const { return injected - absorbed - escaped - cutoff - in_flight; }
   double heat_imbalance() const { return absorbed - stored - vaporized - walls; }
-  // The heat ledger's scale: the larger of the heat that came in (absorbed, and from walls that
-  // heat) and the heat that went (stored, vaporised, to walls that cool), each counted once (a
-  // faint beam's 1e-43 J against 3.7e-7 J from the walls read as open by 1e34); and the
-  // imbalance relative to it (NaN stays NaN).
+  // The heat ledger's scale: the larger of the heat that came in (absorbed, from walls that heat,
+  // and given up by a bed that cooled) and the heat that went (stored by one that warmed,
+  // vaporised, to walls that cool), each counted once (a faint beam's 1e-43 J against 3.7e-7 J
+  // from the walls read as open by 1e34; a bed's heat given to the walls counted twice, as
+  // stored and as to the walls); and the imbalance relative to it (NaN stays NaN).
   double heat_scale() const {
-    return std::max(absorbed + std::max(-walls, 0.0),
-                    std::abs(stored) + vaporized + std::max(walls, 0.0));
+    return std::max(absorbed + std::max(-walls, 0.0) + std::max(-stored, 0.0),
+                    std::max(stored, 0.0) + vaporized + std::max(walls, 0.0));
   }
   double heat_error() const { return std::abs(relative_heat_imbalance()); }
   // Signed, as the run's table prints them; over no energy at all, the imbalance itself (a floor
@@ -179,11 +180,17 @@ std::vector<std::string> spec_warnings(const SimulationSpec& spec);
 std::vector<std::string> open_ledger_warnings(const SimulationSpec& spec, const EnergyLedger& e);
 std::optional<std::string> phase_resolution_warning(const SimulationSpec& spec, const Figures& f,
                                                     const Counts& counts);
-// Particles colder than the run's floor, the lesser of the initial and the walls' temperatures,
-// by more than round-off: heating, conduction, walls and latent bands cannot take one there (the
-// maximum principle of (3.10) at phi = 1, and of the steps phi < 1 takes within its monotone
-// limit), so a solve's error did; one line naming the coldest.
-std::optional<std::string> below_floor_warning(const SimulationSpec& spec, const Particles& p);
+// A temperature below a run's floor (Simulation::temperature_floor) by more than round-off (1e-12
+// of it; the factorisation's worst is 1e-15): heating, conduction, walls and latent bands cannot
+// take a particle there (the maximum principle of (3.10) at phi = 1, and of the steps phi < 1
+// takes within its monotone limit).
+inline bool below_floor(double temperature, double floor) {
+  return temperature < floor * (1 - 1e-12);
+}
+// Particles that ended below `floor`, one line naming the coldest: an iterative solve's error
+// where one ran, else a defect.
+std::optional<std::string> below_floor_warning(const SimulationSpec& spec, double floor,
+                                               const Particles& p, const Counts& counts);
 
 struct SavedRun;  // a checkpoint read whole (simulation.cpp)
 
@@ -233,6 +240,8 @@ class Simulation {
   bool failed() const { return failed_; }
 
   const Particles& particles() const { return particles_; }
+  // The least of the particles' temperatures as built and the walls': none can end below it.
+  double temperature_floor() const { return temperature_floor_; }
   const std::vector<double>& absorbed() const { return absorbed_; }  // J per particle, cumulative
   Figures figures() const;                                           // one pass over the particles
   int pulses_launched() const { return launched_; }  // Figures::pulse, without that pass
@@ -333,6 +342,7 @@ class Simulation {
   std::vector<std::uint32_t> heated_;  // the particles with a deposit this step (zero elsewhere)
   std::vector<RaySegment> ray_paths_;
   double time_ = 0, next_pulse_time_ = 0, max_temperature_ = 0;
+  double temperature_floor_ = 0;
   CompensatedSum total_volume_;  // of all particles, vaporised ones included
   int launched_ = 0;
   bool failed_ = false;      // a step threw: the simulation is half-stepped and refuses more

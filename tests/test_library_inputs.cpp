@@ -335,7 +335,7 @@ TEST(LibraryInputs, ARunSaysWhereItsResultsAreInDoubt) {
   spec.thermal.tolerance = 0.1;
   const std::vector<std::string> loose = warnings_of_run(spec);
   ASSERT_FALSE(loose.empty());
-  EXPECT_CONTAINS(loose.back(), "ended below 300 K, the least of the initial and wall");
+  EXPECT_CONTAINS(loose.back(), "ended below 300 K, the least of the starting and wall");
 }
 
 // pulses.duration sets a pulse's energy, delivered within the rays' flight (MODEL.md section 5):

@@ -12,6 +12,7 @@
 
 #include "geometry/error.h"
 #include "tests/expect_error.h"
+#include "tests/quick_scene.h"
 #include "tests/svg_texts.h"
 #include "tests/test_dirs.h"
 #include "tools/converge.h"
@@ -354,25 +355,39 @@ TEST(RunReport, TemperaturesBeyondTheSolvesResolutionOfThePhasesAreSaid) {
   EXPECT_FALSE(phase_resolution_warning(spec, f));
 }
 
-// Particles colder than the least of the initial and wall temperatures are the solves' error
-// (fixed-point at thermal.tolerance = 0.1 left one at 296.98 K in a run that only heats, with
-// no word but the generic resolution warning); round-off below it is not.
+// Particles colder than the run's floor (the least of the starting and wall temperatures) are
+// an iterative solve's error (fixed-point at thermal.tolerance = 0.1 left one at 296.98 K in a
+// run that only heats, with no word but the generic resolution warning), or a defect where none
+// ran; round-off below it is not.
 TEST(RunReport, AParticleBelowTheRunsFloorIsSaid) {
-  SimulationSpec spec;  // from 300 K, no walls
+  const SimulationSpec spec;
+  Counts counts;
+  counts.iterative_heat_steps = 3;
   Particles p;
   p.radius = {1e-5, 1e-5, 1e-5};
   p.temperature = {300.0, 299.99999999999966, 650.0};  // the direct solver's worst at K = 1e6
-  EXPECT_FALSE(below_floor_warning(spec, p));
-  p.temperature = {296.975, 299.9, 650.0};
-  const auto said = below_floor_warning(spec, p);
+  EXPECT_FALSE(below_floor_warning(spec, 300, p, counts));
+  p.temperature = {299.9, 296.975, 650.0};
+  const auto said = below_floor_warning(spec, 300, p, counts);
   ASSERT_TRUE(said);
   EXPECT_CONTAINS(*said, "2 particles ended below 300 K");
-  EXPECT_CONTAINS(*said, "(particle 0: 296.975 K)");
-  spec.thermal.walls = {Wall{0, 0.0, 1e-4, 250.0, -1}};  // walls at 250 K may cool them so far
-  EXPECT_FALSE(below_floor_warning(spec, p));
-  spec.packing.initial_temperature = 200;  // a bed warmed by walls at 250 K: the floor is 200 K
-  p.temperature = {199.0, 260.0, 650.0};
-  EXPECT_TRUE(below_floor_warning(spec, p));
+  EXPECT_CONTAINS(*said, "(particle 1: 3.02 K below it): the heat solves' error did it");
+  EXPECT_FALSE(below_floor_warning(spec, 250, p, counts));  // walls at 250 K may cool them so far
+  counts.iterative_heat_steps = 0;  // the factorisation's round-off cannot do it
+  EXPECT_CONTAINS(*below_floor_warning(spec, 300, p, counts), "please report this run file");
+}
+
+// A caller's particles start at their own temperatures, which set the floor: a bed half at 250 K
+// under the beam warned that a solve had taken 206 particles below 300 K (diff review).
+TEST(RunReport, TheFloorIsTheParticlesOwnStartingTemperatures) {
+  SimulationSpec spec = beampack::testing::quick_scene();
+  spec.thermal.walls = {Wall{0, 0.0, 0.0, 400.0, -1}};  // a wall warmer than the bed
+  Particles p = make_packing(spec.packing);
+  for (std::size_t i = 0; i < p.size(); i += 2) p.temperature[i] = 250;
+  Simulation sim(spec, p);
+  EXPECT_EQ(sim.temperature_floor(), 250.0);
+  sim.run();
+  for (const std::string& w : sim.run_warnings()) EXPECT_NOT_CONTAINS(w, "ended below") << w;
 }
 
 TEST(RunReport, ASceneBeyondTheMachinesMemoryIsRefusedByName) {

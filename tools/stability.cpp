@@ -105,18 +105,16 @@ double conducted_fraction(const Simulation& sim) {
   return total > 0 ? gained / total : 0;
 }
 
-// Bounded: no particle below the lesser of the initial and the walls' temperatures (the initial
-// 300 K without walls) by more than 1e-12 of it (round-off: the direct solver's worst is 1e-15;
-// the bound was 1e-6 K before below_floor_warning measured every cell within this), none above the
-// greater plus what all the absorbed energy could do to the lightest particle, and all finite. A
-// latent band cannot take a particle past either.
+// Bounded: no particle below the run's floor (the lesser of the initial and the walls'
+// temperatures; below_floor allows round-off, 1e-12 of it: the bound was 1e-6 K before every
+// cell was measured within this), none above the greater plus what all the absorbed energy could
+// do to the lightest particle, and all finite. A latent band cannot take a particle past either.
 bool bounded(const Simulation& sim) {
   const auto& t = sim.particles().temperature;
   const double lo = *std::min_element(t.begin(), t.end());
   const double hi = *std::max_element(t.begin(), t.end());
-  double floor = sim.spec().packing.initial_temperature, ceiling = floor;
-  for (const Wall& w : sim.spec().thermal.walls)
-    floor = std::min(floor, w.temperature), ceiling = std::max(ceiling, w.temperature);
+  double ceiling = sim.spec().packing.initial_temperature;
+  for (const Wall& w : sim.spec().thermal.walls) ceiling = std::max(ceiling, w.temperature);
   const Material& m = sim.spec().materials[0];  // all share one material here
   double lightest = std::numeric_limits<double>::infinity();
   for (std::size_t i = 0; i < sim.particles().size(); ++i)
@@ -124,7 +122,7 @@ bool bounded(const Simulation& sim) {
   const double mass = std::isfinite(lightest)
                           ? lightest * m.density * m.c_solid / sim.spec().thermal.time_scaling
                           : 1.0;
-  return std::isfinite(lo) && std::isfinite(hi) && lo >= floor * (1 - 1e-12) &&
+  return std::isfinite(lo) && std::isfinite(hi) && !below_floor(lo, sim.temperature_floor()) &&
          hi <= ceiling + sim.figures().energy.absorbed / mass + 1e-6;
 }
 
