@@ -353,7 +353,12 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
   expect_input_error("seed_range", "", "--preset quick --set beam.seed=18446744073709551615",
                      {"beam.seed", "<= 9223372036854775807"});
   expect_input_error("beyond_double", "", "--preset quick --set material.conductivity=1e400",
-                     {"material.conductivity", "range of a double"});
+                     {"material.conductivity",
+                      "must be a finite number >= 0 and <= 1e+20 (it is "
+                      "beyond a double's)"});
+  // A number-or-word key out of range still names its words.
+  expect_input_error("duration_negative", "", "--preset quick --set pulses.duration=-1",
+                     {"pulses.duration", "must be > 0", "or \"auto\" or \"energy\""});
   expect_input_error("below_double", "", "--preset quick --set material.conductivity=1e-400",
                      {"material.conductivity", "underflows to 0"});  // was 0, silently
   expect_input_error("below_double_file", "[material]\nconductivity = [1.0, 2e-999]\n", "",
@@ -2565,6 +2570,7 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   EXPECT_EQ(summary["pulses_ended"], 0);
   EXPECT_EQ(summary["max_temperature_K"].get<double>(), 300.0);
   EXPECT_EQ(summary["config"]["material"]["conductivity"].get<double>(), 1e6);
+  EXPECT_EQ(summary["stages"]["output"]["calls"], 1);  // its own writes: not a skipped stage
   EXPECT_TRUE(read_csv(out / "history.csv").empty());
   EXPECT_FALSE(fs::exists(out / "particles.csv"));
   EXPECT_TRUE(fs::exists(mine));

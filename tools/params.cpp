@@ -537,8 +537,7 @@ double Params::number(const std::string& key, double fallback, double lo, double
     if (node->is_integer()) v = double(node->as_integer()->get());
     else if (node->is_floating_point()) v = node->as_floating_point()->get();
     else if (node->is_string() && beyond_doubles(node->as_string()->get()) > 0)
-      fail(key, repr(*node),
-           "must be a finite number " + range + " (|x| <= 1.8e308, the range of a double)");
+      fail(key, repr(*node), "must be a finite number " + range + " (it is beyond a double's)");
     else fail(key, repr(*node), "must be a number " + range);
     if (!std::isfinite(v)) fail(key, repr(*node), "must be a finite number " + range);
   }
@@ -628,7 +627,11 @@ std::string Params::number_or_word(const std::string& key, double& value, double
   }
   if (!node->is_integer() && !node->is_floating_point())  // true, a table: name the words too
     fail(key, repr(*node), "must be a number in " + unit + list);
-  value = number(key, 0.0, lo, hi, lo_open, false, stated_hi);
+  try {
+    value = number(key, 0.0, lo, hi, lo_open, false, stated_hi);
+  } catch (const InputError& e) {  // out of range or not finite: the words are still choices
+    throw InputError(std::string(e.what()) + list);
+  }
   number_defaults_.erase(key);  // its default is the word: any number differs from it
   return "";
 }

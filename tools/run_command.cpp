@@ -1,6 +1,7 @@
 #include "tools/run_command.h"
 
 #include <tbb/global_control.h>
+#include <tbb/task_arena.h>
 
 #include <algorithm>
 #include <cerrno>
@@ -477,8 +478,11 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
                     {"skipped_because", s.skipped_because}};
   j["stages"] = stages;
   j["wall_seconds"] = r.wall_seconds;
-  // What the times were taken with (--threads, or all cores); the figures are the same on any.
-  j["threads"] = tbb::global_control::active_value(tbb::global_control::max_allowed_parallelism);
+  // What the times were taken with (--threads, or all cores; a resumed run's last part's); the
+  // figures are the same on any. --threads 64 on 2 cores runs 2.
+  j["threads"] = std::min<std::size_t>(
+      tbb::global_control::active_value(tbb::global_control::max_allowed_parallelism),
+      static_cast<std::size_t>(tbb::this_task_arena::max_concurrency()));
   j["interrupted"] = r.interrupted;
   j["config"] = toml_to_json(config.resolved);
   j["beampack"] = part_build_json(this_build());
@@ -1252,7 +1256,7 @@ int history_rows(const RunRecord& record) {
 // finds the failure in summary.json either way. `no_particles_because`: why particles.csv is not
 // among them; one already in the folder (an interrupt's, which a resume into its folder runs on
 // from) is of an earlier time than the failure: it goes.
-void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, const RunRecord& record,
+void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, RunRecord& record,
                                 const PulsesEnded& ended, const RunConfig& config,
                                 const char* failure, double wall_seconds,
                                 const char* no_particles_because) {
@@ -1262,11 +1266,18 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
   r.wall_seconds = wall_seconds;
   r.pulses_ended = history_rows(record);
   const double failed_at = sim.figures().time;
-  nlohmann::json j = summary_json(sim, r, config, record.earlier_parts, record.stages);
-  j["failed"] = {{"message", failure}, {"time_s", failed_at}};
-  write_atomically(
-      {{(out / "history.csv").string(), [&](std::ostream& o) { o << record.history; }},
-       {(out / "summary.json").string(), [&](std::ostream& o) { o << json_text(j) << '\n'; }}});
+  const auto writing = Clock::now();
+  // Filled last, as at a run's end: the output stage holds these writes (a failure before the
+  // first pulse's end had none, and read as a skipped stage without a reason).
+  const auto summary = [&](std::ostream& o) {
+    record.stages.output.seconds += seconds_since(writing);
+    ++record.stages.output.calls;
+    nlohmann::json j = summary_json(sim, r, config, record.earlier_parts, record.stages);
+    j["failed"] = {{"message", failure}, {"time_s", failed_at}};
+    o << json_text(j) << '\n';
+  };
+  write_atomically({{(out / "history.csv").string(), [&](std::ostream& o) { o << record.history; }},
+                    {(out / "summary.json").string(), summary}});
   std::error_code ec;
   fs::remove(out / "particles.csv", ec);
   if (ended.count == 0) {  // a resumed run's history holds the pulses before its checkpoint
@@ -1290,7 +1301,7 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, cons
 }
 
 // keep_pulses_before_failure, or why it could not: the failure itself is what the run reports.
-void try_to_keep_pulses(const fs::path& out, const Simulation& sim, const RunRecord& record,
+void try_to_keep_pulses(const fs::path& out, const Simulation& sim, RunRecord& record,
                         const PulsesEnded& ended, const RunConfig& config, const char* failure,
                         double wall_seconds, const char* no_particles_because) {
   try {
