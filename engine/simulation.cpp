@@ -494,6 +494,7 @@ Simulation::StepOutcome Simulation::trace_and_heat(double budget) {
     const bool cycle = pass > 0 && next == seen_before;
     if (cycle || pass >= spec_.max_staggers) {
       ++(cycle ? counts_.stagger_cycles : counts_.capped_stagger_steps);
+      if (cycle) counts_.stagger_cycle_particles += particles_differing(seen, next);
       break;
     }
     StageClock clock(stages_[kStagger]);
@@ -637,6 +638,18 @@ Simulation::PhaseOverride Simulation::optics_after_step() const {
   return after;
 }
 
+// The particles two overrides (sorted by particle) give different phases, or one gives and the
+// other does not.
+std::size_t Simulation::particles_differing(const PhaseOverride& a, const PhaseOverride& b) {
+  std::size_t differing = 0, i = 0, j = 0;
+  while (i < a.size() || j < b.size()) {
+    if (j == b.size() || (i < a.size() && a[i].first < b[j].first)) ++differing, ++i;
+    else if (i == a.size() || b[j].first < a[i].first) ++differing, ++j;
+    else differing += a[i++].second != b[j++].second;
+  }
+  return differing;
+}
+
 // Puts the phases of `seen` on the particles and theirs into `seen`: twice is no change.
 void Simulation::swap_phases(PhaseOverride& seen) {
   for (auto& [i, phase] : seen) std::swap(particles_.phase[i], phase);
@@ -724,8 +737,8 @@ Figures Simulation::figures() const {
 namespace {
 // 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks; 7: reused first
 // hits; 8: the ray paths recorded since the last pulse ended (output.rays); 9: the stagger's counts
-// 10: the bands charged short; 11: the iterative heat steps
-constexpr std::uint32_t kStateVersion = 11;
+// 10: the bands charged short; 11: the iterative heat steps; 12: the stagger cycles' particles
+constexpr std::uint32_t kStateVersion = 12;
 }  // namespace
 
 void Simulation::write_state(StateWriter& out) const {

@@ -157,6 +157,9 @@ struct Counts {
   // thermal.max_staggers with the optics still changing, and ones whose redos alternated between
   // two sets of phases (a 2-cycle, stopped at its second pass).
   std::uint64_t capped_stagger_steps = 0, stagger_cycles = 0;
+  // Particles whose phase alternated in those 2-cycles, summed over the steps: the phase
+  // decisions each such step left to the cycle's second pass.
+  std::uint64_t stagger_cycle_particles = 0;
   // Heat steps solved by an iteration (fixed-point or CG, chosen or picked by "auto"): only their
   // temperatures carry thermal.tolerance's error; the factorisation's carry round-off.
   std::uint64_t iterative_heat_steps = 0;
@@ -319,6 +322,7 @@ class Simulation {
   using PhaseOverride = std::vector<std::pair<std::uint32_t, Phase>>;
   bool optics_changed(const PhaseOverride& seen) const;
   PhaseOverride optics_after_step() const;
+  static std::size_t particles_differing(const PhaseOverride& a, const PhaseOverride& b);
   void swap_phases(PhaseOverride& seen);
   void volume_fractions(Figures& f) const;
   std::string skip_reason(int stage) const;

@@ -468,6 +468,7 @@ nlohmann::json summary_json(const Simulation& sim, const RunResult& r, const Run
                  {"band_heat_short_J", r.counts.band_heat_short},
                  {"capped_stagger_steps", r.counts.capped_stagger_steps},
                  {"iterative_heat_steps", r.counts.iterative_heat_steps},
+                 {"stagger_cycle_particles", r.counts.stagger_cycle_particles},
                  {"stagger_cycles", r.counts.stagger_cycles}};
   j["max_pulse_delay_s"] = r.counts.max_pulse_delay;
   nlohmann::json stages = nlohmann::json::object();
