@@ -1922,8 +1922,10 @@ TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
   const std::size_t record_end = flags_at + built["flags"].get<std::string>().size();
   ASSERT_EQ(written.substr(flags_at, record_end - flags_at), built["flags"]);
   // After it the wall time so far (8 bytes) and --checkpoint-every (4), then format 7's set-up
-  // and output stages so far: seconds and calls (8 bytes each) of each.
-  const std::size_t stages_at = record_end + 12, stages_size = 32;
+  // and output stages so far: seconds and calls (8 bytes each) of each; then format 8's flag of
+  // an interrupt's checkpoint (1 byte: 0, a periodic one here).
+  const std::size_t stages_at = record_end + 12, stages_size = 32, flag_at = stages_at + 32;
+  ASSERT_EQ(written[flag_at], '\0');
   const auto stages_calls = [&](std::size_t stage) {
     std::uint64_t calls = 0;
     std::memcpy(&calls, written.data() + stages_at + 16 * stage + 8, 8);
@@ -1967,11 +1969,23 @@ TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
     EXPECT_CONTAINS(edited_run.output, std::string(size, 'X')) << key << ": " << edited_run.output;
   }
 
+  // Format 7, which kept no interrupt flag, is still read, the same; a flag not 0 or 1 is damage.
+  const auto [seven_run, seven] = resume_edited("ck_revision_format7", [&](std::string& b) {
+    b[b.find("beampack-checkpoint-8") + 20] = '7';
+    b.erase(flag_at, 1);
+  });
+  expect_warning(seven_run, known ? "" : "the revision of both builds is unknown");
+  EXPECT_EQ(file_text(same / "particles.csv"), file_text(seven / "particles.csv"));
+  const auto [flag_run, flag_folder] =
+      resume_edited("ck_revision_flag", [&](std::string& b) { b[flag_at] = '\x02'; });
+  EXPECT_EQ(flag_run.code, 2) << flag_run.output;
+  EXPECT_CONTAINS(flag_run.output, "its interrupt flag is 2, not 0 or 1");
+
   // Format 6, which kept no set-up and output times, is still read: its builds whole, and the
   // stages of the part before it unknown (the summary counts the resumed part's only).
   const auto [six_run, six] = resume_edited("ck_revision_format6", [&](std::string& b) {
-    b[b.find("beampack-checkpoint-7") + 20] = '6';
-    b.erase(stages_at, stages_size);
+    b[b.find("beampack-checkpoint-8") + 20] = '6';
+    b.erase(stages_at, stages_size + 1);
   });
   expect_warning(six_run, known ? "" : "the revision of both builds is unknown");
   EXPECT_EQ(earlier_parts(six), earlier_parts(same));
@@ -1981,8 +1995,8 @@ TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
 
   // Format 5 kept the revision alone: the rest is unknown, so even this revision warns.
   const auto [five_run, five] = resume_edited("ck_revision_format5", [&](std::string& b) {
-    b[b.find("beampack-checkpoint-7") + 20] = '5';
-    b.erase(stages_at, stages_size);
+    b[b.find("beampack-checkpoint-8") + 20] = '5';
+    b.erase(stages_at, stages_size + 1);
     b.erase(at + ours.size(), record_end - (at + ours.size()));
   });
   expect_warning(five_run, known ? "the checkpoint was written by beampack " + ours +
@@ -1996,8 +2010,8 @@ TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
   // Format 4, which kept no build, is still read: its part's revision is unknown, and unknown
   // equals no build.
   const auto [old_run, old] = resume_edited("ck_revision_format4", [&](std::string& b) {
-    b[b.find("beampack-checkpoint-7") + 20] = '4';
-    b.erase(stages_at, stages_size);
+    b[b.find("beampack-checkpoint-8") + 20] = '4';
+    b.erase(stages_at, stages_size + 1);
     b.erase(at - 16, record_end - (at - 16));
   });
   expect_warning(old_run, known ? "the revision of the build that wrote the checkpoint is unknown"
@@ -2037,16 +2051,19 @@ TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
   const fs::path whole = fresh_dir("int_whole");
   ASSERT_EQ(run(std::string("run ") + kCheckpointScene + " --quiet --out " + whole.string()).code,
             0);
-  // Without periodic checkpoints, and with them too rare to come (the interrupt's checkpoint
-  // replaces the last periodic one, and was left behind as if periodic).
-  for (const std::string periodic : {"", " --checkpoint-every 1000"}) {
+  // Without periodic checkpoints, with them too rare to come (the interrupt's checkpoint replaces
+  // the last periodic one, and was left behind as if periodic), and every 3 pulses (a periodic one
+  // the resumed run writes is kept).
+  int interrupted = 0;
+  for (const std::string periodic : {"", " --checkpoint-every 1000", " --checkpoint-every 3"}) {
     const fs::path dir = fresh_dir("int_part" + std::to_string(periodic.size()));
     const std::string cmd = "timeout --preserve-status -s INT 0.8 " + std::string(BEAMPACK_CLI) +
                             " run " + kCheckpointScene + periodic + " --quiet --out " +
                             dir.string() + " >/dev/null 2>&1";
     const int status = std::system(cmd.c_str());
     ASSERT_TRUE(WIFEXITED(status));
-    if (WEXITSTATUS(status) == 0) GTEST_SKIP() << "the run finished before the interrupt";
+    if (WEXITSTATUS(status) == 0) continue;  // the run finished before the interrupt
+    ++interrupted;
     EXPECT_EQ(WEXITSTATUS(status), 1);
     // What the run had: complete, parseable files, and a checkpoint that continues it.
     const auto summary = read_json(dir / "summary.json");
@@ -2070,9 +2087,13 @@ TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
     ASSERT_EQ(r.code, 0) << r.output;
     EXPECT_EQ(file_text(dir / "particles.csv"), file_text(whole / "particles.csv"));
     // The interrupt's checkpoint is spent once the resumed run has finished: none is left over to
-    // be offered as a periodic checkpoint to run again from.
-    EXPECT_FALSE(fs::exists(dir / "checkpoint.bin")) << periodic;
+    // be offered as a periodic checkpoint to run again from, unless the resumed run wrote one (at
+    // the ends of pulses 3, 6 and 9 of 10; none after the last).
+    bool periodic_after = false;
+    for (int m = ended + 1; m <= 9; ++m) periodic_after |= periodic.ends_with(" 3") && m % 3 == 0;
+    EXPECT_EQ(fs::exists(dir / "checkpoint.bin"), periodic_after) << periodic << ", " << ended;
   }
+  if (interrupted == 0) GTEST_SKIP() << "every run finished before its interrupt";
 }
 
 namespace {

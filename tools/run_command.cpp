@@ -838,10 +838,12 @@ namespace {
 
 // Format 2 added the wall time before the checkpoint, format 3 the pulses between checkpoints,
 // format 4 the optics ledger's low parts, format 5 the revisions that ran the run so far, format 6
-// their build types, compilers and flags, format 7 the set-up and output stages' times so far;
-// format 1 is "beampack-checkpoint". Formats 6, 5 and 4 are still read (what they did not keep is
-// "unknown", and their set-up and output times none: 0 s in 0 calls).
-constexpr const char* kCheckpointMagic = "beampack-checkpoint-7";
+// their build types, compilers and flags, format 7 the set-up and output stages' times so far,
+// format 8 whether an interrupt wrote it; format 1 is "beampack-checkpoint". Formats 7, 6, 5 and
+// 4 are still read (what they did not keep is "unknown", their set-up and output times none: 0 s
+// in 0 calls, and the summary beside them tells an interrupt's: is_interrupts_checkpoint).
+constexpr const char* kCheckpointMagic = "beampack-checkpoint-8";
+constexpr const char* kCheckpointMagic7 = "beampack-checkpoint-7";
 constexpr const char* kCheckpointMagic6 = "beampack-checkpoint-6";
 constexpr const char* kCheckpointMagic5 = "beampack-checkpoint-5";
 constexpr const char* kCheckpointMagic4 = "beampack-checkpoint-4";
@@ -859,6 +861,8 @@ struct RunRecord {
   // The folder's checkpoint is the interrupt's this run resumed in place from: spent once the
   // run finishes, unless a periodic one (--checkpoint-every) has replaced it meanwhile.
   bool spent_checkpoint_here = false;
+  // Whether the checkpoint resumed from was written by an interrupt (format 8 on), else unknown.
+  std::optional<bool> resumed_interrupts_checkpoint;
   // The builds that ran the parts before this one, in order, one entry per resume; empty for a
   // run that did not resume.
   std::vector<PartBuild> earlier_parts;
@@ -872,9 +876,10 @@ std::string json_text(const nlohmann::json& j) {
   return j.dump(2, ' ', false, nlohmann::json::error_handler_t::replace);
 }
 
-// `wall_seconds`: the run's wall time so far, resumed runs included.
+// `wall_seconds`: the run's wall time so far, resumed runs included; `interrupt`: written by an
+// interrupt, not every --checkpoint-every pulses.
 OutputFile checkpoint_file(const fs::path& path, const Simulation& sim, const RunRecord& record,
-                           double wall_seconds) {
+                           double wall_seconds, bool interrupt) {
   StateWriter w;
   w.text(kCheckpointMagic);
   std::vector<PartBuild> parts = record.earlier_parts;
@@ -884,6 +889,7 @@ OutputFile checkpoint_file(const fs::path& path, const Simulation& sim, const Ru
   w.value(record.checkpoint_every);
   for (const StageTime* s : {&record.stages.setup, &record.stages.output})
     w.value(s->seconds), w.value(s->calls);
+  w.value<std::uint8_t>(interrupt ? 1 : 0);
   w.text(record.config_text);
   w.text(record.history);
   w.value<std::uint64_t>(record.frames.size());
@@ -933,23 +939,30 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   if (magic == "beampack-checkpoint" || magic == "beampack-checkpoint-2" ||
       magic == "beampack-checkpoint-3")
     throw InputError(path.string() + ": a checkpoint of an earlier beampack (" + magic +
-                     "); this one reads " + kCheckpointMagic + ", " + kCheckpointMagic6 + ", " +
-                     kCheckpointMagic5 + " and " + kCheckpointMagic4);
-  if (magic != kCheckpointMagic && magic != kCheckpointMagic6 && magic != kCheckpointMagic5 &&
+                     "); this one reads " + kCheckpointMagic + ", " + kCheckpointMagic7 + ", " +
+                     kCheckpointMagic6 + ", " + kCheckpointMagic5 + " and " + kCheckpointMagic4);
+  const bool eight = magic == kCheckpointMagic, seven_on = eight || magic == kCheckpointMagic7;
+  if (!seven_on && magic != kCheckpointMagic6 && magic != kCheckpointMagic5 &&
       magic != kCheckpointMagic4)
     throw InputError(path.string() + ": not a beampack checkpoint");
   record.earlier_parts =
       magic == kCheckpointMagic4
           ? std::vector<PartBuild>{unknown_build()}
-          : read_part_builds(r, path.string(),
-                             magic == kCheckpointMagic || magic == kCheckpointMagic6);
+          : read_part_builds(r, path.string(), seven_on || magic == kCheckpointMagic6);
   record.earlier_seconds = r.value<double>();
   record.checkpoint_every = r.value<int>();
-  if (magic == kCheckpointMagic) {
+  if (seven_on) {
     for (StageTime* s : {&record.stages.setup, &record.stages.output})
       s->seconds = r.value<double>(), s->calls = r.value<std::uint64_t>();
     check_checkpoint_stage_times(record.stages.setup.seconds, record.stages.output.seconds,
                                  path.string());
+  }
+  if (eight) {
+    const auto interrupts = r.value<std::uint8_t>();
+    if (interrupts > 1)
+      throw InputError("--resume: damaged checkpoint " + path.string() +
+                       ": its interrupt flag is " + std::to_string(interrupts) + ", not 0 or 1");
+    record.resumed_interrupts_checkpoint = interrupts == 1;
   }
   record.config_text = r.text();
   record.history = r.text();
@@ -1332,10 +1345,13 @@ void try_to_keep_pulses(const fs::path& out, const Simulation& sim, RunRecord& r
 }
 
 // Whether the checkpoint in `dir`, which `sim` was read from, is an interrupt's rather than a
-// periodic one: written by a run without periodic ones, or beside the summary.json of an
-// interrupt at its time (the two are written as one set). A periodic one that a run resumed in
-// place then wrote, before it was killed, is of a later time than that summary.
-bool is_interrupts_checkpoint(const fs::path& dir, int checkpointed_every, const Simulation& sim) {
+// periodic one: as it says (format 8 on; a summary beside it can be a failed resume's since), or
+// written by a run without periodic ones, or beside the summary.json of an interrupt at its time
+// (the two are written as one set). A periodic one that a run resumed in place then wrote, before
+// it was killed, is of a later time than that summary.
+bool is_interrupts_checkpoint(const fs::path& dir, const RunRecord& record, int checkpointed_every,
+                              const Simulation& sim) {
+  if (record.resumed_interrupts_checkpoint) return *record.resumed_interrupts_checkpoint;
   if (checkpointed_every == 0) return true;
   const nlohmann::json j = summary_in(dir);
   return j.is_object() && j.value("interrupted", false) && !j.contains("failed") &&
@@ -1412,7 +1428,7 @@ void run_steps(Simulation& sim, const RunConfig& config, const fs::path& out, Ru
       if (checkpoint_due && !sim.done()) {
         const StageTimer timer(record.stages.output);  // the checkpoint holds the time before it
         write_atomically({checkpoint_file(out / "checkpoint.bin", sim, record,
-                                          record.earlier_seconds + seconds_since(start))});
+                                          record.earlier_seconds + seconds_since(start), false)});
         record.spent_checkpoint_here = false;
       }
       checkpoint_due = false;
@@ -1450,7 +1466,7 @@ int finish_run(const Simulation& sim, const RunConfig& config, RunRecord& record
   // One set: a full disk leaves the folder as it was, not particles.csv without its summary.
   std::vector<OutputFile> files;
   if (r.interrupted)  // its record of the times ends here, before the files of the end
-    files.push_back(checkpoint_file(out / "checkpoint.bin", sim, record, r.wall_seconds));
+    files.push_back(checkpoint_file(out / "checkpoint.bin", sim, record, r.wall_seconds, true));
   files.push_back({(out / "history.csv").string(), [&](std::ostream& o) { o << record.history; }});
   files.push_back(particles_csv((out / "particles.csv").string(), sim.particles(), sim.absorbed()));
   // Filled last (write_atomically fills in order): its wall time and output stage hold the writing
@@ -1530,7 +1546,7 @@ int run_command(const RunOptions& options) {
   say_warnings("", sim.scene_warnings());
   if (saved) sim.read_state(*saved);
   record.spent_checkpoint_here =
-      into_checkpoint_folder && is_interrupts_checkpoint(out_dir, checkpointed_every, sim);
+      into_checkpoint_folder && is_interrupts_checkpoint(out_dir, record, checkpointed_every, sim);
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
   remove_earlier_run(out_dir, into_checkpoint_folder);
   if (saved) drop_missing_frames(options.resume, record);
