@@ -738,7 +738,8 @@ namespace {
 // 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks; 7: reused first
 // hits; 8: the ray paths recorded since the last pulse ended (output.rays); 9: the stagger's counts
 // 10: the bands charged short; 11: the iterative heat steps; 12: the stagger cycles' particles
-constexpr std::uint32_t kStateVersion = 12;
+// (kStateFormat, simulation.h)
+constexpr std::uint32_t kStateVersion = kStateFormat;
 }  // namespace
 
 void Simulation::write_state(StateWriter& out) const {

@@ -197,6 +197,9 @@ std::optional<std::string> below_floor_warning(const SimulationSpec& spec, doubl
 
 struct SavedRun;  // a checkpoint read whole (simulation.cpp)
 
+// The format of Simulation::write_state, the first value it writes; read_state reads no other.
+inline constexpr std::uint32_t kStateFormat = 12;
+
 class Simulation {
  public:
   // The stages the simulation times: those of its steps, and the contact graph's first build, at

@@ -52,6 +52,14 @@ class StateReader {
     bytes(&v, sizeof v);
     return v;
   }
+  // The next value, left to be read.
+  template <class T>
+  T peek() {
+    const std::size_t at = pos_;
+    const T v = value<T>();
+    pos_ = at;
+    return v;
+  }
   template <class T, class A>
   void vector(std::vector<T, A>& v) {
     const auto n = value<std::uint64_t>();

@@ -357,8 +357,9 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                       "must be a finite number >= 0 and <= 1e+20 (it is "
                       "beyond a double's)"});
   // A number-or-word key out of range still names its words.
-  expect_input_error("duration_negative", "", "--preset quick --set pulses.duration=-1",
-                     {"pulses.duration", "must be > 0", "or \"auto\" or \"energy\""});
+  expect_input_error(
+      "duration_negative", "", "--preset quick --set pulses.duration=-1",
+      {"pulses.duration", "must be > 0 and <= 1e+12 (in seconds) or \"auto\" or \"energy\""});
   expect_input_error("below_double", "", "--preset quick --set material.conductivity=1e-400",
                      {"material.conductivity", "underflows to 0"});  // was 0, silently
   expect_input_error("below_double_file", "[material]\nconductivity = [1.0, 2e-999]\n", "",
@@ -1924,7 +1925,7 @@ TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
   // After it the wall time so far (8 bytes) and --checkpoint-every (4), then format 7's set-up
   // and output stages so far: seconds and calls (8 bytes each) of each; then format 8's flag of
   // an interrupt's checkpoint (1 byte: 0, a periodic one here).
-  const std::size_t stages_at = record_end + 12, stages_size = 32, flag_at = stages_at + 32;
+  const std::size_t stages_at = record_end + 12, flag_at = stages_at + 32;
   ASSERT_EQ(written[flag_at], '\0');
   const auto stages_calls = [&](std::size_t stage) {
     std::uint64_t calls = 0;
@@ -1969,55 +1970,38 @@ TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
     EXPECT_CONTAINS(edited_run.output, std::string(size, 'X')) << key << ": " << edited_run.output;
   }
 
-  // Format 7, which kept no interrupt flag, is still read, the same; a flag not 0 or 1 is damage.
-  const auto [seven_run, seven] = resume_edited("ck_revision_format7", [&](std::string& b) {
-    b[b.find("beampack-checkpoint-8") + 20] = '7';
-    b.erase(flag_at, 1);
-  });
-  expect_warning(seven_run, known ? "" : "the revision of both builds is unknown");
-  EXPECT_EQ(file_text(same / "particles.csv"), file_text(seven / "particles.csv"));
+  // An interrupt flag not 0 or 1 is damage.
   const auto [flag_run, flag_folder] =
       resume_edited("ck_revision_flag", [&](std::string& b) { b[flag_at] = '\x02'; });
   EXPECT_EQ(flag_run.code, 2) << flag_run.output;
   EXPECT_CONTAINS(flag_run.output, "its interrupt flag is 2, not 0 or 1");
 
-  // Format 6, which kept no set-up and output times, is still read: its builds whole, and the
-  // stages of the part before it unknown (the summary counts the resumed part's only).
-  const auto [six_run, six] = resume_edited("ck_revision_format6", [&](std::string& b) {
-    b[b.find("beampack-checkpoint-8") + 20] = '6';
-    b.erase(stages_at, stages_size + 1);
+  // A checkpoint of an earlier format, or one holding a state of another format, is refused
+  // before the set-up, naming both and the build that wrote it: the formats before 8 were read
+  // (their records), but their states, of earlier formats, never were.
+  const auto [seven_run, seven] = resume_edited("ck_revision_format7", [&](std::string& b) {
+    b[b.find("beampack-checkpoint-8") + 20] = '7';
   });
-  expect_warning(six_run, known ? "" : "the revision of both builds is unknown");
-  EXPECT_EQ(earlier_parts(six), earlier_parts(same));
-  EXPECT_EQ(file_text(same / "particles.csv"), file_text(six / "particles.csv"));
-  EXPECT_EQ(read_json(same / "summary.json")["stages"]["setup"]["calls"], 2);
-  EXPECT_EQ(read_json(six / "summary.json")["stages"]["setup"]["calls"], 1);
-
-  // Format 5 kept the revision alone: the rest is unknown, so even this revision warns.
-  const auto [five_run, five] = resume_edited("ck_revision_format5", [&](std::string& b) {
-    b[b.find("beampack-checkpoint-8") + 20] = '5';
-    b.erase(stages_at, stages_size + 1);
-    b.erase(at + ours.size(), record_end - (at + ours.size()));
-  });
-  expect_warning(five_run, known ? "the checkpoint was written by beampack " + ours +
-                                       ", which did not record its build type, compiler and "
-                                       "flags (checkpoint format 5)"
-                                 : "the revision of both builds is unknown");
-  EXPECT_EQ(earlier_parts(five)[0]["revision"], ours);
-  EXPECT_EQ(earlier_parts(five)[0]["flags"], "unknown");
-  EXPECT_EQ(file_text(same / "particles.csv"), file_text(five / "particles.csv"));
-
-  // Format 4, which kept no build, is still read: its part's revision is unknown, and unknown
-  // equals no build.
-  const auto [old_run, old] = resume_edited("ck_revision_format4", [&](std::string& b) {
-    b[b.find("beampack-checkpoint-8") + 20] = '4';
-    b.erase(stages_at, stages_size + 1);
-    b.erase(at - 16, record_end - (at - 16));
-  });
-  expect_warning(old_run, known ? "the revision of the build that wrote the checkpoint is unknown"
-                                : "the revision of both builds is unknown");
-  EXPECT_EQ(earlier_parts(old)[0]["revision"], "unknown");
-  EXPECT_EQ(file_text(same / "particles.csv"), file_text(old / "particles.csv"));
+  EXPECT_EQ(seven_run.code, 2) << seven_run.output;
+  EXPECT_CONTAINS(seven_run.output,
+                  "a checkpoint of another beampack (beampack-checkpoint-7); "
+                  "this one reads beampack-checkpoint-8 only: finish that run "
+                  "with the build that wrote it");
+  // After the flag: the run file and the history (an 8-byte length and the bytes each), the
+  // frames (none: a count of 0), then the state, its format first (4 bytes).
+  std::size_t state_at = flag_at + 1;
+  for (int text = 0; text < 2; ++text) {
+    std::uint64_t n = 0;
+    std::memcpy(&n, written.data() + state_at, 8);
+    state_at += 8 + n;
+  }
+  state_at += 8;
+  ASSERT_EQ(written.substr(state_at, 4), std::string("\x0c\0\0\0", 4));
+  const auto [state_run, state_folder] =
+      resume_edited("ck_revision_state", [&](std::string& b) { b[state_at] = '\x0b'; });
+  EXPECT_EQ(state_run.code, 2) << state_run.output;
+  EXPECT_CONTAINS(state_run.output, "written by beampack " + ours +
+                                        " with state format 11; this one reads state format 12");
 
   // A record of no build, or a revision that is not plain text, is a damaged checkpoint.
   const auto [none, none_folder] = resume_edited(
@@ -2627,6 +2611,10 @@ TEST(Cli, ANewRunRemovesTheCheckpointAndFramesOfAnEarlierRunInItsDirectory) {
   EXPECT_EQ(summary["max_temperature_K"].get<double>(), 300.0);
   EXPECT_EQ(summary["config"]["material"]["conductivity"].get<double>(), 1e6);
   EXPECT_EQ(summary["stages"]["output"]["calls"], 1);  // its own writes: not a skipped stage
+  double stages = 0;  // and within its wall time (the writes were after it)
+  for (const auto& [name, stage] : summary["stages"].items())
+    stages += stage["seconds"].get<double>();
+  EXPECT_LE(stages, summary["wall_seconds"].get<double>());
   EXPECT_TRUE(read_csv(out / "history.csv").empty());
   EXPECT_FALSE(fs::exists(out / "particles.csv"));
   EXPECT_TRUE(fs::exists(mine));

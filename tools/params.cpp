@@ -616,7 +616,8 @@ std::string Params::number_or_word(const std::string& key, double& value, double
   const toml::node* node = find(key);
   std::string list;
   for (const char* a : words) list += std::string(" or \"") + a + "\"";
-  if (!node || node->is_string()) {
+  // A string beyond a double's range ('1e400') is a number to refuse as one, not a word.
+  if (!node || (node->is_string() && beyond_doubles(node->as_string()->get()) == 0)) {
     const std::string w = node ? std::string(node->as_string()->get()) : fallback_word;
     for (const char* a : words)
       if (w == a) {
@@ -625,12 +626,13 @@ std::string Params::number_or_word(const std::string& key, double& value, double
       }
     fail(key, "\"" + w + "\"", "must be a number in " + unit + list);
   }
-  if (!node->is_integer() && !node->is_floating_point())  // true, a table: name the words too
+  // true, a table: name the words too (a string here is one beyond a double's range)
+  if (!node->is_integer() && !node->is_floating_point() && !node->is_string())
     fail(key, repr(*node), "must be a number in " + unit + list);
   try {
     value = number(key, 0.0, lo, hi, lo_open, false, stated_hi);
   } catch (const InputError& e) {  // out of range or not finite: the words are still choices
-    throw InputError(std::string(e.what()) + list);
+    throw InputError(std::string(e.what()) + " (in " + unit + ")" + list);
   }
   number_defaults_.erase(key);  // its default is the word: any number differs from it
   return "";

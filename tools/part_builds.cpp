@@ -26,10 +26,6 @@ PartBuild this_build() {
   return {b.revision, b.build_type, b.compiler, b.flags};
 }
 
-PartBuild unknown_build() {
-  return {kUnknownRevision, kUnknownRevision, kUnknownRevision, kUnknownRevision};
-}
-
 void write_part_builds(StateWriter& w, const std::vector<PartBuild>& parts) {
   w.value<std::uint64_t>(parts.size());
   for (const PartBuild& p : parts) {
@@ -40,25 +36,22 @@ void write_part_builds(StateWriter& w, const std::vector<PartBuild>& parts) {
   }
 }
 
-std::vector<PartBuild> read_part_builds(StateReader& r, const std::string& path,
-                                        bool with_details) {
+std::vector<PartBuild> read_part_builds(StateReader& r, const std::string& path) {
   const auto count = r.value<std::uint64_t>();
   if (count == 0 || count > 1'000'000)
     throw InputError(path + ": damaged checkpoint: " + std::to_string(count) +
                      " builds of the run's parts, expected 1 to 1000000");
   std::vector<PartBuild> parts;
   for (std::uint64_t k = 0; k < count; ++k) {
-    PartBuild p = unknown_build();
+    PartBuild p;
     p.revision = r.text();
     if (!is_revision_text(p.revision))
       throw InputError(path + ": damaged checkpoint: the revision of part " + std::to_string(k) +
                        " is not 1 to " + std::to_string(kMaxRevisionLength) +
                        " printable characters without spaces");
-    if (with_details) {  // any text: the checksum finds damage
-      p.build_type = r.text();
-      p.compiler = r.text();
-      p.flags = r.text();
-    }
+    p.build_type = r.text();  // any text: the checksum finds damage
+    p.compiler = r.text();
+    p.flags = r.text();
     parts.push_back(std::move(p));
   }
   return parts;
@@ -82,11 +75,6 @@ void warn_of_another_build(const PartBuild& last) {
                  "beampack: warning: --resume: the checkpoint was written by beampack %s and "
                  "this is beampack %s: %s\n",
                  last.revision.c_str(), ours.revision.c_str(), consequence);
-  else if (last.flags == kUnknownRevision)  // a format-5 record: the revision alone
-    std::fprintf(stderr,
-                 "beampack: warning: --resume: the checkpoint was written by beampack %s, which "
-                 "did not record its build type, compiler and flags (checkpoint format 5): %s\n",
-                 last.revision.c_str(), consequence);
   else
     std::fprintf(stderr,
                  "beampack: warning: --resume: the checkpoint was written by beampack %s built "

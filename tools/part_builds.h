@@ -17,14 +17,10 @@ struct PartBuild {
 
 // This build, as its checkpoints record it.
 PartBuild this_build();
-// The build behind a part whose checkpoint kept no record of it (format 4).
-PartBuild unknown_build();
-
 // Checkpoint format 6: the count, then each part's revision, build type, compiler and flags.
 void write_part_builds(StateWriter& w, const std::vector<PartBuild>& parts);
-// Format 6 (`with_details`) or 5 (revisions only: the rest unknown). InputError naming `path`
-// for a record no build writes.
-std::vector<PartBuild> read_part_builds(StateReader& r, const std::string& path, bool with_details);
+// InputError naming `path` for a record no build writes.
+std::vector<PartBuild> read_part_builds(StateReader& r, const std::string& path);
 
 // A resume by a build other than the one that wrote the checkpoint says so, once, on stderr.
 // An unknown revision equals none, not even another unknown one.

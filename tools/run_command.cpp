@@ -839,14 +839,10 @@ namespace {
 // Format 2 added the wall time before the checkpoint, format 3 the pulses between checkpoints,
 // format 4 the optics ledger's low parts, format 5 the revisions that ran the run so far, format 6
 // their build types, compilers and flags, format 7 the set-up and output stages' times so far,
-// format 8 whether an interrupt wrote it; format 1 is "beampack-checkpoint". Formats 7, 6, 5 and
-// 4 are still read (what they did not keep is "unknown", their set-up and output times none: 0 s
-// in 0 calls, and the summary beside them tells an interrupt's: is_interrupts_checkpoint).
+// format 8 whether an interrupt wrote it; format 1 is "beampack-checkpoint". Only format 8 is
+// read: every earlier one holds a simulation state of an earlier format (kStateFormat), which
+// no later build reads (their readers here were reached by edited test files only).
 constexpr const char* kCheckpointMagic = "beampack-checkpoint-8";
-constexpr const char* kCheckpointMagic7 = "beampack-checkpoint-7";
-constexpr const char* kCheckpointMagic6 = "beampack-checkpoint-6";
-constexpr const char* kCheckpointMagic5 = "beampack-checkpoint-5";
-constexpr const char* kCheckpointMagic4 = "beampack-checkpoint-4";
 
 // What a run accumulates besides the simulation's own state: the history rows and the frames.
 struct RunRecord {
@@ -861,8 +857,7 @@ struct RunRecord {
   // The folder's checkpoint is the interrupt's this run resumed in place from: spent once the
   // run finishes, unless a periodic one (--checkpoint-every) has replaced it meanwhile.
   bool spent_checkpoint_here = false;
-  // Whether the checkpoint resumed from was written by an interrupt (format 8 on), else unknown.
-  std::optional<bool> resumed_interrupts_checkpoint;
+  bool resumed_interrupts_checkpoint = false;  // the checkpoint resumed from: an interrupt's
   // The builds that ran the parts before this one, in order, one entry per resume; empty for a
   // run that did not resume.
   std::vector<PartBuild> earlier_parts;
@@ -936,34 +931,24 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   StateReader r(std::move(bytes), path.string());
   const std::string magic = r.text();
-  if (magic == "beampack-checkpoint" || magic == "beampack-checkpoint-2" ||
-      magic == "beampack-checkpoint-3")
-    throw InputError(path.string() + ": a checkpoint of an earlier beampack (" + magic +
-                     "); this one reads " + kCheckpointMagic + ", " + kCheckpointMagic7 + ", " +
-                     kCheckpointMagic6 + ", " + kCheckpointMagic5 + " and " + kCheckpointMagic4);
-  const bool eight = magic == kCheckpointMagic, seven_on = eight || magic == kCheckpointMagic7;
-  if (!seven_on && magic != kCheckpointMagic6 && magic != kCheckpointMagic5 &&
-      magic != kCheckpointMagic4)
-    throw InputError(path.string() + ": not a beampack checkpoint");
-  record.earlier_parts =
-      magic == kCheckpointMagic4
-          ? std::vector<PartBuild>{unknown_build()}
-          : read_part_builds(r, path.string(), seven_on || magic == kCheckpointMagic6);
+  const std::string again =
+      ": finish that run with the build that wrote it, or run it again with this one";
+  if (magic.starts_with("beampack-checkpoint") && magic != kCheckpointMagic)
+    throw InputError(path.string() + ": a checkpoint of another beampack (" + magic +
+                     "); this one reads " + kCheckpointMagic + " only" + again);
+  if (magic != kCheckpointMagic) throw InputError(path.string() + ": not a beampack checkpoint");
+  record.earlier_parts = read_part_builds(r, path.string());
   record.earlier_seconds = r.value<double>();
   record.checkpoint_every = r.value<int>();
-  if (seven_on) {
-    for (StageTime* s : {&record.stages.setup, &record.stages.output})
-      s->seconds = r.value<double>(), s->calls = r.value<std::uint64_t>();
-    check_checkpoint_stage_times(record.stages.setup.seconds, record.stages.output.seconds,
-                                 path.string());
-  }
-  if (eight) {
-    const auto interrupts = r.value<std::uint8_t>();
-    if (interrupts > 1)
-      throw InputError("--resume: damaged checkpoint " + path.string() +
-                       ": its interrupt flag is " + std::to_string(interrupts) + ", not 0 or 1");
-    record.resumed_interrupts_checkpoint = interrupts == 1;
-  }
+  for (StageTime* s : {&record.stages.setup, &record.stages.output})
+    s->seconds = r.value<double>(), s->calls = r.value<std::uint64_t>();
+  check_checkpoint_stage_times(record.stages.setup.seconds, record.stages.output.seconds,
+                               path.string());
+  const auto interrupts = r.value<std::uint8_t>();
+  if (interrupts > 1)
+    throw InputError("--resume: damaged checkpoint " + path.string() + ": its interrupt flag is " +
+                     std::to_string(interrupts) + ", not 0 or 1");
+  record.resumed_interrupts_checkpoint = interrupts == 1;
   record.config_text = r.text();
   record.history = r.text();
   const auto frames = r.value<std::uint64_t>();
@@ -973,6 +958,12 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   }
   check_checkpoint_record(record.earlier_seconds, record.checkpoint_every, record.frames,
                           path.string());
+  // Refused before the set-up, which a state of another format would follow (minutes at 10^7).
+  if (const std::uint32_t state = r.peek<std::uint32_t>(); state != kStateFormat)
+    throw InputError(path.string() + ": written by beampack " +
+                     record.earlier_parts.back().revision + " with state format " +
+                     std::to_string(state) + "; this one reads state format " +
+                     std::to_string(kStateFormat) + " only" + again);
   check_history_text(record.history, path.string());
   return r;
 }
@@ -1303,6 +1294,7 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, RunR
   const auto summary = [&](std::ostream& o) {
     record.stages.output.seconds += seconds_since(writing);
     ++record.stages.output.calls;
+    r.wall_seconds = wall_seconds + seconds_since(writing);  // the stages never exceed it
     nlohmann::json j = summary_json(sim, r, config, record.earlier_parts, record.stages);
     j["failed"] = {{"message", failure}, {"time_s", failed_at}};
     o << json_text(j) << '\n';
@@ -1342,21 +1334,6 @@ void try_to_keep_pulses(const fs::path& out, const Simulation& sim, RunRecord& r
     std::fprintf(stderr, "beampack: the pulses before the failure could not be written: %s\n",
                  e.what());
   }
-}
-
-// Whether the checkpoint in `dir`, which `sim` was read from, is an interrupt's rather than a
-// periodic one: as it says (format 8 on; a summary beside it can be a failed resume's since), or
-// written by a run without periodic ones, or beside the summary.json of an interrupt at its time
-// (the two are written as one set). A periodic one that a run resumed in place then wrote, before
-// it was killed, is of a later time than that summary.
-bool is_interrupts_checkpoint(const fs::path& dir, const RunRecord& record, int checkpointed_every,
-                              const Simulation& sim) {
-  if (record.resumed_interrupts_checkpoint) return *record.resumed_interrupts_checkpoint;
-  if (checkpointed_every == 0) return true;
-  const nlohmann::json j = summary_in(dir);
-  return j.is_object() && j.value("interrupted", false) && !j.contains("failed") &&
-         j.contains("time_s") && j["time_s"].is_number() &&
-         j["time_s"].get<double>() == sim.figures().time;
 }
 
 // --resume: the checkpoint's run file and particles stand in for the run's sources.
@@ -1448,6 +1425,10 @@ void run_steps(Simulation& sim, const RunConfig& config, const fs::path& out, Ru
 // ended are kept as after a failed step, and the failure goes on.
 int finish_run(const Simulation& sim, const RunConfig& config, RunRecord& record,
                const PulsesEnded& ended, const fs::path& out, Clock::time_point start, bool quiet) {
+  writing_results.store(sim.done());  // first: an interrupt from here on has no step to stop after
+  const struct Written {
+    ~Written() { writing_results.store(false); }
+  } written;
   const auto writing = Clock::now();  // the output stage's last call: the run's end's files
   RunResult r;
   r.figures = sim.figures();
@@ -1457,10 +1438,6 @@ int finish_run(const Simulation& sim, const RunConfig& config, RunRecord& record
   if (!quiet && set_up_takes_seconds(sim.particles().size(), 0))
     std::fprintf(stderr, "beampack: writing the run's files (particles.csv: %zu particles)\n",
                  sim.particles().size());
-  writing_results.store(!r.interrupted);
-  const struct Written {
-    ~Written() { writing_results.store(false); }
-  } written;
   r.pulses_ended = history_rows(record);
   r.wall_seconds = record.earlier_seconds + seconds_since(start);  // like the stage times
   // One set: a full disk leaves the folder as it was, not particles.csv without its summary.
@@ -1528,7 +1505,6 @@ int run_command(const RunOptions& options) {
   warn_of_input({&config});
   say_warnings("", spec_warnings(config.sim));
   if (options.resume.empty()) record.config_text = toml_text(config.resolved);
-  const int checkpointed_every = record.checkpoint_every;  // by the run that wrote the checkpoint
   if (options.resume.empty() || options.checkpoint_set)
     record.checkpoint_every = options.checkpoint_every;
   refuse_outputs_over_inputs(
@@ -1545,8 +1521,7 @@ int run_command(const RunOptions& options) {
   Simulation& sim = *owned;
   say_warnings("", sim.scene_warnings());
   if (saved) sim.read_state(*saved);
-  record.spent_checkpoint_here =
-      into_checkpoint_folder && is_interrupts_checkpoint(out_dir, record, checkpointed_every, sim);
+  record.spent_checkpoint_here = into_checkpoint_folder && record.resumed_interrupts_checkpoint;
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
   remove_earlier_run(out_dir, into_checkpoint_folder);
   if (saved) drop_missing_frames(options.resume, record);
