@@ -76,16 +76,15 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
   check_step_limit();
   absorbed_.assign(particles_.size(), 0.0);
   deposits_.assign(particles_.size(), 0.0);
+  // A caller's particles start at their own temperatures (not packing.initial_temperature).
+  temperature_floor_ = std::numeric_limits<double>::infinity();
   for (std::size_t i = 0; i < particles_.size(); ++i) {
     total_volume_.add(particles_.volume(i));  // as volume_fractions sums its phases
     // A particle passed in dead left before this run: its temperature is no peak of the run's.
     if (particles_.alive[i])
       max_temperature_ = std::max(max_temperature_, particles_.temperature[i]);
+    temperature_floor_ = std::min(temperature_floor_, particles_.temperature[i]);
   }
-  // A caller's particles start at their own temperatures (not packing.initial_temperature).
-  temperature_floor_ = std::numeric_limits<double>::infinity();
-  for (const double t : particles_.temperature)
-    temperature_floor_ = std::min(temperature_floor_, t);
   for (const Wall& w : spec_.thermal.walls)
     temperature_floor_ = std::min(temperature_floor_, w.temperature);
   counts_.particles = particles_.size();
@@ -734,19 +733,11 @@ Figures Simulation::figures() const {
   return f;
 }
 
-namespace {
-// 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks; 7: reused first
-// hits; 8: the ray paths recorded since the last pulse ended (output.rays); 9: the stagger's counts
-// 10: the bands charged short; 11: the iterative heat steps; 12: the stagger cycles' particles
-// (kStateFormat, simulation.h)
-constexpr std::uint32_t kStateVersion = kStateFormat;
-}  // namespace
-
 void Simulation::write_state(StateWriter& out) const {
   if (failed_)  // half-stepped or half-restored: no state to go on from
     throw RunError("write_state: this simulation failed (" + failed_step_ +
                    "): it holds no state to save; save one before the failure");
-  out.value(kStateVersion);
+  out.value(kStateFormat);
   const Particles& p = particles_;
   out.vector(p.centre), out.vector(p.radius), out.vector(p.material);
   out.vector(p.temperature), out.vector(p.phase), out.vector(p.alive);
@@ -847,7 +838,7 @@ void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
 
 // A state begins with its format's version: another's fields would be read as this one's.
 void read_state_version(StateReader& in) {
-  if (in.value<std::uint32_t>() != kStateVersion)
+  if (in.value<std::uint32_t>() != kStateFormat)
     throw InputError("checkpoint: written by another version of beampack's state format");
 }
 

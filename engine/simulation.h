@@ -198,6 +198,10 @@ std::optional<std::string> below_floor_warning(const SimulationSpec& spec, doubl
 struct SavedRun;  // a checkpoint read whole (simulation.cpp)
 
 // The format of Simulation::write_state, the first value it writes; read_state reads no other.
+// 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks; 7: reused first
+// hits; 8: the ray paths recorded since the last pulse ended (output.rays); 9: the stagger's
+// counts; 10: the bands charged short; 11: the iterative heat steps; 12: the stagger cycles'
+// particles.
 inline constexpr std::uint32_t kStateFormat = 12;
 
 class Simulation {

@@ -119,8 +119,9 @@ void on_interrupt(int signal) {
 }
 
 // A set-up of seconds (the packing, its contacts, the ray scene: ~11 s at 3e6 particles) passes
-// without a word before the first progress line: say what is being set up.
-bool set_up_takes_seconds(std::size_t particles, std::size_t rays) {
+// without a word before the first progress line: say what is being set up; and the writes of a
+// run's end, by its particles alone.
+bool takes_seconds(std::size_t particles, std::size_t rays) {
   return particles >= 200'000 || rays >= 1'000'000;
 }
 
@@ -204,7 +205,7 @@ std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config, b
   // leaves it running, the caller's frame is gone before it ends.
   const auto counted = [quiet, label, rays = config.sim.beam.rays, parts = set_up_parts(config.sim),
                         shared](std::size_t particles) {
-    if (!quiet && !stop_requested().load() && set_up_takes_seconds(particles, rays)) {
+    if (!quiet && !stop_requested().load() && takes_seconds(particles, rays)) {
       announce_set_up(particles, rays, parts, label);
       shared->announced.store(true);
     }
@@ -855,9 +856,9 @@ struct RunRecord {
   double earlier_seconds = 0;  // wall time of the runs this one resumes
   int checkpoint_every = 0;    // --checkpoint-every of the run: a resume keeps it
   // The folder's checkpoint is the interrupt's this run resumed in place from: spent once the
-  // run finishes, unless a periodic one (--checkpoint-every) has replaced it meanwhile.
+  // run finishes, unless a periodic one (--checkpoint-every) has replaced it meanwhile. Read from
+  // the checkpoint's flag, and cleared for a resume into another folder.
   bool spent_checkpoint_here = false;
-  bool resumed_interrupts_checkpoint = false;  // the checkpoint resumed from: an interrupt's
   // The builds that ran the parts before this one, in order, one entry per resume; empty for a
   // run that did not resume.
   std::vector<PartBuild> earlier_parts;
@@ -948,7 +949,7 @@ StateReader open_checkpoint(const fs::path& path, RunRecord& record) {
   if (interrupts > 1)
     throw InputError("--resume: damaged checkpoint " + path.string() + ": its interrupt flag is " +
                      std::to_string(interrupts) + ", not 0 or 1");
-  record.resumed_interrupts_checkpoint = interrupts == 1;
+  record.spent_checkpoint_here = interrupts == 1;
   record.config_text = r.text();
   record.history = r.text();
   const auto frames = r.value<std::uint64_t>();
@@ -1270,6 +1271,25 @@ int history_rows(const RunRecord& record) {
   return static_cast<int>(std::count(record.history.begin(), record.history.end(), '\n')) - 1;
 }
 
+// summary.json, the last of a set of writes begun at `writing` (write_atomically fills in order):
+// its wall time (`wall_at_writing` and the writes since, left in r) and output stage hold the
+// files before it (particles.csv: 0.5 s at 10^6 particles), and leave out only its own few
+// kilobytes and the renames. `failed`: {message, time_s} of a failed run, else null.
+OutputFile summary_file(const fs::path& out, const Simulation& sim, RunResult& r,
+                        const RunConfig& config, RunRecord& record, Clock::time_point writing,
+                        double wall_at_writing, nlohmann::json failed) {
+  return {(out / "summary.json").string(),
+          [&sim, &r = r, &config, &record = record, writing, wall_at_writing,
+           failed = std::move(failed)](std::ostream& o) {
+    record.stages.output.seconds += seconds_since(writing);
+    ++record.stages.output.calls;
+    r.wall_seconds = wall_at_writing + seconds_since(writing);  // the stages within it
+    nlohmann::json j = summary_json(sim, r, config, record.earlier_parts, record.stages);
+    if (!failed.is_null()) j["failed"] = failed;
+    o << json_text(j) << '\n';
+          }};
+}
+
 // A step that throws leaves the particles part way through it, and a run's end may fail to write
 // them (a full disk): they are not written (nor a checkpoint), but the pulses the run ended are,
 // as history.csv and a summary.json of the last one's end that says what failed. Hours of pulses
@@ -1285,22 +1305,13 @@ void keep_pulses_before_failure(const fs::path& out, const Simulation& sim, RunR
   RunResult r;
   r.figures = ended.figures;
   r.counts = ended.counts;
-  r.wall_seconds = wall_seconds;
   r.pulses_ended = history_rows(record);
   const double failed_at = sim.figures().time;
-  const auto writing = Clock::now();
-  // Filled last, as at a run's end: the output stage holds these writes (a failure before the
-  // first pulse's end had none, and read as a skipped stage without a reason).
-  const auto summary = [&](std::ostream& o) {
-    record.stages.output.seconds += seconds_since(writing);
-    ++record.stages.output.calls;
-    r.wall_seconds = wall_seconds + seconds_since(writing);  // the stages never exceed it
-    nlohmann::json j = summary_json(sim, r, config, record.earlier_parts, record.stages);
-    j["failed"] = {{"message", failure}, {"time_s", failed_at}};
-    o << json_text(j) << '\n';
-  };
+  // The output stage holds these writes, as at a run's end (a failure before the first pulse's
+  // end had none, and read as a skipped stage without a reason).
   write_atomically({{(out / "history.csv").string(), [&](std::ostream& o) { o << record.history; }},
-                    {(out / "summary.json").string(), summary}});
+                    summary_file(out, sim, r, config, record, Clock::now(), wall_seconds,
+                                 {{"message", failure}, {"time_s", failed_at}})});
   std::error_code ec;
   fs::remove(out / "particles.csv", ec);
   if (ended.count == 0) {  // a resumed run's history holds the pulses before its checkpoint
@@ -1435,7 +1446,7 @@ int finish_run(const Simulation& sim, const RunConfig& config, RunRecord& record
   r.counts = sim.counts();
   r.interrupted = !sim.done();
   // Seconds of writing (particles.csv: 7.7 s at 10^7 particles) said, as the set-up is.
-  if (!quiet && set_up_takes_seconds(sim.particles().size(), 0))
+  if (!quiet && takes_seconds(sim.particles().size(), 0))
     std::fprintf(stderr, "beampack: writing the run's files (particles.csv: %zu particles)\n",
                  sim.particles().size());
   r.pulses_ended = history_rows(record);
@@ -1446,16 +1457,10 @@ int finish_run(const Simulation& sim, const RunConfig& config, RunRecord& record
     files.push_back(checkpoint_file(out / "checkpoint.bin", sim, record, r.wall_seconds, true));
   files.push_back({(out / "history.csv").string(), [&](std::ostream& o) { o << record.history; }});
   files.push_back(particles_csv((out / "particles.csv").string(), sim.particles(), sim.absorbed()));
-  // Filled last (write_atomically fills in order): its wall time and output stage hold the writing
-  // of the files before it (particles.csv: 0.5 s at 10^6 particles), and leave out only its own
-  // few kilobytes and the renames. The table printed after it shows the same times.
-  const auto summary = [&](std::ostream& o) {
-    record.stages.output.seconds += seconds_since(writing);
-    ++record.stages.output.calls;
-    r.wall_seconds = record.earlier_seconds + seconds_since(start);
-    o << json_text(summary_json(sim, r, config, record.earlier_parts, record.stages)) << '\n';
-  };
-  files.push_back({(out / "summary.json").string(), summary});
+  // Last, so that it times the others; the table printed after it shows the same times.
+  files.push_back(summary_file(
+      out, sim, r, config, record, writing,
+      record.earlier_seconds + std::chrono::duration<double>(writing - start).count(), nullptr));
   try {
     write_atomically(files);
   } catch (const std::exception& failure) {
@@ -1521,7 +1526,7 @@ int run_command(const RunOptions& options) {
   Simulation& sim = *owned;
   say_warnings("", sim.scene_warnings());
   if (saved) sim.read_state(*saved);
-  record.spent_checkpoint_here = into_checkpoint_folder && record.resumed_interrupts_checkpoint;
+  record.spent_checkpoint_here &= into_checkpoint_folder;
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
   remove_earlier_run(out_dir, into_checkpoint_folder);
   if (saved) drop_missing_frames(options.resume, record);
