@@ -6,11 +6,35 @@
 #include <limits>
 #include <sstream>
 
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
 #include "geometry/error.h"
 
 namespace beampack {
 
 namespace {
+
+// Below this many stored entries a product stays on one thread (a task costs more than it saves).
+constexpr Eigen::Index kParallelEntries = 1 << 15;
+
+// f(i, (a x)_i) for every row i of a symmetric a stored whole (compressed or not). Row i's sum runs
+// over column i's entries in ascending row order, a_ji x_j = a_ij x_j added for j ascending from 0:
+// the order of Eigen's column-major a * x, which adds a_ij x_j into y_i column after column. Rows
+// are independent, so any split over threads gives the same bits.
+template <class F>
+void for_each_row_of_product(const SparseMatrix& a, const Eigen::VectorXd& x, const F& f) {
+  auto rows = [&](Eigen::Index begin, Eigen::Index end) {
+    for (Eigen::Index i = begin; i < end; ++i) {
+      double sum = 0;
+      for (SparseMatrix::InnerIterator it(a, i); it; ++it) sum += it.value() * x[it.index()];
+      f(i, sum);
+    }
+  };
+  if (a.nonZeros() < kParallelEntries) return rows(0, a.outerSize());
+  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, a.outerSize(), 2048),
+                    [&](const tbb::blocked_range<Eigen::Index>& r) { rows(r.begin(), r.end()); });
+}
 
 [[noreturn]] void fixed_point_failure(const char* what, int k, double update, double ratio,
                                       double contraction_estimate) {
@@ -35,6 +59,12 @@ bool finite_system(const SparseMatrix& a, const Eigen::VectorXd& rhs) {
 
 }  // namespace
 
+Eigen::VectorXd symmetric_product(const SparseMatrix& a, const Eigen::VectorXd& x) {
+  Eigen::VectorXd y(a.rows());
+  for_each_row_of_product(a, x, [&](Eigen::Index i, double sum) { y[i] = sum; });
+  return y;
+}
+
 SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
                              const Eigen::VectorXd& rhs, Eigen::VectorXd& theta, double tolerance,
                              int max_iterations, double contraction_estimate) {
@@ -51,8 +81,10 @@ SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
   int growing = 0;
   std::vector<double> history;
   const bool finite_guess = theta.allFinite();  // before theta moves on
+  Eigen::VectorXd update(theta.size());
   for (int k = 1; k <= max_iterations; ++k) {
-    const Eigen::VectorXd update = (rhs - a * theta).cwiseQuotient(c);
+    for_each_row_of_product(
+        a, theta, [&](Eigen::Index i, double a_theta) { update[i] = (rhs[i] - a_theta) / c[i]; });
     theta += update;
     const double abs_u = update.cwiseAbs().maxCoeff();
     const double u = abs_u == 0 ? 0.0

@@ -16,6 +16,10 @@ struct SolveStats {
   double error = 0;  // last relative update (fixed-point) or relative residual (cg)
 };
 
+// a x for a symmetric a stored whole (both triangles), rows over threads above a
+// few thousand: the same bits as Eigen's a * x on any thread count (see solvers.cpp).
+Eigen::VectorXd symmetric_product(const SparseMatrix& a, const Eigen::VectorXd& x);
+
 // The paper's fixed-point iteration (3.11): theta^{K+1} = theta^K + (rhs - A theta^K) / c, i.e.
 // theta^{K+1} = theta^n + [dt phi Q(theta^K) + dt (1 - phi) Q(theta^n) + dH] / c. It contracts only
 // while the spectral radius of dt phi c^{-1} (L + W) is below 1, so it watches the size of its

@@ -31,6 +31,15 @@ double seconds_of(const Work& work) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
+// Without walls the solve's reference temperature: the coolest live particle's at the start
+// (0 K without one).
+double lowest_live_temperature(const Particles& p) {
+  double lowest = std::numeric_limits<double>::infinity();
+  for (std::size_t i = 0; i < p.size(); ++i)
+    if (p.alive[i]) lowest = std::min(lowest, p.temperature[i]);
+  return std::isfinite(lowest) ? lowest : 0.0;
+}
+
 template <class T>
 [[noreturn]] void input_error(const char* key, const T& value, const std::string& limit) {
   std::ostringstream msg;
@@ -80,7 +89,7 @@ ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials
   }
   walls_ = wall_coupling(p_, materials_, spec_.walls);
   has_walls_ = walls_.any();
-  if (has_walls_) reference_ = spec_.walls.front().temperature;
+  reference_ = has_walls_ ? spec_.walls.front().temperature : lowest_live_temperature(p_);
   stored_.assign(p_.size(), 0.0);
 }
 
@@ -430,6 +439,8 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_of_all(
 // Only the components of restless_ and of the particles given heat: the others are at rest.
 std::vector<Eigen::Index> ThermalModel::busy_rows_of_restless(
     const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat) {
+  if (busy_assembly_ == assembly_ && restless_ == busy_.particle)
+    return busy_rows_kept_and_new(theta0, heat);
   std::vector<Eigen::Index> seeds = restless_;
   for (std::uint32_t i : heat.particles)
     if (heat.at(i) != 0) seeds.push_back(i);
@@ -452,6 +463,46 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_of_restless(
     if (busy) rows.insert(rows.end(), members.begin(), members.end());
   }
   std::sort(rows.begin(), rows.end());
+  return rows;
+}
+
+// busy_rows_of_restless when restless_ is busy_'s rows, whole components of this assembly in
+// ascending order (the common case: one sub-step, no vaporisation): those still busy are kept
+// in their order, without walking them, and the components of heated particles outside them
+// are walked and merged in. The same rows as the walk from every seed, 2.5 times faster.
+std::vector<Eigen::Index> ThermalModel::busy_rows_kept_and_new(
+    const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat) {
+  const bool graph = all_.has_conduction;  // without one, every particle is its own component
+  auto root = [&](Eigen::Index i) { return graph ? Eigen::Index{component_[i]} : i; };
+  // Stamps on the roots of busy_'s components: at rest, or busy; then on new components' members.
+  const std::uint32_t at_rest = next_stamp(), busy = next_stamp(), walked = next_stamp();
+  for (Eigen::Index i : busy_.particle) {
+    const Eigen::Index r = root(i);
+    if (visited_[r] != busy)
+      visited_[r] =
+          particle_busy(heat.at(i), theta0[i], theta0[r], walls_.conductance[i], walls_.source[i])
+              ? busy
+              : at_rest;
+  }
+  std::vector<Eigen::Index> kept, added;
+  kept.reserve(busy_.particle.size());
+  for (Eigen::Index i : busy_.particle)
+    if (visited_[root(i)] == busy) kept.push_back(i);
+  for (std::uint32_t i : heat.particles) {
+    if (heat.at(i) == 0 || !p_.alive[i]) continue;
+    const std::uint32_t mark = visited_[root(i)];
+    if (mark == at_rest || mark == busy || mark == walked) continue;
+    if (graph) {
+      collect_component(i, walked, added);
+    } else {
+      visited_[i] = walked;
+      added.push_back(i);
+    }
+  }
+  if (added.empty()) return kept;
+  std::sort(added.begin(), added.end());
+  std::vector<Eigen::Index> rows(kept.size() + added.size());
+  std::merge(kept.begin(), kept.end(), added.begin(), added.end(), rows.begin());
   return rows;
 }
 
@@ -603,7 +654,7 @@ void ThermalModel::solve_relative(const System& s, double dt, const Eigen::Vecto
                                   Eigen::VectorXd& theta1, StepReport& report) {
   const double implicit = dt * spec_.phi, explicit_part = dt * (1.0 - spec_.phi);
   const Eigen::VectorXd flux_in =
-      s.has_conduction ? Eigen::VectorXd(s.laplacian * theta0) : s.diagonal.cwiseProduct(theta0);
+      s.has_conduction ? symmetric_product(s.laplacian, theta0) : s.diagonal.cwiseProduct(theta0);
   const Eigen::VectorXd drive = dt * (s.wall_source - flux_in) + dh;
   ++report.solves;
   if (!s.has_conduction ||
@@ -613,8 +664,7 @@ void ThermalModel::solve_relative(const System& s, double dt, const Eigen::Vecto
     report.conduction_ran = s.has_conduction;
     return;
   }
-  SparseMatrix a = implicit * s.laplacian;
-  for (Eigen::Index i = 0; i < c.size(); ++i) a.valuePtr()[s.diag_pos[i]] += c[i];
+  SparseMatrix& a = step_matrix(s, implicit, c);
   const double rho = contraction_estimate(s, dt, c);
   report.contraction_estimate = std::max(report.contraction_estimate, rho);
   report.conduction_ran = true;
@@ -631,6 +681,23 @@ void ThermalModel::solve_relative(const System& s, double dt, const Eigen::Vecto
   const Eigen::VectorXd rhs = c.cwiseProduct(theta0) + explicit_part * (s.wall_source - flux_in) +
                               implicit * s.wall_source + dh;
   solve_direct_grounded(s, a, weight, rhs, theta1, report);
+}
+
+// A = c + dt phi (L + W) over s's rows. The matrix is kept between steps: its pattern is copied
+// when s's changes, and its values are written in place (a new matrix every step took a fifth
+// of a heat step on the DEM bed). The same values as implicit * s.laplacian plus c on the diagonal.
+SparseMatrix& ThermalModel::step_matrix(const System& s, double implicit,
+                                        const Eigen::VectorXd& c) {
+  if (step_matrix_version_ != s.pattern_version || step_matrix_.rows() != s.laplacian.rows() ||
+      step_matrix_.nonZeros() != s.laplacian.nonZeros()) {
+    step_matrix_ = s.laplacian;
+    step_matrix_version_ = s.pattern_version;
+  }
+  const double* l = s.laplacian.valuePtr();
+  double* v = step_matrix_.valuePtr();
+  for (Eigen::Index k = 0; k < s.laplacian.nonZeros(); ++k) v[k] = implicit * l[k];
+  for (Eigen::Index i = 0; i < c.size(); ++i) v[s.diag_pos[i]] += c[i];
+  return step_matrix_;
 }
 
 // An iterative solve stops at a residual relative to its drive, dt Q(theta0) + dH. At a stiff step
@@ -814,7 +881,9 @@ void ThermalModel::account(double dt, const Eigen::VectorXd& c, const StepTemper
     const std::size_t i = particle_of(k);
     if (!p_.alive[i]) continue;
     remember(i);
-    const double de = c[k] * (theta1[k] - theta0[k]);
+    // The change the particle keeps: a rise below the last digit of its temperature is lost to
+    // it, and the ledger says so (the relative one keeps digits the temperature cannot).
+    const double de = c[k] * (t.theta1[k] - t.theta0[k]);
     stored_[i] += de;
     stored += de;
     const double mean = spec_.phi * theta1[k] + (1.0 - spec_.phi) * theta0[k];
@@ -932,8 +1001,10 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed,
     throw;
   }
   report.substeps = substeps;
-  std::sort(solved.begin(), solved.end());
-  solved.erase(std::unique(solved.begin(), solved.end()), solved.end());
+  if (substeps > 1) {  // one sub-step's rows are busy_'s: ascending already
+    std::sort(solved.begin(), solved.end());
+    solved.erase(std::unique(solved.begin(), solved.end()), solved.end());
+  }
   restless_ = std::move(solved);
   restless_known_ = !whole;
   serial_before_step_ = serial_;

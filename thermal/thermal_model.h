@@ -240,6 +240,8 @@ class ThermalModel {
                                              const Heat& heat) const;
   std::vector<Eigen::Index> busy_rows_of_restless(const Eigen::Ref<const Eigen::VectorXd>& theta0,
                                                   const Heat& heat);
+  std::vector<Eigen::Index> busy_rows_kept_and_new(const Eigen::Ref<const Eigen::VectorXd>& theta0,
+                                                   const Heat& heat);
   void build_busy_system(std::vector<Eigen::Index> rows);
   Eigen::VectorXd thermal_masses() const;
   void count_bands_short(const Eigen::VectorXd& theta0, const Eigen::VectorXd& theta1,
@@ -251,6 +253,7 @@ class ThermalModel {
   void solve_relative(const System& s, double dt, const Eigen::VectorXd& c,
                       const Eigen::VectorXd& theta0, const Eigen::VectorXd& dh,
                       Eigen::VectorXd& theta1, StepReport& report);
+  SparseMatrix& step_matrix(const System& s, double implicit, const Eigen::VectorXd& c);
   bool solve_change(const SparseMatrix& a, const Eigen::VectorXd& c, const Eigen::VectorXd& drive,
                     double rho, const Eigen::VectorXd& theta0, Eigen::VectorXd& theta1,
                     StepReport& report) const;
@@ -325,15 +328,19 @@ class ThermalModel {
   std::uint64_t clusters_assembly_ = 0;  // the assembly all_'s clusters were marked for
   mutable double limit_ = 0;             // monotone_step_limit of the assembly limit_assembly_
   mutable std::uint64_t limit_assembly_ = 0;
-  // The temperature the solve measures from: the first wall's (0 K without walls). L 1 = 0, so
-  // the shift moves only the wall sources, to 0 at a wall of that temperature; a particle held
-  // near it by a wall of 1e9 W/K then changes by digits a temperature near 300 K cannot hold,
-  // and they still reach the solver and the ledger (before: CG stopped at once, heat imbalance 1).
+  // The temperature the solve measures from: the first wall's, or without walls the coolest live
+  // particle's at the start. L 1 = 0, so the shift moves only the wall sources, to 0 at a wall of
+  // that temperature; a particle held near it by a wall of 1e9 W/K then changes by digits a
+  // temperature near 300 K cannot hold, and they still reach the solver and the ledger (before:
+  // CG stopped at once, heat imbalance 1). Without walls, a bed warmed by 1e-12 K a step: from
+  // 0 K the factorisation's round-off in theta (1e-16 of 300 K) opened the ledger by 3.6e-5.
   double reference_ = 0;
   bool dirty_ = true;                   // all_'s values out of date (contacts or live set)
   bool pattern_dirty_ = true;           // the contacts changed: all_ is assembled anew
   std::vector<double> contact_values_;  // -G of each off-diagonal of all_.laplacian, as if live
   DirectSolver direct_;
+  SparseMatrix step_matrix_;  // step_matrix's, of the system whose pattern_version it names
+  std::uint64_t step_matrix_version_ = 0;
   std::vector<double> stored_;  // J per particle since the start
   ThermalLedger ledger_;
 };
