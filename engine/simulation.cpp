@@ -750,6 +750,7 @@ void Simulation::write_state(StateWriter& out) const {
   const ThermalModel::Snapshot heat = thermal_->save();
   out.vector(heat.stored);
   out.value(heat.ledger);
+  out.value(heat.reference);
   out.vector(ray_paths_);
 }
 
@@ -827,6 +828,9 @@ void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
   const ThermalLedger& h = s.heat.ledger;
   for (const double v : {h.absorbed, h.stored, h.vaporized, h.walls})
     require_in_state(std::isfinite(v), "a heat ledger entry is " + std::to_string(v));
+  require_in_state(
+      std::isfinite(s.heat.reference) && s.heat.reference >= 0,
+      "its heat solve's reference temperature is " + std::to_string(s.heat.reference) + " K");
   for (const StageTime& t : s.stages)
     require_in_state(std::isfinite(t.seconds) && t.seconds >= 0, "a stage time is not finite");
   s.rays.check_values(p.size(), "checkpoint");
@@ -862,6 +866,7 @@ SavedRun read_saved_run(StateReader& in, Tracer& tracer, const Particles& curren
   s.first_hits = tracer.read_first_hits(in);
   in.vector(s.heat.stored);
   s.heat.ledger = in.value<ThermalLedger>();
+  s.heat.reference = in.value<double>();
   in.vector(s.ray_paths);
   // The geometry must be the run file's: the scene, the grid and the contact graph were built
   // from it.

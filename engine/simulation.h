@@ -201,8 +201,8 @@ struct SavedRun;  // a checkpoint read whole (simulation.cpp)
 // 4: Counts has the pulse delays; 5: the heat rows; 6: the path clock, ray chunks; 7: reused first
 // hits; 8: the ray paths recorded since the last pulse ended (output.rays); 9: the stagger's
 // counts; 10: the bands charged short; 11: the iterative heat steps; 12: the stagger cycles'
-// particles.
-inline constexpr std::uint32_t kStateFormat = 12;
+// particles; 13: the heat solve's reference temperature.
+inline constexpr std::uint32_t kStateFormat = 13;
 
 class Simulation {
  public:

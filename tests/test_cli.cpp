@@ -1996,12 +1996,12 @@ TEST(Cli, AResumeRecordsTheBuildsOfTheEarlierPartsAndWarnsOfAnotherBuild) {
     state_at += 8 + n;
   }
   state_at += 8;
-  ASSERT_EQ(written.substr(state_at, 4), std::string("\x0c\0\0\0", 4));
+  ASSERT_EQ(written.substr(state_at, 4), std::string("\x0d\0\0\0", 4));
   const auto [state_run, state_folder] =
       resume_edited("ck_revision_state", [&](std::string& b) { b[state_at] = '\x0b'; });
   EXPECT_EQ(state_run.code, 2) << state_run.output;
   EXPECT_CONTAINS(state_run.output, "written by beampack " + ours +
-                                        " with state format 11; this one reads state format 12");
+                                        " with state format 11; this one reads state format 13");
 
   // A record of no build, or a revision that is not plain text, is a damaged checkpoint.
   const auto [none, none_folder] = resume_edited(

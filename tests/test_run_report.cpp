@@ -366,6 +366,7 @@ TEST(RunReport, AParticleBelowTheRunsFloorIsSaid) {
   Particles p;
   p.radius = {1e-5, 1e-5, 1e-5};
   p.temperature = {300.0, 299.99999999999966, 650.0};  // the direct solver's worst at K = 1e6
+                                                       // when it measured from 0 K
   EXPECT_FALSE(below_floor_warning(spec, 300, p, counts));
   p.temperature = {299.9, 296.975, 650.0};
   const auto said = below_floor_warning(spec, 300, p, counts);

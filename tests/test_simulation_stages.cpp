@@ -242,6 +242,7 @@ struct StateParts {
   std::vector<std::uint32_t> hit_particle;
   std::vector<double> stored;
   ThermalLedger ledger;
+  double reference = 0;
   std::vector<RaySegment> ray_paths;
 
   explicit StateParts(const Simulation& sim) {
@@ -261,6 +262,7 @@ struct StateParts {
     in.vector(hit_origin), in.vector(hit_normal), in.vector(hit_t), in.vector(hit_particle);
     in.vector(stored);
     ledger = in.value<ThermalLedger>();
+    reference = in.value<double>();
     in.vector(ray_paths);
   }
   std::string bytes() const {
@@ -277,6 +279,7 @@ struct StateParts {
     out.vector(hit_origin), out.vector(hit_normal), out.vector(hit_t), out.vector(hit_particle);
     out.vector(stored);
     out.value(ledger);
+    out.value(reference);
     out.vector(ray_paths);
     return out.finish();
   }
@@ -293,6 +296,30 @@ std::string read_error(const SimulationSpec& spec, const StateParts& parts) {
 // A state whose checksum holds but whose per-particle arrays do not fit the particles (a
 // writer's mistake) is refused by name: a longer temperature array was copied past the
 // particles'. The state is rebuilt from a real one with one temperature too many.
+// A caller's particles at their own temperature (400 K, not the spec's 300 K), resumed as a
+// library does it: saved_packing starts them at 300 K, the state sets them to where the run was.
+// The heat solve measures from the coolest starting temperature, which the state keeps: built on
+// 300 K, the resumed solve measured from there and ended up to 6.8e-13 K off (review finding).
+TEST(SimulationStages, ACallersOwnStartingTemperaturesResumeBitForBit) {
+  SimulationSpec spec = quick_scene();
+  spec.dt = 4e-13;
+  Particles own = random_overlap_packing(200, kD, 0.325, 7);
+  for (double& t : own.temperature) t = 400.0;
+  Simulation original(spec, own);
+  for (int step = 0; step < 3; ++step) ASSERT_TRUE(original.step());
+  StateWriter written;
+  original.write_state(written);
+  const std::string bytes = written.finish();
+  Simulation resumed(spec, Simulation::saved_packing(StateReader(bytes, "state"), spec));
+  StateReader in(bytes, "state");
+  resumed.read_state(in);
+  int steps = 0;
+  while (step_both(resumed, original)) ++steps;
+  EXPECT_GT(steps, 3);
+  EXPECT_EQ(resumed.particles().temperature, original.particles().temperature);
+  EXPECT_EQ(resumed.figures().energy.stored, original.figures().energy.stored);
+}
+
 TEST(SimulationStages, AStateWithAnArrayOfTheWrongLengthIsRefused) {
   Simulation sim(quick_scene());
   for (int k = 0; k < 3; ++k) sim.step();
@@ -350,6 +377,7 @@ TEST(SimulationStages, AStateWithValuesARunCannotHoldIsRefusedByName) {
           {[](StateParts& s) { s.launched = 0; }, "live rays and no pulse launched"},
           {[](StateParts& s) { s.counts.particles = 7; }, "its counts are of 7 particles"},
           {[&](StateParts& s) { s.ledger.walls = nan; }, "a heat ledger entry is nan"},
+          {[&](StateParts& s) { s.reference = nan; }, "reference temperature is nan K"},
           {[&](StateParts& s) { s.stages[1].first = nan; }, "a stage time is not finite"},
           {[&](StateParts& s) { s.rays.next_particle[live] = 5'000'000; },
            "ray " + std::to_string(live) + " has particle 5000000, beyond the 200 particles"},

@@ -362,6 +362,25 @@ TEST(ThermalStiff, AFaintlyWarmedStiffChainWithoutWallsKeepsItsLedger) {
   }
 }
 
+// A rise below the last digit of a temperature is lost to the particle, and the ledger books
+// what the particle keeps: nothing stored, open by all the heat. (It booked the solve's change,
+// relative to the starting temperature, and closed while the heat was nowhere; review finding.)
+TEST(ThermalStiff, ARiseATemperatureCannotHoldOpensTheLedger) {
+  Particles p;
+  p.add(Vec3(5e-4, 5e-4, 5e-4), 1e-4, 0, 300.0);
+  for (const char* solver : {"direct", "cg"}) {
+    Particles q = p;
+    ThermalSpec spec;
+    spec.solver = solver;
+    ThermalModel model(q, {conductive()}, spec);
+    const std::vector<double> dh = {1e-15 * model.thermal_mass(0)};  // a rise of 1e-15 K
+    model.step(1e-9, dh);
+    EXPECT_EQ(q.temperature[0], 300.0) << solver;
+    EXPECT_EQ(model.ledger().stored, 0.0) << solver;
+    EXPECT_EQ(model.ledger().imbalance(), model.ledger().absorbed) << solver;
+  }
+}
+
 // A stiff chain that touches a wall of almost no conductance is as nearly singular as an
 // insulated one: the factorisation must keep its energy too (it lost 1e-5 of the absorbed heat
 // at g = 1e-20 W/K, grounded only insulated clusters). With the wall's share: c^T (theta1 -
@@ -672,7 +691,8 @@ TEST(ThermalSolvers, TheParallelProductIsEigensBitForBitOnAnyThreadCount) {
   for (double& v : x) v = 300.0 + u(rng);
   const Eigen::VectorXd eigen = a * x;
   SparseMatrix loose = a;
-  loose.uncompress();
+  loose.reserve(Eigen::VectorXi::Constant(n, 2));  // room after every column: not compressed
+  ASSERT_FALSE(loose.isCompressed());
   for (const int threads : {1, 2}) {
     tbb::task_arena arena(threads);
     Eigen::VectorXd y, y_loose;

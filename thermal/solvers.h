@@ -16,8 +16,9 @@ struct SolveStats {
   double error = 0;  // last relative update (fixed-point) or relative residual (cg)
 };
 
-// a x for a symmetric a stored whole (both triangles), rows over threads above a
-// few thousand: the same bits as Eigen's a * x on any thread count (see solvers.cpp).
+// a x for a symmetric a stored whole (both triangles), rows over threads above a few thousand:
+// the same bits as Eigen's a * x on any thread count (see solvers.cpp). It sums column i for row
+// i, so for a matrix that is not symmetric it returns a^T x.
 Eigen::VectorXd symmetric_product(const SparseMatrix& a, const Eigen::VectorXd& x);
 
 // The paper's fixed-point iteration (3.11): theta^{K+1} = theta^K + (rhs - A theta^K) / c, i.e.

@@ -685,8 +685,9 @@ void ThermalModel::solve_relative(const System& s, double dt, const Eigen::Vecto
 }
 
 // A = c + dt phi (L + W) over s's rows. The matrix is kept between steps: its pattern is copied
-// when s's changes, and its values are written in place (a new matrix every step took a fifth
-// of a heat step on the DEM bed). The same values as implicit * s.laplacian plus c on the diagonal.
+// when s's changes, and its values are written in place (making a new one every step took 19% of
+// a profile of the DEM bed's heat steps at the paper's dt). The same values as
+// implicit * s.laplacian plus c on the diagonal.
 SparseMatrix& ThermalModel::step_matrix(const System& s, double implicit,
                                         const Eigen::VectorXd& c) {
   if (step_matrix_version_ != s.pattern_version || step_matrix_.rows() != s.laplacian.rows() ||
@@ -871,8 +872,9 @@ void ThermalModel::count_bands_short(const Eigen::VectorXd& theta0, const Eigen:
   }
 }
 
-// The ledger: stored gains the M-scaled (m C_eff / M) dtheta actually used in the solve, so
-// absorbed = stored + vaporized + walls holds to the solver tolerance.
+// The ledger: stored gains the M-scaled (m C_eff / M) dtheta each particle keeps, so
+// absorbed = stored + vaporized + walls holds to the solver tolerance, and to the rounding of
+// rises into temperatures (a rise below ~1e-16 of a temperature is lost to it, and shows).
 void ThermalModel::account(double dt, const Eigen::VectorXd& c, const StepTemperatures& t,
                            const Eigen::VectorXd& dh) {
   const Eigen::VectorXd& theta0 = t.rel0;
@@ -1126,7 +1128,7 @@ Phase ThermalModel::phase_before_step(std::size_t i) const {
 }
 
 ThermalModel::Snapshot ThermalModel::save() const {
-  return {p_.temperature, p_.phase, p_.alive, stored_, ledger_, serial_};
+  return {p_.temperature, p_.phase, p_.alive, stored_, ledger_, serial_, reference_};
 }
 
 void ThermalModel::restore(const Snapshot& s) {
@@ -1138,6 +1140,13 @@ void ThermalModel::restore(const Snapshot& s) {
   // Reassemble only if the live set differs from the matrix's: a redo without vaporisation keeps
   // it (compared with the assembled set, not p_.alive, which a checkpoint may have set already).
   if (all_.live != s.alive) dirty_ = true;
+  // Without walls the reference moves no term of the system (no wall sources): it is taken over.
+  // With walls it is the first wall's temperature, as the spec gives it.
+  if (!has_walls_) {
+    if (!std::isfinite(s.reference))
+      throw RunError("thermal restore: reference temperature " + std::to_string(s.reference));
+    reference_ = s.reference;
+  }
   // restless_ holds every component not at rest in the state now and in the state before the
   // last step (if it solved no sub-step whole): any other state is looked at whole.
   flips_known_ = false;  // any live flag may change below

@@ -48,8 +48,10 @@ struct ThermalSpec {
 };
 
 // Every joule absorbed is stored as heat, carried off by vaporised particles or lost to walls:
-// absorbed = stored + vaporized + walls, to the solver tolerance. Stored is the M-scaled
-// sum of (m C_eff / M) (theta^{n+1} - theta^n) over steps and live particles.
+// absorbed = stored + vaporized + walls, to the solver tolerance and the rounding of each rise
+// into its temperature (a rise below ~1e-16 of the temperature is lost, and the ledger opens by
+// it). Stored is the M-scaled sum of (m C_eff / M) (theta^{n+1} - theta^n), as the particles keep
+// them, over steps and live particles.
 struct ThermalLedger {
   double absorbed = 0;   // J, sum of the dH given to step()
   double stored = 0;     // J, in live particles, relative to their initial temperatures
@@ -102,6 +104,9 @@ class ThermalModel {
     // The state's name (unique across models): restoring the state now or the one before the
     // model's last step keeps its record of the components that may not be at rest.
     std::uint64_t serial = 0;
+    // The temperature the solve measures from (reference_): a model without walls takes it on
+    // restore, so a model built on other starting temperatures goes on with the same digits.
+    double reference = 0;
   };
 
   // Validates the spec and materials; sets each live particle's phase from its temperature
@@ -195,8 +200,9 @@ class ThermalModel {
     std::size_t rows() const { return static_cast<std::size_t>(diagonal.size()); }
   };
 
-  // A step's temperatures: absolute (the phase rules) and relative to reference_ (the solve and
-  // the ledger: a change below the last digit of a temperature near 300 K keeps its digits there).
+  // A step's temperatures: absolute (the phase rules, the state and the ledger's stored heat) and
+  // relative to reference_ (the solve and the walls' heat: a change below the last digit of a
+  // temperature near 300 K keeps its digits there).
   struct StepTemperatures {
     Eigen::VectorXd theta0, theta1;  // K
     Eigen::VectorXd rel0, rel1;      // K - reference_
@@ -331,9 +337,10 @@ class ThermalModel {
   // The temperature the solve measures from: the first wall's, or without walls the coolest live
   // particle's at the start. L 1 = 0, so the shift moves only the wall sources, to 0 at a wall of
   // that temperature; a particle held near it by a wall of 1e9 W/K then changes by digits a
-  // temperature near 300 K cannot hold, and they still reach the solver and the ledger (before:
-  // CG stopped at once, heat imbalance 1). Without walls, a bed warmed by 1e-12 K a step: from
-  // 0 K the factorisation's round-off in theta (1e-16 of 300 K) opened the ledger by 3.6e-5.
+  // temperature near 300 K cannot hold, and they still reach the solver (before: CG stopped at
+  // once, heat imbalance 1); the ledger books what the particle keeps. Without walls, a bed warmed
+  // by 1e-12 K a step: from 0 K the factorisation's round-off in theta (1e-16 of 300 K) opened
+  // the ledger by 3.6e-5. Kept in snapshots and states (restore takes it without walls).
   double reference_ = 0;
   bool dirty_ = true;                   // all_'s values out of date (contacts or live set)
   bool pattern_dirty_ = true;           // the contacts changed: all_ is assembled anew
