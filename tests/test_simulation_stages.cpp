@@ -293,9 +293,6 @@ std::string read_error(const SimulationSpec& spec, const StateParts& parts) {
   return testing::error_message<InputError>([&] { sim.read_state(in); });
 }
 
-// A state whose checksum holds but whose per-particle arrays do not fit the particles (a
-// writer's mistake) is refused by name: a longer temperature array was copied past the
-// particles'. The state is rebuilt from a real one with one temperature too many.
 // A caller's particles at their own temperature (400 K, not the spec's 300 K), resumed as a
 // library does it: saved_packing starts them at 300 K, the state sets them to where the run was.
 // The heat solve measures from the coolest starting temperature, which the state keeps: built on
@@ -320,6 +317,9 @@ TEST(SimulationStages, ACallersOwnStartingTemperaturesResumeBitForBit) {
   EXPECT_EQ(resumed.figures().energy.stored, original.figures().energy.stored);
 }
 
+// A state whose checksum holds but whose per-particle arrays do not fit the particles (a
+// writer's mistake) is refused by name: a longer temperature array was copied past the
+// particles'. The state is rebuilt from a real one with one temperature too many.
 TEST(SimulationStages, AStateWithAnArrayOfTheWrongLengthIsRefused) {
   Simulation sim(quick_scene());
   for (int k = 0; k < 3; ++k) sim.step();

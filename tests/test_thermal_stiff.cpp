@@ -10,6 +10,7 @@
 #include <functional>
 #include <numbers>
 #include <random>
+#include <sstream>
 
 #include <tbb/task_arena.h>
 
@@ -366,16 +367,15 @@ TEST(ThermalStiff, AFaintlyWarmedStiffChainWithoutWallsKeepsItsLedger) {
 // what the particle keeps: nothing stored, open by all the heat. (It booked the solve's change,
 // relative to the starting temperature, and closed while the heat was nowhere; review finding.)
 TEST(ThermalStiff, ARiseATemperatureCannotHoldOpensTheLedger) {
-  Particles p;
-  p.add(Vec3(5e-4, 5e-4, 5e-4), 1e-4, 0, 300.0);
   for (const char* solver : {"direct", "cg"}) {
-    Particles q = p;
+    Particles q = test::chain(2, 1e-4);  // two in contact: the solver runs
     ThermalSpec spec;
     spec.solver = solver;
     ThermalModel model(q, {conductive()}, spec);
-    const std::vector<double> dh = {1e-15 * model.thermal_mass(0)};  // a rise of 1e-15 K
-    model.step(1e-9, dh);
-    EXPECT_EQ(q.temperature[0], 300.0) << solver;
+    model.set_contacts(find_contacts(q));
+    const std::vector<double> dh = {1e-15 * model.thermal_mass(0), 0.0};  // a rise of 1e-15 K
+    EXPECT_TRUE(model.step(1e-9, dh).conduction_ran) << solver;
+    EXPECT_EQ(q.temperature, std::vector<double>(2, 300.0)) << solver;
     EXPECT_EQ(model.ledger().stored, 0.0) << solver;
     EXPECT_EQ(model.ledger().imbalance(), model.ledger().absorbed) << solver;
   }
@@ -663,10 +663,6 @@ TEST(ThermalStiff, ConjugateGradientsRefuseAMatrixSingularToDoubles) {
 namespace beampack {
 namespace {
 
-// A non-finite result from non-finite inputs is a defect upstream, a RunError that is no
-// SolverRefusal, so "auto" does not fall back to the factorisation on it and hide it; from finite
-// inputs it is the solver's own breakdown, a refusal. The fixed-point iteration called both a
-// refusal.
 // The solvers' parallel product, row by row, against Eigen's a * x: the same bits with one thread
 // and two (seeded, symmetric, 3e4 rows and ~1.5e5 entries: above the parallel threshold), and for
 // a matrix not compressed. A row summed in another order differs in its last bits.
@@ -750,8 +746,34 @@ TEST(ThermalSolvers, ConjugateGradientsAreEigensBitForBitOnAnyThreadCount) {
       for (Eigen::Index i = 0; i < n; ++i) ASSERT_EQ(theta[i], expected[i]) << at << ", row " << i;
     }
   }
+  // Its ends: a zero right-hand side (zero, at once), a guess already converged (kept, no
+  // iteration), and the iteration cap (a refusal naming Eigen's residual at the cap).
+  Eigen::VectorXd theta = guess;
+  EXPECT_EQ(cg_solve(a, Eigen::VectorXd::Zero(n), theta, 1e-10, 1000).iterations, 0);
+  EXPECT_TRUE(theta.isZero(0.0));
+  Eigen::VectorXd converged = guess;
+  cg_solve(a, rhs, converged, 1e-10, 1000);
+  theta = converged;
+  EXPECT_EQ(cg_solve(a, rhs, theta, 1e-10, 1000).iterations, 0);
+  EXPECT_EQ(theta, converged);
+  Eigen::ConjugateGradient<SparseMatrix, Eigen::Lower | Eigen::Upper,
+                           Eigen::DiagonalPreconditioner<double>>
+      capped;
+  capped.setTolerance(1e-10);
+  capped.setMaxIterations(3);
+  capped.compute(a);
+  const Eigen::VectorXd at_cap = capped.solveWithGuess(rhs, guess);  // evaluated: it is lazy
+  ASSERT_NE(capped.info(), Eigen::Success);
+  std::ostringstream residual;
+  residual << "(relative residual " << capped.error() << ")";
+  theta = guess;
+  testing::expect_error<SolverRefusal>([&] { cg_solve(a, rhs, theta, 1e-10, 3); }, residual.str());
 }
 
+// A non-finite result from non-finite inputs is a defect upstream, a RunError that is no
+// SolverRefusal, so "auto" does not fall back to the factorisation on it and hide it; from finite
+// inputs it is the solver's own breakdown, a refusal. The fixed-point iteration called both a
+// refusal.
 TEST(ThermalStiff, NonFiniteInputsAreADefectNotARefusal) {
   SparseMatrix a(2, 2);
   a.insert(0, 0) = 2.0, a.insert(1, 1) = 2.0, a.insert(0, 1) = -1.0, a.insert(1, 0) = -1.0;
