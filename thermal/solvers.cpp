@@ -124,8 +124,8 @@ Eigen::VectorXd inverse_diagonal(const SparseMatrix& a) {
   return inverse;
 }
 
-// v[i] = f(i) for every row, over threads when the vector is long: elementwise, so the same bits
-// on any thread count.
+// f(i) for every row i, over threads when the vector is long; f writes row i alone, so the same
+// bits on any thread count.
 template <class F>
 void for_each_row(Eigen::Index n, const F& f) {
   if (n < kParallelEntries / 4) {
