@@ -309,13 +309,15 @@ std::uint32_t ThermalModel::next_stamp() {
 }
 
 // The live particles joined to `from` by conducting contacts, `from` included, marked in
-// visited_ with `stamp` (a breadth-first walk over L's pattern).
+// visited_ with `stamp` (a breadth-first walk over L's pattern; without a conducting contact,
+// `from` alone).
 void ThermalModel::collect_component(Eigen::Index from, std::uint32_t stamp,
                                      std::vector<Eigen::Index>& out) {
   const SparseMatrix& m = all_.laplacian;
   std::size_t next = out.size();
   visited_[from] = stamp;
   out.push_back(from);
+  if (!all_.has_conduction) return;  // no matrix: every particle is its own component
   for (; next < out.size(); ++next) {
     const Eigen::Index j = out[next];
     for (Eigen::Index k = m.outerIndexPtr()[j]; k < m.outerIndexPtr()[j + 1]; ++k) {
@@ -355,7 +357,7 @@ void ThermalModel::update_components(const std::vector<Eigen::Index>& touched) {
 std::uint32_t ThermalModel::component_of(std::size_t i) {
   assemble_if_needed();
   if (!p_.alive[i]) throw RunError("component_of: particle " + std::to_string(i) + " is not live");
-  return all_.has_conduction ? component_[i] : static_cast<std::uint32_t>(i);
+  return static_cast<std::uint32_t>(root_of(static_cast<Eigen::Index>(i)));
 }
 
 bool ThermalModel::in_insulated_cluster(std::size_t i) {
@@ -420,19 +422,17 @@ bool particle_busy(double dh, double theta, double theta_root, double wall_g, do
 // Every live particle looked at (the first step, or when restless_ is not known).
 std::vector<Eigen::Index> ThermalModel::busy_rows_of_all(
     const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat) const {
-  const std::size_t n = p_.size();
-  const bool graph = all_.has_conduction;  // without one, every particle is its own component
-  auto component = [&](std::size_t i) { return graph ? std::size_t{component_[i]} : i; };
-  std::vector<std::uint8_t> busy(n, 0);  // by component
-  for (std::size_t i = 0; i < n; ++i) {
+  const auto n = static_cast<Eigen::Index>(p_.size());
+  std::vector<std::uint8_t> busy(p_.size(), 0);  // by component
+  for (Eigen::Index i = 0; i < n; ++i) {
     if (!p_.alive[i]) continue;
-    const std::size_t r = component(i);
+    const Eigen::Index r = root_of(i);
     if (particle_busy(heat.at(i), theta0[i], theta0[r], walls_.conductance[i], walls_.source[i]))
       busy[r] = 1;
   }
   std::vector<Eigen::Index> rows;
-  for (std::size_t i = 0; i < n; ++i)
-    if (p_.alive[i] && busy[component(i)]) rows.push_back(static_cast<Eigen::Index>(i));
+  for (Eigen::Index i = 0; i < n; ++i)
+    if (p_.alive[i] && busy[root_of(i)]) rows.push_back(i);
   return rows;
 }
 
@@ -449,13 +449,8 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_of_restless(
   for (Eigen::Index i : seeds) {
     if (!p_.alive[i] || visited_[i] == stamp) continue;
     members.clear();
-    if (all_.has_conduction) {
-      collect_component(i, stamp, members);
-    } else {
-      visited_[i] = stamp;
-      members.push_back(i);
-    }
-    const Eigen::Index r = all_.has_conduction ? Eigen::Index{component_[i]} : i;
+    collect_component(i, stamp, members);
+    const Eigen::Index r = root_of(i);
     const bool busy = std::any_of(members.begin(), members.end(), [&](Eigen::Index j) {
       return particle_busy(heat.at(j), theta0[j], theta0[r], walls_.conductance[j],
                            walls_.source[j]);
@@ -473,12 +468,10 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_of_restless(
 // K = 100, the paper's step, one pulse: heat 31.0 s with the walk, 22.7 s without).
 std::vector<Eigen::Index> ThermalModel::busy_rows_kept_and_new(
     const Eigen::Ref<const Eigen::VectorXd>& theta0, const Heat& heat) {
-  const bool graph = all_.has_conduction;  // without one, every particle is its own component
-  auto root = [&](Eigen::Index i) { return graph ? Eigen::Index{component_[i]} : i; };
   // Stamps on the roots of busy_'s components: at rest, or busy; then on new components' members.
   const std::uint32_t at_rest = next_stamp(), busy = next_stamp(), walked = next_stamp();
   for (Eigen::Index i : busy_.particle) {
-    const Eigen::Index r = root(i);
+    const Eigen::Index r = root_of(i);
     if (visited_[r] != busy)
       visited_[r] =
           particle_busy(heat.at(i), theta0[i], theta0[r], walls_.conductance[i], walls_.source[i])
@@ -488,17 +481,12 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_kept_and_new(
   std::vector<Eigen::Index> kept, added;
   kept.reserve(busy_.particle.size());
   for (Eigen::Index i : busy_.particle)
-    if (visited_[root(i)] == busy) kept.push_back(i);
+    if (visited_[root_of(i)] == busy) kept.push_back(i);
   for (std::uint32_t i : heat.particles) {
     if (heat.at(i) == 0 || !p_.alive[i]) continue;
-    const std::uint32_t mark = visited_[root(i)];
+    const std::uint32_t mark = visited_[root_of(i)];
     if (mark == at_rest || mark == busy || mark == walked) continue;
-    if (graph) {
-      collect_component(i, walked, added);
-    } else {
-      visited_[i] = walked;
-      added.push_back(i);
-    }
+    collect_component(i, walked, added);
   }
   if (added.empty()) return kept;
   std::sort(added.begin(), added.end());

@@ -232,6 +232,11 @@ class ThermalModel {
   std::vector<Eigen::Index> update_live_set(const std::vector<Eigen::Index>& changed);
   void find_components();
   void collect_component(Eigen::Index from, std::uint32_t stamp, std::vector<Eigen::Index>& out);
+  // The component of live particle i, named by its lowest particle id (i itself without a
+  // conducting contact).
+  Eigen::Index root_of(Eigen::Index i) const {
+    return all_.has_conduction ? Eigen::Index{component_[static_cast<std::size_t>(i)]} : i;
+  }
   void update_components(const std::vector<Eigen::Index>& touched);
   std::uint32_t next_stamp();
   void mark_clusters(System& s);
