@@ -35,8 +35,10 @@ constexpr double kNoConduction = 1e-10, kConducted = 1e-4;
 // The heat ledger of the walls scene under an iterative solve: its change form sums wall terms
 // dt W (theta - theta_w) as large as 1e6 times the heat a step stores (K = 1e6, a 1e-9 s step),
 // whose round-off (1e-16 of them) leaves the ledger open by ~1e-10 (1.1e-10 measured with CG at
-// 3000 particles, at any thermal.tolerance from 1e-8 to 1e-12); the factorisation, which solves
-// for the temperatures themselves, closes it to 1e-15. Ten times the worst seen.
+// 3000 particles, at any thermal.tolerance from 1e-8 to 1e-12; 2.2e-10 over the ledger's scale
+// since a cooling bed's heat counts once); the factorisation, which solves for the temperatures
+// themselves, closes it to 2.1e-12, the rounding of the rises into the temperatures the ledger
+// books, and is held to 1e-10. Between four and five times the worst seen.
 constexpr double kWallsHeatRoundOff = 1e-9;
 // The vaporised fractions of two solvers that end in the same phases: the same sum, to round-off.
 constexpr double kRoundOff = 1e-12;
@@ -159,7 +161,8 @@ void check_run(const Cell& c, const Simulation& sim, Outcome& o) {
   o.bounded = bounded(sim);
   // The heat ledger closes to round-off whatever the solver: the iterative ones restore each
   // component's energy after they stop (they lost up to 1.8e-9 of it in the cooling cells
-  // before, within the tolerance-sized bound this grid used to apply; the worst now is 4e-12).
+  // before, within the tolerance-sized bound this grid used to apply; the worst beam cell now is
+  // 1.5e-12, docs/stability-report.txt).
   const bool iterated = sim.counts().iterative_heat_steps > 0;  // the factorisation: 1e-15
   const bool ledgers =
       o.optics_error < 1e-12 &&
