@@ -31,15 +31,6 @@ double seconds_of(const Work& work) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
-// Without walls the solve's reference temperature: the coolest live particle's at the start
-// (0 K without one).
-double lowest_live_temperature(const Particles& p) {
-  double lowest = std::numeric_limits<double>::infinity();
-  for (std::size_t i = 0; i < p.size(); ++i)
-    if (p.alive[i]) lowest = std::min(lowest, p.temperature[i]);
-  return std::isfinite(lowest) ? lowest : 0.0;
-}
-
 template <class T>
 [[noreturn]] void input_error(const char* key, const T& value, const std::string& limit) {
   std::ostringstream msg;
@@ -76,6 +67,7 @@ ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials
   for (std::size_t k = 0; k < materials_.size(); ++k)
     materials_[k].validate(materials_.size() == 1 ? "material"
                                                   : "material[" + std::to_string(k) + "]");
+  double coolest = std::numeric_limits<double>::infinity();  // of the live particles
   for (std::size_t i = 0; i < p_.size(); ++i) {
     if (p_.material[i] >= materials_.size())
       input_error(("particle " + std::to_string(i) + " material").c_str(), p_.material[i],
@@ -86,10 +78,14 @@ ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials
       input_error(("particle " + std::to_string(i) + " temperature").c_str(), p_.temperature[i],
                   "must be < material.vapor_temperature (it would start as vapour)");
     p_.phase[i] = phase_at(m, p_.temperature[i]);
+    coolest = std::min(coolest, p_.temperature[i]);
   }
   walls_ = wall_coupling(p_, materials_, spec_.walls);
   has_walls_ = walls_.any();
-  reference_ = has_walls_ ? spec_.walls.front().temperature : lowest_live_temperature(p_);
+  // Without walls the solve measures from the coolest live particle (0 K without one).
+  reference_ = has_walls_               ? spec_.walls.front().temperature
+               : std::isfinite(coolest) ? coolest
+                                        : 0.0;
   stored_.assign(p_.size(), 0.0);
 }
 
