@@ -10,6 +10,7 @@
 #include <array>
 #include <chrono>
 #include <cmath>
+#include <csignal>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
@@ -2048,7 +2049,7 @@ TEST(Cli, CtrlCStopsCleanlyWritesWhatItHasAndResumes) {
     ASSERT_TRUE(WIFEXITED(status));
     if (WEXITSTATUS(status) == 0) continue;  // the run finished before the interrupt
     ++interrupted;
-    EXPECT_EQ(WEXITSTATUS(status), 1);
+    EXPECT_EQ(WEXITSTATUS(status), 128 + SIGINT);  // interrupted, resumable: not a failure (1)
     // What the run had: complete, parseable files, and a checkpoint that continues it.
     const auto summary = read_json(dir / "summary.json");
     EXPECT_TRUE(bool(summary["interrupted"]));
@@ -2120,9 +2121,10 @@ std::string long_steps(const char* rays) {
 }
 const char* kSetUpDone = "touches no particle";
 
-// A run stopped by a signal as Ctrl-C stops it: exit code 1, its results written as interrupted.
-void expect_stopped_cleanly(const Interrupted& r, const fs::path& out) {
-  EXPECT_EQ(r.status, 1) << r.printed;
+// A run stopped by `signal` as Ctrl-C stops it: exit code 128 + the signal's number (what a shell
+// reports of a process the signal ended; a failed run's is 1), its results written as interrupted.
+void expect_stopped_cleanly(const Interrupted& r, const fs::path& out, int signal = SIGINT) {
+  EXPECT_EQ(r.status, 128 + signal) << r.printed;
   ASSERT_TRUE(fs::exists(out / "summary.json")) << r.printed;
   EXPECT_TRUE(bool(read_json(out / "summary.json")["interrupted"]));
 }
@@ -2153,12 +2155,13 @@ TEST(Cli, AnInterruptDeliveredTwiceAtOnceStopsCleanly) {
 }
 
 // A hang-up (the terminal closed, the ssh session lost) stops the run as Ctrl-C does, with its
-// results and checkpoint (exit code 1); before, the signal killed it amid its temporary files.
+// results and checkpoint (exit code 129, 128 + SIGHUP); before, the signal killed it amid its
+// temporary files.
 TEST(Cli, AHangUpStopsTheRunAsAnInterruptDoes) {
   const fs::path dir = fresh_dir("hang_up");
   const Interrupted r = interrupt(dir, long_steps("300000") + (dir / "out").string(), kSetUpDone,
                                   "sleep 0.1; kill -HUP $p");
-  expect_stopped_cleanly(r, dir / "out");
+  expect_stopped_cleanly(r, dir / "out", SIGHUP);
   EXPECT_TRUE(fs::exists(dir / "out" / "checkpoint.bin"));
 }
 
@@ -2203,7 +2206,7 @@ TEST(Cli, ASecondInterruptEndsALongStepAtOnce) {
                                   "sleep 0.2; kill -INT $p; sleep 0.3; kill -INT $p");
   if (r.status == 0) GTEST_SKIP() << "the run finished before the interrupts";
   // On a machine that traces 3e6 rays in under 0.5 s the first interrupt's stop comes first.
-  if (r.status == 1 && fs::exists(dir / "out" / "summary.json"))
+  if (r.status == 130 && fs::exists(dir / "out" / "summary.json"))
     GTEST_SKIP() << "the step ended before the second interrupt (a clean stop)";
   EXPECT_EQ(r.status, 130) << r.printed;
   EXPECT_CONTAINS(r.printed, "interrupt again to quit at once");
@@ -2214,14 +2217,14 @@ TEST(Cli, ASecondInterruptEndsALongStepAtOnce) {
 
 // A set-up of seconds (1e6 particles, their contacts and the ray scene: about 3.5 s) writes
 // nothing, so a first interrupt ends it at once, writing nothing and removing the --out folders
-// the run made; exit code 1, as any interrupted run. Before, the run waited for the whole set-up,
-// ran a step and wrote its results (only a second interrupt ended it sooner).
+// the run made; exit code 130, as any run Ctrl-C stopped. Before, the run waited for the whole
+// set-up, ran a step and wrote its results (only a second interrupt ended it sooner).
 TEST(Cli, AnInterruptDuringSetUpEndsTheRunAtOnceWritingNothing) {
   const fs::path dir = fresh_dir("interrupt_set_up");
   const std::string args = "run --preset zohdi2013 --set packing.count=1000000 --out " +
                            (dir / "made" / "here").string();
   const Interrupted r = interrupt(dir, args, "setting up", "sleep 0.3; kill -INT $p");
-  EXPECT_EQ(r.status, 1) << r.printed;
+  EXPECT_EQ(r.status, 128 + SIGINT) << r.printed;
   EXPECT_LT(r.ms, 2000) << r.printed;
   EXPECT_CONTAINS(r.printed, "beampack: interrupted during set-up; nothing written");
   EXPECT_NOT_CONTAINS(r.printed, "stopping after the current step");
@@ -2261,7 +2264,7 @@ TEST(Cli, AnInterruptDuringASweepValuesSetUpKeepsTheEarlierRows) {
       "--quiet --out " +
       (dir / "out").string();
   const Interrupted r = interrupt(dir, args, "packing.count = 1000 ", "sleep 0.3; kill -INT $p");
-  EXPECT_EQ(r.status, 1) << r.printed;
+  EXPECT_EQ(r.status, 128 + SIGINT) << r.printed;
   EXPECT_LT(r.ms, 2000) << r.printed;
   EXPECT_CONTAINS(r.printed, "sweep interrupted during packing.count = 1000000");
   const auto rows = read_csv(dir / "out" / "sweep.csv");
@@ -2277,7 +2280,7 @@ TEST(Cli, ASweepInterruptedBeforeItsFirstValueEndsWritesNothing) {
       "sweep --preset zohdi2013 --param packing.count --values 1000000,1000 --out " +
       (dir / "made" / "here").string();
   const Interrupted r = interrupt(dir, args, "setting up", "sleep 0.3; kill -INT $p");
-  EXPECT_EQ(r.status, 1) << r.printed;
+  EXPECT_EQ(r.status, 128 + SIGINT) << r.printed;
   EXPECT_CONTAINS(r.printed,
                   "sweep interrupted during packing.count = 1000000: no value ran to "
                   "its end: nothing written");
@@ -2536,6 +2539,15 @@ TEST(Cli, ASweepValueThatFailsKeepsTheOthers) {
                                       " (--help lists the options)");
 }
 
+// The exit codes a script branches on are in the help, as the interrupt tests measure them.
+TEST(Cli, TheHelpNamesEveryExitCode) {
+  const Result help = run("--help");
+  EXPECT_EQ(help.code, 0) << help.output;
+  for (const char* code :
+       {"0 done", "1 a failed run", "2 bad input", "128 + N stopped by signal N", "130 for Ctrl-C"})
+    EXPECT_CONTAINS(help.output, code);
+}
+
 // converge checks its output directory and every rung's input before the first run, and an
 // interrupted rung is not written as a result.
 TEST(Cli, ConvergeRefusesBadOutputFirstAndKeepsNoInterruptedRung) {
@@ -2553,7 +2565,7 @@ TEST(Cli, ConvergeRefusesBadOutputFirstAndKeepsNoInterruptedRung) {
   const auto [code, text] =
       run("converge --preset zohdi2013 --set pulses.count=20000 --quiet --out " + out.string(),
           "timeout --preserve-status -s INT 0.5");
-  EXPECT_EQ(code, 1) << text;
+  EXPECT_EQ(code, 128 + SIGINT) << text;
   EXPECT_CONTAINS(text, "converge interrupted during time step");
   // It was cut, so there is no row: no table is written (a header alone would read as a result).
   EXPECT_CONTAINS(text, "converge interrupted before any rung ended: nothing written");
@@ -3013,7 +3025,7 @@ TEST(Cli, ABeamBeyondTheMachinesMemoryIsRefusedAtOnce) {
 TEST(Cli, StabilityGridStopsAtCtrlC) {
   const auto start = std::chrono::steady_clock::now();
   const auto [code, text] = run("validate --stiff --quiet", "timeout --preserve-status -s INT 1");
-  EXPECT_EQ(code, 1) << text;
+  EXPECT_EQ(code, 128 + SIGINT) << text;
   EXPECT_CONTAINS(text, "stability: interrupted after");
   // The interrupt's note on a line of its own, with no empty line before it (no progress line
   // here to end).

@@ -315,7 +315,7 @@ int converge_command(const RunOptions& options) {
     say_nothing_written(cut ? "converge interrupted before any rung ended"
                             : "converge: every ladder's reference rung failed",
                         out, tables);
-    return cut ? std::max(code, 1) : code;
+    return cut && code == 0 ? interrupted_exit_code() : code;
   }
   StageTime output;
   {
@@ -328,7 +328,7 @@ int converge_command(const RunOptions& options) {
     std::printf("%s\n", line.c_str());
   std::printf("converge: %s/convergence.csv, %s/convergence.svg\n", options.out_dir.c_str(),
               options.out_dir.c_str());
-  return cut ? std::max(code, 1) : code;
+  return cut && code == 0 ? interrupted_exit_code() : code;
 }
 
 }  // namespace beampack::tools

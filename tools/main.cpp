@@ -1,4 +1,5 @@
-// beampack: the command line (INTERFACE.md). Exit codes: 0 success, 1 failed run, 2 bad input.
+// beampack: the command line (INTERFACE.md). Exit codes: 0 success, 1 failed run, 2 bad input,
+// 128 + N stopped by signal N (130: Ctrl-C), as the help's footer says.
 #include <CLI/CLI.hpp>
 #include <cctype>
 #include <cerrno>
@@ -179,6 +180,9 @@ int main(int argc, char** argv) {
   install_interrupt_handler();
   CLI::App app{"beampack: laser processing of packed powders (Zohdi 2013)", "beampack"};
   app.require_subcommand(1);
+  app.footer(
+      "Exit codes: 0 done, 1 a failed run, 2 bad input, 128 + N stopped by signal N (130 for "
+      "Ctrl-C: `beampack run --resume DIR` goes on).");
   const beampack::BuildInfo built = beampack::build_info();
   app.set_version_flag("--version", std::string("beampack ") + built.version + " (git " +
                                         built.revision + ", " + built.build_type + ", " +

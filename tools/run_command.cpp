@@ -56,8 +56,9 @@ std::int64_t monotonic_ns() {
   return std::int64_t(t.tv_sec) * 1'000'000'000 + t.tv_nsec;
 }
 
-// When the first interrupt arrived (0: none yet).
+// When the first interrupt arrived (0: none yet), and its signal.
 std::atomic<std::int64_t> first_interrupt_ns{0};
+std::atomic<int> first_interrupt_signal{0};
 
 // Set while a simulation is set up on a worker thread (set_up_unless_interrupted): the first
 // interrupt then ends the command at once, and the main thread says so.
@@ -98,6 +99,7 @@ void on_interrupt(int signal) {
     ::kill(::getpid(), signal);
     return;
   }
+  first_interrupt_signal.store(signal);
   stop_requested().store(true);
   if (setting_up.load()) return;  // the set-up ends at once; the main thread says so
   static constexpr char kNote[] =
@@ -187,7 +189,8 @@ void install_interrupt_handler() {
 }
 
 std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config, bool quiet,
-                                                      const std::string& label) {
+                                                      const std::string& label,
+                                                      std::optional<StateReader> state) {
   struct SetUp {
     std::mutex mutex;
     std::condition_variable finished;
@@ -203,18 +206,20 @@ std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config, b
   reading_input.store(false);
   // The worker owns a copy of the configuration and its share of the result: when an interrupt
   // leaves it running, the caller's frame is gone before it ends.
-  const auto counted = [quiet, label, rays = config.sim.beam.rays, parts = set_up_parts(config.sim),
-                        shared](std::size_t particles) {
+  const std::string parts = set_up_parts(config.sim) + (state ? ", checkpoint's state" : "");
+  const auto counted =
+      [quiet, label, rays = config.sim.beam.rays, parts, shared](std::size_t particles) {
     if (!quiet && !stop_requested().load() && takes_seconds(particles, rays)) {
       announce_set_up(particles, rays, parts, label);
       shared->announced.store(true);
     }
   };
-  std::thread worker([shared, config, counted] {
+  std::thread worker([shared, config, counted, state = std::move(state)]() mutable {
     std::unique_ptr<Simulation> sim;
     std::exception_ptr error;
     try {
       sim = start_simulation(config, counted);
+      if (state) sim->read_state(*state);
     } catch (...) {
       error = std::current_exception();
     }
@@ -245,6 +250,11 @@ std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config, b
 
 void note_reading_input() {
   reading_input.store(true);
+}
+
+int interrupted_exit_code() {
+  const int signal = first_interrupt_signal.load();
+  return 128 + (signal > 0 ? signal : SIGINT);
 }
 
 int exit_code(int code) {
@@ -1484,7 +1494,7 @@ int finish_run(const Simulation& sim, const RunConfig& config, RunRecord& record
                "beampack: interrupted at t = %.6g s %s; outputs in %s hold that state "
                "(history.csv: the pulses before it); continue with: beampack run --resume %s\n",
                r.figures.time, where.c_str(), out.c_str(), out.c_str());
-  return 1;
+  return interrupted_exit_code();
 }
 
 int run_command(const RunOptions& options) {
@@ -1517,21 +1527,22 @@ int run_command(const RunOptions& options) {
   refuse_non_files_at_outputs(out_dir, is_output_name);
   const auto threads = limit_threads(options.threads);
   const auto start = Clock::now();
-  const std::unique_ptr<Simulation> owned = set_up_unless_interrupted(config, options.quiet);
+  const bool resumed = saved.has_value();
+  const std::unique_ptr<Simulation> owned =
+      set_up_unless_interrupted(config, options.quiet, "", std::move(saved));
   if (!owned) {  // nothing written yet: out_folder removes the folders this run made
     std::fprintf(stderr, "beampack: interrupted during set-up; nothing written\n");
-    return 1;
+    return interrupted_exit_code();
   }
   config.packing.reset();  // the simulation holds its own copy
   Simulation& sim = *owned;
   say_warnings("", sim.scene_warnings());
-  if (saved) sim.read_state(*saved);
   record.spent_checkpoint_here &= into_checkpoint_folder;
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
   remove_earlier_run(out_dir, into_checkpoint_folder);
-  if (saved) drop_missing_frames(options.resume, record);
+  if (resumed) drop_missing_frames(options.resume, record);
   const double output_before = record.stages.output.seconds;
-  if (saved && (!into_checkpoint_folder || !record.frames.empty())) {
+  if (resumed && (!into_checkpoint_folder || !record.frames.empty())) {
     const StageTimer timer(record.stages.output);  // the earlier pulses' files
     if (!into_checkpoint_folder)
       carry_earlier_files(options.resume, out_dir, record, config.output,
@@ -1539,19 +1550,19 @@ int run_command(const RunOptions& options) {
     if (!record.frames.empty())  // the series as it now stands, before any new frame
       write_pvd((fs::path(out_dir) / "particles.pvd").string(), record.frames);
   }
-  if (saved && config.output.rays) {
+  if (resumed && config.output.rays) {
     const StageTimer timer(record.stages.output);
     rebuild_ray_series(out_dir, record, into_checkpoint_folder);
   }
   reading.reset();  // the folder resumed from is read, and free for others
   sim.record_ray_paths(config.output.rays);
   const fs::path out(out_dir);
-  if (!saved && config.output.frames) write_start_frame(sim, out, record);
+  if (!resumed && config.output.frames) write_start_frame(sim, out, record);
   bool checkpoint_due = false;
   PulsesEnded ended(sim.figures(), sim.counts());
   GrowingFile history((out / "history.csv").string());  // a row as each pulse ends
   record_pulse_ends(sim, config.output, out, record, history, ended, checkpoint_due);
-  count_set_up(record.stages.setup, sim, saved.has_value(),
+  count_set_up(record.stages.setup, sim, resumed,
                seconds_since(start) - (record.stages.output.seconds - output_before));
   run_steps(sim, config, out, record, ended, checkpoint_due, options.quiet, start);
   return finish_run(sim, config, record, ended, out, start, options.quiet);
@@ -1819,7 +1830,7 @@ int sweep_command(const SweepOptions& options) {
   }
   if (vv.x.empty()) {  // a table of only failed values' empty rows is no result
     if (!cut) say_nothing_written("sweep: every value failed", out, tables);
-    return cut ? std::max(code, 1) : code;
+    return cut && code == 0 ? interrupted_exit_code() : code;
   }
   const Chart chart = sweep_chart(param, values, axis, vv);
   StageTime output;
@@ -1834,7 +1845,7 @@ int sweep_command(const SweepOptions& options) {
   std::printf("sweep: %zu run%s in %.2f s; %s/sweep.csv, %s/sweep.svg\n", vv.x.size(),
               plural(static_cast<long long>(vv.x.size())), total, options.run.out_dir.c_str(),
               options.run.out_dir.c_str());
-  return cut ? std::max(code, 1) : code;
+  return cut && code == 0 ? interrupted_exit_code() : code;
 }
 
 }  // namespace beampack::tools

@@ -14,6 +14,7 @@
 #include <utility>
 #include <vector>
 
+#include "engine/state_io.h"
 #include "tools/run_config.h"
 
 namespace beampack::tools {
@@ -46,9 +47,12 @@ bool keep_standard_streams_open();
 // a set-up of millions of particles takes seconds and writes nothing, so Ctrl-C during it ends
 // it at once instead of after it. Null when interrupted; the set-up is then left running, and
 // the command's exit_code ends the process. A set-up of seconds is announced on stderr, after
-// `label`, unless `quiet`, once the particles are counted and the memory check passes.
+// `label`, unless `quiet`, once the particles are counted and the memory check passes. A resumed
+// run's `state` is restored as part of the set-up: what "set up in" times includes it, and an
+// interrupt ends its restoring as it ends the rest.
 std::unique_ptr<Simulation> set_up_unless_interrupted(const RunConfig& config, bool quiet,
-                                                      const std::string& label = "");
+                                                      const std::string& label = "",
+                                                      std::optional<StateReader> state = {});
 // A command that sets up runs calls this before it reads its input: an interrupt then says that
 // the run ends once the read does (it is not cut short), not "after the current step".
 void note_reading_input();
@@ -56,6 +60,11 @@ void note_reading_input();
 // process ends here instead, with `code`, once stdout and stderr are flushed: the static
 // destructors (TBB's, Embree's) must not run under that thread.
 int exit_code(int code);
+// The exit code of a command an interrupt stopped before its end: 128 + the signal's number, as a
+// shell reports a process the signal ended (130 for Ctrl-C, 143 for SIGTERM), so that a script
+// tells "interrupted: --resume goes on" from "failed" (1) and "bad input" (2). A command that
+// failed as well returns 1.
+int interrupted_exit_code();
 
 // When a run's progress shows: not before two seconds, then at most every half second on a
 // terminal (the line rewritten in place) and every 30 s into a file or a pipe (a batch job's log:
@@ -97,7 +106,7 @@ void check_checkpoint_stage_times(double setup_seconds, double output_seconds,
 void check_history_text(const std::string& history, const std::string& source);
 
 // Runs one scene and writes summary.json, particles.csv, history.csv (and frames). Returns the
-// exit code: 0 done, 1 interrupted or failed.
+// exit code: 0 done, 1 failed, interrupted_exit_code() interrupted.
 int run_command(const RunOptions& options);
 
 struct SweepOptions {
