@@ -700,10 +700,13 @@ TEST(ThermalSolvers, TheParallelProductIsEigensBitForBitOnAnyThreadCount) {
   }
 }
 
-// cg_solve against Eigen's ConjugateGradient with the diagonal preconditioner, which it follows
-// step for step with its products and updates over threads: the same iterations, residual and
-// bits with one thread and two (seeded SPD system of 3e4 rows, a step matrix's shape).
-TEST(ThermalSolvers, ConjugateGradientsAreEigensBitForBitOnAnyThreadCount) {
+// A seeded SPD system of 3e4 rows with a step matrix's shape (a conductance graph's Laplacian
+// plus a positive diagonal), its right-hand side, and a guess.
+struct SeededSystem {
+  SparseMatrix a;
+  Eigen::VectorXd rhs, guess;
+};
+SeededSystem seeded_step_like_system() {
   const Eigen::Index n = 30000;
   std::mt19937_64 rng(7);
   std::uniform_real_distribution<double> u(0.0, 1.0);
@@ -723,11 +726,20 @@ TEST(ThermalSolvers, ConjugateGradientsAreEigensBitForBitOnAnyThreadCount) {
   a.setFromTriplets(entries.begin(), entries.end());
   Eigen::VectorXd rhs(n);
   for (double& v : rhs) v = u(rng) - 0.5;
-  const Eigen::VectorXd guess = Eigen::VectorXd::Constant(n, 0.01);
+  return {a, rhs, Eigen::VectorXd::Constant(n, 0.01)};
+}
+
+using EigenCg = Eigen::ConjugateGradient<SparseMatrix, Eigen::Lower | Eigen::Upper,
+                                         Eigen::DiagonalPreconditioner<double>>;
+
+// cg_solve against Eigen's ConjugateGradient with the diagonal preconditioner, which it follows
+// step for step with its products and updates over threads: the same iterations, residual and
+// bits with one thread and two.
+TEST(ThermalSolvers, ConjugateGradientsAreEigensBitForBitOnAnyThreadCount) {
+  const auto [a, rhs, guess] = seeded_step_like_system();
+  const Eigen::Index n = a.rows();
   for (const double tolerance : {1e-3, 1e-5, 1e-7, 1e-10}) {  // where each stops differs
-    Eigen::ConjugateGradient<SparseMatrix, Eigen::Lower | Eigen::Upper,
-                             Eigen::DiagonalPreconditioner<double>>
-        eigen;
+    EigenCg eigen;
     eigen.setTolerance(tolerance);
     eigen.setMaxIterations(1000);
     eigen.compute(a);
@@ -756,9 +768,7 @@ TEST(ThermalSolvers, ConjugateGradientsAreEigensBitForBitOnAnyThreadCount) {
   theta = converged;
   EXPECT_EQ(cg_solve(a, rhs, theta, 1e-10, 1000).iterations, 0);
   EXPECT_EQ(theta, converged);
-  Eigen::ConjugateGradient<SparseMatrix, Eigen::Lower | Eigen::Upper,
-                           Eigen::DiagonalPreconditioner<double>>
-      capped;
+  EigenCg capped;
   capped.setTolerance(1e-10);
   capped.setMaxIterations(3);
   capped.compute(a);
@@ -768,6 +778,36 @@ TEST(ThermalSolvers, ConjugateGradientsAreEigensBitForBitOnAnyThreadCount) {
   residual << "(relative residual " << capped.error() << ")";
   theta = guess;
   testing::expect_error<SolverRefusal>([&] { cg_solve(a, rhs, theta, 1e-10, 3); }, residual.str());
+}
+
+// cg_solve stops where its tolerance says, to the pass: with the tolerance just above the relative
+// residual Eigen reaches after k passes, it stops after pass k (a threshold a tenth tighter goes
+// on), and just below the residual after k - 1 passes, it still stops after pass k (one a tenth
+// looser stops sooner). Four tolerances a few decades apart could not tell those apart. Eigen's
+// count, which cg_solve keeps, is k - 1 then: a pass that converges is not counted, and a pass
+// capped by the maximum is.
+TEST(ThermalSolvers, ConjugateGradientsStopAtTheirToleranceToTheIteration) {
+  const auto [a, rhs, guess] = seeded_step_like_system();
+  const auto residual_at = [&, &a = a, &rhs = rhs, &guess = guess](int iterations) {
+    EigenCg capped;
+    capped.setTolerance(1e-300);
+    capped.setMaxIterations(iterations);
+    capped.compute(a);
+    const Eigen::VectorXd x = capped.solveWithGuess(rhs, guess);  // evaluated: it is lazy
+    EXPECT_EQ(capped.iterations(), iterations);
+    return capped.error();
+  };
+  for (const int k : {2, 5, 12, 30}) {
+    const double before = residual_at(k - 1), at = residual_at(k);
+    ASSERT_LT(at, 0.8 * before) << "pass " << k << ": the residual must fall to tell them";
+    for (const double tolerance : {at * (1 + 1e-9), before * (1 - 1e-9)}) {
+      Eigen::VectorXd theta = guess;
+      const SolveStats stats = cg_solve(a, rhs, theta, tolerance, 1000);
+      EXPECT_EQ(stats.iterations, k - 1)
+          << "tolerance " << tolerance << ", between the residuals " << before << " and " << at;
+      EXPECT_LT(stats.error, tolerance);
+    }
+  }
 }
 
 // A non-finite result from non-finite inputs is a defect upstream, a RunError that is no
