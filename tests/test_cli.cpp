@@ -372,6 +372,25 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"material.conductivity", "1e-4_00", "underflows to 0"});
   expect_input_error("below_double_underscore_file", "[material]\nconductivity = 1e-4_00\n", "",
                      {"run.toml:2", "1e-4_00: underflows to 0"});
+  // A --set table, array or quoted string that is not TOML is refused as TOML, with where it
+  // failed (`{conductivity=abc}` was taken as a bare word and then told "`material` is a table
+  // of keys ... not a value"); a bare word is still a string.
+  expect_input_error("set_table_value", "", "--preset quick --set 'material={conductivity=abc}'",
+                     {"--set material={conductivity=abc}: the value of `material` is not TOML",
+                      "at character 15 (`abc}`)", "a text in it quoted"});
+  expect_input_error("set_table_comma", "",
+                     "--preset quick --set 'material={conductivity=5 density=2000}'",
+                     {"expected comma or closing '}'", "at character 17 (`density=2000}`)"});
+  expect_input_error("set_table_cut", "", "--preset quick --set 'beam={rays=5'",
+                     {"the value of `beam` is not TOML", "at its end"});
+  // A name TOML reads as another type (a packing file named 123) is told how to quote it.
+  expect_input_error(
+      "file_named_a_number", "", "--preset quick --set packing.source=file --set packing.file=123",
+      {"`packing.file` = 123: must be a string (TOML reads 123 as a number: quote it, --set "
+       "'packing.file=\"123\"')"});
+  expect_input_error(
+      "file_named_a_boolean", "[packing]\nsource = \"file\"\nfile = true\n", "",
+      {"run.toml:3", "TOML reads true as a boolean: quote it, packing.file = \"true\""});
   expect_input_error("wall_conductance", "",
                      "--preset quick --set thermal.walls=z- --set thermal.wall_conductance=-0.5",
                      {"thermal.wall_conductance", "-0.5", "or -1"});
@@ -734,7 +753,11 @@ TEST(Cli, NumbersBeyondTheArithmeticAreRefusedAndTheLimitsRun) {
 TEST(Cli, AValueBelowALimitedKeysRangeIsToldTheWholeRange) {
   const std::pair<const char*, const char*> cases[] = {
       {"material.conductivity=-1", "must be >= 0 and <= 1e+20"},
-      {"thermal.wall_conductance=-2", "must be >= -1 and <= 1e+20"},
+      // -1 stands for pi K R: "must be >= -1" admitted -0.5, which the next check refused
+      {"thermal.wall_conductance=-2", "must be >= 0 and <= 1e+20, or -1 (pi K R"},
+      {"thermal.wall_conductance=-0.5", "must be >= 0 and <= 1e+20, or -1 (pi K R"},
+      {"thermal.wall_conductance=abc", "must be a number >= 0 and <= 1e+20, or -1"},
+      {"thermal.wall_conductance=nan", "must be a finite number >= 0 and <= 1e+20, or -1"},
       {"material.latent_melt=-1", "must be >= 0 and <= 1e+12"},
       {"material.c_solid=0", "must be > 0 and <= 1e+12"},
       {"material.vapor_temperature=0", "must be > 0 and <= 1e+12"},

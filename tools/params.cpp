@@ -378,6 +378,27 @@ std::string assignment_key(const std::string& key_equals_value) {
   return trimmed(key_equals_value.substr(0, key_equals_value.find('=')));
 }
 
+namespace {
+
+// Where in a --set's `value` TOML failed ("v = " came before it), and why; inside a table or an
+// array a text is a string only in quotes.
+std::string not_toml(const toml::parse_error& e, const std::string& value) {
+  constexpr std::size_t kPrefix = 4;  // "v = "
+  const std::size_t column = e.source().begin.column;
+  const std::size_t at = column > kPrefix ? std::min(column - kPrefix - 1, value.size()) : 0;
+  const std::string where = at >= value.size() ? "at its end"
+                                               : "at character " + std::to_string(at + 1) + " (`" +
+                                                     value.substr(at) + "`)";
+  const std::string hint =
+      value.front() == '{'   ? "; a table is {key = value, ...}, a text in it quoted: "
+                               "{file = \"p.xyz\"}"
+      : value.front() == '[' ? "; an array is [value, ...], a text in it quoted: [\"a\", \"b\"]"
+                             : "";
+  return std::string(e.description()) + ", " + where + hint;
+}
+
+}  // namespace
+
 void Params::merge_assignment(const std::string& key_equals_value, const std::string& origin,
                               bool swept) {
   const std::string named = origin.empty() ? "--set " + key_equals_value : origin;
@@ -392,8 +413,14 @@ void Params::merge_assignment(const std::string& key_equals_value, const std::st
   toml::table parsed;
   try {
     parsed = parsed_value(value, "--set");
-  } catch (const std::runtime_error&) {  // toml::parse_error, or non-ASCII outside quotes
+  } catch (const toml::parse_error& e) {
+    // A table, an array or a quoted string is TOML the user wrote: its error is theirs to mend,
+    // not a bare word (`{conductivity=abc}` was taken as text, then told to be a table).
+    if (!value.empty() && std::string_view("{[\"'").find(value.front()) != std::string::npos)
+      throw InputError(named + ": the value of `" + key + "` is not TOML: " + not_toml(e, value));
     parsed = toml::table{{"v", value}};  // a bare word: a string
+  } catch (const std::runtime_error&) {  // non-ASCII outside quotes
+    parsed = toml::table{{"v", value}};
   }
   if (parsed.size() != 1)  // "5\nbogus = 7": the second line would go unread
     throw InputError(named + ": the value of `" + key + "` must be one TOML value (" +
@@ -549,6 +576,25 @@ double Params::number(const std::string& key, double fallback, double lo, double
   return v;
 }
 
+double Params::number_or(const std::string& key, double fallback, double lo, double stated_hi,
+                         double special, const std::string& meaning) {
+  const std::string rule = ">= " + shown_number(lo) + " and <= " + shown_number(stated_hi) +
+                           ", or " + shown_number(special) + " (" + meaning + ")";
+  double v = fallback;
+  if (const toml::node* node = find(key)) {
+    const std::optional<double> read = node->is_number() ? node->value<double>() : std::nullopt;
+    if (node->is_string() && beyond_doubles(node->as_string()->get()) > 0)
+      fail(key, repr(*node), "must be a finite number " + rule + " (it is beyond a double's)");
+    if (!read) fail(key, repr(*node), "must be a number " + rule);
+    if (!std::isfinite(*read)) fail(key, repr(*node), "must be a finite number " + rule);
+    v = *read;
+  }
+  if (v != special && !(v >= lo)) fail(key, shown_number(v), "must be " + rule);
+  record(key, toml::value<double>(v));
+  number_defaults_[key] = fallback;
+  return v;
+}
+
 namespace {
 
 // A whole number written as a float (1e3, 1000.0) is a float to TOML: say how to write it.
@@ -578,10 +624,25 @@ std::int64_t Params::integer(const std::string& key, std::int64_t fallback, std:
   return v;
 }
 
+// A name TOML reads as a number, a boolean or a date (a file named 123) is a string in quotes:
+// how to write it where it was given.
+std::string Params::quoting_hint(const std::string& key, const toml::node& node) const {
+  if (node.is_table() || node.is_array()) return "";
+  const std::string shown = repr(node);
+  return " (TOML reads " + shown + " as a " +
+         std::string(node.is_number()    ? "number"
+                     : node.is_boolean() ? "boolean"
+                                         : "date or time") +
+         ": quote it, " +
+         (set_on_command_line(key) ? "--set '" + key + "=\"" + shown + "\"'"
+                                   : key + " = \"" + shown + "\"") +
+         ")";
+}
+
 std::string Params::text(const std::string& key, const std::string& fallback) {
   std::string v = fallback;
   if (const toml::node* node = find(key)) {
-    if (!node->is_string()) fail(key, repr(*node), "must be a string");
+    if (!node->is_string()) fail(key, repr(*node), "must be a string" + quoting_hint(key, *node));
     v = node->as_string()->get();
   }
   record(key, toml::value<std::string>(v));

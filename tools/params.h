@@ -48,6 +48,10 @@ class Params {
   // message too so that a value below lo is told the whole range.
   double number(const std::string& key, double fallback, double lo, double hi, bool lo_open = false,
                 bool hi_open = false, double stated_hi = std::numeric_limits<double>::max());
+  // A number >= lo, or exactly `special` (standing for `meaning`), every refusal stating both;
+  // stated_hi as for number(). A range from `special` up would admit the values between.
+  double number_or(const std::string& key, double fallback, double lo, double stated_hi,
+                   double special, const std::string& meaning);
   std::int64_t integer(const std::string& key, std::int64_t fallback, std::int64_t lo,
                        std::int64_t hi);
   std::string text(const std::string& key, const std::string& fallback);
@@ -100,6 +104,7 @@ class Params {
 
  private:
   const toml::node* find(const std::string& key) const;
+  std::string quoting_hint(const std::string& key, const toml::node& node) const;
   const KeyOrigin* origin(const std::string& key) const;
   std::string where(const std::string& key) const;  // "run.toml:12: " or "--set: " or ""
   void record(const std::string& key, toml::node&& value);

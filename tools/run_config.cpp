@@ -186,10 +186,10 @@ std::vector<Wall> read_walls(Params& p, double size) {
       number_up_to(p, "thermal.wall_temperature", 300, 0, kTemperatureCap, true);
   const double reach = p.number("thermal.wall_reach", 0, 0, kBig);
   const double conductance =
-      number_up_to(p, "thermal.wall_conductance", -1, -1, kWallConductanceCap);
-  if (conductance < 0 && conductance != -1)
-    p.fail("thermal.wall_conductance", shown_number(conductance),
-           "must be >= 0 (W/K per particle) or -1 (pi K R, from material.conductivity)");
+      capped(p, "thermal.wall_conductance",
+             p.number_or("thermal.wall_conductance", -1, 0, kWallConductanceCap.limit, -1,
+                         "pi K R, from material.conductivity"),
+             kWallConductanceCap);
   std::vector<Wall> walls;
   std::vector<std::string> seen;
   std::stringstream list(faces);
