@@ -46,6 +46,45 @@ std::vector<double> circle_ys(const std::string& svg) {
   return out;
 }
 
+// The x tick labels, each with its centre: (x, text).
+std::vector<std::pair<double, std::string>> placed_x_labels(const std::string& svg) {
+  std::vector<std::pair<double, std::string>> out;
+  const std::regex text("<text x=\"([^\"]*)\" y=\"380\"[^>]*>([^<]*)</text>");
+  for (auto it = std::sregex_iterator(svg.begin(), svg.end(), text); it != std::sregex_iterator();
+       ++it)
+    out.emplace_back(std::stod((*it)[1]), (*it)[2]);
+  return out;
+}
+
+// Neighbouring x labels do not overprint (at 7 px a character, font-size 12), however many digits
+// tell the ticks apart: 13-digit labels 73 px apart did (a user audit's sweep of sample.size over
+// 0.001 and 0.0010000001). Labels of categories too; the labels kept still differ, and a short
+// axis keeps them all.
+TEST(Charts, NeighbouringTickLabelsDoNotOverprint) {
+  const Chart fine{"t", "x", "y", false, false, {{"a", {0.001, 0.0010000001}, {1, 2}}}};
+  const Chart words{"t",
+                    "x",
+                    "y",
+                    false,
+                    false,
+                    {{"a", {0, 1, 2, 3, 4}, {1, 2, 3, 4, 5}}},
+                    {"a-long-packing-file-name.xyz", "another-packing.xyz", "b.xyz", "c.xyz",
+                     "the-last-packing-file.xyz"}};
+  for (const Chart& chart : {fine, words}) {
+    const auto labels = placed_x_labels(render_svg(chart));
+    ASSERT_GE(labels.size(), 2u) << render_svg(chart);
+    for (std::size_t k = 1; k < labels.size(); ++k) {
+      const double half_widths =
+          3.5 * double(labels[k - 1].second.size() + labels[k].second.size());
+      EXPECT_GT(labels[k].first - labels[k - 1].first, half_widths)
+          << labels[k - 1].second << " and " << labels[k].second;
+      EXPECT_NE(labels[k].second, labels[k - 1].second);
+    }
+  }
+  const Chart plain{"t", "x", "y", false, false, {{"a", {0, 1, 2, 3, 4, 5}, {1, 2, 3, 4, 5, 6}}}};
+  EXPECT_EQ(placed_x_labels(render_svg(plain)).size(), 6u) << render_svg(plain);
+}
+
 // Tick labels below 1e-12 all read "0" (an absolute round-off threshold): pulse durations of
 // 1e-13..1e-12 s were labelled 0 0 0 0 0 1e-12, time steps of 1e-14..1e-13 s all 0.
 TEST(Charts, TickLabelsOfTinyValuesAreTheirValues) {

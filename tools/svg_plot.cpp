@@ -160,6 +160,20 @@ bool has_zero_on_log_y(const Chart& chart) {
   return false;
 }
 
+// Every stride-th of `labels` (centred on ticks `spacing` px apart) so that none overprints its
+// neighbour: about 7 px a character at font-size 12, and a 6 px gap.
+std::size_t label_stride(const std::vector<std::string>& labels, double spacing) {
+  constexpr double kCharWidth = 7, kGap = 6;
+  std::size_t widest = 0;
+  for (const std::string& label : labels) widest = std::max(widest, label.size());
+  if (!(spacing > 0)) return 1;
+  return std::max<std::size_t>(
+      1, std::size_t(std::ceil((kCharWidth * double(widest) + kGap) / spacing)));
+}
+
+// The x ticks, each label centred below its tick; labels too long for their ticks' spacing are
+// thinned to every second (third, ...) tick, whose values are still told apart (13-digit labels
+// 73 px apart overprinted each other).
 void write_x_ticks(std::ostream& o, const Chart& chart, const Axis& ax, const Frame& f) {
   const bool categories = !chart.x_categories.empty();
   std::vector<double> x_ticks = ticks(ax);
@@ -167,14 +181,21 @@ void write_x_ticks(std::ostream& o, const Chart& chart, const Axis& ax, const Fr
     x_ticks.clear();
     for (std::size_t k = 0; k < chart.x_categories.size(); ++k) x_ticks.push_back(double(k));
   }
-  for (double fx : x_ticks) {
-    const double x = kLeft + f.w * (fx - ax.lo) / (ax.hi - ax.lo);
-    const std::string label =
-        categories ? chart.x_categories[std::size_t(std::lround(fx))] : tick_label(fx, ax);
+  std::vector<std::string> labels;
+  for (double fx : x_ticks)
+    labels.push_back(categories ? chart.x_categories[std::size_t(std::lround(fx))]
+                                : tick_label(fx, ax));
+  const auto at = [&](double fx) { return kLeft + f.w * (fx - ax.lo) / (ax.hi - ax.lo); };
+  const double spacing = x_ticks.size() > 1 ? at(x_ticks[1]) - at(x_ticks[0]) : f.w;
+  const std::size_t stride = label_stride(labels, spacing);
+  for (std::size_t k = 0; k < x_ticks.size(); ++k) {
+    const double x = at(x_ticks[k]);
     o << "<line x1=\"" << x << "\" y1=\"" << kTop + f.h << "\" x2=\"" << x << "\" y2=\""
-      << kTop + f.h + 5 << "\" stroke=\"black\"/>"
-      << "<text x=\"" << x - 15 << "\" y=\"" << kTop + f.h + 20 << "\">" << xml_text(label)
-      << "</text>\n";
+      << kTop + f.h + 5 << "\" stroke=\"black\"/>";
+    if (k % stride == 0)
+      o << "<text x=\"" << x << "\" y=\"" << kTop + f.h + 20 << "\" text-anchor=\"middle\">"
+        << xml_text(labels[k]) << "</text>";
+    o << "\n";
   }
 }
 
