@@ -360,6 +360,58 @@ TEST(ThermalGraph, DroppingRemovedContactsEqualsANewSearch) {
   }
 }
 
+// The contacts with a removed end, counted from the list and the live flags.
+std::size_t removed_contacts(const ThermalModel& model, const Particles& p) {
+  std::size_t n = 0;
+  for (const Contact& c : model.contacts()) n += !p.alive[c.i] || !p.alive[c.j];
+  return n;
+}
+
+// drop_removed_contacts cuts the list once its removed contacts reach the fraction asked, and not
+// before, over vaporisations in several steps and after a restore brings particles back (it keeps
+// a bound on them instead of looking at the list at every vaporisation).
+TEST(ThermalGraph, RemovedContactsAreDroppedAtTheirThresholdOverSeveralSteps) {
+  RestingScene s(0.0);
+  std::vector<double> first(s.p.size(), 0.0), second(s.p.size(), 0.0);
+  for (std::size_t i = 0; i < s.p.size(); ++i) {
+    const double x = s.p.centre[i].x();
+    (x < 5e-5 ? first : second)[i] = x < 1e-4 ? 1e-8 : 0.0;
+  }
+  ThermalModel model(s.p, {s.m}, {});
+  model.set_contacts(find_contacts(s.p));
+  const ThermalModel::Snapshot start = model.save();
+  const double n = static_cast<double>(model.contacts().size());
+  for (int pass = 0; pass < 2; ++pass) {  // the second after the restore
+    ASSERT_FALSE(model.step(1e-10, first).vaporized.empty());
+    const std::size_t after_first = removed_contacts(model, s.p);
+    ASSERT_GT(after_first, 0u);
+    model.drop_removed_contacts((double(after_first) + 0.5) / n);  // one short: kept
+    EXPECT_EQ(removed_contacts(model, s.p), after_first) << "pass " << pass;
+    std::vector<double> onto_live = second;  // conduction may have vaporised some already
+    for (std::size_t i = 0; i < s.p.size(); ++i)
+      if (!s.p.alive[i]) onto_live[i] = 0.0;
+    ASSERT_FALSE(model.step(1e-10, onto_live).vaporized.empty());
+    const std::size_t after_second = removed_contacts(model, s.p);
+    ASSERT_GT(after_second, after_first + 1);
+    model.drop_removed_contacts((double(after_second) - 0.5) / n);  // reached: cut
+    EXPECT_EQ(removed_contacts(model, s.p), 0u) << "pass " << pass;
+    EXPECT_EQ(double(model.contacts().size()), n - double(after_second)) << "pass " << pass;
+    model.restore(start);
+    model.set_contacts(find_contacts(s.p));  // every particle back, with its contacts
+  }
+  // A restore to a state with removed particles (a checkpoint's) after a look that found none.
+  ASSERT_FALSE(model.step(1e-10, first).vaporized.empty());
+  const ThermalModel::Snapshot removed = model.save();
+  const std::size_t in_removed = removed_contacts(model, s.p);
+  model.restore(start);
+  model.drop_removed_contacts(0.0);  // none removed now
+  ASSERT_EQ(double(model.contacts().size()), n);
+  model.restore(removed);
+  model.drop_removed_contacts((double(in_removed) - 0.5) / n);
+  EXPECT_EQ(removed_contacts(model, s.p), 0u);
+  EXPECT_EQ(double(model.contacts().size()), n - double(in_removed));
+}
+
 // A vaporisation (and its undoing by restore) updates the matrix in place; a new assembly from
 // the cut contact list gives the same values up to explicit zeros, which CG's sums do not see:
 // the temperatures agree bit for bit.

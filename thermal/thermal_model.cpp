@@ -94,23 +94,34 @@ void ThermalModel::set_contacts(const std::vector<Contact>& contacts) {
       contacts.size() == contacts_.size() &&
       std::equal(contacts.begin(), contacts.end(), contacts_.begin(),
                  [](const Contact& a, const Contact& b) { return a.i == b.i && a.j == b.j; });
-  for (const Contact& c : contacts)
+  std::vector<std::uint32_t> degree(p_.size(), 0);
+  std::size_t removed = 0;
+  for (const Contact& c : contacts) {
     if (c.i >= p_.size() || c.j >= p_.size() || c.i == c.j)
       throw InputError("contact (" + std::to_string(c.i) + ", " + std::to_string(c.j) +
                        "): indices must be distinct and < " + std::to_string(p_.size()));
+    ++degree[c.i], ++degree[c.j];
+    removed += !p_.alive[c.i] || !p_.alive[c.j];
+  }
   contacts_ = contacts;
+  contact_degree_ = std::move(degree);
+  removed_contacts_bound_ = removed;
   g_ = contact_conductances(p_, materials_, contacts_);
   if (!same_pattern) all_.pattern_version = ++versions_;
   dirty_ = pattern_dirty_ = true;
 }
 
 void ThermalModel::drop_removed_contacts(double min_fraction) {
+  const double threshold = min_fraction * static_cast<double>(contacts_.size());
+  const auto bound = static_cast<double>(removed_contacts_bound_);
+  if (removed_contacts_bound_ == 0 || bound < threshold) return;  // fewer removed than that
   std::vector<Contact> live;
   live.reserve(contacts_.size());
   for (const Contact& c : contacts_)
     if (p_.alive[c.i] && p_.alive[c.j]) live.push_back(c);
   const double dead = static_cast<double>(contacts_.size() - live.size());
-  if (dead > 0 && dead >= min_fraction * static_cast<double>(contacts_.size())) set_contacts(live);
+  if (dead > 0 && dead >= threshold) set_contacts(live);
+  else removed_contacts_bound_ = contacts_.size() - live.size();
 }
 
 namespace {
@@ -895,6 +906,8 @@ void ThermalModel::update_phases(const Eigen::VectorXd& theta1, StepReport& repo
       continue;
     }
     p_.remove(i);
+    if (i < contact_degree_.size() && removed_contacts_bound_ != kBoundUnknown)
+      removed_contacts_bound_ += contact_degree_[i];
     flipped_.push_back(static_cast<Eigen::Index>(i));
     ledger_.vaporized += stored_[i];
     ledger_.stored -= stored_[i];
@@ -1124,6 +1137,7 @@ void ThermalModel::restore(const Snapshot& s) {
   // Reassemble only if the live set differs from the matrix's: a redo without vaporisation keeps
   // it (compared with the assembled set, not p_.alive, which a checkpoint may have set already).
   if (all_.live != s.alive) dirty_ = true;
+  removed_contacts_bound_ = kBoundUnknown;  // the snapshot's live set: drop_removed_contacts looks
   // Without walls the reference moves no term of the system (no wall sources): it is taken over.
   // With walls it is the first wall's temperature, as the spec gives it.
   if (!has_walls_) {

@@ -287,6 +287,13 @@ class ThermalModel {
   WallCoupling walls_;
   bool has_walls_ = false;
   std::vector<Contact> contacts_;
+  // Each particle's contacts in contacts_, and a bound on the contacts with a removed end: the
+  // exact count when the list was set, plus the contacts of each particle removed since (undone
+  // removals leave it high). drop_removed_contacts looks at the list only once the bound reaches
+  // its threshold (it copied the list at every vaporisation: 3.7% of a 10^6 run's profile).
+  std::vector<std::uint32_t> contact_degree_;
+  std::size_t removed_contacts_bound_ = 0;
+  static constexpr std::size_t kBoundUnknown = std::numeric_limits<std::size_t>::max();
   std::vector<double> g_;    // G_ij per contact
   System all_;               // every particle
   System busy_;              // the busy components' particles (skip_resting)
