@@ -1,6 +1,7 @@
 // Inputs, the conductance graph, what runs and what is skipped, solver agreement, the reuse of
 // the direct factorisation, and save/restore for the stagger.
 #include <gtest/gtest.h>
+#include <tbb/task_arena.h>
 
 #include <cstdlib>
 #include <random>
@@ -305,6 +306,59 @@ RestingRun run_resting(double heat, const ThermalSpec& base, bool skip, double c
   r.live_particles = s.p.alive_count();
   r.imbalance = std::abs(model.ledger().imbalance()) / model.ledger().absorbed;
   return r;
+}
+
+struct ManyRowRun {
+  std::vector<double> temperature;
+  std::size_t solved = 0, live = 0;  // the first step's
+};
+
+// Three steps of a 4e4-sphere packing heated over a third of its depth, on `threads` threads.
+ManyRowRun many_row_run(const Particles& start, const std::vector<Contact>& contacts, bool skip,
+                        int threads) {
+  Particles p = start;
+  std::vector<double> dh(p.size(), 0.0);
+  for (std::size_t i = 0; i < p.size(); ++i)
+    if (p.centre[i].x() < 0.35e-3) dh[i] = 1e-13 * (1.0 + double(i % 7));
+  Material m;
+  m.conductivity = 100;
+  ThermalSpec spec;
+  spec.solver = "cg";
+  spec.tolerance = 1e-13;
+  spec.skip_resting = skip;
+  ManyRowRun r;
+  tbb::task_arena arena(threads);
+  arena.execute([&] {
+    ThermalModel model(p, {m}, spec);
+    model.set_contacts(contacts);
+    for (int k = 0; k < 3; ++k) {
+      const StepReport report = model.step(2e-10, k < 2 ? dh : std::vector<double>{});
+      if (k == 0) r.solved = report.solved_rows, r.live = report.live_rows;
+    }
+  });
+  r.temperature = p.temperature;
+  return r;
+}
+
+// Busy rows beyond the count at which their system is cut over threads (8192): the temperatures
+// of the whole solve (to its tolerance), and the same bits on one thread and two.
+TEST(ThermalSkip, AManyRowBusySystemMatchesTheWholeSolveOnAnyThreadCount) {
+  const Particles start = random_overlap_packing(40000, 1e-3, 0.325, 3);
+  const std::vector<Contact> contacts = find_contacts(start);
+  const ManyRowRun one = many_row_run(start, contacts, true, 1),
+                   two = many_row_run(start, contacts, true, 2),
+                   whole = many_row_run(start, contacts, false, 2);
+  ASSERT_GT(one.solved, 8192u * 3 / 2);
+  ASSERT_LT(one.solved, one.live);  // the busy system, not the whole
+  EXPECT_EQ(whole.solved, whole.live);
+  std::size_t heated = 0;
+  for (std::size_t i = 0; i < start.size(); ++i) {
+    ASSERT_EQ(one.temperature[i], two.temperature[i]) << "particle " << i;
+    ASSERT_NEAR(one.temperature[i], whole.temperature[i], 1e-9 * whole.temperature[i])
+        << "particle " << i;
+    heated += one.temperature[i] > 300.0;
+  }
+  EXPECT_GT(heated, 8192u);
 }
 
 TEST(ThermalSkip, RestingComponentsAreSkippedAndTheBusyOnesMatchTheWholeSolve) {

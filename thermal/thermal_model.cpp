@@ -8,6 +8,9 @@
 #include <numeric>
 #include <sstream>
 
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
 #include "geometry/check.h"
 #include "geometry/error.h"
 #include "geometry/packing.h"
@@ -504,43 +507,70 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_kept_and_new(
 
 // busy_ cut from all_: the rows' columns of L + W (their nonzero entries stay inside the rows'
 // components; explicit zeros of contacts with vaporised particles are dropped) and their clusters.
+namespace {
+
+// f(k) for k in [0, m): over threads for many rows (each k writes only its own entries).
+template <class F>
+void for_each_busy_row(Eigen::Index m, const F& f) {
+  constexpr Eigen::Index kParallelRows = 8192;
+  if (m < kParallelRows) {
+    for (Eigen::Index k = 0; k < m; ++k) f(k);
+    return;
+  }
+  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, m, 2048),
+                    [&](const tbb::blocked_range<Eigen::Index>& r) {
+    for (Eigen::Index k = r.begin(); k < r.end(); ++k) f(k);
+  });
+}
+
+}  // namespace
+
+// The busy rows' part of L + W, column k from particle rows[k]'s column without the entries of
+// rows outside (rows ascend, so each column's entries stay sorted). Written straight into the
+// compressed arrays, rows over threads: each column's count, their offsets, then the entries (the
+// same matrix as inserted column by column; a copy of 3e4 scattered columns out of 10^6 on every
+// change of the busy rows was 10% of a 10^6-sphere run's profile).
 void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
   System& s = busy_;
   const auto m = static_cast<Eigen::Index>(rows.size());
   std::vector<Eigen::Index>& row_of = row_of_;  // -1 outside the rows between calls
   row_of.resize(p_.size(), -1);
-  for (Eigen::Index k = 0; k < m; ++k) row_of[rows[k]] = k;
+  for_each_busy_row(m, [&](Eigen::Index k) { row_of[rows[k]] = k; });
   s.diagonal.resize(m), s.wall_source.resize(m), s.wall_conductance.resize(m);
   s.has_conduction = all_.has_conduction;
-  if (s.has_conduction) {  // column by column: rows ascend, so each column's entries stay sorted
+  if (s.has_conduction) {
     const SparseMatrix& all = all_.laplacian;
-    Eigen::Index entries = 0;
-    for (Eigen::Index k = 0; k < m; ++k)
-      entries += all.outerIndexPtr()[rows[k] + 1] - all.outerIndexPtr()[rows[k]];
     s.laplacian = SparseMatrix(m, m);
-    s.laplacian.reserve(entries);
+    int* outer = s.laplacian.outerIndexPtr();
+    for_each_busy_row(m, [&](Eigen::Index k) {
+      int count = 0;
+      for (SparseMatrix::InnerIterator it(all, rows[k]); it; ++it) count += row_of[it.row()] >= 0;
+      outer[k + 1] = count;  // a vaporised neighbour's explicit zero is left out
+    });
+    for (Eigen::Index k = 0; k < m; ++k) outer[k + 1] += outer[k];
+    s.laplacian.resizeNonZeros(outer[m]);
     s.diag_pos.resize(static_cast<std::size_t>(m));
-    Eigen::Index at = 0;
-    for (Eigen::Index k = 0; k < m; ++k) {
-      s.laplacian.startVec(k);
+    int* inner = s.laplacian.innerIndexPtr();
+    double* values = s.laplacian.valuePtr();
+    for_each_busy_row(m, [&](Eigen::Index k) {
+      Eigen::Index at = outer[k];
       for (SparseMatrix::InnerIterator it(all, rows[k]); it; ++it) {
         const Eigen::Index r = row_of[it.row()];
-        if (r < 0) continue;  // a vaporised neighbour's explicit zero
+        if (r < 0) continue;
         if (r == k) s.diag_pos[k] = at, s.diagonal[k] = it.value();
-        s.laplacian.insertBack(r, k) = it.value();
+        inner[at] = static_cast<int>(r), values[at] = it.value();
         ++at;
       }
-    }
-    s.laplacian.finalize();
+    });
   } else {
     s.laplacian = SparseMatrix();
     for (Eigen::Index k = 0; k < m; ++k) s.diagonal[k] = all_.diagonal[rows[k]];  // the walls'
   }
-  for (Eigen::Index k = 0; k < m; ++k) {
+  for_each_busy_row(m, [&](Eigen::Index k) {
     s.wall_source[k] = all_.wall_source[rows[k]];
     s.wall_conductance[k] = all_.wall_conductance[rows[k]];
-    row_of[rows[k]] = -1;
-  }
+  });
+  for_each_busy_row(m, [&](Eigen::Index k) { row_of[rows[k]] = -1; });
   s.live.assign(static_cast<std::size_t>(m), 1);
   s.pattern_version = ++versions_;
   s.particle = std::move(rows);
