@@ -51,6 +51,33 @@ TEST(ThermalExact, LumpedModelMatchesClosedForm) {
   EXPECT_GT(theta - lumped.theta_w, 90.0);  // the test is not trivially near theta_w
 }
 
+// Two walls at different temperatures, conductance g each, hold a sphere at their mean plus its
+// power over 2 g; one implicit step is theta1 = (c theta0 + dt (g 300 + g 400 + P)) / (c + 2 dt g),
+// in either order of the walls (the first one's temperature is the solve's reference). Every
+// other test's walls share a temperature, which a source built from the first wall's alone passed.
+TEST(ThermalExact, ASphereBetweenWallsAtTwoTemperaturesTakesTheirMean) {
+  const Lumped l;
+  const double g = l.k * l.area / l.length, c = l.capacity(), power = 20.0 * g;
+  const double dt = 0.1 * c / g;
+  for (const bool hot_first : {false, true}) {
+    Particles p;
+    p.add(Vec3(l.radius, 0, 0), l.radius, 0, 300.0);
+    ThermalSpec spec;
+    spec.time_scaling = l.scaling;
+    spec.walls = {{0, 0.0, 0.0, hot_first ? 400.0 : 300.0, g},
+                  {0, 2.0 * l.radius, 0.0, hot_first ? 300.0 : 400.0, g}};
+    ThermalModel model(p, {l.material}, spec);
+    model.step(dt, {power * dt});
+    EXPECT_NEAR(p.temperature[0], (c * 300.0 + dt * (700.0 * g + power)) / (c + 2.0 * dt * g), 1e-9)
+        << "hot wall first: " << hot_first;
+    for (int step = 0; step < 2000; ++step) model.step(dt, {power * dt});
+    EXPECT_NEAR(p.temperature[0], 350.0 + power / (2.0 * g), 1e-6) << hot_first;
+    // The heat from the hot wall and the beam's left through the cold one, less what it kept.
+    const ThermalLedger& e = model.ledger();
+    EXPECT_NEAR(e.imbalance(), 0.0, 1e-12 * e.absorbed) << hot_first;
+  }
+}
+
 double measured_order(double phi) {
   const Lumped lumped;
   const double t_end = 2.0 * lumped.tau();

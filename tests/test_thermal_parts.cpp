@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 #include <tbb/task_arena.h>
 
+#include <cmath>
 #include <cstdlib>
 #include <random>
 #include <sstream>
@@ -30,6 +31,22 @@ TEST(ThermalInput, MaterialMessagesNameKeyValueAndLimit) {
   d.density = std::nan("");
   EXPECT_CONTAINS(testing::error_message<InputError>([&] { d.validate(); }),
                   "material.density = nan");
+  // The boundaries: theta_v = theta_m is no liquid range (refused), each latent band is checked.
+  Material equal;
+  equal.vapor_temperature = equal.melt_temperature;
+  EXPECT_EQ(testing::error_message<InputError>([&] { equal.validate(); }),
+            "material.vapor_temperature = 600: must be > material.melt_temperature = 600");
+  for (double Material::*band :
+       {&Material::latent_melt, &Material::latent_solidify, &Material::latent_vapor})
+    for (const double bad : {-1.0, std::nan("")}) {
+      Material b;
+      b.*band = bad;
+      EXPECT_CONTAINS(testing::error_message<InputError>([&] { b.validate(); }), "must be >= 0");
+    }
+  Material vapor_band;
+  vapor_band.latent_vapor = -1;
+  EXPECT_EQ(testing::error_message<InputError>([&] { vapor_band.validate(); }),
+            "material.latent_vapor = -1: must be >= 0");
 }
 
 TEST(ThermalInput, SpecAndStartStateChecked) {
@@ -47,9 +64,15 @@ TEST(ThermalInput, SpecAndStartStateChecked) {
   EXPECT_CONTAINS(testing::error_message<InputError>([&] { ThermalModel(p, {Material{}}, {}); }),
                   "must be < 1");
   p.material[0] = 0;
-  p.temperature[0] = 800;
-  EXPECT_CONTAINS(testing::error_message<InputError>([&] { ThermalModel(p, {Material{}}, {}); }),
-                  "vapour");
+  // A particle at theta_v or above would start as vapour: refused, from exactly theta_v up.
+  for (const double start : {800.0, Material{}.vapor_temperature}) {
+    p.temperature[0] = start;
+    EXPECT_CONTAINS(testing::error_message<InputError>([&] { ThermalModel(p, {Material{}}, {}); }),
+                    "vapour");
+  }
+  p.temperature[0] = std::nextafter(Material{}.vapor_temperature, 0.0);  // just below: liquid
+  ThermalModel liquid(p, {Material{}}, {});
+  EXPECT_EQ(p.phase[0], Phase::liquid);
 }
 
 TEST(ThermalGraph, PairAverageConductivityByMaterial) {

@@ -65,6 +65,7 @@ TEST(ThermalPhase, ThroughMeltAndVaporInOneStepVaporisesWithBothBands) {
   EXPECT_NEAR(s.model.ledger().imbalance(), 0.0, 1e-12 * dh);
   EXPECT_EQ(r.bands_short, 0u);  // both crossings made
   EXPECT_EQ(r.band_heat_short, 0.0);
+  EXPECT_TRUE(r.phase_changed.empty());  // live particles only: it left, with no optics to change
 }
 
 TEST(ThermalPhase, BandsHoldBackVaporisation) {
@@ -179,26 +180,30 @@ TEST(ThermalPhase, AParticleExactlyAtMeltIsLiquid) {
 TEST(ThermalPhase, CoolingThroughMeltSolidifiesWithLiquidPlusSolidifyBand) {
   // A liquid sphere against a cold wall, backward Euler: (c_eff + dt g) theta1 = c_eff theta0 +
   // dt g theta_w with c_eff = m (C_L + dP_LS / dtheta) / M once the predictor crosses theta_m.
-  ThermalSpec spec;
-  const double g = 1e-3;  // W/K
-  spec.walls.push_back({0, 0.0, 0.0, 300.0, g});
-  Material solidifying;
-  solidifying.latent_solidify = 3000;  // not latent_melt's 1000: the band must be this one
-  Single s(610.0, spec, solidifying);
-  const Material& m = s.m;
-  const double dt = 0.5 * mass_over_m(m) * m.c_liquid / g;  // predictor: 610 -> ~506 K
-  const StepReport r = s.model.step(dt, {});
-  EXPECT_EQ(r.solver, "diagonal");
-  ASSERT_EQ(r.phase_changed, std::vector<std::uint32_t>{0});
-  EXPECT_EQ(s.p.phase[0], Phase::solid);
-  const double c_eff = mass_over_m(m) * (m.c_liquid + m.latent_solidify);
-  const double expected = (c_eff * 610.0 + dt * g * 300.0) / (c_eff + dt * g);
-  EXPECT_NEAR(s.p.temperature[0], expected, 1e-9);
-  ASSERT_LT(expected, m.melt_temperature);
-  // Everything that left the sphere went into the wall.
-  EXPECT_NEAR(s.model.ledger().walls, -s.model.ledger().stored,
-              1e-12 * std::abs(s.model.ledger().walls));
-  EXPECT_NEAR(s.model.ledger().walls, c_eff * (610.0 - expected), 1e-12 * s.model.ledger().walls);
+  // From exactly theta_m too: liquid there (at or above theta_m), so its cooling crosses the band.
+  for (const double start : {610.0, 600.0}) {
+    ThermalSpec spec;
+    const double g = 1e-3;  // W/K
+    spec.walls.push_back({0, 0.0, 0.0, 300.0, g});
+    Material solidifying;
+    solidifying.latent_solidify = 3000;  // not latent_melt's 1000: the band must be this one
+    Single s(start, spec, solidifying);
+    const Material& m = s.m;
+    ASSERT_EQ(s.p.phase[0], Phase::liquid) << start;
+    const double dt = 0.5 * mass_over_m(m) * m.c_liquid / g;  // predictor: 610 -> ~506 K
+    const StepReport r = s.model.step(dt, {});
+    EXPECT_EQ(r.solver, "diagonal");
+    ASSERT_EQ(r.phase_changed, std::vector<std::uint32_t>{0}) << start;
+    EXPECT_EQ(s.p.phase[0], Phase::solid);
+    const double c_eff = mass_over_m(m) * (m.c_liquid + m.latent_solidify);
+    const double expected = (c_eff * start + dt * g * 300.0) / (c_eff + dt * g);
+    EXPECT_NEAR(s.p.temperature[0], expected, 1e-9) << start;
+    ASSERT_LT(expected, m.melt_temperature);
+    // Everything that left the sphere went into the wall.
+    EXPECT_NEAR(s.model.ledger().walls, -s.model.ledger().stored,
+                1e-12 * std::abs(s.model.ledger().walls));
+    EXPECT_NEAR(s.model.ledger().walls, c_eff * (start - expected), 1e-12 * s.model.ledger().walls);
+  }
 }
 
 // A band one pass adds can push a neighbour across another: a liquid sphere at 640 K touching a

@@ -140,6 +140,26 @@ TEST(ThermalStiff, ExplicitBeyondLimitRefusedWithClearMessage) {
   EXPECT_EQ(p.temperature, before);  // nothing was half-done
 }
 
+// thermal.max_substeps is the most sub-steps a step may take: a step needing exactly that many
+// runs, one needing one more is refused.
+TEST(ThermalStiff, AStepNeedingExactlyTheMostSubStepsRuns) {
+  for (const int most : {51, 50}) {
+    Particles p = stiff_packing();
+    const double limit = explicit_limit(p);
+    ThermalSpec spec;
+    spec.phi = 0;
+    spec.max_substeps = most;
+    ThermalModel model(p, {conductive()}, spec);
+    model.set_contacts(find_contacts(p));
+    if (most == 51) {
+      EXPECT_EQ(model.step(50.5 * limit, {}).substeps, 51);
+      continue;
+    }
+    testing::expect_error<InputError>([&] { model.step(50.5 * limit, {}); },
+                                      "would need 51 sub-steps > thermal.max_substeps = 50");
+  }
+}
+
 TEST(ThermalStiff, ExplicitModeratelyBeyondLimitIsSubSteppedAndStable) {
   Particles p = stiff_packing();
   const double limit = explicit_limit(p);
@@ -553,6 +573,13 @@ TEST(ThermalStiff, FixedPointCrawlingJustBelowItsLimitReportsStagnation) {
   patient.step(dt, {});
   EXPECT_NEAR(p.temperature[0], 400.0 + 100.0 / 1.999, 1e-6);
   EXPECT_NEAR(p.temperature[1], 400.0 - 100.0 / 1.999, 1e-6);
+  // At 0.99 of the limit the crawl needs ~2300 iterations: more than ten times the 179 left
+  // after the window, so it is stagnation too, said as early (not "did not converge" at 200).
+  spec.max_iterations = 200;
+  ThermalModel slow(p, {m}, spec);
+  slow.set_contacts(contacts);
+  testing::expect_error<SolverRefusal>([&] { slow.step(0.99 * c / (2.0 * g), {}); },
+                                       "fixed-point iteration (3.11) stagnates at iteration 21");
 }
 
 // Below its limit the iteration converges, and must say nothing else. Chains of spheres whose
