@@ -46,43 +46,64 @@ std::vector<double> circle_ys(const std::string& svg) {
   return out;
 }
 
-// The x tick labels, each with its centre: (x, text).
-std::vector<std::pair<double, std::string>> placed_x_labels(const std::string& svg) {
+// The x tick labels on the row at `y` (the first panel's: 380, a second row 394), each with its
+// centre: (x, text).
+std::vector<std::pair<double, std::string>> placed_x_labels(const std::string& svg, int y = 380) {
   std::vector<std::pair<double, std::string>> out;
-  const std::regex text("<text x=\"([^\"]*)\" y=\"380\"[^>]*>([^<]*)</text>");
+  const std::regex text("<text x=\"([^\"]*)\" y=\"" + std::to_string(y) + "\"[^>]*>([^<]*)</text>");
   for (auto it = std::sregex_iterator(svg.begin(), svg.end(), text); it != std::sregex_iterator();
        ++it)
     out.emplace_back(std::stod((*it)[1]), (*it)[2]);
   return out;
 }
 
-// Neighbouring x labels do not overprint (at 7 px a character, font-size 12), however many digits
-// tell the ticks apart: 13-digit labels 73 px apart did (a user audit's sweep of sample.size over
-// 0.001 and 0.0010000001). Labels of categories too; the labels kept still differ, and a short
-// axis keeps them all.
+// Neighbouring labels on a row do not overprint (at 7 px a character, font-size 12), and each
+// lies within the chart's 640 px.
+void expect_apart_and_within(const std::vector<std::pair<double, std::string>>& labels) {
+  for (std::size_t k = 0; k < labels.size(); ++k) {
+    const double half = 3.5 * double(labels[k].second.size());
+    EXPECT_GE(labels[k].first - half, 0.0) << labels[k].second;
+    EXPECT_LE(labels[k].first + half, 640.0) << labels[k].second;
+    if (k == 0) continue;
+    EXPECT_GT(labels[k].first - labels[k - 1].first,
+              half + 3.5 * double(labels[k - 1].second.size()))
+        << labels[k - 1].second << " and " << labels[k].second;
+  }
+}
+
+// Neighbouring x labels do not overprint, however many digits tell the ticks apart: 13-digit
+// labels 73 px apart did (a user audit's sweep of sample.size over 0.001 and 0.0010000001); numbers
+// are then on every second tick, and a short axis keeps them all. A category's label is its
+// point's only name: every one is kept, distinct, on two rows and shortened around "..." when
+// long, and within the chart (the first was centred on the frame's edge, half off the image).
 TEST(Charts, NeighbouringTickLabelsDoNotOverprint) {
   const Chart fine{"t", "x", "y", false, false, {{"a", {0.001, 0.0010000001}, {1, 2}}}};
-  const Chart words{"t",
-                    "x",
-                    "y",
-                    false,
-                    false,
-                    {{"a", {0, 1, 2, 3, 4}, {1, 2, 3, 4, 5}}},
-                    {"a-long-packing-file-name.xyz", "another-packing.xyz", "b.xyz", "c.xyz",
-                     "the-last-packing-file.xyz"}};
-  for (const Chart& chart : {fine, words}) {
-    const auto labels = placed_x_labels(render_svg(chart));
-    ASSERT_GE(labels.size(), 2u) << render_svg(chart);
-    for (std::size_t k = 1; k < labels.size(); ++k) {
-      const double half_widths =
-          3.5 * double(labels[k - 1].second.size() + labels[k].second.size());
-      EXPECT_GT(labels[k].first - labels[k - 1].first, half_widths)
-          << labels[k - 1].second << " and " << labels[k].second;
-      EXPECT_NE(labels[k].second, labels[k - 1].second);
-    }
-  }
+  const auto numbers = placed_x_labels(render_svg(fine));
+  ASSERT_GE(numbers.size(), 2u) << render_svg(fine);
+  expect_apart_and_within(numbers);
   const Chart plain{"t", "x", "y", false, false, {{"a", {0, 1, 2, 3, 4, 5}, {1, 2, 3, 4, 5, 6}}}};
   EXPECT_EQ(placed_x_labels(render_svg(plain)).size(), 6u) << render_svg(plain);
+  const std::vector<std::string> names = {"a-long-packing-file-name.xyz",
+                                          "another-packing.xyz",
+                                          "b.xyz",
+                                          "c.xyz",
+                                          "the-last-packing-file.xyz",
+                                          "f.xyz",
+                                          "g.xyz"};
+  const Chart words{
+      "t", "x", "y", false, false, {{"a", {0, 1, 2, 3, 4, 5, 6}, {1, 2, 3, 4, 5, 6, 7}}}, names};
+  const std::string svg = render_svg(words);
+  const auto first = placed_x_labels(svg, 380), second = placed_x_labels(svg, 394);
+  expect_apart_and_within(first);
+  expect_apart_and_within(second);
+  std::set<std::string> shown;
+  for (const auto& row : {first, second})
+    for (const auto& [x, label] : row) shown.insert(label);
+  EXPECT_EQ(shown.size(), names.size()) << svg;  // each point named, no two alike
+  EXPECT_TRUE(shown.count("b.xyz")) << svg;      // a short name whole
+  EXPECT_TRUE(std::any_of(shown.begin(), shown.end(), [](const std::string& l) {
+    return l.starts_with("a-lo") && l.find("...") != std::string::npos && l.ends_with("xyz");
+  })) << svg;
 }
 
 // Tick labels below 1e-12 all read "0" (an absolute round-off threshold): pulse durations of

@@ -383,14 +383,24 @@ TEST(Cli, BadRunFilesExitWithCodeTwoNamingKeyAndLine) {
                      {"expected comma or closing '}'", "at character 17 (`density=2000}`)"});
   expect_input_error("set_table_cut", "", "--preset quick --set 'beam={rays=5'",
                      {"the value of `beam` is not TOML", "at its end"});
-  // A name TOML reads as another type (a packing file named 123) is told how to quote it.
+  // A name TOML reads as another type (a packing file named 123) is told how to quote it, as it
+  // was typed (TOML prints 1e3 back as 1000.0, another name).
   expect_input_error(
-      "file_named_a_number", "", "--preset quick --set packing.source=file --set packing.file=123",
-      {"`packing.file` = 123: must be a string (TOML reads 123 as a number: quote it, --set "
-       "'packing.file=\"123\"')"});
-  expect_input_error(
-      "file_named_a_boolean", "[packing]\nsource = \"file\"\nfile = true\n", "",
-      {"run.toml:3", "TOML reads true as a boolean: quote it, packing.file = \"true\""});
+      "file_named_a_number", "", "--preset quick --set packing.source=file --set packing.file=1e3",
+      {"`packing.file` = 1000.0: must be a string (TOML reads 1e3 as a number: a name is written "
+       "in quotes, \"1e3\": --set 'packing.file=\"1e3\"')"});
+  expect_input_error("file_named_a_boolean", "[packing]\nsource = \"file\"\nfile = true\n", "",
+                     {"run.toml:3",
+                      "TOML reads true as a boolean: a name is written in quotes, "
+                      "\"true\")"});
+  // A bracket that opens no TOML array is a name's (a file named [x].xyz), and a table's number
+  // below a double's is told so, not taken as a name.
+  expect_input_error("file_named_with_brackets", "",
+                     "--preset quick --set packing.source=file --set 'packing.file=[x].xyz'",
+                     {"[x].xyz\": cannot open for reading"});
+  expect_input_error("set_table_underflow", "",
+                     "--preset quick --set 'material={conductivity=1e-400}'",
+                     {"--set material={conductivity=1e-400}:", "1e-400: underflows to 0"});
   expect_input_error("wall_conductance", "",
                      "--preset quick --set thermal.walls=z- --set thermal.wall_conductance=-0.5",
                      {"thermal.wall_conductance", "-0.5", "or -1"});
@@ -771,6 +781,12 @@ TEST(Cli, AValueBelowALimitedKeysRangeIsToldTheWholeRange) {
   for (const auto& [set, range] : cases)
     expect_input_error(std::string("below_") + set, "", std::string("--preset quick --set ") + set,
                        {set, range});
+  // Within it, a whole number beyond 2^53 as number() reads one (it was refused as no number).
+  const Result whole =
+      run("config --preset quick --set thermal.walls=z- --set "
+          "thermal.wall_conductance=10000000000000000");
+  EXPECT_EQ(whole.code, 0) << whole.output;
+  EXPECT_CONTAINS(whole.output, "wall_conductance = 1e16");
 }
 
 // A FIFO or a device given as the run file or the packing file is refused before it is opened:

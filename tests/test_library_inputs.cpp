@@ -7,6 +7,7 @@
 #include <functional>
 #include <limits>
 #include <numbers>
+#include <sstream>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -210,6 +211,43 @@ TEST(LibraryInputs, OnlyTheSpecsOwnPackingIsNamedAsTheCauseOfARadius) {
     EXPECT_NOT_CONTAINS(std::string(e.what()), "packing.radius_ratio") << e.what();
     EXPECT_CONTAINS(std::string(e.what()), "has a thermal mass") << e.what();
   }
+}
+
+// The thermal-mass check weighs the whole run's energy, every pulse's, not one pulse's (a step may
+// gather several pulses, with a period shorter than thermal.dt): a particle that one pulse of 10 J
+// warms by 1e307 K (a normal thermal mass of ~1e-306 J/K) the run's 100 pulses warm beyond the
+// largest double. Refused as input, naming the keys behind the thermal mass and the run's 1000 J;
+// a hundred times the density, or the one pulse alone, is taken.
+TEST(LibraryInputs, AThermalMassIsCheckedAgainstEveryPulsesEnergy) {
+  SimulationSpec s = one_pulse();
+  s.beam.power = 1e13;  // 10 J a pulse of 1 ps
+  s.pulses.duration = 1e-12;
+  s.pulses.count = 100;
+  const Particles p = three_spheres();
+  double pulse = 0;  // summed as the simulation sums its rays' energies
+  for (double e : make_beam(s.beam, kD).ray_energies(s.pulses.duration)) pulse += e;
+  ASSERT_NEAR(pulse, 10.0, 1e-6);
+  Material unit = s.materials[0];
+  unit.density = 1;
+  const double per_density = least_thermal_mass(unit, p.volume(0), s.thermal.time_scaling);
+  // One pulse over the thermal mass is 1e307 K: finite, and the thermal mass a normal number.
+  s.materials[0].density = pulse / (1e307 * per_density);
+  const double mass = least_thermal_mass(s.materials[0], p.volume(0), s.thermal.time_scaling);
+  ASSERT_GE(mass, std::numeric_limits<double>::min());
+  ASSERT_TRUE(std::isfinite(pulse / mass));
+  ASSERT_FALSE(std::isfinite(100 * pulse / mass));
+  std::ostringstream run_energy;
+  run_energy << "the run's " << pulse * 100 << " J warms by a finite amount";
+  testing::expect_error<InputError>([&] { Simulation sim(s, p); },
+                                    "particle 0 (radius 0.0001 m) has a thermal mass "
+                                    "`material.density` x volume x min(`material.c_solid`, "
+                                    "`material.c_liquid`) / `thermal.time_scaling`",
+                                    "must be a finite normal number", run_energy.str());
+  SimulationSpec one = s;  // the same particles under one pulse
+  one.pulses.count = 1;
+  EXPECT_NO_THROW(Simulation(one, p));
+  s.materials[0].density *= 100;  // the run's 1000 J warm them by 1e307 K
+  EXPECT_NO_THROW(Simulation(s, p));
 }
 
 }  // namespace

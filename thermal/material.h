@@ -16,12 +16,12 @@ namespace beampack {
 // 7e-7 at 1e13, and was open by 1.6e-4 at 1e15. At all these upper limits together the direct
 // solver closes the ledger and the iterative ones stop with their own message. Not where a heat
 // capacity at its lower cap meets bands or temperatures near their upper ones: the quick preset
-// with C = 1e-12, latent bands of 1e12 and K = 1e20 opens it by 6.6e-8, and with theta_m = 1e11,
-// theta_v = 1e12 as well its particles keep a third of the heat absorbed (thirty-sixth session;
-// the phase review's 3.4e-6 and 116 times the heat were of a scene not recorded, before five
-// sessions of changes to the heat step); the run's open-ledger warning says so. The stiff scenes
-// the project validates (K up to 1e6 in `beampack validate --stiff`, 1e9 in
-// tests/test_thermal_stiff.cpp) are far inside.
+// with C = 1e-12, latent bands of 1e12 and K = 1e20 still closes it to 6.6e-8 (below the run's
+// 1e-6 warning), but with theta_m = 1e11, theta_v = 1e12 as well its particles keep a third of
+// the heat absorbed, which the run's open-ledger warning says (thirty-sixth session; the phase
+// review's 3.4e-6 and 116 times the heat were of a scene not recorded, before five sessions of
+// changes to the heat step). The stiff scenes the project validates (K up to 1e6 in `beampack
+// validate --stiff`, 1e9 in tests/test_thermal_stiff.cpp) are far inside.
 inline constexpr Cap kConductivityCap{
     1e20,
     "W/(m K) (5e16 times diamond's; far larger ones overflow the conductances and the "

@@ -124,20 +124,6 @@ Eigen::VectorXd inverse_diagonal(const SparseMatrix& a) {
   return inverse;
 }
 
-// f(i) for every row i, over threads when the vector is long; f writes row i alone, so the same
-// bits on any thread count.
-template <class F>
-void for_each_row(Eigen::Index n, const F& f) {
-  if (n < kParallelEntries / 4) {
-    for (Eigen::Index i = 0; i < n; ++i) f(i);
-    return;
-  }
-  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, n, 4096),
-                    [&](const tbb::blocked_range<Eigen::Index>& r) {
-    for (Eigen::Index i = r.begin(); i < r.end(); ++i) f(i);
-  });
-}
-
 }  // namespace
 
 // Eigen's ConjugateGradient<Lower | Upper, DiagonalPreconditioner> step for step (its

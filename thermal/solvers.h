@@ -2,6 +2,9 @@
 // Solvers for the implicit step (3.10): A theta = rhs with A = diag(c) + dt phi (L + W),
 // symmetric positive definite for phi > 0 (c > 0, L + W a weighted graph Laplacian plus a
 // non-negative diagonal).
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
 #include <cstdint>
@@ -10,6 +13,21 @@
 namespace beampack {
 
 using SparseMatrix = Eigen::SparseMatrix<double>;
+
+// f(i) for every row i in [0, n), over threads when there are many (8192 or more); f writes row
+// i alone, so the same bits on any thread count.
+template <class F>
+void for_each_row(Eigen::Index n, const F& f) {
+  constexpr Eigen::Index kParallelRows = 8192;  // fewer: a task costs more than it saves
+  if (n < kParallelRows) {
+    for (Eigen::Index i = 0; i < n; ++i) f(i);
+    return;
+  }
+  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, n, 4096),
+                    [&](const tbb::blocked_range<Eigen::Index>& r) {
+    for (Eigen::Index i = r.begin(); i < r.end(); ++i) f(i);
+  });
+}
 
 struct SolveStats {
   int iterations = 0;

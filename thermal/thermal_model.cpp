@@ -8,9 +8,6 @@
 #include <numeric>
 #include <sstream>
 
-#include <tbb/blocked_range.h>
-#include <tbb/parallel_for.h>
-
 #include "geometry/check.h"
 #include "geometry/error.h"
 #include "geometry/packing.h"
@@ -507,24 +504,6 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_kept_and_new(
 
 // busy_ cut from all_: the rows' columns of L + W (their nonzero entries stay inside the rows'
 // components; explicit zeros of contacts with vaporised particles are dropped) and their clusters.
-namespace {
-
-// f(k) for k in [0, m): over threads for many rows (each k writes only its own entries).
-template <class F>
-void for_each_busy_row(Eigen::Index m, const F& f) {
-  constexpr Eigen::Index kParallelRows = 8192;
-  if (m < kParallelRows) {
-    for (Eigen::Index k = 0; k < m; ++k) f(k);
-    return;
-  }
-  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, m, 2048),
-                    [&](const tbb::blocked_range<Eigen::Index>& r) {
-    for (Eigen::Index k = r.begin(); k < r.end(); ++k) f(k);
-  });
-}
-
-}  // namespace
-
 // The busy rows' part of L + W, column k from particle rows[k]'s column without the entries of
 // rows outside (rows ascend, so each column's entries stay sorted). Written straight into the
 // compressed arrays, rows over threads: each column's count, their offsets, then the entries (the
@@ -535,14 +514,14 @@ void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
   const auto m = static_cast<Eigen::Index>(rows.size());
   std::vector<Eigen::Index>& row_of = row_of_;  // -1 outside the rows between calls
   row_of.resize(p_.size(), -1);
-  for_each_busy_row(m, [&](Eigen::Index k) { row_of[rows[k]] = k; });
+  for_each_row(m, [&](Eigen::Index k) { row_of[rows[k]] = k; });
   s.diagonal.resize(m), s.wall_source.resize(m), s.wall_conductance.resize(m);
   s.has_conduction = all_.has_conduction;
   if (s.has_conduction) {
     const SparseMatrix& all = all_.laplacian;
     s.laplacian = SparseMatrix(m, m);
     int* outer = s.laplacian.outerIndexPtr();
-    for_each_busy_row(m, [&](Eigen::Index k) {
+    for_each_row(m, [&](Eigen::Index k) {
       int count = 0;
       for (SparseMatrix::InnerIterator it(all, rows[k]); it; ++it) count += row_of[it.row()] >= 0;
       outer[k + 1] = count;  // a vaporised neighbour's explicit zero is left out
@@ -552,7 +531,7 @@ void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
     s.diag_pos.resize(static_cast<std::size_t>(m));
     int* inner = s.laplacian.innerIndexPtr();
     double* values = s.laplacian.valuePtr();
-    for_each_busy_row(m, [&](Eigen::Index k) {
+    for_each_row(m, [&](Eigen::Index k) {
       Eigen::Index at = outer[k];
       for (SparseMatrix::InnerIterator it(all, rows[k]); it; ++it) {
         const Eigen::Index r = row_of[it.row()];
@@ -566,11 +545,11 @@ void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
     s.laplacian = SparseMatrix();
     for (Eigen::Index k = 0; k < m; ++k) s.diagonal[k] = all_.diagonal[rows[k]];  // the walls'
   }
-  for_each_busy_row(m, [&](Eigen::Index k) {
+  for_each_row(m, [&](Eigen::Index k) {
     s.wall_source[k] = all_.wall_source[rows[k]];
     s.wall_conductance[k] = all_.wall_conductance[rows[k]];
   });
-  for_each_busy_row(m, [&](Eigen::Index k) { row_of[rows[k]] = -1; });
+  for_each_row(m, [&](Eigen::Index k) { row_of[rows[k]] = -1; });
   s.live.assign(static_cast<std::size_t>(m), 1);
   s.pattern_version = ++versions_;
   s.particle = std::move(rows);

@@ -259,9 +259,12 @@ int main(int argc, char** argv) {
     }
     if (sweep_cmd->parsed()) return exit_code(table_written(sweep_command(sweep)));
     if (converge_cmd->parsed()) return exit_code(table_written(converge_command(converge)));
-    if (validate_cmd->parsed())
-      return output_written(stiff ? run_stability_report(quiet_validate, only)
-                                  : run_validate(quiet_validate));
+    if (validate_cmd->parsed() && stiff)
+      return output_written(run_stability_report(quiet_validate, only));
+    if (validate_cmd->parsed()) {  // a fraction of a second: an interrupt is answered at its end
+      const int code = output_written(run_validate(quiet_validate));
+      return code == 0 && stop_requested().load() ? interrupted_exit_code() : code;
+    }
     if (app.got_subcommand("presets")) return output_written(list_presets());
     if (config_cmd->parsed()) return output_written(print_config(config.sources));
   } catch (const beampack::InputError& e) {

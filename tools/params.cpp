@@ -380,15 +380,30 @@ std::string assignment_key(const std::string& key_equals_value) {
 
 namespace {
 
+// A --set value the user wrote as TOML: a quoted string, an inline table (`{` with a `=` or a
+// closing `}`) or an array (`[...]`). Anything else that does not parse is a bare word, a string:
+// `[x].xyz` is a file name.
+bool written_as_toml(const std::string& value) {
+  if (value.empty()) return false;
+  const char first = value.front(), last = value.back();
+  return first == '"' || first == '\'' ||
+         (first == '{' && (last == '}' || value.find('=') != std::string::npos)) ||
+         (first == '[' && last == ']');
+}
+
 // Where in a --set's `value` TOML failed ("v = " came before it), and why; inside a table or an
 // array a text is a string only in quotes.
 std::string not_toml(const toml::parse_error& e, const std::string& value) {
   constexpr std::size_t kPrefix = 4;  // "v = "
   const std::size_t column = e.source().begin.column;
   const std::size_t at = column > kPrefix ? std::min(column - kPrefix - 1, value.size()) : 0;
-  const std::string where = at >= value.size() ? "at its end"
-                                               : "at character " + std::to_string(at + 1) + " (`" +
-                                                     value.substr(at) + "`)";
+  // Non-ASCII characters reach the parser as \uXXXX escapes: its column is not the value's.
+  const bool ascii = std::all_of(value.begin(), value.end(),
+                                 [](char c) { return static_cast<unsigned char>(c) < 0x80; });
+  const std::string where = !ascii               ? "in it"
+                            : at >= value.size() ? "at its end"
+                                                 : "at character " + std::to_string(at + 1) +
+                                                       " (`" + value.substr(at) + "`)";
   const std::string hint =
       value.front() == '{'   ? "; a table is {key = value, ...}, a text in it quoted: "
                                "{file = \"p.xyz\"}"
@@ -416,15 +431,19 @@ void Params::merge_assignment(const std::string& key_equals_value, const std::st
   } catch (const toml::parse_error& e) {
     // A table, an array or a quoted string is TOML the user wrote: its error is theirs to mend,
     // not a bare word (`{conductivity=abc}` was taken as text, then told to be a table).
-    if (!value.empty() && std::string_view("{[\"'").find(value.front()) != std::string::npos)
+    if (written_as_toml(value))
       throw InputError(named + ": the value of `" + key + "` is not TOML: " + not_toml(e, value));
-    parsed = toml::table{{"v", value}};  // a bare word: a string
-  } catch (const std::runtime_error&) {  // non-ASCII outside quotes
+    parsed = toml::table{{"v", value}};    // a bare word: a string
+  } catch (const std::runtime_error& e) {  // non-ASCII outside quotes, a number below a double's
+    if (written_as_toml(value)) throw InputError(named + ": " + e.what());
     parsed = toml::table{{"v", value}};
   }
   if (parsed.size() != 1)  // "5\nbogus = 7": the second line would go unread
     throw InputError(named + ": the value of `" + key + "` must be one TOML value (" +
                      std::to_string(parsed.size()) + " assignments found: a line break?)");
+  // A table given whole replaces what was typed for the keys under it.
+  std::erase_if(raw_values_, [&](const auto& kv) { return kv.first.starts_with(key + "."); });
+  raw_values_[key] = value;
   merge_value(merged_, origin_, key, *parsed.get("v"), {named, "", ++layers_, true, swept}, false,
               named);
 }
@@ -582,7 +601,11 @@ double Params::number_or(const std::string& key, double fallback, double lo, dou
                            ", or " + shown_number(special) + " (" + meaning + ")";
   double v = fallback;
   if (const toml::node* node = find(key)) {
-    const std::optional<double> read = node->is_number() ? node->value<double>() : std::nullopt;
+    // As number() reads them: an integer beyond 2^53 too, which value<double>() declines.
+    const std::optional<double> read =
+        node->is_integer()          ? std::optional<double>(double(node->as_integer()->get()))
+        : node->is_floating_point() ? std::optional<double>(node->as_floating_point()->get())
+                                    : std::nullopt;
     if (node->is_string() && beyond_doubles(node->as_string()->get()) > 0)
       fail(key, repr(*node), "must be a finite number " + rule + " (it is beyond a double's)");
     if (!read) fail(key, repr(*node), "must be a number " + rule);
@@ -628,14 +651,17 @@ std::int64_t Params::integer(const std::string& key, std::int64_t fallback, std:
 // how to write it where it was given.
 std::string Params::quoting_hint(const std::string& key, const toml::node& node) const {
   if (node.is_table() || node.is_array()) return "";
-  const std::string shown = repr(node);
-  return " (TOML reads " + shown + " as a " +
+  // As the user wrote it on the command line (TOML prints 1e3 back as 1000.0, another name).
+  const auto raw = raw_values_.find(key);
+  const std::string written =
+      set_on_command_line(key) && raw != raw_values_.end() ? raw->second : repr(node);
+  return " (TOML reads " + written + " as a " +
          std::string(node.is_number()    ? "number"
                      : node.is_boolean() ? "boolean"
                                          : "date or time") +
-         ": quote it, " +
-         (set_on_command_line(key) ? "--set '" + key + "=\"" + shown + "\"'"
-                                   : key + " = \"" + shown + "\"") +
+         ": a name is written in quotes, \"" + written + "\"" +
+         (set_on_command_line(key) && !swept(key) ? ": --set '" + key + "=\"" + written + "\"'"
+                                                  : std::string()) +
          ")";
 }
 

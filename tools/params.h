@@ -105,6 +105,7 @@ class Params {
  private:
   const toml::node* find(const std::string& key) const;
   std::string quoting_hint(const std::string& key, const toml::node& node) const;
+  std::map<std::string, std::string> raw_values_;  // key -> its last --set value, as typed
   const KeyOrigin* origin(const std::string& key) const;
   std::string where(const std::string& key) const;  // "run.toml:12: " or "--set: " or ""
   void record(const std::string& key, toml::node&& value);

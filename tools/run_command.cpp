@@ -1536,7 +1536,7 @@ int run_command(const RunOptions& options) {
   }
   config.packing.reset();  // the simulation holds its own copy
   Simulation& sim = *owned;
-  say_warnings("", sim.scene_warnings());
+  say_warnings("", sim.scene_warnings());  // of a resumed run, of the state restored
   record.spent_checkpoint_here &= into_checkpoint_folder;
   // Only once the inputs are read whole: a run refused for bad input leaves the folder as it was.
   remove_earlier_run(out_dir, into_checkpoint_folder);

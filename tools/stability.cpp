@@ -417,7 +417,7 @@ int run_stability_report(bool quiet, const std::vector<std::string>& only) {
       std::printf(
           "stability: interrupted after %d of %zu cells: %d passed, %d failed, %d refused\n",
           ok + failed + refused, cells, ok, failed, refused);
-      return interrupted_exit_code();
+      return failed > 0 ? 1 : interrupted_exit_code();  // a failure is the graver news
     }
     compare_solvers(group, outcomes);
     for (std::size_t k = 0; k < group.size(); ++k) {

@@ -160,20 +160,37 @@ bool has_zero_on_log_y(const Chart& chart) {
   return false;
 }
 
+// About 7 px a character at font-size 12, and a 6 px gap between neighbouring labels.
+constexpr double kCharWidth = 7, kLabelGap = 6;
+
 // Every stride-th of `labels` (centred on ticks `spacing` px apart) so that none overprints its
-// neighbour: about 7 px a character at font-size 12, and a 6 px gap.
+// neighbour.
 std::size_t label_stride(const std::vector<std::string>& labels, double spacing) {
-  constexpr double kCharWidth = 7, kGap = 6;
   std::size_t widest = 0;
   for (const std::string& label : labels) widest = std::max(widest, label.size());
   if (!(spacing > 0)) return 1;
   return std::max<std::size_t>(
-      1, std::size_t(std::ceil((kCharWidth * double(widest) + kGap) / spacing)));
+      1, std::size_t(std::ceil((kCharWidth * double(widest) + kLabelGap) / spacing)));
 }
 
-// The x ticks, each label centred below its tick; labels too long for their ticks' spacing are
-// thinned to every second (third, ...) tick, whose values are still told apart (13-digit labels
-// 73 px apart overprinted each other).
+// `label` within `chars` characters: its start and end around "..." (sweep.csv has it whole).
+std::string shortened(const std::string& label, std::size_t chars) {
+  chars = std::max<std::size_t>(chars, 5);
+  if (label.size() <= chars) return label;
+  const std::size_t keep = chars - 3, head = (keep + 1) / 2;
+  return label.substr(0, head) + "..." + label.substr(label.size() - (keep - head));
+}
+
+// A label's centre near x, moved in so that it stays within the chart's width.
+double within_chart(double x, const std::string& label) {
+  const double half = 0.5 * kCharWidth * double(label.size()) + 2;
+  return std::clamp(x, half, std::max(half, kWidth - half));
+}
+
+// The x ticks, each label centred below its tick. Numbers too long for their ticks' spacing are
+// put on every second (third, ...) tick, whose values are still told apart (13-digit labels 73 px
+// apart overprinted each other). A category's label is its point's only name: every one is kept,
+// on two rows when long, shortened around "..." when still too long.
 void write_x_ticks(std::ostream& o, const Chart& chart, const Axis& ax, const Frame& f) {
   const bool categories = !chart.x_categories.empty();
   std::vector<double> x_ticks = ticks(ax);
@@ -187,14 +204,18 @@ void write_x_ticks(std::ostream& o, const Chart& chart, const Axis& ax, const Fr
                                 : tick_label(fx, ax));
   const auto at = [&](double fx) { return kLeft + f.w * (fx - ax.lo) / (ax.hi - ax.lo); };
   const double spacing = x_ticks.size() > 1 ? at(x_ticks[1]) - at(x_ticks[0]) : f.w;
-  const std::size_t stride = label_stride(labels, spacing);
+  const std::size_t stride = categories ? 1 : label_stride(labels, spacing);
+  const std::size_t rows = categories && label_stride(labels, spacing) > 1 ? 2 : 1;
+  const auto fits = std::size_t(std::max(0.0, (double(rows) * spacing - kLabelGap) / kCharWidth));
   for (std::size_t k = 0; k < x_ticks.size(); ++k) {
     const double x = at(x_ticks[k]);
     o << "<line x1=\"" << x << "\" y1=\"" << kTop + f.h << "\" x2=\"" << x << "\" y2=\""
       << kTop + f.h + 5 << "\" stroke=\"black\"/>";
-    if (k % stride == 0)
-      o << "<text x=\"" << x << "\" y=\"" << kTop + f.h + 20 << "\" text-anchor=\"middle\">"
-        << xml_text(labels[k]) << "</text>";
+    if (k % stride == 0) {
+      const std::string label = categories ? shortened(labels[k], fits) : labels[k];
+      o << "<text x=\"" << within_chart(x, label) << "\" y=\"" << kTop + f.h + 20 + 14 * (k % rows)
+        << "\" text-anchor=\"middle\">" << xml_text(label) << "</text>";
+    }
     o << "\n";
   }
 }
