@@ -763,7 +763,9 @@ using EigenCg = Eigen::ConjugateGradient<SparseMatrix, Eigen::Lower | Eigen::Upp
 // step for step with its products and updates over threads: the same iterations, residual and
 // bits with one thread and two.
 TEST(ThermalSolvers, ConjugateGradientsAreEigensBitForBitOnAnyThreadCount) {
-  const auto [a, rhs, guess] = seeded_step_like_system();
+  const SeededSystem system = seeded_step_like_system();  // no structured binding: clang 14
+  const SparseMatrix& a = system.a;                       // cannot capture one in a lambda
+  const Eigen::VectorXd &rhs = system.rhs, &guess = system.guess;
   const Eigen::Index n = a.rows();
   for (const double tolerance : {1e-3, 1e-5, 1e-7, 1e-10}) {  // where each stops differs
     EigenCg eigen;
@@ -814,8 +816,10 @@ TEST(ThermalSolvers, ConjugateGradientsAreEigensBitForBitOnAnyThreadCount) {
 // count, which cg_solve keeps, is k - 1 then: a pass that converges is not counted, and a pass
 // capped by the maximum is.
 TEST(ThermalSolvers, ConjugateGradientsStopAtTheirToleranceToTheIteration) {
-  const auto [a, rhs, guess] = seeded_step_like_system();
-  const auto residual_at = [&, &a = a, &rhs = rhs, &guess = guess](int iterations) {
+  const SeededSystem system = seeded_step_like_system();
+  const SparseMatrix& a = system.a;
+  const Eigen::VectorXd &rhs = system.rhs, &guess = system.guess;
+  const auto residual_at = [&](int iterations) {
     EigenCg capped;
     capped.setTolerance(1e-300);
     capped.setMaxIterations(iterations);
