@@ -504,11 +504,10 @@ std::vector<Eigen::Index> ThermalModel::busy_rows_kept_and_new(
 
 // busy_ cut from all_: the rows' columns of L + W (their nonzero entries stay inside the rows'
 // components; explicit zeros of contacts with vaporised particles are dropped) and their clusters.
-// The busy rows' part of L + W, column k from particle rows[k]'s column without the entries of
-// rows outside (rows ascend, so each column's entries stay sorted). Written straight into the
-// compressed arrays, rows over threads: each column's count, their offsets, then the entries (the
-// same matrix as inserted column by column; a copy of 3e4 scattered columns out of 10^6 on every
-// change of the busy rows was 10% of a 10^6-sphere run's profile).
+// Column k is particle rows[k]'s column (rows ascend, so its entries stay sorted), written straight
+// into the compressed arrays with rows over threads: each column's count, their offsets, then the
+// entries (the same matrix as inserted column by column, which on every change of the busy rows
+// was 10% of a 10^6-sphere run's profile).
 void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
   System& s = busy_;
   const auto m = static_cast<Eigen::Index>(rows.size());
@@ -548,8 +547,8 @@ void ThermalModel::build_busy_system(std::vector<Eigen::Index> rows) {
   for_each_row(m, [&](Eigen::Index k) {
     s.wall_source[k] = all_.wall_source[rows[k]];
     s.wall_conductance[k] = all_.wall_conductance[rows[k]];
+    row_of[rows[k]] = -1;
   });
-  for_each_row(m, [&](Eigen::Index k) { row_of[rows[k]] = -1; });
   s.live.assign(static_cast<std::size_t>(m), 1);
   s.pattern_version = ++versions_;
   s.particle = std::move(rows);
@@ -1146,7 +1145,7 @@ void ThermalModel::restore(const Snapshot& s) {
   // Reassemble only if the live set differs from the matrix's: a redo without vaporisation keeps
   // it (compared with the assembled set, not p_.alive, which a checkpoint may have set already).
   if (all_.live != s.alive) dirty_ = true;
-  removed_contacts_bound_ = kBoundUnknown;  // the snapshot's live set: drop_removed_contacts looks
+  removed_contacts_bound_ = kBoundUnknown;  // any live set: drop_removed_contacts counts anew
   // Without walls the reference moves no term of the system (no wall sources): it is taken over.
   // With walls it is the first wall's temperature, as the spec gives it.
   if (!has_walls_) {

@@ -578,15 +578,8 @@ double Params::number(const std::string& key, double fallback, double lo, double
     range += (hi_open ? " and < " : " and <= ") + shown_number(hi);
   else if (stated_hi < std::numeric_limits<double>::max())
     range += " and <= " + shown_number(stated_hi);
-  double v = fallback;
-  if (const toml::node* node = find(key)) {
-    if (node->is_integer()) v = double(node->as_integer()->get());
-    else if (node->is_floating_point()) v = node->as_floating_point()->get();
-    else if (node->is_string() && beyond_doubles(node->as_string()->get()) > 0)
-      fail(key, repr(*node), "must be a finite number " + range + " (it is beyond a double's)");
-    else fail(key, repr(*node), "must be a number " + range);
-    if (!std::isfinite(v)) fail(key, repr(*node), "must be a finite number " + range);
-  }
+  const toml::node* node = find(key);
+  const double v = node ? number_value(key, *node, range) : fallback;
   const bool below = lo_open ? !(v > lo) : !(v >= lo);
   const bool above = hi_open ? !(v < hi) : !(v <= hi);
   if (below || above) fail(key, shown_number(v), "must be " + range);
@@ -595,23 +588,24 @@ double Params::number(const std::string& key, double fallback, double lo, double
   return v;
 }
 
+double Params::number_value(const std::string& key, const toml::node& node,
+                            const std::string& range) const {
+  double v = 0;
+  if (node.is_integer()) v = double(node.as_integer()->get());
+  else if (node.is_floating_point()) v = node.as_floating_point()->get();
+  else if (node.is_string() && beyond_doubles(node.as_string()->get()) > 0)
+    fail(key, repr(node), "must be a finite number " + range + " (it is beyond a double's)");
+  else fail(key, repr(node), "must be a number " + range);
+  if (!std::isfinite(v)) fail(key, repr(node), "must be a finite number " + range);
+  return v;
+}
+
 double Params::number_or(const std::string& key, double fallback, double lo, double stated_hi,
                          double special, const std::string& meaning) {
   const std::string rule = ">= " + shown_number(lo) + " and <= " + shown_number(stated_hi) +
                            ", or " + shown_number(special) + " (" + meaning + ")";
-  double v = fallback;
-  if (const toml::node* node = find(key)) {
-    // As number() reads them: an integer beyond 2^53 too, which value<double>() declines.
-    const std::optional<double> read =
-        node->is_integer()          ? std::optional<double>(double(node->as_integer()->get()))
-        : node->is_floating_point() ? std::optional<double>(node->as_floating_point()->get())
-                                    : std::nullopt;
-    if (node->is_string() && beyond_doubles(node->as_string()->get()) > 0)
-      fail(key, repr(*node), "must be a finite number " + rule + " (it is beyond a double's)");
-    if (!read) fail(key, repr(*node), "must be a number " + rule);
-    if (!std::isfinite(*read)) fail(key, repr(*node), "must be a finite number " + rule);
-    v = *read;
-  }
+  const toml::node* node = find(key);
+  const double v = node ? number_value(key, *node, rule) : fallback;
   if (v != special && !(v >= lo)) fail(key, shown_number(v), "must be " + rule);
   record(key, toml::value<double>(v));
   number_defaults_[key] = fallback;

@@ -105,6 +105,10 @@ class Params {
  private:
   const toml::node* find(const std::string& key) const;
   std::string quoting_hint(const std::string& key, const toml::node& node) const;
+  // A number node's value as a double (a whole number too, beyond 2^53), refused with `range`
+  // when it is no number or not finite.
+  double number_value(const std::string& key, const toml::node& node,
+                      const std::string& range) const;
   std::map<std::string, std::string> raw_values_;  // key -> its last --set value, as typed
   const KeyOrigin* origin(const std::string& key) const;
   std::string where(const std::string& key) const;  // "run.toml:12: " or "--set: " or ""

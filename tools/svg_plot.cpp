@@ -204,8 +204,8 @@ void write_x_ticks(std::ostream& o, const Chart& chart, const Axis& ax, const Fr
                                 : tick_label(fx, ax));
   const auto at = [&](double fx) { return kLeft + f.w * (fx - ax.lo) / (ax.hi - ax.lo); };
   const double spacing = x_ticks.size() > 1 ? at(x_ticks[1]) - at(x_ticks[0]) : f.w;
-  const std::size_t stride = categories ? 1 : label_stride(labels, spacing);
-  const std::size_t rows = categories && label_stride(labels, spacing) > 1 ? 2 : 1;
+  const std::size_t needed = label_stride(labels, spacing);  // for labels that do not overprint
+  const std::size_t stride = categories ? 1 : needed, rows = categories && needed > 1 ? 2 : 1;
   const auto fits = std::size_t(std::max(0.0, (double(rows) * spacing - kLabelGap) / kCharWidth));
   for (std::size_t k = 0; k < x_ticks.size(); ++k) {
     const double x = at(x_ticks[k]);
