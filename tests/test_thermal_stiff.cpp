@@ -127,6 +127,59 @@ TEST(ThermalStiff, AutoPicksTheFactorisationWhenStiff) {
   EXPECT_EQ(model.step(dt, {}).solver, "direct");
 }
 
+// "auto"'s bounds: 0.1 for the fixed-point iteration; 100 for CG up to 65536 rows; past them
+// 100 (rows / 65536)^2, at most (max_iterations / 8)^2 and never below 100.
+TEST(ThermalSolvers, AutoPicksBySizeAndStiffness) {
+  const double above = 1 + 1e-12;
+  for (const Eigen::Index rows : {2, 1000, 65536}) {
+    EXPECT_STREQ(auto_solver(0.1, rows, 1000), "fixed-point");
+    EXPECT_STREQ(auto_solver(0.1 * above, rows, 1000), "cg");
+    EXPECT_STREQ(auto_solver(100, rows, 1000), "cg");
+    EXPECT_STREQ(auto_solver(100 * above, rows, 1000), "direct");
+  }
+  EXPECT_STREQ(auto_solver(400, 131072, 1000), "cg");  // twice the rows: four times the bound
+  EXPECT_STREQ(auto_solver(400 * above, 131072, 1000), "direct");
+  EXPECT_STREQ(auto_solver(15625, 1'000'000, 1000), "cg");  // (1000 / 8)^2, below 100 x 15.3^2
+  EXPECT_STREQ(auto_solver(15625 * above, 1'000'000, 1000), "direct");
+  EXPECT_STREQ(auto_solver(2e4, 1'000'000, 2000), "cg");  // 100 x 15.26^2 = 23283 below 62500
+  EXPECT_STREQ(auto_solver(23284, 1'000'000, 2000), "direct");
+  EXPECT_STREQ(auto_solver(100, 1'000'000, 10), "cg");  // a small iteration cap keeps 100
+  EXPECT_STREQ(auto_solver(100 * above, 1'000'000, 10), "direct");
+}
+
+// A chain of 150,000 spheres, every one heated (so every row is solved), one step at a contraction
+// estimate of 300 (its bound there: 100 (150000 / 65536)^2 = 524): "auto" takes CG (the
+// factorisation of a large bed of touching spheres costs ten times CG's at 1e6 rows), where a
+// chain of 1000 at the same step is factorised; CG's temperatures are the factorisation's to its
+// tolerance.
+TEST(ThermalStiff, AutoTakesConjugateGradientsOnALargeModeratelyStiffSystem) {
+  const double a = 1e-5;
+  const auto step = [&](int n, const std::string& solver, double dt) {
+    Particles p = test::chain(n, a);
+    ThermalSpec spec;
+    spec.solver = solver;
+    ThermalModel model(p, {conductive()}, spec);
+    model.set_contacts(find_contacts(p));
+    std::vector<double> heat(p.size(), 0.0);
+    for (std::size_t i = 0; i < p.size(); ++i) heat[i] = 1e-12 * static_cast<double>(i % 7);
+    const StepReport report = model.step(dt, heat);
+    return std::make_pair(report, p.temperature);
+  };
+  const double probe = 1e-12;
+  const double dt = probe * 300.0 / step(4, "direct", probe).first.contraction_estimate;
+  const auto [big, big_theta] = step(150'000, "auto", dt);
+  EXPECT_NEAR(big.contraction_estimate, 300.0, 1e-6);
+  EXPECT_EQ(big.solver, "cg") << big.solved_rows << " rows, " << big.iterations << " iterations";
+  EXPECT_EQ(step(1000, "auto", dt).first.solver, "direct");
+  const auto direct_theta = step(150'000, "direct", dt).second;
+  double rise = 0;
+  for (std::size_t i = 0; i < direct_theta.size(); ++i)
+    rise = std::max(rise, direct_theta[i] - 300);
+  ASSERT_GT(rise, 1.0);
+  for (std::size_t i = 0; i < direct_theta.size(); ++i)
+    ASSERT_NEAR(big_theta[i], direct_theta[i], 1e-7 * rise) << "particle " << i;
+}
+
 TEST(ThermalStiff, ExplicitBeyondLimitRefusedWithClearMessage) {
   Particles p = stiff_packing();
   const double dt = 1e6 * explicit_limit(p);

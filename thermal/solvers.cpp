@@ -217,4 +217,15 @@ void DirectSolver::solve(const SparseMatrix& a, std::uint64_t pattern_version,
   if (!theta.allFinite()) throw RunError("thermal direct solver: non-finite temperature");
 }
 
+const char* auto_solver(double contraction, Eigen::Index rows, int max_iterations) {
+  if (contraction <= 0.1) return "fixed-point";
+  double cg_bound = kAutoCgBound;
+  if (static_cast<double>(rows) > kAutoSmallRows) {
+    const double size = static_cast<double>(rows) / kAutoSmallRows;
+    const double within_iterations = (max_iterations / 8.0) * (max_iterations / 8.0);
+    cg_bound = std::max(kAutoCgBound, std::min(kAutoCgBound * size * size, within_iterations));
+  }
+  return contraction <= cg_bound ? "cg" : "direct";
+}
+
 }  // namespace beampack

@@ -54,6 +54,20 @@ SolveStats fixed_point_solve(const SparseMatrix& a, const Eigen::VectorXd& c,
 SolveStats cg_solve(const SparseMatrix& a, const Eigen::VectorXd& rhs, Eigen::VectorXd& theta,
                     double tolerance, int max_iterations);
 
+// thermal.solver = "auto"'s pick for a system of `rows` rows whose contraction estimate (dt phi
+// times the largest row sum of L + W over c) is `contraction`: "fixed-point" up to 0.1 (each
+// iteration gains a factor 10 or more), "cg" while the system is well conditioned (its iterations
+// grow like the square root of the estimate: ~4 sqrt of it per solve, measured), "direct" for
+// stiffer steps, where iterative methods crawl. The factorisation's cost grows much faster than
+// its rows (a bed of touching spheres, K = 100: 0.1, 1.2 and 22 s per factorisation at 1e5, 3e5
+// and 1e6 rows, against CG's 0.07, 0.3 and 2.2 s), CG's as rows times the root of the estimate:
+// past kAutoSmallRows rows the CG bound grows as rows^2, but only as far as CG's expected
+// iterations stay within half of max_iterations (a CG that fails under "auto" is followed by the
+// factorisation, so a wrong pick costs time, never a result).
+inline constexpr double kAutoSmallRows = 65536;
+inline constexpr double kAutoCgBound = 100;  // the contraction CG takes up to at kAutoSmallRows
+const char* auto_solver(double contraction, Eigen::Index rows, int max_iterations);
+
 // Sparse LDL^T that keeps the symbolic analysis while the pattern version is unchanged, and the
 // numeric factors while the matrix values are unchanged too (a fixed step without phase change).
 class DirectSolver {

@@ -625,15 +625,6 @@ double ThermalModel::contraction_estimate(const System& s, double dt,
   return dt * spec_.phi * worst;
 }
 
-// Fixed-point only where it contracts fast (each iteration gains a factor 10); CG while the
-// system is well conditioned (its iterations grow like the square root of the estimate);
-// the factorisation for stiff steps, where iterative methods crawl.
-std::string ThermalModel::choose_solver(double contraction) const {
-  if (contraction <= 0.1) return "fixed-point";
-  if (contraction <= 100.0) return "cg";
-  return "direct";
-}
-
 // Solves (3.10) for theta1 given the capacities c:
 //   (c + dt phi (L + W)) theta1 = c theta0 + dt (1 - phi) Q(theta0) + dt phi b + dH,
 // Q(theta) = b - (L + W) theta, b the wall sources. Without a conducting contact the system is
@@ -672,7 +663,8 @@ void ThermalModel::solve_relative(const System& s, double dt, const Eigen::Vecto
   const double rho = contraction_estimate(s, dt, c);
   report.contraction_estimate = std::max(report.contraction_estimate, rho);
   report.conduction_ran = true;
-  report.solver = spec_.solver == "auto" ? choose_solver(rho) : spec_.solver;
+  report.solver =
+      spec_.solver == "auto" ? auto_solver(rho, a.rows(), spec_.max_iterations) : spec_.solver;
   // A cluster's rows summed: (c + dt phi W)^T theta1 = its energy (the contacts' terms cancel).
   const Eigen::VectorXd weight = c + implicit * s.wall_conductance;
   if (report.solver != "direct" && solve_change(a, c, drive, rho, theta0, theta1, report)) {

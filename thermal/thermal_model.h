@@ -272,7 +272,6 @@ class ThermalModel {
                              const Eigen::VectorXd& rhs, Eigen::VectorXd& theta1,
                              StepReport& report);
   double contraction_estimate(const System& s, double dt, const Eigen::VectorXd& c) const;
-  std::string choose_solver(double contraction) const;
   bool phase_work_needed(const Eigen::VectorXd& theta0, const Eigen::VectorXd& theta1) const;
   void correct_phases(double dt, const Eigen::VectorXd& dh, Eigen::VectorXd& c, StepTemperatures& t,
                       StepReport& report);
