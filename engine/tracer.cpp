@@ -1033,7 +1033,10 @@ void Tracer::keep_undo(bool on) {
 }
 
 void Tracer::undo_advance() {
-  if (!undo_.held) return;
+  if (!undo_.held)  // as ThermalModel::undo_step: a silent no-op left the advance's rays done
+    throw RunError(
+        "undo_advance: no advance to undo (keep_undo(true) before it, and no launch, removal, "
+        "compaction or restore since; once per advance)");
   RayState& s = state_;
   for (std::size_t j = 0; j < due_chunks_.size(); ++j) {
     const Chunk& c = chunks_[j];

@@ -274,8 +274,9 @@ class Tracer {
   // redo of a step costs what the step touched, not a copy of every ray. Anything else that
   // changes the rays (launch, compaction, removal, restore) drops the record.
   void keep_undo(bool on);
-  // Back to before the last advance, if it was kept and nothing else changed the rays since
-  // (last_advance_path and the chunk counts are the advance's before it again).
+  // Back to before the last advance (last_advance_path and the chunk counts are the advance's
+  // before it again). RunError unless that advance was kept and nothing else changed the rays
+  // since; once per advance.
   void undo_advance();
 
   // Built with the scene (so not before it), and only when bounced rays can exist.

@@ -17,6 +17,7 @@
 #include "engine/state_io.h"
 #include "engine/tracer.h"
 #include "geometry/compensated_sum.h"
+#include "geometry/contact.h"
 #include "geometry/error.h"
 #include "geometry/packing.h"
 #include "tests/expect_error.h"
@@ -191,6 +192,73 @@ TEST(LibraryInputs, AHandMadeLaunchIsRefusedByName) {
   growing.add(Vec3(0.5e-3, 0.5e-3, 0.9e-3), 1e-4);
   testing::expect_error<InputError>([&] { tracer.launch(beam, 1e-13); },
                                     "the particles were 3 when the tracer took them and are 4 now");
+}
+
+// The heat model's walls, matrices and stored heat are of the particles it took: one added later
+// was read past their ends (valgrind: invalid reads in the assembly; 200,000 added: a non-finite
+// temperature). Every call that reads them refuses, and a refused step changes nothing.
+TEST(LibraryInputs, TheHeatModelRefusesParticlesAddedOrRemovedAfterItTookThem) {
+  Material m;
+  m.conductivity = 50;
+  ThermalSpec walls;
+  walls.walls.push_back(Wall{});
+  Particles p = three_spheres();
+  ThermalModel model(p, {m}, walls);
+  model.set_contacts(find_contacts(p));
+  const ThermalModel::Snapshot before = model.save();
+  p.add(Vec3(0.5e-3, 0.5e-3, 0.9e-3), 1e-4);
+  const std::vector<double> heat(p.size(), 1e-12);
+  const std::string count = "the particles were 3 when the heat model took them and are 4 now";
+  testing::expect_error<InputError>([&] { model.step(1e-12, heat); }, "thermal step: " + count);
+  testing::expect_error<InputError>([&] { model.set_contacts({}); },
+                                    "thermal set_contacts: " + count);
+  testing::expect_error<InputError>([&] { model.restore(before); }, "thermal restore: " + count);
+  testing::expect_error<InputError>([&] { (void)model.save(); }, "thermal save: " + count);
+  testing::expect_error<InputError>([&] { (void)model.monotone_step_limit(); }, count);
+  testing::expect_error<InputError>([&] { (void)model.component_of(0); }, count);
+  p.temperature.pop_back(), p.centre.pop_back(), p.radius.pop_back(), p.material.pop_back();
+  p.phase.pop_back(), p.alive.pop_back();
+  EXPECT_EQ(model.ledger().absorbed, 0.0);  // the refused step took no heat
+  EXPECT_NO_THROW(model.step(1e-12, std::vector<double>(3, 1e-12)));
+  p.temperature.pop_back(), p.centre.pop_back(), p.radius.pop_back(), p.material.pop_back();
+  p.phase.pop_back(), p.alive.pop_back();
+  testing::expect_error<InputError>([&] { model.undo_step(); },
+                                    "the particles were 3 when the heat model took them and are "
+                                    "2 now");
+}
+
+// Contacts made by hand: a NaN area conducted nothing without a word, a distance of 0 gave "non-
+// finite temperature" a step later. Each is refused by name, and the contacts before stay.
+TEST(LibraryInputs, AHandMadeContactOrHeatIsRefusedByName) {
+  Material m;
+  m.conductivity = 50;
+  Particles p = three_spheres();
+  ThermalModel model(p, {m}, ThermalSpec{});
+  const std::vector<Contact> found = find_contacts(p);
+  ASSERT_FALSE(found.empty());
+  model.set_contacts(found);
+  const auto refused = [&](double area, double distance, const std::string& message) {
+    testing::expect_error<InputError>(
+        [&] {
+      model.set_contacts({Contact{0, 2, area, distance}});
+        },
+        message);
+    ASSERT_EQ(model.contacts().size(), found.size());
+    EXPECT_EQ(model.contacts()[0].area, found[0].area);
+  };
+  refused(kNaN, 1e-4, "contact (0, 2): area nan m^2: must be finite and >= 0");
+  refused(-1e-9, 1e-4, "contact (0, 2): area -1e-09 m^2: must be finite and >= 0");
+  refused(1e-9, 0.0, "contact (0, 2): distance 0 m: must be finite and > 0");
+  refused(1e-9, kNaN, "contact (0, 2): distance nan m: must be finite and > 0");
+  refused(1e300, 1e-300, "contact (0, 2): conductance K A / d = inf W/K (area 1e+300 m^2");
+  std::vector<double> heat(p.size(), 0.0);
+  heat[1] = -1e-9;
+  testing::expect_error<InputError>(
+      [&] { model.step(1e-12, heat); },
+      "thermal step: absorbed energy of particle 1 = -1e-09 J: must be finite and >= 0");
+  heat[1] = kNaN;
+  testing::expect_error<InputError>([&] { model.step(1e-12, heat); }, "particle 1 = nan J");
+  EXPECT_EQ(model.ledger().absorbed, 0.0);
 }
 
 // A radius the user set through the spec is named in a thermal-mass refusal; particles the

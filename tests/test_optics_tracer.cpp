@@ -930,11 +930,21 @@ TEST(OpticsTracer, UndoAdvanceTakesBackExactlyTheLastAdvance) {
       ASSERT_TRUE(redone[k].from == once[k].from && redone[k].to == once[k].to &&
                   redone[k].energy == once[k].energy)
           << k;
-    // Launching drops the record: an undo then changes nothing.
+    // Launching drops the record: an undo then is refused and changes nothing; so is a second
+    // undo of one advance, and an undo without keep_undo (it was a silent no-op).
     tracer.launch(make_beam(BeamSpec{}, kD), 1e-9);
     const RayState launched = tracer.save();
-    tracer.undo_advance();
+    EXPECT_THROW(tracer.undo_advance(), RunError);
     expect_same_rays(tracer.save(), launched, "after a launch");
+    std::vector<double> deposits;
+    tracer.advance(2e-5, deposits);
+    tracer.undo_advance();
+    EXPECT_THROW(tracer.undo_advance(), RunError);
+    expect_same_rays(tracer.save(), launched, "after a second undo");
+    plain.launch(make_beam(BeamSpec{}, kD), 1e-9);
+    plain.advance(2e-5, deposits);
+    testing::expect_error<RunError>([&] { plain.undo_advance(); },
+                                    "undo_advance: no advance to undo (keep_undo(true) before it");
   }
 }
 

@@ -822,7 +822,7 @@ TEST(ThermalState, ARefusedStepLeavesNothingToUndo) {
   const std::vector<double> warmed = a.p.temperature;
   std::vector<double> negative = a.dh;
   negative[0] = -1;
-  EXPECT_THROW(model.step(2e-10, negative), RunError);
+  EXPECT_THROW(model.step(2e-10, negative), InputError);  // the caller's input, not a failed run
   EXPECT_THROW(model.undo_step(), RunError);
   EXPECT_EQ(a.p.temperature, warmed);
 }

@@ -59,7 +59,10 @@ void ThermalSpec::validate() const {
 }
 
 ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials, ThermalSpec spec)
-    : p_(particles), materials_(std::move(materials)), spec_(std::move(spec)) {
+    : p_(particles),
+      particle_count_(particles.size()),
+      materials_(std::move(materials)),
+      spec_(std::move(spec)) {
   serial_ = new_serial();
   check_particles(p_);
   spec_.validate();
@@ -89,7 +92,27 @@ ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials
   stored_.assign(p_.size(), 0.0);
 }
 
+// The walls' terms, the matrices and the stored heat are of the particles as the model took
+// them: a particle added since was read past their ends.
+void ThermalModel::check_particle_count(const char* when) const {
+  if (p_.size() != particle_count_)
+    throw InputError(std::string("thermal ") + when + ": the particles were " +
+                     std::to_string(particle_count_) + " when the heat model took them and are " +
+                     std::to_string(p_.size()) + " now: a heat model's particles keep their count");
+}
+
+namespace {
+
+[[noreturn]] void refuse_contact(const Contact& c, const std::string& what) {
+  throw InputError("contact (" + std::to_string(c.i) + ", " + std::to_string(c.j) + "): " + what);
+}
+
+}  // namespace
+
+// Refused whole before anything changes: a NaN area passed every "conducts" test as none (NaN > 0
+// is false), a distance of 0 made an infinite conductance and a non-finite temperature.
 void ThermalModel::set_contacts(const std::vector<Contact>& contacts) {
+  check_particle_count("set_contacts");
   const bool same_pattern =
       contacts.size() == contacts_.size() &&
       std::equal(contacts.begin(), contacts.end(), contacts_.begin(),
@@ -98,20 +121,30 @@ void ThermalModel::set_contacts(const std::vector<Contact>& contacts) {
   std::size_t removed = 0;
   for (const Contact& c : contacts) {
     if (c.i >= p_.size() || c.j >= p_.size() || c.i == c.j)
-      throw InputError("contact (" + std::to_string(c.i) + ", " + std::to_string(c.j) +
-                       "): indices must be distinct and < " + std::to_string(p_.size()));
+      refuse_contact(c, "indices must be distinct and < " + std::to_string(p_.size()));
+    if (!(std::isfinite(c.area) && c.area >= 0))
+      refuse_contact(c, "area " + shown_number(c.area) + " m^2: must be finite and >= 0");
+    if (!(std::isfinite(c.distance) && c.distance > 0))
+      refuse_contact(c, "distance " + shown_number(c.distance) + " m: must be finite and > 0");
     ++degree[c.i], ++degree[c.j];
     removed += !p_.alive[c.i] || !p_.alive[c.j];
   }
+  std::vector<double> g = contact_conductances(p_, materials_, contacts);
+  for (std::size_t e = 0; e < g.size(); ++e)
+    if (!std::isfinite(g[e]))
+      refuse_contact(contacts[e], "conductance K A / d = " + shown_number(g[e]) + " W/K (area " +
+                                      shown_number(contacts[e].area) + " m^2, distance " +
+                                      shown_number(contacts[e].distance) + " m): must be finite");
   contacts_ = contacts;
   contact_degree_ = std::move(degree);
   removed_contacts_bound_ = removed;
-  g_ = contact_conductances(p_, materials_, contacts_);
+  g_ = std::move(g);
   if (!same_pattern) all_.pattern_version = ++versions_;
   dirty_ = pattern_dirty_ = true;
 }
 
 void ThermalModel::drop_removed_contacts(double min_fraction) {
+  check_particle_count("drop_removed_contacts");
   const double threshold = min_fraction * static_cast<double>(contacts_.size());
   const auto bound = static_cast<double>(removed_contacts_bound_);
   if (removed_contacts_bound_ == 0 || bound < threshold) return;  // fewer removed than that
@@ -362,6 +395,10 @@ void ThermalModel::update_components(const std::vector<Eigen::Index>& touched) {
 }
 
 std::uint32_t ThermalModel::component_of(std::size_t i) {
+  check_particle_count("component_of");
+  if (i >= p_.size())
+    throw InputError("component_of: particle " + std::to_string(i) + " of " +
+                     std::to_string(p_.size()));
   assemble_if_needed();
   if (!p_.alive[i]) throw RunError("component_of: particle " + std::to_string(i) + " is not live");
   return static_cast<std::uint32_t>(root_of(static_cast<Eigen::Index>(i)));
@@ -599,6 +636,7 @@ Eigen::VectorXd ThermalModel::thermal_masses_with_bands(
 }
 
 double ThermalModel::monotone_step_limit() const {
+  check_particle_count("monotone_step_limit");
   if (spec_.phi >= 1.0) return std::numeric_limits<double>::infinity();
   const_cast<ThermalModel*>(this)->assemble_if_needed();
   if (limit_assembly_ == assembly_) return limit_;  // same live set and matrix: same limit
@@ -974,6 +1012,7 @@ StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed) {
 
 StepReport ThermalModel::step(double dt, const std::vector<double>& absorbed,
                               std::span<const std::uint32_t> given) {
+  check_particle_count("step");
   undo_ready_ = false;  // a step refused below leaves nothing to undo
   if (!(std::isfinite(dt) && dt > 0)) input_error("thermal.dt", dt, "must be > 0");
   Heat heat = checked_heat(absorbed, given);
@@ -1033,8 +1072,8 @@ ThermalModel::Heat ThermalModel::checked_heat(const std::vector<double>& absorbe
       throw InputError("thermal step: heated particle " + std::to_string(i) +
                        " has no absorbed energy");
     if (!(std::isfinite(absorbed[i]) && absorbed[i] >= 0))
-      throw RunError("thermal step: absorbed energy of particle " + std::to_string(i) + " = " +
-                     std::to_string(absorbed[i]) + ": must be finite and >= 0");
+      throw InputError("thermal step: absorbed energy of particle " + std::to_string(i) + " = " +
+                       shown_number(absorbed[i]) + " J: must be finite and >= 0");
     if (!p_.alive[i] && absorbed[i] > 0)
       throw RunError("thermal step: energy deposited into vaporised particle " + std::to_string(i) +
                      " (the ray scene was not updated after its removal)");
@@ -1100,6 +1139,7 @@ void ThermalModel::remember(std::size_t i) {
 }
 
 void ThermalModel::undo_step() {
+  check_particle_count("undo_step");
   if (!undo_ready_) throw RunError("thermal undo_step: no step to undo (once per step)");
   put_back_changed();
   serial_ = serial_before_step_;  // that state again; restless_ (the step's rows) holds for it
@@ -1125,10 +1165,12 @@ Phase ThermalModel::phase_before_step(std::size_t i) const {
 }
 
 ThermalModel::Snapshot ThermalModel::save() const {
+  check_particle_count("save");
   return {p_.temperature, p_.phase, p_.alive, stored_, ledger_, serial_, reference_};
 }
 
 void ThermalModel::restore(const Snapshot& s) {
+  check_particle_count("restore");
   // Every array, or a short one would leave the particles' arrays of different lengths.
   for (const std::size_t n : {s.temperature.size(), s.phase.size(), s.alive.size()})
     if (n != p_.size())

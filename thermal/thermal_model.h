@@ -280,7 +280,10 @@ class ThermalModel {
   void update_phases(const Eigen::VectorXd& theta1, StepReport& report);
   void remember(std::size_t i);
 
+  void check_particle_count(const char* when) const;
+
   Particles& p_;
+  std::size_t particle_count_;  // p_.size() when the model took them: every array is of it
   std::vector<Material> materials_;
   ThermalSpec spec_;
   WallCoupling walls_;
