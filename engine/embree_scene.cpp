@@ -646,7 +646,7 @@ EmbreeScene::EmbreeScene(const Particles& particles, SceneUpdate update,
     removed_[p] = particles.alive[p] ? 0 : 1;
     records[k] = {particles.centre[p], removed_[p] ? -particles.radius[p] : particles.radius[p]};
   }
-  im.per_prim = std::clamp(spheres_per_primitive, 1u, 64u);
+  im.per_prim = std::clamp(spheres_per_primitive, 1u, 64u);  // the Tracer refuses others
   // Bricks hold whole clusters.
   im.brick_size = update == SceneUpdate::bricks
                       ? im.per_prim * std::max<std::size_t>(1, particles_per_brick / im.per_prim)

@@ -120,6 +120,7 @@ double Simulation::set_up_beam() {
 }
 
 void Simulation::set_up_tracer() {
+  check_optics_tuning(spec_.optics);  // a value refused, though the chunk size is set here
   OpticsSpec optics = spec_.optics;
   optics.chunk_rays = spec_.dt > 0 ? 64 : 256;  // short budgets leave small chunks alone
   // The same rays every pulse: their first hits are reused (not with one pulse, or new rays each).
@@ -798,6 +799,13 @@ void check_saved_values(const SavedRun& s, const SimulationSpec& spec) {
     require_in_state(
         (p.alive[i] == 1) == (p.phase[i] != Phase::vapor),
         particle + (p.alive[i] ? "phase vapor and is live" : "been removed unvaporised"));
+    // A live particle at theta_v had vaporised: a state of a spec with a higher theta_v (a
+    // library caller's; the command line refuses --set on a resume) left it live above.
+    const Material& m = spec.materials[p.material[i]];
+    require_in_state(!p.alive[i] || p.temperature[i] < m.vapor_temperature,
+                     particle + "temperature " + shown_number(p.temperature[i]) +
+                         " K and is live, at or above its material's vapor_temperature " +
+                         shown_number(m.vapor_temperature) + " K (a state of another spec?)");
     require_in_state(p.temperature[i] <= s.max_temperature,
                      particle + "temperature " + std::to_string(p.temperature[i]) +
                          " K, above the run's peak " + std::to_string(s.max_temperature) + " K");
@@ -856,7 +864,8 @@ SavedRun read_saved_run(StateReader& in, Tracer& tracer, const Particles& curren
   in.vector(p.temperature), in.vector(p.phase), in.vector(p.alive);
   if (p.size() != current.size() || p.centre.size() != p.size())
     throw InputError("checkpoint: its packing has " + std::to_string(p.size()) +
-                     " particles, the run file's has " + std::to_string(current.size()));
+                     " particles, this simulation's (the run file's) " +
+                     std::to_string(current.size()));
   in.vector(s.absorbed);
   s.time = in.value<double>(), s.next_pulse_time = in.value<double>();
   s.max_temperature = in.value<double>(), s.launched = in.value<int>();
@@ -871,7 +880,9 @@ SavedRun read_saved_run(StateReader& in, Tracer& tracer, const Particles& curren
   // The geometry must be the run file's: the scene, the grid and the contact graph were built
   // from it.
   if (p.centre != current.centre || p.radius != current.radius)
-    throw InputError("checkpoint: its packing differs from the run file's (other seed or file?)");
+    throw InputError(
+        "checkpoint: its packing differs from this simulation's (the run file's: other seed or "
+        "file?)");
   // A checksum guards the bytes, not a writer's mistake: every per-particle array must fit.
   const std::size_t n = p.size();
   for (std::size_t size : {p.material.size(), p.temperature.size(), p.phase.size(), p.alive.size(),

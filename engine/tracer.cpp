@@ -34,7 +34,6 @@ namespace {
 // rays are all in free flight through an advance is left alone. The chunks an advance runs go to
 // the threads in items of kBatchRays rays or more. No size changes a result: the events are
 // summed in ray order whatever the chunks and items.
-constexpr std::size_t kMaxChunkRays = 256;
 constexpr std::size_t kBatchRays = 256;
 constexpr std::size_t kPacket = 16;
 constexpr std::size_t kBatchesInFlight = 16;  // batches traced ahead of the in-order reduction
@@ -93,12 +92,7 @@ void validate(const OpticsSpec& spec, const Particles& particles) {
   check_span(particles);
   if (!(spec.cutoff >= 0.0 && spec.cutoff < 1.0))
     throw InputError("`optics.cutoff` = " + shown_number(spec.cutoff) + ": must be in [0, 1)");
-  if (!(spec.grid_cell_factor > 0.0) || !std::isfinite(spec.grid_cell_factor))
-    throw InputError("OpticsSpec::grid_cell_factor = " + shown_number(spec.grid_cell_factor) +
-                     ": must be > 0 and finite");
-  if (spec.chunk_rays < 1 || spec.chunk_rays > kMaxChunkRays)
-    throw InputError("OpticsSpec::chunk_rays = " + std::to_string(spec.chunk_rays) +
-                     ": must be in [1, " + std::to_string(kMaxChunkRays) + "]");
+  check_optics_tuning(spec);
   if (spec.max_bounces < 1)
     throw InputError("`optics.max_bounces` = " + std::to_string(spec.max_bounces) +
                      ": must be >= 1");
@@ -159,6 +153,19 @@ double particle_reflectance(const MaterialOptics& m, Phase phase, double cos_i) 
 }
 
 }  // namespace
+
+void check_optics_tuning(const OpticsSpec& spec) {
+  if (!(spec.grid_cell_factor > 0.0) || !std::isfinite(spec.grid_cell_factor))
+    throw InputError("OpticsSpec::grid_cell_factor = " + shown_number(spec.grid_cell_factor) +
+                     ": must be > 0 and finite");
+  if (spec.chunk_rays < 1 || spec.chunk_rays > kMaxChunkRays)
+    throw InputError("OpticsSpec::chunk_rays = " + std::to_string(spec.chunk_rays) +
+                     ": must be in [1, " + std::to_string(kMaxChunkRays) + "]");
+  if (spec.spheres_per_primitive < 1 || spec.spheres_per_primitive > kMaxSpheresPerPrimitive)
+    throw InputError(
+        "OpticsSpec::spheres_per_primitive = " + std::to_string(spec.spheres_per_primitive) +
+        ": must be in [1, " + std::to_string(kMaxSpheresPerPrimitive) + "]");
+}
 
 double box_exit_distance(const Box& box, const Vec3& o, const Vec3& d) {
   double t_exit = std::numeric_limits<double>::infinity();

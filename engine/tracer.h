@@ -58,6 +58,9 @@ struct RaySegment {
   double energy;  // J carried along it
 };
 
+inline constexpr std::size_t kMaxChunkRays = 256;
+inline constexpr unsigned kMaxSpheresPerPrimitive = 64;
+
 struct OpticsSpec {
   std::vector<MaterialOptics> materials = std::vector<MaterialOptics>(1);  // by Particles::material
   double cutoff = 1e-10;      // optics.cutoff: epsilon, relative to the ray's initial energy
@@ -75,8 +78,8 @@ struct OpticsSpec {
   // Rays per chunk (1-256): an advance runs only the chunks with an event before its end. Small
   // chunks leave more of them alone under short budgets (1e6 spheres, 10^5 rays, the paper's dt:
   // 15% of chunks run with 64, 44% with 256); whole pulses trace their bounces faster in large
-  // ones (waves of more rays). The simulation takes 64 for a fixed thermal.dt, 256 otherwise.
-  // Results do not depend on it.
+  // ones (waves of more rays). A Simulation takes 64 for a fixed thermal.dt, 256 otherwise,
+  // whatever its spec says (checked all the same). Results do not depend on it.
   std::size_t chunk_rays = 256;
   // A launch finds its rays' first hits at once (in coherent packets). A ray the beam launched
   // before too, from the same point on the same start plane in the same direction, meets the
@@ -86,6 +89,11 @@ struct OpticsSpec {
   // only keep a copy of each pulse.
   bool reuse_primaries = true;
 };
+
+// InputError for a tuning value out of range (grid_cell_factor, chunk_rays, spheres_per_primitive):
+// a Tracer checks its spec with it, a Simulation the caller's before it picks chunk_rays itself.
+// embree_config goes to Embree as it is.
+void check_optics_tuning(const OpticsSpec& spec);
 
 // Every joule is in exactly one bin once no ray is live: injected = absorbed + escaped + cutoff.
 struct OpticsLedger {

@@ -261,6 +261,30 @@ TEST(LibraryInputs, AHandMadeContactOrHeatIsRefusedByName) {
   EXPECT_EQ(model.ledger().absorbed, 0.0);
 }
 
+// The optics' tuning values: a Simulation picks chunk_rays itself but refuses one out of range
+// (it took 0 and 100000 without a word), and spheres_per_primitive was clamped to [1, 64].
+TEST(LibraryInputs, OpticsTuningOutOfRangeIsRefusedByName) {
+  const auto refused = [](const std::function<void(OpticsSpec&)>& set, const std::string& message) {
+    SimulationSpec spec = one_pulse();
+    set(spec.optics);
+    testing::expect_error<InputError>([&] { Simulation sim(spec, three_spheres()); }, message);
+    const Particles p = three_spheres();
+    testing::expect_error<InputError>([&] { Tracer tracer(p, spec.optics); }, message);
+  };
+  refused([](OpticsSpec& o) { o.chunk_rays = 0; },
+          "OpticsSpec::chunk_rays = 0: must be in [1, 256]");
+  refused([](OpticsSpec& o) { o.chunk_rays = 257; }, "OpticsSpec::chunk_rays = 257");
+  refused([](OpticsSpec& o) { o.spheres_per_primitive = 0; },
+          "OpticsSpec::spheres_per_primitive = 0: must be in [1, 64]");
+  refused([](OpticsSpec& o) { o.spheres_per_primitive = 65; },
+          "OpticsSpec::spheres_per_primitive = 65");
+  SimulationSpec at_limits = one_pulse();
+  at_limits.optics.chunk_rays = 1, at_limits.optics.spheres_per_primitive = 64;
+  EXPECT_NO_THROW(Simulation(at_limits, three_spheres()));
+  at_limits.optics.chunk_rays = 256, at_limits.optics.spheres_per_primitive = 1;
+  EXPECT_NO_THROW(Simulation(at_limits, three_spheres()));
+}
+
 // A radius the user set through the spec is named in a thermal-mass refusal; particles the
 // caller made are not blamed on spec.packing's keys, which did not make them.
 TEST(LibraryInputs, OnlyTheSpecsOwnPackingIsNamedAsTheCauseOfARadius) {

@@ -361,6 +361,29 @@ TEST(SimulationStages, ACallersOwnStartingTemperaturesResumeBitForBit) {
   EXPECT_EQ(resumed.figures().energy.stored, original.figures().energy.stored);
 }
 
+// A state read into a spec whose theta_v lies at or below a live particle's temperature: the
+// particle had vaporised under that spec, so the state is not one of its runs (a library caller
+// lowered theta_v; the review saw 21 live particles at or above it until the next step).
+TEST(SimulationStages, AStateWithALiveParticleAtTheSpecsVapourTemperatureIsRefused) {
+  Simulation sim(quick_scene());
+  for (int k = 0; k < 3; ++k) sim.step();
+  const StateParts parts(sim);
+  double hottest = 0;
+  for (std::size_t i = 0; i < parts.p.size(); ++i)
+    if (parts.p.alive[i]) hottest = std::max(hottest, parts.p.temperature[i]);
+  ASSERT_GT(hottest, 300.0);
+  SimulationSpec lower = quick_scene();
+  lower.materials[0].melt_temperature =
+      std::min(lower.materials[0].melt_temperature, 0.5 * hottest);
+  lower.materials[0].vapor_temperature = hottest;
+  EXPECT_CONTAINS(read_error(lower, parts),
+                  "K and is live, at or above its material's "
+                  "vapor_temperature " +
+                      shown_number(hottest) + " K");
+  lower.materials[0].vapor_temperature = std::nextafter(hottest, 1e300);
+  EXPECT_EQ(read_error(lower, parts), testing::kAccepted);
+}
+
 // A state whose checksum holds but whose per-particle arrays do not fit the particles (a
 // writer's mistake) is refused by name: a longer temperature array was copied past the
 // particles'. The state is rebuilt from a real one with one temperature too many.
