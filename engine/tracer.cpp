@@ -840,8 +840,7 @@ void RayState::check_values(std::size_t particles, const std::string& source) co
                 " particles",
             r);
     if (!(energy[r] >= 0 && energy[r] <= initial_energy[r] && std::isfinite(initial_energy[r])))
-      bad("energy " + std::to_string(energy[r]) + " J of " + std::to_string(initial_energy[r]) +
-              " J",
+      bad("energy " + shown_number(energy[r]) + " J of " + shown_number(initial_energy[r]) + " J",
           r);
     if (!(finite(origin[r]) && finite(direction[r]) && std::isfinite(start_clock[r]) &&
           !std::isnan(t_next[r])))
@@ -851,15 +850,15 @@ void RayState::check_values(std::size_t particles, const std::string& source) co
   const OpticsLedger& l = ledger;
   for (const double v : {l.injected, l.absorbed, l.escaped, l.cutoff, clock})
     if (!(std::isfinite(v) && v >= 0))
-      throw InputError(source + ": a ledger entry or the clock is " + std::to_string(v));
+      throw InputError(source + ": a ledger entry or the clock is " + shown_number(v));
   // A low part is what its sum rounded away: within half an ulp of it, either sign.
   for (const auto& [value, low] : {std::pair{l.injected, l.injected_low},
                                    {l.absorbed, l.absorbed_low},
                                    {l.escaped, l.escaped_low},
                                    {l.cutoff, l.cutoff_low}})
     if (!(std::abs(low) <= 1e-15 * value))
-      throw InputError(source + ": a ledger entry's low part is " + std::to_string(low) +
-                       " against its " + std::to_string(value) + " J");
+      throw InputError(source + ": a ledger entry's low part is " + shown_number(low) +
+                       " against its " + shown_number(value) + " J");
 }
 
 void Tracer::write_first_hits(StateWriter& out) const {
@@ -882,7 +881,7 @@ Tracer::FirstHits Tracer::read_first_hits(StateReader& in) const {
       throw InputError("checkpoint: a first hit on particle " + std::to_string(p) + " of " +
                        std::to_string(particles_.size()));
   for (const double t : f.t)
-    if (!(t >= 0)) throw InputError("checkpoint: a first hit at distance " + std::to_string(t));
+    if (!(t >= 0)) throw InputError("checkpoint: a first hit at distance " + shown_number(t));
   // A kept hit's point and normal are used as they are (NaN origins: deposits of NaN).
   for (std::size_t k = 0; k < n; ++k)
     if (f.particle[k] != kNoParticle && !(f.origin[k].allFinite() && f.normal[k].allFinite()))

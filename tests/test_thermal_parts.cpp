@@ -68,7 +68,8 @@ TEST(ThermalInput, SpecAndStartStateChecked) {
   for (const double start : {800.0, Material{}.vapor_temperature}) {
     p.temperature[0] = start;
     EXPECT_CONTAINS(testing::error_message<InputError>([&] { ThermalModel(p, {Material{}}, {}); }),
-                    "vapour");
+                    "must be < its material's vapor_temperature = 700 K (it would start as "
+                    "vapour)");
   }
   p.temperature[0] = std::nextafter(Material{}.vapor_temperature, 0.0);  // just below: liquid
   ThermalModel liquid(p, {Material{}}, {});

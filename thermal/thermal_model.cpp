@@ -79,7 +79,8 @@ ThermalModel::ThermalModel(Particles& particles, std::vector<Material> materials
     const Material& m = materials_[p_.material[i]];
     if (!(p_.temperature[i] < m.vapor_temperature))
       input_error(("particle " + std::to_string(i) + " temperature").c_str(), p_.temperature[i],
-                  "must be < material.vapor_temperature (it would start as vapour)");
+                  "must be < its material's vapor_temperature = " +
+                      shown_number(m.vapor_temperature) + " K (it would start as vapour)");
     p_.phase[i] = phase_at(m, p_.temperature[i]);
     coolest = std::min(coolest, p_.temperature[i]);
   }
