@@ -1,5 +1,7 @@
 #include "engine/simulation.h"
 
+#include "engine/memory_need.h"
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -55,7 +57,19 @@ bool builds_contact_graph(const SimulationSpec& spec) {
   return builds_ray_scene(spec) && needs_conduction(spec);
 }
 
-Simulation::Simulation(SimulationSpec spec) : Simulation(spec, make_packing(spec.packing), true) {}
+namespace {
+
+// spec.packing, once the scene it makes is known to fit this machine (a file's is judged once
+// read, by the constructor).
+const PackingSpec& packing_that_fits(const SimulationSpec& spec) {
+  refuse_beyond_memory(spec, machine_memory());
+  return spec.packing;
+}
+
+}  // namespace
+
+Simulation::Simulation(SimulationSpec spec)
+    : Simulation(spec, make_packing(packing_that_fits(spec)), true) {}
 
 Simulation::Simulation(SimulationSpec spec, Particles particles)
     : Simulation(spec, std::move(particles), spec.packing.source == "file") {}  // a file's, read
@@ -68,6 +82,12 @@ Simulation::Simulation(SimulationSpec spec, Particles particles, bool packing_fr
   // checks); generated ones were made with these checks, and the thermal-mass check below names
   // the key behind a radius that fails them.
   if (!generated_packing()) check_particles(particles_);
+  // The rays, the ray scene and the contacts are made below: a scene that cannot fit is refused
+  // before them, not by std::bad_alloc part way (a library caller's 10^9 rays).
+  if (!packing_from_spec_)
+    refuse_beyond_memory_of_given(spec_, machine_memory(), particles_.size());
+  else if (spec_.packing.source == "file")
+    refuse_beyond_memory(spec_, machine_memory(), particles_.size());
   mark_dead_as_vapour();
   check_run_numbers();
   check_thermal_masses(set_up_beam() * std::max(spec_.pulses.count, 1));

@@ -3044,8 +3044,7 @@ TEST(Cli, LegalButOddScenesRunAndAreAnnounced) {
 
 // A beam beyond the machine's memory is refused at once, before any allocation, naming its key.
 TEST(Cli, ABeamBeyondTheMachinesMemoryIsRefusedAtOnce) {
-  if (beampack::tools::machine_memory() > 3.9e10)
-    GTEST_SKIP() << "10^8 rays fit in this machine's memory";
+  if (beampack::machine_memory() > 3.9e10) GTEST_SKIP() << "10^8 rays fit in this machine's memory";
   const auto start = std::chrono::steady_clock::now();
   const Result r = run("run --preset quick --quiet --set beam.rays=100000000 --out " +
                        fresh_dir("huge_beam").string());

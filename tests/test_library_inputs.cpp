@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "engine/beam.h"
+#include "engine/memory_need.h"
 #include "engine/simulation.h"
 #include "engine/state_io.h"
 #include "engine/tracer.h"
@@ -283,6 +284,27 @@ TEST(LibraryInputs, OpticsTuningOutOfRangeIsRefusedByName) {
   EXPECT_NO_THROW(Simulation(at_limits, three_spheres()));
   at_limits.optics.chunk_rays = 256, at_limits.optics.spheres_per_primitive = 1;
   EXPECT_NO_THROW(Simulation(at_limits, three_spheres()));
+}
+
+// A library caller's scene beyond the machine's memory is refused before the set-up allocates it,
+// by name, as the command line's is: 10^9 rays (within beam.rays' range) ended in a bare
+// std::bad_alloc part way into the set-up. Particles the caller gave are named as given.
+TEST(LibraryInputs, ASceneBeyondTheMachinesMemoryIsRefusedByName) {
+  if (machine_memory() > 3.9e11) GTEST_SKIP() << "a machine with more than 390 GB fits the scene";
+  SimulationSpec many_rays = one_pulse();
+  many_rays.beam.rays = 1'000'000'000;
+  testing::expect_error<InputError>([&] { Simulation sim(many_rays, three_spheres()); },
+                                    "`beam.rays` = 1000000000: the run needs at least 400 GB",
+                                    "lower `beam.rays`");
+  many_rays.packing.count = 3;
+  testing::expect_error<InputError>([&] { Simulation sim(many_rays); },
+                                    "`beam.rays` = 1000000000: the run needs at least 400 GB");
+  constexpr double k24GiB = 24.0 * (1 << 30);
+  testing::expect_error<InputError>(
+      [&] { refuse_beyond_memory_of_given(one_pulse(), k24GiB, 100'000'000); },
+      "the 100000000 particles given: the run needs at least 40 GB with `beam.rays` = 100",
+      "; lower the particle count");
+  EXPECT_NO_THROW(refuse_beyond_memory_of_given(one_pulse(), k24GiB, 10'000'000));
 }
 
 // A radius the user set through the spec is named in a thermal-mass refusal; particles the

@@ -7,6 +7,7 @@
 #include <string>
 #include <vector>
 
+#include "engine/memory_need.h"
 #include "engine/simulation.h"
 #include "tools/params.h"
 
@@ -94,19 +95,8 @@ std::unique_ptr<Simulation> start_simulation(const RunConfig& config,
 // `particles`' radii (read from the file when null).
 double paper_step(const PackingSpec& packing, double xi, const Particles* particles = nullptr);
 
-// The least memory a scene needs, in bytes: its rays and its particles, at the bytes each that
-// a run measured (BENCHMARKS.md, "Memory a run needs"). Less than a run takes, never more. A
-// file packing counts `file_particles` (0 when it has not been read).
-double least_memory_need(const SimulationSpec& s, std::size_t file_particles = 0);
-
-// This machine's memory in bytes: the physical memory, or the control group's limit if lower.
-double machine_memory();
-
-// InputError naming the key that needs the most, when a scene needs more than `available` bytes
-// (it would end in std::bad_alloc, or the kernel's out-of-memory kill, part way into set-up).
-// start_simulation checks it: `beampack config` prints a run file for any machine.
-void refuse_beyond_memory(const SimulationSpec& s, double available,
-                          std::size_t file_particles = 0);
+// least_memory_need, machine_memory and refuse_beyond_memory: engine/memory_need.h (a Simulation
+// checks them too; start_simulation checks them before it reads a packing file whole).
 
 // Named presets: TOML text.
 struct Preset {
