@@ -5,7 +5,6 @@
 #include <numbers>
 #include <sstream>
 
-#include "geometry/check.h"
 #include "geometry/error.h"
 
 namespace beampack {
@@ -67,10 +66,8 @@ std::vector<double> contact_conductances(const Particles& p, const std::vector<M
     const Contact& c = contacts[e];
     g[e] = conductance(materials[p.material[c.i]].conductivity,
                        materials[p.material[c.j]].conductivity, c.area, c.distance);
-    // A NaN here would pass every "conducts" test (NaN > 0 is false) and poison the solve.
-    BEAMPACK_DCHECK(std::isfinite(g[e]) && g[e] >= 0.0,
-                    "contact %u-%u: conductance %.17g W/K (area %.17g m^2, distance %.17g m)", c.i,
-                    c.j, g[e], c.area, c.distance);
+    // A NaN or inf here would poison the solve: ThermalModel::set_contacts refuses the contacts
+    // that give one, by name (an InputError, not an internal check: a caller's contacts).
   }
   return g;
 }

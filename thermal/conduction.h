@@ -44,7 +44,9 @@ struct WallCoupling {
 WallCoupling wall_coupling(const Particles& particles, const std::vector<Material>& materials,
                            const std::vector<Wall>& walls);
 
-// One G_ij per contact, by material id; none is negative, all are 0 when every K is 0.
+// One G_ij per contact, by material id; all are 0 when every K is 0. A contact with a NaN or
+// negative area or a distance <= 0 gives NaN, a negative or an inf, which ThermalModel::
+// set_contacts refuses (find_contacts makes none).
 std::vector<double> contact_conductances(const Particles& particles,
                                          const std::vector<Material>& materials,
                                          const std::vector<Contact>& contacts);
